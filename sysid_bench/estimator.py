@@ -1,0 +1,376 @@
+"""The one interface every method sits behind, and the result types it returns.
+
+``Observation`` is what a method sees (frames and/or positions), ``Posterior`` its answer about
+the physical parameters, ``Forecast`` its answer about future positions. All three validate on
+construction, so a malformed result fails where it is made, not three modules later in a metric.
+
+Like scikit-learn estimators, a constructor only stores hyperparameters (keyword arguments, no
+work, no validation beyond storing); state learned by ``fit`` ends in ``_``.
+"""
+
+from __future__ import annotations
+
+import abc
+import inspect
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from sysid_bench._validate import as_float_array, check_positive_float, check_positive_int
+from sysid_bench.physics import BOX_WIDTH, PARAMS
+
+__all__ = [
+    "Observation",
+    "Posterior",
+    "Forecast",
+    "Estimator",
+    "Stream",
+    "LoopStream",
+    "observed_positions",
+]
+
+
+@dataclass
+class Observation:
+    """A video and/or a track of one ball.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, H, W), optional
+        Grey-scale frames (uint8, or floats in [0, 255]). Stored as given.
+    positions : ndarray, shape (T, 2), optional
+        Ball centre ``[x, y]`` in metres at each frame; NaN where the ball is not seen.
+    dt : float
+        Seconds between frames.
+    floor : float, optional
+        Floor height in metres; ``None`` means unknown.
+    state0 : ndarray, shape (4,), optional
+        Known initial state ``[x, y, vx, vy]`` (the paper's privileged baselines); ``None`` means
+        the method must estimate it.
+    """
+
+    frames: np.ndarray | None = None
+    positions: np.ndarray | None = None
+    dt: float = 0.05
+    floor: float | None = None
+    state0: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.frames is None and self.positions is None:
+            raise ValueError("Observation: expected frames and/or positions, got neither")
+        if self.frames is not None:
+            fr = np.asarray(self.frames)
+            if fr.ndim != 3:
+                raise ValueError(
+                    f"frames: expected a (T, H, W) array, got shape {fr.shape} dtype {fr.dtype}"
+                )
+            if fr.dtype != np.uint8:
+                fr = as_float_array(fr, "frames", ndim=3)
+                if fr.min() < 0 or fr.max() > 255:
+                    raise ValueError(
+                        f"frames: expected values in [0, 255], got [{fr.min():g}, {fr.max():g}]"
+                    )
+            if fr.shape[0] < 1:
+                raise ValueError("frames: expected at least 1 frame, got 0")
+            self.frames = fr
+        if self.positions is not None:
+            pos = as_float_array(self.positions, "positions", ndim=2, last=2, allow_nan=True)
+            if pos.shape[0] < 1:
+                raise ValueError("positions: expected at least 1 frame, got 0")
+            self.positions = pos
+        if self.frames is not None and self.positions is not None:
+            if self.frames.shape[0] != self.positions.shape[0]:
+                raise ValueError(
+                    "positions: expected as many rows as frames "
+                    f"({self.frames.shape[0]}), got {self.positions.shape[0]}"
+                )
+        self.dt = check_positive_float(self.dt, "dt")
+        if self.floor is not None:
+            f = float(self.floor)
+            if not np.isfinite(f):
+                raise ValueError(f"floor: expected a finite number or None, got {self.floor!r}")
+            self.floor = f
+        if self.state0 is not None:
+            self.state0 = as_float_array(self.state0, "state0", ndim=1, last=4)
+
+    @property
+    def n_frames(self) -> int:
+        """Number of observed frames T."""
+        src = self.frames if self.frames is not None else self.positions
+        return int(src.shape[0])
+
+    @property
+    def frame_shape(self) -> tuple[int, int] | None:
+        """(H, W) of the frames, or None when only positions are given."""
+        return None if self.frames is None else tuple(self.frames.shape[1:])
+
+    def prefix(self, n: int) -> Observation:
+        """The first ``n`` frames of this observation (same dt, floor and state0)."""
+        n = check_positive_int(n, "n")
+        if n > self.n_frames:
+            raise ValueError(f"n: expected at most {self.n_frames} frames, got {n}")
+        return Observation(
+            frames=None if self.frames is None else self.frames[:n],
+            positions=None if self.positions is None else self.positions[:n],
+            dt=self.dt,
+            floor=self.floor,
+            state0=self.state0,
+        )
+
+
+def observed_positions(obs: Observation, *, min_seen: int = 3) -> np.ndarray:
+    """Positions a position-based method should use, tracking the frames when needed.
+
+    Parameters
+    ----------
+    obs : Observation
+    min_seen : int
+        Fewest frames where the ball must be seen.
+
+    Returns
+    -------
+    ndarray, shape (T, 2)
+        Metres, NaN where unseen.
+
+    Raises
+    ------
+    ValueError
+        Fewer than ``min_seen`` seen frames, or positions outside the box.
+    """
+    if obs.positions is not None:
+        pos = obs.positions
+    else:
+        from sysid_bench.tracking import track  # local: tracking is only needed for video input
+
+        pos = track(obs.frames)
+    seen = np.isfinite(pos).all(axis=1)
+    if seen.sum() < min_seen:
+        raise ValueError(
+            f"positions: expected the ball seen in at least {min_seen} frames, "
+            f"got {int(seen.sum())} of {pos.shape[0]}"
+        )
+    x = pos[seen, 0]
+    tol = 1e-6
+    if x.min() < -tol or x.max() > BOX_WIDTH + tol:
+        raise ValueError(
+            f"positions: expected x within the box [0, {BOX_WIDTH:g}] m, "
+            f"got x in [{x.min():.3g}, {x.max():.3g}]"
+        )
+    if obs.floor is not None:
+        y = pos[seen, 1]
+        if y.min() < obs.floor - 1e-3 or y.max() > obs.floor + BOX_WIDTH + 1e-3:
+            raise ValueError(
+                f"positions: expected y within the box [{obs.floor:g}, {obs.floor + BOX_WIDTH:g}] m, "
+                f"got y in [{y.min():.3g}, {y.max():.3g}]"
+            )
+    return pos
+
+
+def _gauss_quantile(p: np.ndarray) -> np.ndarray:
+    from scipy.special import ndtri
+
+    return ndtri(p)
+
+
+@dataclass
+class Posterior:
+    """A method's belief about the physical parameters, in physical units, ``PARAMS`` order.
+
+    Parameters
+    ----------
+    mean : ndarray, shape (4,)
+    std : ndarray, shape (4,)
+        Non-negative; ``inf`` is allowed and means "no information".
+    samples : ndarray, shape (S, 4), optional
+    extras : dict
+        ``n_simulations`` (int), ``wall_s`` (float) and method diagnostics (R-hat, ESS, ...).
+    """
+
+    mean: np.ndarray
+    std: np.ndarray
+    samples: np.ndarray | None = None
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.mean = as_float_array(self.mean, "mean", ndim=1, last=len(PARAMS))
+        std = np.asarray(self.std, dtype=np.float64)
+        if std.shape != (len(PARAMS),):
+            raise ValueError(f"std: expected shape ({len(PARAMS)},), got {std.shape}")
+        if np.isnan(std).any() or (std < 0).any():
+            raise ValueError(f"std: expected non-negative values, got {std}")
+        self.std = std
+        if self.samples is not None:
+            self.samples = as_float_array(self.samples, "samples", ndim=2, last=len(PARAMS))
+        if not isinstance(self.extras, dict):
+            raise ValueError(f"extras: expected a dict, got {type(self.extras).__name__}")
+
+    def interval(self, level: float) -> tuple[np.ndarray, np.ndarray]:
+        """Central interval holding ``level`` of the mass, per parameter.
+
+        Uses the samples' quantiles when there are samples, else the Gaussian N(mean, std).
+
+        Returns
+        -------
+        lo, hi : ndarray, shape (4,)
+        """
+        if not 0 < level < 1:
+            raise ValueError(f"level: expected a number in (0, 1), got {level!r}")
+        a = (1 - level) / 2
+        if self.samples is not None and len(self.samples) >= 2:
+            lo, hi = np.quantile(self.samples, [a, 1 - a], axis=0)
+            return lo, hi
+        z = float(_gauss_quantile(np.array(1 - a)))
+        return self.mean - z * self.std, self.mean + z * self.std
+
+    def as_dict(self) -> dict[str, float]:
+        """``{"e": mean_e, ..., "e_std": std_e, ...}`` for tables."""
+        out = {p: float(m) for p, m in zip(PARAMS, self.mean)}
+        out.update({f"{p}_std": float(s) for p, s in zip(PARAMS, self.std)})
+        return out
+
+
+@dataclass
+class Forecast:
+    """Predicted positions for the ``H`` frames after an observation.
+
+    Parameters
+    ----------
+    mean : ndarray, shape (H, 2)
+        Metres.
+    std : ndarray, shape (H, 2)
+    samples : ndarray, shape (S, H, 2), optional
+    extras : dict
+    """
+
+    mean: np.ndarray
+    std: np.ndarray
+    samples: np.ndarray | None = None
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.mean = as_float_array(self.mean, "mean", ndim=2, last=2)
+        std = np.asarray(self.std, dtype=np.float64)
+        if std.shape != self.mean.shape:
+            raise ValueError(f"std: expected shape {self.mean.shape}, got {std.shape}")
+        if np.isnan(std).any() or (std < 0).any():
+            raise ValueError("std: expected non-negative values")
+        self.std = std
+        if self.samples is not None:
+            s = as_float_array(self.samples, "samples", ndim=3, last=2)
+            if s.shape[1] != self.mean.shape[0]:
+                raise ValueError(
+                    f"samples: expected horizon {self.mean.shape[0]} on axis 1, got shape {s.shape}"
+                )
+            self.samples = s
+        if not isinstance(self.extras, dict):
+            raise ValueError(f"extras: expected a dict, got {type(self.extras).__name__}")
+
+    @property
+    def horizon(self) -> int:
+        return int(self.mean.shape[0])
+
+
+class Stream(abc.ABC):
+    """Online identification: push one frame at a time, read the posterior after each."""
+
+    @abc.abstractmethod
+    def reset(self) -> None:
+        """Forget every frame pushed so far."""
+
+    @abc.abstractmethod
+    def push(self, frame: np.ndarray) -> Posterior:
+        """Add one frame of shape (H, W) and return the posterior given all frames so far."""
+
+
+class LoopStream(Stream):
+    """Stream for methods with no recurrent state: re-identifies on all frames so far.
+
+    Cost grows with the number of frames; Vid2Param's own stream is constant per frame.
+    """
+
+    def __init__(self, estimator: Estimator, dt: float = 0.05, floor: float | None = None):
+        self.estimator = estimator
+        self.dt = dt
+        self.floor = floor
+        self._frames: list[np.ndarray] = []
+
+    def reset(self) -> None:
+        self._frames = []
+
+    def push(self, frame: np.ndarray) -> Posterior:
+        fr = np.asarray(frame)
+        if fr.ndim != 2:
+            raise ValueError(f"frame: expected an (H, W) array, got shape {fr.shape}")
+        if self._frames and fr.shape != self._frames[0].shape:
+            raise ValueError(
+                f"frame: expected shape {self._frames[0].shape} like the earlier frames, got {fr.shape}"
+            )
+        self._frames.append(fr)
+        obs = Observation(frames=np.stack(self._frames), dt=self.dt, floor=self.floor)
+        return self.estimator.identify(obs)
+
+
+class Estimator(abc.ABC):
+    """Base class of every method.
+
+    Subclasses set ``name``, take keyword-only hyperparameters in ``__init__`` that they store
+    under the same attribute names (no work there), and implement ``identify`` and, where they
+    can, ``forecast``. A method that cannot do something raises ``NotImplementedError`` with a
+    sentence saying why; benchmarks record that as "n/a".
+    """
+
+    name: str = "estimator"
+    #: "positions" when the method works on tracked positions, "frames" when on pixels.
+    input_kind: str = "positions"
+
+    # -- hyperparameters (scikit-learn style) -------------------------------------------------
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        sig = inspect.signature(cls.__init__)
+        return [
+            p.name
+            for p in sig.parameters.values()
+            if p.name != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+        ]
+
+    def get_params(self) -> dict[str, Any]:
+        """Hyperparameters as given to the constructor."""
+        return {k: getattr(self, k) for k in self._param_names()}
+
+    def set_params(self, **params) -> Estimator:
+        names = self._param_names()
+        for k, v in params.items():
+            if k not in names:
+                raise ValueError(f"{k}: not a hyperparameter of {self.name}; known: {names}")
+            setattr(self, k, v)
+        return self
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
+        return f"{type(self).__name__}({args})"
+
+    # -- the interface ----------------------------------------------------------------------
+    def fit(self, train=None) -> Estimator:
+        """Train on a dataset; methods that do not learn return ``self`` unchanged."""
+        return self
+
+    @abc.abstractmethod
+    def identify(self, obs: Observation) -> Posterior:
+        """Posterior over ``(e, g, d, r)`` given the whole observation."""
+
+    def identify_prefixes(self, obs: Observation, lengths) -> list[Posterior]:
+        """Posteriors after each of ``lengths`` frames. Default: one ``identify`` per prefix."""
+        lengths = [check_positive_int(int(n), "lengths") for n in np.atleast_1d(lengths)]
+        for n in lengths:
+            if n > obs.n_frames:
+                raise ValueError(f"lengths: expected values <= {obs.n_frames}, got {n}")
+        return [self.identify(obs.prefix(n)) for n in lengths]
+
+    def forecast(self, obs: Observation, horizon: int) -> Forecast:
+        """Positions of the ``horizon`` frames after the observation."""
+        raise NotImplementedError(f"{self.name} does not forecast positions.")
+
+    def stream(self) -> Stream:
+        """Frame-by-frame identification; default re-identifies on every prefix."""
+        return LoopStream(self)
