@@ -17,8 +17,13 @@ from typing import Any
 
 import numpy as np
 
-from sysid_bench._validate import as_float_array, check_positive_float, check_positive_int
-from sysid_bench.physics import BOX_WIDTH, PARAMS
+from sysid_bench._validate import (
+    as_float_array,
+    check_positive_float,
+    check_positive_int,
+    check_seed,
+)
+from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
 
 __all__ = [
     "Observation",
@@ -28,6 +33,7 @@ __all__ = [
     "Stream",
     "LoopStream",
     "observed_positions",
+    "prior_posterior",
 ]
 
 
@@ -271,6 +277,28 @@ class Forecast:
         return int(self.mean.shape[0])
 
 
+def prior_posterior(n_samples: int = 0, seed=0, **extras) -> Posterior:
+    """The uniform prior as a Posterior: what a method knows before seeing anything.
+
+    Parameters
+    ----------
+    n_samples : int
+        Prior draws to attach as ``samples`` (0 for none).
+    seed : int or Generator
+    **extras
+        Put into ``Posterior.extras`` (``n_simulations`` defaults to 0, ``wall_s`` to 0.0).
+    """
+    lo = np.array([PRIOR[p][0] for p in PARAMS])
+    hi = np.array([PRIOR[p][1] for p in PARAMS])
+    samples = None
+    if n_samples:
+        rng = check_seed(seed)
+        samples = lo + rng.random((int(n_samples), len(PARAMS))) * (hi - lo)
+    info = {"n_simulations": 0, "wall_s": 0.0}
+    info.update(extras)
+    return Posterior(mean=(lo + hi) / 2, std=(hi - lo) / np.sqrt(12.0), samples=samples, extras=info)
+
+
 class Stream(abc.ABC):
     """Online identification: push one frame at a time, read the posterior after each."""
 
@@ -307,6 +335,8 @@ class LoopStream(Stream):
                 f"frame: expected shape {self._frames[0].shape} like the earlier frames, got {fr.shape}"
             )
         self._frames.append(fr)
+        if len(self._frames) < self.estimator.min_frames:
+            return prior_posterior(note=f"fewer than {self.estimator.min_frames} frames: the prior")
         obs = Observation(frames=np.stack(self._frames), dt=self.dt, floor=self.floor)
         return self.estimator.identify(obs)
 
@@ -323,6 +353,8 @@ class Estimator(abc.ABC):
     name: str = "estimator"
     #: "positions" when the method works on tracked positions, "frames" when on pixels.
     input_kind: str = "positions"
+    #: Fewest frames ``identify`` accepts; a default stream answers the prior before that.
+    min_frames: int = 1
 
     # -- hyperparameters (scikit-learn style) -------------------------------------------------
     @classmethod
