@@ -1,0 +1,25 @@
+"""The benchmark suite: five experiments over every method, a resumable results store, runners.
+
+Modules
+-------
+cases           scales (smoke / default / paper), test cases, input kinds
+store           the SQLite results store (long-format rows, one transaction per cell)
+experiment      the Experiment / Cell protocol and shared helpers
+identification  1. identification vs observed frames
+forecasting     2. forward prediction
+changing        3. parameters that change every 50 frames
+sensitivity     4. extrapolation, label noise, simplified physics (methods that train)
+calibration     5. coverage / NLL of posteriors and agreement with the nuts reference
+runner          builds the grid and runs it on a process pool or a Dask cluster
+"""
+
+from __future__ import annotations
+
+from sysid_bench.bench.identification import Identification
+
+#: name -> experiment, in report order
+EXPERIMENTS = {
+    e.name: e for e in (Identification(),)
+}
+
+__all__ = ["EXPERIMENTS"]

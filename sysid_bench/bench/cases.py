@@ -1,0 +1,231 @@
+"""Scales of a benchmark run and the test cases every method sees.
+
+Cases come from :func:`sysid_bench.datasets.make_dataset` on the **test** split with the run's
+seed, so they are a pure function of (variant, options, seed): every worker, local or on a Dask
+cluster, regenerates the same bytes (a few hundred ms per set, cached per process) instead of
+shipping arrays around. Because a dataset of n videos is a prefix of one of more videos, a run
+that asks for more cases later extends the earlier ones instead of replacing them.
+
+Inputs
+------
+``video``       the frames only, floor unknown (what Vid2Param gets; position methods go
+                through :mod:`sysid_bench.tracking`).
+``privileged``  true positions and the true initial state, floor known, no frames (what the
+                paper's lsq / bo baselines got). Only for methods that take positions.
+"""
+
+from __future__ import annotations
+
+import difflib
+from dataclasses import asdict, dataclass, field
+from functools import lru_cache
+
+import numpy as np
+
+from sysid_bench.estimator import Observation
+
+__all__ = ["INPUTS", "Scale", "SCALES", "get_scale", "test_set", "train_set", "observation",
+           "inputs_for", "unknown_name"]
+
+INPUTS = ("video", "privileged")
+
+
+def unknown_name(kind: str, name, known) -> ValueError:
+    """A ValueError listing the ``known`` names, with the closest match when there is one."""
+    known = list(known)
+    close = difflib.get_close_matches(str(name), known, n=1)
+    hint = f" Did you mean {close[0]!r}?" if close else ""
+    return ValueError(f"{kind}: unknown {kind} {name!r}; known: {', '.join(known)}.{hint}")
+
+
+@dataclass(frozen=True)
+class Scale:
+    """How big a run is.
+
+    Attributes
+    ----------
+    name : str
+    seed : int
+        Seed of every test (and sensitivity training) set.
+    n_cases : dict
+        Test videos per experiment (``identification``, ``forecasting``, ``changing``,
+        ``sensitivity``, ``calibration``).
+    method_cases : dict
+        Per method, the most test videos it gets in any experiment (expensive samplers get
+        fewer; they see the first ``k`` of the same cases).
+    method_options : dict
+        Per method, hyperparameters passed to ``methods.get``.
+    lengths : tuple of int
+        Observed frames of experiment 1.
+    forecast_after, horizon : tuple of int, int
+        Experiment 2: forecast the ``horizon`` frames after each of these prefix lengths.
+    change_every, changing_stride : int, int
+        Experiment 3: parameters change every ``change_every`` frames; methods without a
+        streaming ``identify_prefixes`` are evaluated every ``changing_stride`` frames
+        (streaming ones every frame).
+    calibration_lengths : tuple of int
+    calibration_inputs : tuple of str
+    sensitivity : dict
+        Experiment 4: ``n_train`` training videos per condition, ``fit_options`` for the
+        method's ``fit`` budget, ``extrapolation`` parameters, ``label_noise`` levels,
+        ``simplified`` (bool), ``lengths``.
+    """
+
+    name: str
+    seed: int = 2024
+    n_cases: dict = field(default_factory=dict)
+    method_cases: dict = field(default_factory=dict)
+    method_options: dict = field(default_factory=dict)
+    lengths: tuple = tuple(range(10, 201, 10))
+    forecast_after: tuple = (20, 50, 100)
+    horizon: int = 100
+    change_every: int = 50
+    changing_stride: int = 10
+    calibration_lengths: tuple = (50, 100, 200)
+    calibration_inputs: tuple = ("video",)
+    sensitivity: dict = field(default_factory=dict)
+
+    def cases(self, experiment: str, method: str) -> int:
+        """Number of test videos ``method`` gets in ``experiment``."""
+        n = int(self.n_cases[experiment])
+        cap = self.method_cases.get(method)
+        return n if cap is None else min(n, int(cap))
+
+    def grid_config(self) -> dict:
+        """What decides the cases and the numbers of a cell (case counts excluded: prefixes).
+
+        A store refuses to mix cells computed under another grid config.
+        """
+        d = asdict(self)
+        for k in ("n_cases", "method_cases", "name"):
+            d.pop(k)
+        # tuples -> lists so a JSON round trip compares equal
+        return _jsonable(d)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    return x
+
+
+# The shipped checkpoint and every method run single-threaded: workers = cores, so threads
+# inside a worker only oversubscribe the machine (and distort the timings).
+_ONE_THREAD = {"vid2param": {"threads": 1}}
+
+_SENS_SMALL = {
+    "n_train": 400,
+    "n_test": 30,
+    "fit_options": {"fit_steps": 300, "fit_lr": 1e-3, "warm_start": False},
+    "extrapolation": ("e", "g"),
+    "label_noise": (0.0, 0.25, 0.5),
+    "simplified": True,
+    "lengths": (25, 50, 100, 150, 200),
+}
+
+SCALES: dict[str, Scale] = {
+    # seconds: for tests and CI
+    "smoke": Scale(
+        name="smoke",
+        seed=7,
+        n_cases={"identification": 2, "forecasting": 2, "changing": 1, "sensitivity": 2,
+                 "calibration": 2},
+        method_cases={},
+        method_options=_ONE_THREAD,
+        lengths=(20, 60, 100),
+        forecast_after=(20, 50),
+        horizon=30,
+        changing_stride=25,
+        calibration_lengths=(50, 100),
+        sensitivity={
+            "n_train": 16,
+            "n_test": 2,
+            "fit_options": {"fit_steps": 2, "fit_lr": 1e-3, "warm_start": False},
+            "extrapolation": ("e",),
+            "label_noise": (0.0, 0.5),
+            "simplified": True,
+            "lengths": (50, 100),
+        },
+    ),
+    # <= 15 min on 2 cores with the shipped Vid2Param checkpoint (measured in the report)
+    "default": Scale(
+        name="default",
+        n_cases={"identification": 40, "forecasting": 30, "changing": 20, "sensitivity": 30,
+                 "calibration": 30},
+        method_cases={"nuts": 6, "bo": 10, "emcee": 10},
+        method_options=_ONE_THREAD,
+        sensitivity=_SENS_SMALL,
+    ),
+    # the paper's sizes: 100 test videos, 10,000 training videos per sensitivity model
+    "paper": Scale(
+        name="paper",
+        n_cases={"identification": 100, "forecasting": 100, "changing": 100, "sensitivity": 100,
+                 "calibration": 100},
+        method_cases={},
+        method_options=_ONE_THREAD,
+        changing_stride=1,
+        calibration_inputs=("video", "privileged"),
+        sensitivity={
+            "n_train": 10_000,
+            "n_test": 100,
+            "fit_options": {"fit_steps": 5000, "fit_lr": 1e-3, "warm_start": False},
+            "extrapolation": ("e", "g", "d", "r"),
+            "label_noise": (0.0, 0.1, 0.2, 0.3, 0.4, 0.5),
+            "simplified": True,
+            "lengths": tuple(range(10, 201, 10)),
+        },
+    ),
+}
+
+
+def get_scale(name: str | Scale) -> Scale:
+    """The scale called ``name`` (a Scale passes through)."""
+    if isinstance(name, Scale):
+        return name
+    if name not in SCALES:
+        raise unknown_name("scale", name, SCALES)
+    return SCALES[name]
+
+
+@lru_cache(maxsize=16)
+def _dataset(split: str, variant: str, n: int, seed: int, options: tuple):
+    from sysid_bench.datasets import make_dataset
+
+    return make_dataset(split, n, seed, variant=variant, **dict(options))
+
+
+def test_set(variant: str, n: int, seed: int, **options):
+    """The first ``n`` test videos of ``variant`` (cached per process).
+
+    Returns
+    -------
+    sysid_bench.datasets.Dataset
+    """
+    return _dataset("test", variant, int(n), int(seed), tuple(sorted(options.items())))
+
+
+def train_set(variant: str, n: int, seed: int, **options):
+    """Training videos of ``variant`` (not cached: only sensitivity training uses them once)."""
+    from sysid_bench.datasets import make_dataset
+
+    return make_dataset("train", int(n), int(seed), variant=variant, **options)
+
+
+def observation(ds, i: int, input: str) -> Observation:
+    """Test video ``i`` of ``ds`` as the ``input`` kind (see the module docstring)."""
+    if input == "video":
+        return Observation(frames=np.asarray(ds.frames[i]), dt=float(ds.meta["dt"]), floor=None)
+    if input == "privileged":
+        full = ds.observation(i, positions=True, state0=True)
+        return Observation(positions=full.positions, dt=full.dt, floor=full.floor,
+                           state0=full.state0)
+    raise unknown_name("input", input, INPUTS)
+
+
+def inputs_for(input_kind: str, wanted=INPUTS) -> list[str]:
+    """Inputs a method of ``input_kind`` ("frames" or "positions") is run on."""
+    if input_kind == "frames":
+        return [i for i in wanted if i == "video"]
+    return list(wanted)

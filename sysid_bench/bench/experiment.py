@@ -1,0 +1,222 @@
+"""What every experiment module provides, and the helpers they share.
+
+An experiment turns a scale and a list of methods into **cells**; a cell is one method on one
+input kind on one test case (or, for sensitivity, one training condition), and does all its
+observed-frame counts in one go. Running a cell returns long-format :class:`~.store.Row` s and,
+for figures, a few small arrays. Experiments also turn the stored rows back into tables,
+figures and sentences of the report.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sysid_bench.bench.cases import Scale, test_set
+from sysid_bench.bench.store import Row
+from sysid_bench.estimator import Estimator, Observation, Posterior
+from sysid_bench.metrics import bootstrap_ci
+from sysid_bench.physics import PARAMS, PRIOR
+
+__all__ = [
+    "Cell",
+    "CellOutput",
+    "Context",
+    "Experiment",
+    "execute",
+    "timed_prefixes",
+    "streams",
+    "normalise",
+    "ci_summary",
+    "fmt_ci",
+    "LO",
+    "SPAN",
+]
+
+LO = np.array([PRIOR[p][0] for p in PARAMS])
+SPAN = np.array([PRIOR[p][1] - PRIOR[p][0] for p in PARAMS])
+
+
+def normalise(theta: np.ndarray) -> np.ndarray:
+    """Parameters (..., 4) mapped to [0, 1] by PRIOR."""
+    return (np.asarray(theta, dtype=np.float64) - LO) / SPAN
+
+
+@dataclass(frozen=True, order=True)
+class Cell:
+    """One unit of work; ``case`` is a test video index or a condition-wide label."""
+
+    experiment: str
+    method: str
+    input: str
+    condition: str
+    case: int | str
+
+    @property
+    def id(self) -> str:
+        return f"{self.experiment}|{self.method}|{self.input}|{self.condition}|{self.case}"
+
+    def key(self) -> dict:
+        return {"experiment": self.experiment, "method": self.method, "input": self.input,
+                "condition": self.condition, "case": self.case}
+
+
+@dataclass
+class CellOutput:
+    rows: list[Row] = field(default_factory=list)
+    artifacts: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def add(self, case: int, n_frames: int, metric: str, value) -> None:
+        self.rows.append(Row(int(case), int(n_frames), metric, float(value)))
+
+
+_PROTOTYPES: dict[tuple[str, str], Estimator] = {}
+
+
+class Context:
+    """What a running cell may use: its scale, the run directory, estimators and test sets."""
+
+    def __init__(self, scale: Scale, run_dir):
+        self.scale = scale
+        self.run_dir = Path(run_dir)
+
+    def estimator(self, method: str, **extra) -> Estimator:
+        """A fresh copy of ``method`` with the scale's options (loaded once per process).
+
+        A copy per cell keeps results independent of which cells a worker ran before (any
+        state a method keeps between calls stays in the copy), so a local pool and a Dask
+        cluster give the same numbers.
+        """
+        import methods
+
+        opts = {**self.scale.method_options.get(method, {}), **extra}
+        key = (method, json.dumps(opts, sort_keys=True, default=str))
+        proto = _PROTOTYPES.get(key)
+        if proto is None:
+            proto = methods.get(method, **opts)
+            if method == "vid2param" or getattr(type(proto), "input_kind", "") == "frames":
+                proto.fit(None)  # loads the shipped checkpoint once per process
+            _PROTOTYPES[key] = proto
+        return copy.deepcopy(proto)
+
+    def test_set(self, variant: str, n: int, **options):
+        return test_set(variant, n, self.scale.seed, **options)
+
+
+class Experiment:
+    """Base class of the five experiments (one module each)."""
+
+    name: str = ""
+    title: str = ""
+    #: what the report says the experiment measures, one paragraph
+    description: str = ""
+
+    def cells(self, scale: Scale, methods: list[str]) -> list[Cell]:
+        raise NotImplementedError
+
+    def run(self, cell: Cell, ctx: Context) -> CellOutput:
+        raise NotImplementedError
+
+    # -- report ---------------------------------------------------------------------------
+    def tables(self, df) -> dict:
+        """Named pandas DataFrames from this experiment's rows (``status == "ok"``)."""
+        return {}
+
+    def figures(self, df, store, outdir: Path) -> dict[str, Path]:
+        """Write PNG figures into ``outdir``; returns caption -> path."""
+        return {}
+
+    def reading(self, df) -> list[str]:
+        """Sentences comparing the results with the paper, with numbers."""
+        return []
+
+
+def execute(cell: Cell, scale: Scale, run_dir: str) -> dict:
+    """Run one cell, catching everything: the worker-side entry point of the runner.
+
+    Returns
+    -------
+    dict
+        ``cell`` (Cell), ``status`` ("ok", "error", "n/a"), ``error`` (str or None),
+        ``wall_s``, ``rows`` (list of Row), ``artifacts`` (dict).
+    """
+    from sysid_bench.bench import EXPERIMENTS  # local: experiment modules import this one
+
+    t0 = time.perf_counter()
+    status, error, out = "ok", None, CellOutput()
+    try:
+        out = EXPERIMENTS[cell.experiment].run(cell, Context(scale, run_dir))
+    except NotImplementedError as exc:
+        status, error = "n/a", str(exc) or f"{cell.method} does not implement this"
+    except Exception as exc:  # a method failing on a case is a result, not a crash of the run
+        status = "error"
+        tb = traceback.extract_tb(exc.__traceback__)
+        where = f" at {Path(tb[-1].filename).name}:{tb[-1].lineno}" if tb else ""
+        error = f"{type(exc).__name__}: {exc}{where}"[:2000]
+    return {"cell": cell, "status": status, "error": error, "wall_s": time.perf_counter() - t0,
+            "rows": out.rows if status == "ok" else [], "artifacts": out.artifacts if status == "ok" else {}}
+
+
+def streams(est: Estimator) -> bool:
+    """True when ``est`` overrides ``identify_prefixes`` (one pass for all prefixes)."""
+    return type(est).identify_prefixes is not Estimator.identify_prefixes
+
+
+def timed_prefixes(est: Estimator, obs: Observation, lengths) -> list[tuple[Posterior, float]]:
+    """Posteriors after each of ``lengths`` frames, with the seconds each identification took.
+
+    Methods with their own ``identify_prefixes`` (streaming) do one pass; the time of a prefix
+    is then what the method reports in ``extras["wall_s"]`` (else the pass pro rata). Other
+    methods are timed call by call around ``identify``.
+    """
+    lengths = [int(n) for n in lengths]
+    if streams(est):
+        t0 = time.perf_counter()
+        posts = est.identify_prefixes(obs, lengths)
+        total = time.perf_counter() - t0
+        out = []
+        for n, p in zip(lengths, posts):
+            w = p.extras.get("wall_s")
+            out.append((p, float(w) if w is not None else total * n / max(lengths)))
+        return out
+    out = []
+    for n in lengths:
+        t0 = time.perf_counter()
+        p = est.identify(obs.prefix(n))
+        out.append((p, time.perf_counter() - t0))
+    return out
+
+
+# -- report helpers ---------------------------------------------------------------------------
+def ci_summary(df, by: list[str], value: str = "value", seed: int = 0):
+    """Mean with a 95% bootstrap CI of ``value`` per group (cases are the resampled unit).
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``by`` columns plus ``mean``, ``lo``, ``hi``, ``n``.
+    """
+    import pandas as pd
+
+    recs = []
+    for keys, g in df.groupby(by, sort=True, dropna=False):
+        keys = keys if isinstance(keys, tuple) else (keys,)
+        v = g[value].to_numpy(dtype=float)
+        m, lo, hi = bootstrap_ci(v, seed=seed, n_boot=1000) if len(v) else (np.nan,) * 3
+        recs.append({**dict(zip(by, keys)), "mean": m, "lo": lo, "hi": hi,
+                     "n": int(np.isfinite(v).sum())})
+    return pd.DataFrame.from_records(recs, columns=[*by, "mean", "lo", "hi", "n"])
+
+
+def fmt_ci(m: float, lo: float, hi: float, digits: int = 3) -> str:
+    """``"0.012 [0.010, 0.015]"``, or ``"-"`` for missing."""
+    if m is None or not np.isfinite(m):
+        return "-"
+    f = f"{{:.{digits}g}}"
+    return f"{f.format(m)} [{f.format(lo)}, {f.format(hi)}]"

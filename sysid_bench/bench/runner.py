@@ -1,0 +1,327 @@
+"""Build the grid of cells and run what the store does not hold yet.
+
+Execution
+---------
+* Local (default): a ``ProcessPoolExecutor`` (spawn, one single-threaded worker per core) for
+  most cells, plus one thread in this process for the methods listed in ``inline`` (by default
+  ``prior`` and ``vid2param``: a Vid2Param cell is milliseconds of LSTM, so shipping it to a
+  worker would only make every worker import torch and load the checkpoint).
+* ``scheduler``: the same cells as tasks on a Dask distributed cluster (an address or a
+  ``distributed.Client``); workers keep their loaded estimators and test sets between tasks.
+
+Only this process writes the store, one transaction per finished cell, so a run killed at any
+moment keeps every cell it finished and a restart computes only the rest. A worker process that
+dies takes its cell with it: the cell is retried once on a fresh pool, then stored as an error.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import platform
+import subprocess
+import sys
+import time
+from collections import Counter
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+
+from sysid_bench.bench.cases import Scale, get_scale, unknown_name
+from sysid_bench.bench.experiment import Cell, execute
+from sysid_bench.bench.store import Store
+
+__all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "provenance",
+           "DEFAULT_INLINE", "default_run_dir", "STORE_NAME"]
+
+STORE_NAME = "results.sqlite"
+DEFAULT_INLINE = ("prior", "vid2param")
+#: rough relative cost of one cell, to start the longest first (less idle tail at the end)
+_COST = {"nuts": 50, "bo": 30, "emcee": 20, "lsq": 8, "sindy": 4, "dmd": 2, "vid2param": 1, "prior": 0}
+_VERSIONED = ("numpy", "scipy", "pandas", "pyarrow", "torch", "jax", "numpyro", "emcee",
+              "pysindy", "pydmd", "scikit-optimize", "scikit-learn", "dask", "distributed",
+              "matplotlib")
+_THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+               "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
+
+
+def default_run_dir(scale: str) -> Path:
+    return Path("runs") / scale
+
+
+def resolve_experiments(names=None) -> list[str]:
+    """Validated experiment names (all, in report order, when ``names`` is None)."""
+    from sysid_bench.bench import EXPERIMENTS
+
+    if names is None:
+        return list(EXPERIMENTS)
+    out = []
+    for n in names:
+        if n not in EXPERIMENTS:
+            raise unknown_name("experiment", n, EXPERIMENTS)
+        out.append(n)
+    return out
+
+
+def resolve_methods(names=None) -> tuple[list[str], dict[str, str]]:
+    """Validated method names and the ones skipped because they cannot be imported.
+
+    Unknown names raise ``ValueError`` listing the known ones. Without ``names``, every
+    registered contender (not the reference helpers).
+
+    Returns
+    -------
+    usable : list of str
+    skipped : dict of name to reason
+    """
+    import methods
+
+    known = methods.available(include_reference=True)
+    wanted = methods.available() if names is None else list(names)
+    usable, skipped = [], {}
+    for n in wanted:
+        if n not in known:
+            raise unknown_name("method", n, known)
+        try:
+            methods.get_class(n)
+        except ImportError as exc:
+            skipped[n] = str(exc)
+            continue
+        usable.append(n)
+    return usable, skipped
+
+
+def build_grid(scale: Scale, methods: list[str], experiments: list[str]) -> list[Cell]:
+    """Every cell of the run, in a deterministic order."""
+    from sysid_bench.bench import EXPERIMENTS
+
+    cells: list[Cell] = []
+    for e in experiments:
+        cells += EXPERIMENTS[e].cells(scale, methods)
+    return cells
+
+
+def provenance() -> dict:
+    """Git commit (and whether the tree is dirty), package versions, Python and machine."""
+    from importlib import metadata
+
+    root = Path(__file__).resolve().parents[2]
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
+                                text=True, timeout=10).stdout.strip() or "unknown"
+        dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                                    cwd=root, capture_output=True, text=True,
+                                    timeout=10).stdout.strip())
+    except (OSError, subprocess.SubprocessError):
+        commit, dirty = "unknown", None
+    versions = {}
+    for pkg in _VERSIONED:
+        try:
+            versions[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            pass
+    from sysid_bench import __version__
+
+    return {"git_commit": commit, "git_dirty": dirty, "sysid_bench": __version__,
+            "versions": versions, "python": sys.version.split()[0],
+            "platform": platform.platform(), "cpus": os.cpu_count()}
+
+
+@contextlib.contextmanager
+def _single_threaded_children():
+    """Spawned workers inherit these: one BLAS/OpenMP/XLA thread each (workers = cores)."""
+    old = {k: os.environ.get(k) for k in _THREAD_ENV}
+    for k, v in _THREAD_ENV.items():
+        os.environ.setdefault(k, v)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _order(cells: list[Cell]) -> list[Cell]:
+    from sysid_bench.bench import EXPERIMENTS
+
+    def cost(c: Cell):
+        heavy = getattr(EXPERIMENTS[c.experiment], "heavy", False)
+        return (-(1000 if heavy else _COST.get(c.method, 10)), c.experiment, c.method, c.input,
+                c.condition, str(c.case))
+
+    return sorted(cells, key=cost)
+
+
+def run(
+    *,
+    scale: str | Scale = "default",
+    methods=None,
+    experiments=None,
+    run_dir=None,
+    workers: int | None = None,
+    scheduler=None,
+    inline=DEFAULT_INLINE,
+    progress: bool = True,
+    argv=None,
+    max_cells: int | None = None,
+) -> dict:
+    """Run (or resume) a benchmark into ``run_dir/results.sqlite``.
+
+    Parameters
+    ----------
+    scale : str or Scale
+        "smoke", "default" or "paper".
+    methods, experiments : list of str, optional
+        Default: every contender (that imports) and every experiment.
+    run_dir : path, optional
+        Default ``runs/<scale>``. Holds the store and cached trained models.
+    workers : int, optional
+        Local worker processes; default the number of cores. 0 runs every cell in this process.
+    scheduler : str or distributed.Client, optional
+        Run on a Dask cluster instead of the local pool.
+    inline : iterable of str
+        Methods whose (non-heavy) cells run in a thread of this process.
+    progress : bool
+        tqdm progress bar over the cells.
+    max_cells : int, optional
+        Stop after this many new cells (for tests; the rest stays for a resume).
+
+    Returns
+    -------
+    dict
+        ``store`` (Path), ``cells`` (grid size), ``already`` (stored before), ``ran``, ``ok``,
+        ``errors``, ``na``, ``skipped_methods``, ``wall_s``.
+    """
+    from tqdm.auto import tqdm
+
+    sc = get_scale(scale)
+    exps = resolve_experiments(experiments)
+    meths, skipped = resolve_methods(methods)
+    run_dir = Path(run_dir) if run_dir is not None else default_run_dir(sc.name)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    store = Store(run_dir / STORE_NAME, grid_config=sc.grid_config())
+    t0 = time.perf_counter()
+    try:
+        inv = store.record_invocation({
+            "argv": list(sys.argv if argv is None else argv), "scale": sc.name,
+            "methods": meths, "skipped_methods": skipped, "experiments": exps,
+            "workers": workers, "scheduler": None if scheduler is None else str(scheduler),
+            "inline": list(inline), **provenance(),
+        })
+        grid = build_grid(sc, meths, exps)
+        done = store.done_cells()
+        todo = _order([c for c in grid if c.id not in done])
+        if max_cells is not None:
+            todo = todo[: int(max_cells)]
+        counts: Counter = Counter()
+        bar = tqdm(total=len(grid), initial=len(grid) - len(todo) if max_cells is None else
+                   sum(c.id in done for c in grid), desc=f"sysid-bench {sc.name}", unit="cell",
+                   disable=not progress, dynamic_ncols=True)
+
+        def write(res: dict) -> None:
+            c: Cell = res["cell"]
+            store.add_cell(c.id, c.key(), res["rows"], status=res["status"], error=res["error"],
+                           wall_s=res["wall_s"], artifacts=res["artifacts"], invocation=inv)
+            counts[res["status"]] += 1
+            bar.update(1)
+            bar.set_postfix(err=counts["error"], na=counts["n/a"], refresh=False)
+
+        try:
+            if scheduler is not None:
+                _run_dask(todo, sc, run_dir, scheduler, write)
+            else:
+                _run_local(todo, sc, run_dir, workers, set(inline), write)
+        finally:
+            bar.close()
+        return {"store": store.path, "cells": len(grid), "already": len(grid) - len(todo),
+                "ran": sum(counts.values()), "ok": counts["ok"], "errors": counts["error"],
+                "na": counts["n/a"], "skipped_methods": skipped,
+                "wall_s": time.perf_counter() - t0}
+    finally:
+        store.close()
+
+
+def _run_local(todo, sc, run_dir, workers, inline, write) -> None:
+    import multiprocessing as mp
+
+    from sysid_bench.bench import EXPERIMENTS
+
+    n_workers = (os.cpu_count() or 1) if workers is None else int(workers)
+    if n_workers < 0:
+        raise ValueError(f"workers: expected a number >= 0, got {workers!r}")
+    if n_workers == 0:
+        for c in todo:
+            write(execute(c, sc, str(run_dir)))
+        return
+    here = [c for c in todo
+            if c.method in inline and not getattr(EXPERIMENTS[c.experiment], "heavy", False)]
+    ids = {c.id for c in here}
+    pooled = [c for c in todo if c.id not in ids]
+    attempts: Counter = Counter()
+    pool, broken = None, False
+    futs: dict = {}
+    th = ThreadPoolExecutor(1, thread_name_prefix="inline")
+    try:
+        futs = {th.submit(execute, c, sc, str(run_dir)): (c, None) for c in here}
+        while pooled or futs:
+            if pooled:
+                if pool is None or broken:
+                    if pool is not None:
+                        pool.shutdown(wait=False, cancel_futures=True)
+                    with _single_threaded_children():
+                        pool = ProcessPoolExecutor(min(n_workers, len(pooled)),
+                                                   mp_context=mp.get_context("spawn"))
+                    broken = False
+                futs.update({pool.submit(execute, c, sc, str(run_dir)): (c, pool) for c in pooled})
+                pooled = []
+            finished, _ = wait(futs, return_when=FIRST_COMPLETED)
+            for f in finished:
+                c, owner = futs.pop(f)
+                try:
+                    res = f.result()
+                except BrokenProcessPool:
+                    # a worker died (killed, out of memory); every cell pending on that pool
+                    # fails with it, so each is retried on a fresh pool, up to 3 times
+                    broken = broken or owner is pool
+                    attempts[c.id] += 1
+                    if attempts[c.id] < 3:
+                        pooled.append(c)
+                        continue
+                    res = {"cell": c, "status": "error", "wall_s": float("nan"), "rows": [],
+                           "artifacts": {}, "error": "the worker process running this cell died "
+                           "(killed or out of memory) on 3 attempts"}
+                write(res)
+    except BaseException:
+        for f in futs:
+            f.cancel()
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+        th.shutdown(wait=False, cancel_futures=True)
+        raise
+    if pool is not None:
+        pool.shutdown(wait=True)
+    th.shutdown(wait=True)
+
+
+def _run_dask(todo, sc, run_dir, scheduler, write) -> None:
+    try:
+        from distributed import Client, as_completed
+    except ImportError as exc:  # pragma: no cover - dask is an optional extra
+        raise ImportError("--scheduler needs dask[distributed]: pip install -e .[dask]") from exc
+    own = not isinstance(scheduler, Client)
+    client = Client(scheduler) if own else scheduler
+    try:
+        futs = {client.submit(execute, c, sc, str(run_dir), pure=False): c for c in todo}
+        for f in as_completed(list(futs)):
+            c = futs[f]
+            try:
+                res = f.result()
+            except Exception as exc:  # KilledWorker and friends: the cluster gave up on it
+                res = {"cell": c, "status": "error", "wall_s": float("nan"), "rows": [],
+                       "artifacts": {}, "error": f"{type(exc).__name__}: {exc}"[:2000]}
+            write(res)
+    finally:
+        if own:
+            client.close()

@@ -1,0 +1,318 @@
+"""The results store: one SQLite file per run, long-format rows, one transaction per cell.
+
+Why SQLite (in WAL mode) rather than Parquet: a run must survive being killed at any instant
+without losing or duplicating a finished cell. SQLite gives that for free: each cell's rows and
+its bookkeeping record are written in **one transaction**, so after a crash a cell is either
+entirely there or entirely absent, and a restarted run skips exactly the cells recorded in
+``cells``. WAL mode lets ``report --from-store`` read while a run is still writing. Parquet
+would need one file per cell (thousands of small files) or rewriting a growing file.
+
+Layout
+------
+``meta``       key/value: ``store_format`` (see :data:`STORE_FORMAT`), ``grid_config`` (JSON: what
+               decides the cases; a run with another grid config is refused), ``created``.
+``invocations`` one row per ``run`` started on this store: argv/config, git commit, package
+               versions, host, start time.
+``cells``      one row per finished cell: id, experiment, method, input, condition, case,
+               status (``ok`` / ``error`` / ``n/a``), error text, wall seconds, finish time.
+``results``    the long-format table: experiment, method, input, condition, case, n_frames,
+               metric, value, status, error, wall_s (of the cell), cell_id. A failed cell has one
+               row with ``metric = "error"``; a cell whose method cannot do the task (it raised
+               ``NotImplementedError``) one row with ``metric = "n/a"``; both carry the text.
+``artifacts``  small arrays a figure needs (example forecasts), ``.npy`` bytes keyed by cell.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import socket
+import sqlite3
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "STORE_FORMAT",
+    "StoreFormatError",
+    "StoreConfigError",
+    "Store",
+    "Row",
+    "RESULT_COLUMNS",
+]
+
+#: Bump when tables or the meaning of their columns change; other versions are refused.
+STORE_FORMAT = 1
+RESULT_COLUMNS = (
+    "experiment",
+    "method",
+    "input",
+    "condition",
+    "case",
+    "n_frames",
+    "metric",
+    "value",
+    "status",
+    "error",
+    "wall_s",
+    "cell_id",
+)
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS invocations (
+    id INTEGER PRIMARY KEY AUTOINCREMENT, started REAL, info TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS cells (
+    cell_id TEXT PRIMARY KEY, experiment TEXT NOT NULL, method TEXT NOT NULL, input TEXT NOT NULL,
+    condition TEXT NOT NULL, "case" TEXT NOT NULL, status TEXT NOT NULL, error TEXT,
+    wall_s REAL, finished REAL, invocation INTEGER);
+CREATE TABLE IF NOT EXISTS results (
+    experiment TEXT NOT NULL, method TEXT NOT NULL, input TEXT NOT NULL, condition TEXT NOT NULL,
+    "case" INTEGER NOT NULL, n_frames INTEGER NOT NULL, metric TEXT NOT NULL, value REAL,
+    status TEXT NOT NULL, error TEXT, wall_s REAL, cell_id TEXT NOT NULL,
+    UNIQUE (experiment, method, input, condition, "case", n_frames, metric));
+CREATE INDEX IF NOT EXISTS results_exp ON results (experiment, method);
+CREATE TABLE IF NOT EXISTS artifacts (
+    cell_id TEXT NOT NULL, name TEXT NOT NULL, data BLOB NOT NULL, PRIMARY KEY (cell_id, name));
+"""
+
+
+class StoreFormatError(ValueError):
+    """The store was written by another store format version."""
+
+
+class StoreConfigError(ValueError):
+    """The store holds a run whose cases were generated differently."""
+
+
+@dataclass(frozen=True)
+class Row:
+    """One long-format result of a cell.
+
+    ``case`` is the test video index (a cell may cover several, e.g. a sensitivity condition);
+    ``n_frames`` the observed frames the value refers to (0 when it does not apply).
+    """
+
+    case: int
+    n_frames: int
+    metric: str
+    value: float
+
+
+def _connect(path: Path) -> sqlite3.Connection:
+    con = sqlite3.connect(str(path), timeout=60.0, isolation_level=None)
+    con.execute("PRAGMA journal_mode=WAL")
+    # NORMAL in WAL mode: a committed transaction survives a killed process (only an OS crash /
+    # power loss may roll back the last commits, never corrupt the file).
+    con.execute("PRAGMA synchronous=NORMAL")
+    return con
+
+
+class Store:
+    """A run's results on disk.
+
+    Parameters
+    ----------
+    path : str or Path
+        The SQLite file (created with its directory when missing).
+    grid_config : dict, optional
+        JSON-able description of everything that decides the cases (scale sizes, seed). Given
+        when writing: a new store records it, an existing one must match it. ``None`` opens an
+        existing store read-only in spirit (no check, nothing recorded).
+
+    Raises
+    ------
+    StoreFormatError
+        The file was written by another store format version.
+    StoreConfigError
+        ``grid_config`` differs from the one the store was created with.
+    FileNotFoundError
+        ``grid_config`` is None and there is no store at ``path``.
+    """
+
+    def __init__(self, path, grid_config: Mapping | None = None):
+        self.path = Path(path)
+        if grid_config is None and not self.path.is_file():
+            raise FileNotFoundError(f"path: expected an existing results store, got {str(path)!r}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._con = _connect(self.path)
+        self._check_or_init(grid_config)
+
+    # -- setup ------------------------------------------------------------------------------
+    def _check_or_init(self, grid_config: Mapping | None) -> None:
+        con = self._con
+        has_meta = con.execute(
+            "SELECT name FROM sqlite_master WHERE type='table' AND name='meta'"
+        ).fetchone()
+        if has_meta:
+            fmt = con.execute("SELECT value FROM meta WHERE key='store_format'").fetchone()
+            if fmt is None or int(fmt[0]) != STORE_FORMAT:
+                got = "none" if fmt is None else fmt[0]
+                raise StoreFormatError(
+                    f"path: the results store {str(self.path)!r} has store format {got}, this "
+                    f"version of sysid-bench reads format {STORE_FORMAT}; re-run into a new "
+                    "store (another --run-dir) or use the sysid-bench version that wrote it"
+                )
+        elif grid_config is None:
+            raise StoreFormatError(f"path: {str(self.path)!r} is not a sysid-bench results store")
+        con.executescript(_SCHEMA)
+        if grid_config is None:
+            return
+        want = json.dumps(grid_config, sort_keys=True)
+        con.execute("BEGIN IMMEDIATE")
+        try:
+            have = con.execute("SELECT value FROM meta WHERE key='grid_config'").fetchone()
+            if have is None:
+                con.executemany(
+                    "INSERT INTO meta VALUES (?, ?)",
+                    [
+                        ("store_format", str(STORE_FORMAT)),
+                        ("grid_config", want),
+                        ("created", str(time.time())),
+                    ],
+                )
+            elif json.loads(have[0]) != json.loads(want):
+                raise StoreConfigError(
+                    f"grid_config: the store {str(self.path)!r} was made with {have[0]}, this run "
+                    f"asks for {want}; its cases would differ, so results would mix. Use another "
+                    "--run-dir (or delete that store)"
+                )
+            con.execute("COMMIT")
+        except BaseException:
+            con.execute("ROLLBACK")
+            raise
+
+    def close(self) -> None:
+        self._con.close()
+
+    def __enter__(self) -> Store:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- metadata ---------------------------------------------------------------------------
+    @property
+    def grid_config(self) -> dict | None:
+        r = self._con.execute("SELECT value FROM meta WHERE key='grid_config'").fetchone()
+        return None if r is None else json.loads(r[0])
+
+    def record_invocation(self, info: Mapping) -> int:
+        """Append what this run was started with (config, commit, versions); returns its id."""
+        info = {"host": socket.gethostname(), "pid": os.getpid(), **info}
+        cur = self._con.execute(
+            "INSERT INTO invocations (started, info) VALUES (?, ?)",
+            (time.time(), json.dumps(info, sort_keys=True, default=str)),
+        )
+        return int(cur.lastrowid)
+
+    def invocations(self) -> list[dict]:
+        rows = self._con.execute("SELECT id, started, info FROM invocations ORDER BY id").fetchall()
+        return [{"id": i, "started": s, **json.loads(info)} for i, s, info in rows]
+
+    # -- cells ------------------------------------------------------------------------------
+    def done_cells(self) -> set[str]:
+        """Ids of the cells already stored (whatever their status)."""
+        return {r[0] for r in self._con.execute("SELECT cell_id FROM cells")}
+
+    def add_cell(
+        self,
+        cell_id: str,
+        key: Mapping,
+        rows: Iterable[Row],
+        *,
+        status: str = "ok",
+        error: str | None = None,
+        wall_s: float = float("nan"),
+        artifacts: Mapping[str, np.ndarray] | None = None,
+        invocation: int | None = None,
+    ) -> bool:
+        """Store one finished cell atomically; returns False when it was already stored.
+
+        Parameters
+        ----------
+        cell_id : str
+        key : mapping
+            ``experiment``, ``method``, ``input``, ``condition``, ``case`` of the cell.
+        rows : iterable of Row
+            Ignored for ``status`` ``error`` / ``n/a``: one row with that metric is written.
+        status : {"ok", "error", "n/a"}
+        error : str, optional
+        wall_s : float
+            Seconds the whole cell took.
+        artifacts : dict of str to ndarray, optional
+        """
+        if status not in ("ok", "error", "n/a"):
+            raise ValueError(f"status: expected 'ok', 'error' or 'n/a', got {status!r}")
+        k = (key["experiment"], key["method"], key["input"], str(key.get("condition", "")))
+        if status != "ok":
+            case = key["case"]
+            rows = [Row(int(case) if str(case).isdigit() else -1, 0, status, float("nan"))]
+        payload = [
+            (*k, int(r.case), int(r.n_frames), r.metric, _num(r.value), status, error, wall_s, cell_id)
+            for r in rows
+        ]
+        con = self._con
+        con.execute("BEGIN IMMEDIATE")
+        try:
+            if con.execute("SELECT 1 FROM cells WHERE cell_id=?", (cell_id,)).fetchone():
+                con.execute("ROLLBACK")
+                return False
+            con.executemany(
+                f"INSERT INTO results VALUES ({', '.join('?' * len(RESULT_COLUMNS))})", payload
+            )
+            for name, arr in (artifacts or {}).items():
+                buf = io.BytesIO()
+                np.save(buf, np.asarray(arr), allow_pickle=False)
+                con.execute("INSERT INTO artifacts VALUES (?, ?, ?)", (cell_id, name, buf.getvalue()))
+            con.execute(
+                "INSERT INTO cells VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (cell_id, *k, str(key["case"]), status, error, wall_s, time.time(), invocation),
+            )
+            con.execute("COMMIT")
+        except BaseException:
+            con.execute("ROLLBACK")
+            raise
+        return True
+
+    # -- reading ----------------------------------------------------------------------------
+    def results(self, experiment: str | None = None):
+        """The long-format results as a pandas DataFrame (columns :data:`RESULT_COLUMNS`)."""
+        import pandas as pd
+
+        q = "SELECT * FROM results"
+        args: tuple = ()
+        if experiment is not None:
+            q += " WHERE experiment=?"
+            args = (experiment,)
+        df = pd.read_sql_query(q, self._con, params=args)
+        return df
+
+    def cells(self):
+        """One row per stored cell (pandas DataFrame)."""
+        import pandas as pd
+
+        return pd.read_sql_query("SELECT * FROM cells", self._con)
+
+    def artifact(self, cell_id: str, name: str) -> np.ndarray | None:
+        r = self._con.execute(
+            "SELECT data FROM artifacts WHERE cell_id=? AND name=?", (cell_id, name)
+        ).fetchone()
+        return None if r is None else np.load(io.BytesIO(r[0]), allow_pickle=False)
+
+    def artifacts(self, like: str = "%") -> dict[tuple[str, str], np.ndarray]:
+        """All artifacts whose cell id matches the SQL LIKE pattern ``like``."""
+        rows = self._con.execute(
+            "SELECT cell_id, name, data FROM artifacts WHERE cell_id LIKE ?", (like,)
+        ).fetchall()
+        return {(c, n): np.load(io.BytesIO(d), allow_pickle=False) for c, n, d in rows}
+
+
+def _num(v) -> float | None:
+    v = float(v)
+    # SQLite stores NaN as NULL; keep inf as is (REAL supports it).
+    return None if np.isnan(v) else v

@@ -1,0 +1,226 @@
+"""Run the benchmark (or read a finished store) and write ``reports/``.
+
+``python -m sysid_bench.report`` runs the default scale into ``runs/default/`` (resuming what is
+already there) and writes:
+
+* ``reports/REPORT.md``: provenance, one section per experiment (tables, figures, reading),
+  the places where our numbers differ from the paper's claims, failures and "n/a" cells;
+* ``reports/tables/*.csv`` and ``*.parquet``: every table of the report;
+* ``reports/figures/*.png``;
+* ``reports/results.parquet``: the long-format rows of the run.
+
+``--from-store PATH`` re-renders from an existing store without computing anything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["render", "markdown_table", "main"]
+
+
+def markdown_table(df, index: bool = False, floatfmt: str = ".4g") -> str:
+    """A GitHub-flavoured markdown table of ``df`` (no tabulate dependency).
+
+    Parameters
+    ----------
+    df : pandas.DataFrame
+    index : bool
+        Include the index as the first column(s).
+    floatfmt : str
+        Format spec of float cells.
+    """
+    if index:
+        df = df.reset_index()
+    cols = [str(c) for c in df.columns]
+
+    def cell(v) -> str:
+        if isinstance(v, (float, np.floating)):
+            return "-" if not np.isfinite(v) else format(float(v), floatfmt)
+        s = "" if v is None else str(v)
+        return s.replace("|", "\\|").replace("\n", " ")
+
+    rows = [[cell(v) for v in r] for r in df.itertuples(index=False, name=None)]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _atomic_write(path: Path, data: bytes | str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as f:
+        f.write(data.encode() if isinstance(data, str) else data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _write_table(df, base: Path) -> None:
+    import io
+
+    _atomic_write(base.with_suffix(".csv"), df.to_csv(index=False))
+    buf = io.BytesIO()
+    df.astype({c: str for c in df.columns if df[c].dtype == object}).to_parquet(buf, index=False)
+    _atomic_write(base.with_suffix(".parquet"), buf.getvalue())
+
+
+def _run_summary(store) -> tuple[list[str], dict]:
+    """Provenance lines and the elapsed wall time of the run (all invocations)."""
+    invs = store.invocations()
+    cells = store.cells()
+    lines = []
+    elapsed = 0.0
+    for inv in invs:
+        mine = cells[cells.invocation == inv["id"]]
+        if len(mine):
+            elapsed += float(mine.finished.max()) - float(inv["started"])
+    last = invs[-1] if invs else {}
+    when = _dt.datetime.fromtimestamp(last.get("started", 0), _dt.timezone.utc)
+    lines.append(f"- scale `{last.get('scale')}`, {len(cells)} cells in the store "
+                 f"({', '.join(f'{k}: {v}' for k, v in cells.status.value_counts().items())}), "
+                 f"{len(invs)} invocation(s); computing time {elapsed:.0f} s wall "
+                 "(sum over invocations, first start to last stored cell)")
+    lines.append(f"- last invocation {when:%Y-%m-%d %H:%M} UTC on `{last.get('host')}` "
+                 f"({last.get('cpus')} CPUs, {last.get('platform')}), Python {last.get('python')}, "
+                 f"workers {last.get('workers') or 'cores'}"
+                 + (f", Dask scheduler {last['scheduler']}" if last.get("scheduler") else ""))
+    lines.append(f"- git commit `{last.get('git_commit')}`"
+                 + (" (uncommitted changes)" if last.get("git_dirty") else ""))
+    v = last.get("versions", {})
+    if v:
+        lines.append("- versions: " + ", ".join(f"{k} {v[k]}" for k in sorted(v)))
+    if last.get("skipped_methods"):
+        for m, why in last["skipped_methods"].items():
+            lines.append(f"- method `{m}` was skipped: {why}")
+    return lines, {"elapsed_s": elapsed, "last": last}
+
+
+def render(store_path, out_dir="reports", experiments=None, title: str | None = None) -> Path:
+    """Write the report of the store at ``store_path`` into ``out_dir``.
+
+    Returns
+    -------
+    Path
+        ``out_dir / "REPORT.md"``.
+    """
+    from sysid_bench.bench import EXPERIMENTS
+    from sysid_bench.bench.cases import SCALES
+    from sysid_bench.bench.runner import resolve_experiments
+    from sysid_bench.bench.store import Store
+
+    exps = resolve_experiments(experiments)
+    out = Path(out_dir)
+    figdir, tabdir = out / "figures", out / "tables"
+    store = Store(store_path)
+    try:
+        df = store.results()
+        prov, info = _run_summary(store)
+        scale = SCALES.get(info["last"].get("scale", ""))
+        md = [f"# {title or 'sysid-bench report'}", ""]
+        md += ["Generated by `python -m sysid_bench.report` from the results store "
+               f"`{store_path}`; every number below is computed from that store "
+               "(`--from-store` re-renders it). Methods see the same seeded test cases. "
+               "Intervals are 95% bootstrap CIs over cases.", ""]
+        md += ["## Run", "", *prov, ""]
+        if scale is not None:
+            md += [f"Cases per experiment: {json.dumps(scale.n_cases)}; per-method caps: "
+                   f"{json.dumps(scale.method_cases) if scale.method_cases else 'none'}; "
+                   f"method options: {json.dumps(scale.method_options)}.", ""]
+        _write_table(df, out / "results")  # the whole long-format run, for anyone's analysis
+        readings = []
+        for name in exps:
+            e = EXPERIMENTS[name]
+            sub = df[(df.experiment == name)]
+            ok = sub[sub.status == "ok"]
+            md += [f"## {e.title}", "", e.description, ""]
+            if ok.empty:
+                md += ["_No results in the store for this experiment._", ""]
+                continue
+            for tname, t in e.tables(ok).items():
+                _write_table(t, tabdir / tname)
+                md += [f"**{tname}** (`tables/{tname}.csv`)", "", markdown_table(t), ""]
+            for caption, path in e.figures(ok, store, figdir).items():
+                md += [f"![{caption}]({Path(path).relative_to(out).as_posix()})", "",
+                       f"*{caption}*", ""]
+            r = e.reading(ok)
+            if r:
+                md += ["Reading:", "", *[f"- {s}" for s in r], ""]
+                readings += [f"({e.title.split('.')[0]}) {s}" for s in r]
+            bad = sub[sub.status != "ok"]
+            if len(bad):
+                g = (bad.groupby(["method", "input", "status"])
+                     .agg(cells=("cell_id", "nunique"), first_message=("error", "first"))
+                     .reset_index())
+                g["first_message"] = g.first_message.str.slice(0, 160)
+                md += ["Cells that failed or do not apply (`n/a`: the method raised "
+                       "NotImplementedError):", "", markdown_table(g), ""]
+        md += ["## Where our figures differ from the paper (and where they agree)", ""]
+        md += [f"- {s}" for s in readings] or ["_Nothing to compare yet._"]
+        md.append("")
+        path = out / "REPORT.md"
+        _atomic_write(path, "\n".join(md))
+        return path
+    finally:
+        store.close()
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m sysid_bench.report",
+        description="Run the benchmark at a scale (resuming its store) and write reports/.",
+    )
+    p.add_argument("--scale", default="default", help="smoke, default or paper (default: default)")
+    p.add_argument("--run-dir", default=None, help="where the store lives (default runs/<scale>)")
+    p.add_argument("--from-store", default=None, metavar="PATH",
+                   help="re-render the report of this results store; computes nothing")
+    p.add_argument("--out", default="reports", help="output directory (default reports/)")
+    p.add_argument("--methods", nargs="+", default=None, help="default: every contender")
+    p.add_argument("--experiments", nargs="+", default=None, help="default: all five")
+    p.add_argument("--workers", type=int, default=None, help="local processes (default: cores)")
+    p.add_argument("--scheduler", default=None, help="Dask scheduler address")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def report_command(args) -> int:
+    from sysid_bench.bench.runner import STORE_NAME, resolve_experiments
+    from sysid_bench.bench.runner import run as run_grid
+
+    if args.from_store:
+        store = Path(args.from_store)
+        if store.is_dir():
+            store = store / STORE_NAME
+        if not store.is_file():
+            raise SystemExit(f"--from-store: no results store at {str(args.from_store)!r}")
+        resolve_experiments(args.experiments)
+    else:
+        summary = run_grid(scale=args.scale, methods=args.methods, experiments=args.experiments,
+                           run_dir=args.run_dir, workers=args.workers, scheduler=args.scheduler,
+                           progress=not args.no_progress)
+        print(f"{summary['ran']} cells computed ({summary['errors']} errors, {summary['na']} n/a), "
+              f"{summary['already']} already stored, {summary['wall_s']:.0f} s", file=sys.stderr)
+        store = summary["store"]
+    path = render(store, args.out, experiments=args.experiments)
+    print(path)
+    return 0
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        return report_command(args)
+    except ValueError as exc:  # unknown names, store format/config mismatch: a clear message
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
