@@ -15,11 +15,15 @@ runner          builds the grid and runs it on a process pool or a Dask cluster
 
 from __future__ import annotations
 
+from sysid_bench.bench.calibration import Calibration
+from sysid_bench.bench.changing import Changing
+from sysid_bench.bench.forecasting import Forecasting
 from sysid_bench.bench.identification import Identification
+from sysid_bench.bench.sensitivity import Sensitivity
 
 #: name -> experiment, in report order
 EXPERIMENTS = {
-    e.name: e for e in (Identification(),)
+    e.name: e for e in (Identification(), Forecasting(), Changing(), Sensitivity(), Calibration())
 }
 
 __all__ = ["EXPERIMENTS"]

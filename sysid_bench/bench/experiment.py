@@ -72,11 +72,26 @@ class CellOutput:
     rows: list[Row] = field(default_factory=list)
     artifacts: dict[str, np.ndarray] = field(default_factory=dict)
 
+    #: (n_frames, message) of parts of the cell that failed while the rest went on
+    errors: list[tuple[int, str]] = field(default_factory=list)
+
     def add(self, case: int, n_frames: int, metric: str, value) -> None:
         self.rows.append(Row(int(case), int(n_frames), metric, float(value)))
 
+    def fail(self, n_frames: int, exc: BaseException, case: int | None = None) -> None:
+        """Record that the part of the cell at ``n_frames`` failed (a ``failed`` row = 1)."""
+        self.errors.append((int(n_frames), _describe(exc)))
+        if case is not None:
+            self.add(case, n_frames, "failed", 1.0)
 
-_PROTOTYPES: dict[tuple[str, str], Estimator] = {}
+
+def _describe(exc: BaseException) -> str:
+    tb = traceback.extract_tb(exc.__traceback__)
+    where = f" at {Path(tb[-1].filename).name}:{tb[-1].lineno}" if tb else ""
+    return f"{type(exc).__name__}: {exc}{where}"[:2000]
+
+
+_PROTOTYPES: dict[tuple[str, str, bool], Estimator] = {}
 
 
 class Context:
@@ -86,21 +101,22 @@ class Context:
         self.scale = scale
         self.run_dir = Path(run_dir)
 
-    def estimator(self, method: str, **extra) -> Estimator:
+    def estimator(self, method: str, warm: bool = True, **extra) -> Estimator:
         """A fresh copy of ``method`` with the scale's options (loaded once per process).
 
         A copy per cell keeps results independent of which cells a worker ran before (any
         state a method keeps between calls stays in the copy), so a local pool and a Dask
-        cluster give the same numbers.
+        cluster give the same numbers. ``warm`` loads a learned method's shipped weights
+        (``fit(None)``) up front; methods about to be trained from scratch skip that.
         """
         import methods
 
         opts = {**self.scale.method_options.get(method, {}), **extra}
-        key = (method, json.dumps(opts, sort_keys=True, default=str))
+        key = (method, json.dumps(opts, sort_keys=True, default=str), warm)
         proto = _PROTOTYPES.get(key)
         if proto is None:
             proto = methods.get(method, **opts)
-            if method == "vid2param" or getattr(type(proto), "input_kind", "") == "frames":
+            if warm and type(proto).fit is not Estimator.fit:
                 proto.fit(None)  # loads the shipped checkpoint once per process
             _PROTOTYPES[key] = proto
         return copy.deepcopy(proto)
@@ -155,10 +171,12 @@ def execute(cell: Cell, scale: Scale, run_dir: str) -> dict:
     except NotImplementedError as exc:
         status, error = "n/a", str(exc) or f"{cell.method} does not implement this"
     except Exception as exc:  # a method failing on a case is a result, not a crash of the run
-        status = "error"
-        tb = traceback.extract_tb(exc.__traceback__)
-        where = f" at {Path(tb[-1].filename).name}:{tb[-1].lineno}" if tb else ""
-        error = f"{type(exc).__name__}: {exc}{where}"[:2000]
+        status, error = "error", _describe(exc)
+    if status == "ok" and out.errors:
+        msgs = "; ".join(f"{n} frames: {m}" for n, m in out.errors)
+        if not out.rows:  # nothing worked: the cell failed
+            status = "error"
+        error = msgs[:4000]
     return {"cell": cell, "status": status, "error": error, "wall_s": time.perf_counter() - t0,
             "rows": out.rows if status == "ok" else [], "artifacts": out.artifacts if status == "ok" else {}}
 
@@ -168,29 +186,43 @@ def streams(est: Estimator) -> bool:
     return type(est).identify_prefixes is not Estimator.identify_prefixes
 
 
-def timed_prefixes(est: Estimator, obs: Observation, lengths) -> list[tuple[Posterior, float]]:
+def timed_prefixes(est: Estimator, obs: Observation, lengths, out: CellOutput | None = None,
+                   case: int | None = None) -> list[tuple[int, Posterior, float]]:
     """Posteriors after each of ``lengths`` frames, with the seconds each identification took.
 
     Methods with their own ``identify_prefixes`` (streaming) do one pass; the time of a prefix
     is then what the method reports in ``extras["wall_s"]`` (else the pass pro rata). Other
-    methods are timed call by call around ``identify``.
+    methods are timed call by call around ``identify``; a prefix on which such a method fails
+    (too short for it, say) is skipped and noted in ``out`` instead of failing the whole cell.
+
+    Returns
+    -------
+    list of (n_frames, Posterior, seconds)
     """
     lengths = [int(n) for n in lengths]
     if streams(est):
         t0 = time.perf_counter()
         posts = est.identify_prefixes(obs, lengths)
         total = time.perf_counter() - t0
-        out = []
+        res = []
         for n, p in zip(lengths, posts):
             w = p.extras.get("wall_s")
-            out.append((p, float(w) if w is not None else total * n / max(lengths)))
-        return out
-    out = []
+            res.append((n, p, float(w) if w is not None else total * n / max(lengths)))
+        return res
+    res = []
     for n in lengths:
         t0 = time.perf_counter()
-        p = est.identify(obs.prefix(n))
-        out.append((p, time.perf_counter() - t0))
-    return out
+        try:
+            p = est.identify(obs.prefix(n))
+        except NotImplementedError:
+            raise
+        except Exception as exc:
+            if out is None:
+                raise
+            out.fail(n, exc, case)
+            continue
+        res.append((n, p, time.perf_counter() - t0))
+    return res
 
 
 # -- report helpers ---------------------------------------------------------------------------

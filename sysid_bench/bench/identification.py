@@ -61,7 +61,7 @@ class Identification(Experiment):
         est = ctx.estimator(cell.method)
         truth = np.asarray(ds.theta[i, 0])
         out = CellOutput()
-        for n, (post, wall) in zip(lengths, timed_prefixes(est, obs, lengths)):
+        for n, post, wall in timed_prefixes(est, obs, lengths, out, case=i):
             se = normalised_param_se(truth, post.mean)
             for p, v in zip(PARAMS, se):
                 out.add(i, n, f"se_{p}", v)

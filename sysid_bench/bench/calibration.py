@@ -1,0 +1,218 @@
+"""Experiment 5 (beyond the paper): calibration of posteriors and agreement with ``nuts``.
+
+Every identifying method's posterior after 50, 100 and 200 frames of the same test videos.
+Rows per case, frame count and parameter ``p`` (all normalised to [0, 1] by the prior):
+``hit50_<p>`` / ``hit90_<p>`` (1 when the truth lies in the central 50 / 90% interval),
+``nll_<p>`` (Gaussian NLL of the truth under N(mean, std)), ``mean_<p>``, ``std_<p>`` and the
+posterior quantiles ``q<k>_<p>`` at levels :data:`QUANTILES` (from samples when the method gives
+samples, else Gaussian). Agreement with the NUTS reference is computed in the report from the
+quantiles: the 1-Wasserstein distance between marginals (mean absolute difference of quantile
+functions) and the shift of the mean in units of the NUTS std.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy.special import ndtri
+
+from sysid_bench.bench.cases import observation
+from sysid_bench.bench.experiment import (
+    SPAN,
+    Cell,
+    CellOutput,
+    Context,
+    Experiment,
+    ci_summary,
+    fmt_ci,
+    normalise,
+    timed_prefixes,
+)
+from sysid_bench.bench.identification import _save, method_inputs
+from sysid_bench.metrics import gaussian_nll
+from sysid_bench.physics import PARAMS
+
+QUANTILES = tuple(np.round(np.arange(0.05, 1.0, 0.1), 2))  # 0.05, 0.15, ..., 0.95
+REFERENCE = "nuts"
+
+
+def posterior_quantiles(post) -> np.ndarray:
+    """Quantiles (len(QUANTILES), 4) of a Posterior in physical units."""
+    q = np.asarray(QUANTILES)
+    if post.samples is not None and len(post.samples) >= 2:
+        return np.quantile(post.samples, q, axis=0)
+    return post.mean[None, :] + ndtri(q)[:, None] * post.std[None, :]
+
+
+class Calibration(Experiment):
+    name = "calibration"
+    title = "5. Calibration and agreement with NUTS (beyond the paper)"
+    description = (
+        "Is each posterior honest? Coverage: share of (case, parameter, frame count) whose true "
+        "value lies in the posterior's central 50% / 90% interval (ideal: 0.50 / 0.90). NLL: "
+        "Gaussian negative log-likelihood of the truth under N(mean, std) in normalised units "
+        "(median, as point-estimate methods give infinite values). Agreement: 1-Wasserstein "
+        "distance between each method's marginals and the NUTS reference posterior on the same "
+        "case and input (normalised units; 0 = identical), and |mean - nuts mean| / nuts std."
+    )
+
+    def cells(self, scale, methods):
+        out = []
+        for m in methods:
+            for inp in method_inputs(m, scale.calibration_inputs):
+                out += [Cell(self.name, m, inp, "", i) for i in range(scale.cases(self.name, m))]
+        return out
+
+    def run(self, cell: Cell, ctx: Context) -> CellOutput:
+        sc = ctx.scale
+        ds = ctx.test_set("interleaved", sc.n_cases[self.name])
+        i = int(cell.case)
+        obs = observation(ds, i, cell.input)
+        truth = np.asarray(ds.theta[i, 0])
+        tn = normalise(truth)
+        est = ctx.estimator(cell.method)
+        out = CellOutput()
+        lengths = [n for n in sc.calibration_lengths if n <= obs.n_frames]
+        for n, post, _ in timed_prefixes(est, obs, lengths, out, case=i):
+            hits = {}
+            for level in (0.5, 0.9):
+                lo, hi = post.interval(level)
+                hits[level] = (truth >= lo) & (truth <= hi)
+            nll = gaussian_nll(truth, post.mean, post.std)
+            qs = normalise(posterior_quantiles(post))
+            mn, sd = normalise(post.mean), post.std / SPAN
+            for j, p in enumerate(PARAMS):
+                out.add(i, n, f"hit50_{p}", hits[0.5][j])
+                out.add(i, n, f"hit90_{p}", hits[0.9][j])
+                out.add(i, n, f"nll_{p}", nll[j])
+                out.add(i, n, f"mean_{p}", mn[j])
+                out.add(i, n, f"std_{p}", sd[j])
+                out.add(i, n, f"err_{p}", mn[j] - tn[j])
+                for q, v in zip(QUANTILES, qs[:, j]):
+                    out.add(i, n, f"q{int(round(q * 100)):02d}_{p}", v)
+        return out
+
+    # -- report -----------------------------------------------------------------------------
+    @staticmethod
+    def _pooled(df, prefix):
+        """Rows of metrics ``<prefix>_<p>`` pooled over parameters."""
+        return df[df.metric.str.startswith(prefix + "_")]
+
+    def agreement(self, df):
+        """Per (method, input, case, n_frames, param): W1 and mean shift vs the reference."""
+        import pandas as pd
+
+        if REFERENCE not in set(df.method):
+            return pd.DataFrame()
+        q = df[df.metric.str.match(r"q\d\d_")].copy()
+        q["param"] = q.metric.str.split("_").str[1]
+        q["level"] = q.metric.str.split("_").str[0]
+        key = ["input", "case", "n_frames", "param"]
+        wide = q.pivot_table(index=["method", *key], columns="level", values="value")
+        ref = wide.xs(REFERENCE, level="method")
+        ms = df[df.metric.str.match(r"(mean|std)_")].copy()
+        ms["param"] = ms.metric.str.split("_").str[1]
+        ms["kind"] = ms.metric.str.split("_").str[0]
+        msw = ms.pivot_table(index=["method", *key], columns="kind", values="value")
+        msref = msw.xs(REFERENCE, level="method")
+        recs = []
+        for m in sorted(set(df.method) - {REFERENCE}):
+            if m not in wide.index.get_level_values("method"):
+                continue
+            mine = wide.xs(m, level="method")
+            common = mine.index.intersection(ref.index)
+            if not len(common):
+                continue
+            w1 = (mine.loc[common] - ref.loc[common]).abs().mean(axis=1)
+            shift = ((msw.xs(m, level="method").loc[common, "mean"] - msref.loc[common, "mean"]).abs()
+                     / msref.loc[common, "std"].clip(lower=1e-9))
+            part = pd.DataFrame({"w1": w1, "shift": shift}).reset_index()
+            part.insert(0, "method", m)
+            recs.append(part)
+        return pd.concat(recs, ignore_index=True) if recs else pd.DataFrame()
+
+    def tables(self, df):
+        import pandas as pd
+
+        if df.empty:
+            return {}
+        recs = []
+        for (m, inp), g in df.groupby(["method", "input"]):
+            rec = {"method": m, "input": inp, "cases": g.case.nunique()}
+            for lev in ("50", "90"):
+                h = self._pooled(g, f"hit{lev}")
+                # resample cases: average each case's hits first
+                per_case = h.groupby("case").value.mean().reset_index().assign(k=0)
+                s = ci_summary(per_case, ["k"]).iloc[0]
+                rec[f"coverage {lev}%"] = fmt_ci(s["mean"], s["lo"], s["hi"], 2)
+            nll = self._pooled(g, "nll").value
+            rec["median NLL"] = f"{np.median(nll):.3g}" if len(nll) else "-"
+            sd = self._pooled(g, "std").value
+            rec["median std"] = f"{np.median(sd):.3g}" if len(sd) else "-"
+            recs.append(rec)
+        out = {"calibration": pd.DataFrame(recs)}
+        ag = self.agreement(df)
+        if len(ag):
+            rows = []
+            for (m, inp), g in ag.groupby(["method", "input"]):
+                per_case = g.groupby("case")[["w1", "shift"]].mean().reset_index().assign(k=0)
+                s = ci_summary(per_case, ["k"], value="w1").iloc[0]
+                rows.append({"method": m, "input": inp, "cases": g.case.nunique(),
+                             "W1 to nuts": fmt_ci(s["mean"], s["lo"], s["hi"]),
+                             "median |mean shift| / nuts std": f"{g['shift'].median():.3g}"})
+            out["agreement_with_nuts"] = pd.DataFrame(rows)
+        return out
+
+    def figures(self, df, store, outdir: Path):
+        import matplotlib.pyplot as plt
+
+        if df.empty:
+            return {}
+        fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+        ax = axes[0]
+        ax.plot([0, 1], [0, 1], "k:", lw=1)
+        for (m, inp), g in df.groupby(["method", "input"]):
+            ys, los, his = [], [], []
+            for lev in ("50", "90"):
+                per_case = self._pooled(g, f"hit{lev}").groupby("case").value.mean().reset_index().assign(k=0)
+                s = ci_summary(per_case, ["k"]).iloc[0]
+                ys.append(s["mean"])
+                los.append(s["mean"] - s["lo"])
+                his.append(s["hi"] - s["mean"])
+            ax.errorbar([0.5, 0.9], ys, yerr=[los, his], marker="o", capsize=3, label=f"{m} ({inp})")
+        ax.set(xlabel="nominal interval level", ylabel="empirical coverage", xlim=(0.4, 1.0),
+               ylim=(0, 1), title="Calibration of posteriors (95% CI)")
+        ax.legend(fontsize=7)
+        ag = self.agreement(df)
+        ax = axes[1]
+        if len(ag):
+            s = ci_summary(ag.groupby(["method", "input", "case"]).w1.mean().reset_index(),
+                           ["method", "input"], value="w1")
+            lab = [f"{m}\n({i})" for m, i in zip(s.method, s.input)]
+            ax.bar(lab, s["mean"], yerr=[s["mean"] - s.lo, s.hi - s["mean"]], capsize=3)
+            ax.set(ylabel="W1 to the nuts posterior (normalised)", title="Agreement with NUTS")
+            ax.tick_params(axis="x", labelsize=7)
+        else:
+            ax.set_axis_off()
+            ax.text(0.5, 0.5, "no nuts results in this run", ha="center")
+        return {"Calibration and agreement with NUTS": _save(fig, outdir / "calibration.png")}
+
+    def reading(self, df):
+        if df.empty:
+            return []
+        out = []
+        parts = []
+        for (m, inp), g in df.groupby(["method", "input"]):
+            c90 = self._pooled(g, "hit90").value.mean()
+            c50 = self._pooled(g, "hit50").value.mean()
+            verdict = ("over-confident" if c90 < 0.8 else "under-confident" if c90 > 0.97
+                       else "roughly calibrated")
+            parts.append(f"{m} ({inp}) {c50:.2f}/{c90:.2f}, {verdict}")
+        out.append("Not in the paper. Coverage of the 50%/90% intervals: " + "; ".join(parts) + ".")
+        ag = self.agreement(df)
+        if len(ag):
+            s = ag.groupby(["method", "input"]).w1.mean()
+            out.append("Mean W1 distance to the NUTS posterior (normalised units): "
+                       + ", ".join(f"{m} ({i}) {v:.3g}" for (m, i), v in s.items()) + ".")
+        return out

@@ -1,0 +1,196 @@
+"""Experiment 3: parameters that change every 50 frames (paper, Fig. "var_physics").
+
+Test videos whose ``(e, g, d, r)`` are re-drawn every ``change_every`` frames; every method
+(built for constant parameters, as in the paper) reports its estimate after each observed
+frame (streaming methods) or every ``changing_stride`` frames (the others, which re-identify
+from scratch). Rows per case and frame count: ``mean_<p>`` / ``std_<p>`` (normalised to [0, 1]),
+``se_<p>`` and ``se`` against the parameters in force at that frame. For every change of a
+parameter by at least :data:`MIN_JUMP` of its range, at the change frame ``c``: ``follow_<p>``,
+the frames after ``c`` until the estimate is first closer to the new value than to the old one
+(missing if never within the segment), ``followed_<p>`` (1 / 0) and ``jump_<p>``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sysid_bench.bench.cases import observation
+from sysid_bench.bench.experiment import (
+    Cell,
+    CellOutput,
+    Context,
+    SPAN,
+    Experiment,
+    ci_summary,
+    fmt_ci,
+    normalise,
+    streams,
+    timed_prefixes,
+)
+from sysid_bench.bench.identification import _save
+from sysid_bench.physics import PARAMS
+
+MIN_JUMP = 0.1
+
+
+def frames_to_follow(lengths, est, old, new, c, every):
+    """Frames after change frame ``c`` until ``est`` is closer to ``new`` than to ``old``.
+
+    Parameters
+    ----------
+    lengths : ndarray, shape (L,)
+        Observed frame counts of the estimates.
+    est : ndarray, shape (L,)
+        Estimates (normalised) after each of ``lengths``.
+    old, new : float
+    c, every : int
+        Change frame and segment length: only ``c < n <= c + every`` counts.
+
+    Returns
+    -------
+    float
+        ``n - c`` at the first such estimate, NaN when none.
+    """
+    lengths = np.asarray(lengths)
+    win = (lengths > c) & (lengths <= c + every)
+    ok = win & (np.abs(est - new) < np.abs(est - old))
+    return float(lengths[ok][0] - c) if ok.any() else float("nan")
+
+
+class Changing(Experiment):
+    name = "changing"
+    title = "3. Changing parameters"
+    description = (
+        "Parameters are re-drawn every 50 frames (test sub-ranges). Each method, built for "
+        "constant parameters, reports its estimate as the video unrolls (every frame for "
+        "streaming methods, every `changing_stride` frames for the others, which re-identify "
+        "from scratch). Error is against the parameters in force at the last observed frame; "
+        "'frames to follow' counts frames after a change (of at least 10% of the range) until "
+        "the estimate is closer to the new value than to the old. Input: video."
+    )
+
+    def cells(self, scale, methods):
+        return [Cell(self.name, m, "video", "", i)
+                for m in methods for i in range(scale.cases(self.name, m))]
+
+    def run(self, cell: Cell, ctx: Context) -> CellOutput:
+        sc = ctx.scale
+        ds = ctx.test_set("changing", sc.n_cases[self.name], every=sc.change_every)
+        i = int(cell.case)
+        obs = observation(ds, i, cell.input)
+        T = obs.n_frames
+        est = ctx.estimator(cell.method)
+        step = 1 if streams(est) else sc.changing_stride
+        lengths = list(range(step, T + 1, step))
+        truth = normalise(ds.theta[i])  # (T, 4)
+        out = CellOutput()
+        if i == 0:
+            out.artifacts["truth"] = truth
+        got = timed_prefixes(est, obs, lengths, out, case=i)
+        if not got:
+            return out
+        ns = np.array([n for n, _, _ in got])
+        means = normalise(np.stack([p.mean for _, p, _ in got]))
+        stds = np.stack([p.std for _, p, _ in got]) / SPAN
+        now = truth[ns - 1]
+        se = (means - now) ** 2
+        for k, n in enumerate(ns):
+            for j, p in enumerate(PARAMS):
+                out.add(i, n, f"mean_{p}", means[k, j])
+                out.add(i, n, f"std_{p}", stds[k, j])
+                out.add(i, n, f"se_{p}", se[k, j])
+            out.add(i, n, "se", se[k].mean())
+        for c in range(sc.change_every, T, sc.change_every):
+            for j, p in enumerate(PARAMS):
+                old, new = truth[c - 1, j], truth[c, j]
+                if abs(new - old) < MIN_JUMP:
+                    continue
+                f = frames_to_follow(ns, means[:, j], old, new, c, sc.change_every)
+                out.add(i, c, f"jump_{p}", new - old)
+                out.add(i, c, f"followed_{p}", float(np.isfinite(f)))
+                out.add(i, c, f"follow_{p}", f)
+        return out
+
+    # -- report -----------------------------------------------------------------------------
+    def tables(self, df):
+        import pandas as pd
+
+        if df.empty:
+            return {}
+        recs = []
+        for (m, inp), g in df.groupby(["method", "input"]):
+            rec = {"method": m, "input": inp, "cases": g.case.nunique()}
+            s = ci_summary(g[g.metric == "se"].groupby("case").value.mean().reset_index()
+                           .assign(k=0), ["k"])
+            rec["MSE over the video"] = fmt_ci(*s.iloc[0][["mean", "lo", "hi"]])
+            for p in PARAMS:
+                fol = g[g.metric == f"followed_{p}"].value
+                fr = g[g.metric == f"follow_{p}"].value.dropna()
+                rec[f"{p}: followed"] = f"{int(fol.sum())}/{len(fol)}" if len(fol) else "-"
+                rec[f"{p}: frames"] = f"{fr.median():.0f}" if len(fr) else "-"
+            recs.append(rec)
+        t = pd.DataFrame(recs)
+        return {"changing_follow": t}
+
+    def figures(self, df, store, outdir: Path):
+        import matplotlib.pyplot as plt
+
+        if df.empty:
+            return {}
+        figs = {}
+        ex = df[(df.case == 0) & df.metric.str.startswith(("mean_", "std_"))]
+        arts = store.artifacts(f"{self.name}|%|0")
+        truth = next((a for (c, n), a in arts.items() if n == "truth"), None)
+        fig, axes = plt.subplots(1, 4, figsize=(16, 3.4), sharex=True)
+        for j, (ax, p) in enumerate(zip(axes, PARAMS)):
+            if truth is not None:
+                ax.step(np.arange(1, len(truth) + 1), truth[:, j], where="post", color="g",
+                        lw=2, label="truth")
+            for (m, inp), g in ex.groupby(["method", "input"]):
+                mu = g[g.metric == f"mean_{p}"].sort_values("n_frames")
+                sd = g[g.metric == f"std_{p}"].sort_values("n_frames")
+                line, = ax.plot(mu.n_frames, mu.value, lw=1, label=m)
+                ax.fill_between(mu.n_frames, mu.value.to_numpy() - sd.value.to_numpy(),
+                                mu.value.to_numpy() + sd.value.to_numpy(),
+                                color=line.get_color(), alpha=0.15)
+            ax.set(title=f"{p} (normalised)", xlabel="observed frames", ylim=(-0.1, 1.1))
+        axes[0].legend(fontsize=7)
+        fig.suptitle("Changing parameters, test case 0: truth (green), estimate +- 1 std")
+        figs["Per-frame estimates vs truth (example)"] = _save(fig, outdir / "changing_example.png")
+
+        fig, ax = plt.subplots(figsize=(7, 3.6))
+        s = ci_summary(df[df.metric == "se"], ["method", "n_frames"])
+        for m, g in s.groupby("method"):
+            ax.plot(g.n_frames, g["mean"], label=m)
+            ax.fill_between(g.n_frames, g.lo, g.hi, alpha=0.15)
+        for c in range(50, int(df.n_frames.max()), 50):
+            ax.axvline(c, color="k", ls=":", lw=0.8)
+        ax.set(xlabel="observed frames", ylabel="normalised MSE vs current parameters",
+               yscale="log", title="Changing parameters: error over the video (changes dotted)")
+        ax.legend(fontsize=7)
+        figs["Error over the video with changing parameters"] = _save(fig, outdir / "changing_mse.png")
+        return figs
+
+    def reading(self, df):
+        if df.empty or "vid2param" not in set(df.method):
+            return []
+        g = df[df.method == "vid2param"]
+        parts = []
+        for p in PARAMS:
+            fol = g[g.metric == f"followed_{p}"].value
+            fr = g[g.metric == f"follow_{p}"].value.dropna()
+            if len(fol):
+                parts.append(f"{p} {int(fol.sum())}/{len(fol)} changes followed"
+                             + (f" (median {fr.median():.0f} frames)" if len(fr) else ""))
+        others = []
+        for m, h in df[df.method != "vid2param"].groupby("method"):
+            tot = h[h.metric.str.startswith("followed_")].value
+            if len(tot):
+                others.append(f"{m} {tot.mean():.0%}")
+        v = g[g.metric.str.startswith("followed_")].value
+        return ["Paper: Vid2Param can follow changing parameters given enough excitation. Here: "
+                + "; ".join(parts) + f" (all parameters: {v.mean():.0%})"
+                + (". Other methods, share of changes followed: " + ", ".join(others) if others else "")
+                + "."]
