@@ -174,7 +174,7 @@ def execute(cell: Cell, scale: Scale, run_dir: str) -> dict:
         status, error = "error", _describe(exc)
     if status == "ok" and out.errors:
         msgs = "; ".join(f"{n} frames: {m}" for n, m in out.errors)
-        if not out.rows:  # nothing worked: the cell failed
+        if all(r.metric == "failed" for r in out.rows):  # nothing worked: the cell failed
             status = "error"
         error = msgs[:4000]
     return {"cell": cell, "status": status, "error": error, "wall_s": time.perf_counter() - t0,

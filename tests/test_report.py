@@ -1,0 +1,111 @@
+"""Report rendering from a results store, the CLI, and the report's derived numbers."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import methods
+from sysid_bench.bench import EXPERIMENTS
+from sysid_bench.bench.calibration import QUANTILES, Calibration
+from sysid_bench.bench.changing import frames_to_follow
+from sysid_bench.bench.runner import STORE_NAME, run
+from sysid_bench.bench.store import Store
+from sysid_bench.cli import main as cli_main
+from sysid_bench.report import main as report_main
+from sysid_bench.report import markdown_table, render
+
+try:
+    methods.get_class("lsq")
+    FAST = ["prior", "lsq"]
+except (ImportError, ValueError):
+    FAST = ["prior"]
+
+
+@pytest.fixture(scope="module")
+def store_path(tmp_path_factory):
+    d = tmp_path_factory.mktemp("run")
+    run(scale="smoke", methods=FAST, experiments=["identification", "forecasting", "changing",
+                                                  "calibration"],
+        run_dir=d, workers=0, progress=False)
+    return d / STORE_NAME
+
+
+def test_markdown_table():
+    df = pd.DataFrame({"method": ["a|b", "c"], "x": [0.123456, np.nan], "n": [1, 2]})
+    md = markdown_table(df).splitlines()
+    assert md[0] == "| method | x | n |"
+    assert md[1] == "|---|---|---|"
+    assert md[2] == "| a\\|b | 0.1235 | 1 |"
+    assert md[3] == "| c | - | 2 |"
+
+
+def test_render_from_store(store_path, tmp_path):
+    out = tmp_path / "reports"
+    path = render(store_path, out)
+    text = path.read_text()
+    for e in EXPERIMENTS.values():
+        assert f"## {e.title}" in text
+    assert "git commit `" in text and "scale `smoke`" in text
+    # tables name the input each method saw, and every method appears
+    t = pd.read_csv(out / "tables" / "identification_mse.csv")
+    assert {"method", "input"} <= set(t.columns)
+    assert set(t.method) == set(FAST) and set(t.input) == {"video", "privileged"}
+    assert (out / "tables" / "forecast_mse.parquet").is_file()
+    for png in ("identification_accuracy", "identification_speed", "forecast_accuracy",
+                "forecast_examples", "changing_example", "calibration"):
+        data = (out / "figures" / f"{png}.png").read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+        assert f"figures/{png}.png" in text
+    # the whole run is exported long-format
+    res = pd.read_parquet(out / "results.parquet")
+    with Store(store_path) as s:
+        assert len(res) == len(s.results())
+    assert "No results in the store" in text  # sensitivity: no trainable method in this run
+
+
+def test_report_cli_from_store_and_bad_names(store_path, tmp_path, capsys):
+    assert report_main(["--from-store", str(store_path.parent), "--out", str(tmp_path / "r")]) == 0
+    assert (tmp_path / "r" / "REPORT.md").is_file()
+    assert report_main(["--from-store", str(store_path), "--out", str(tmp_path / "r2"),
+                        "--experiments", "calibratoin"]) == 2
+    assert "Did you mean 'calibration'" in capsys.readouterr().err
+    with pytest.raises(SystemExit, match="no results store"):
+        report_main(["--from-store", str(tmp_path / "nothing")])
+
+
+def test_cli_list_and_run(tmp_path, capsys):
+    assert cli_main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert "identification" in out and "smoke" in out and "lsq" in out
+    assert cli_main(["run", "--scale", "smoke", "--methods", "prior", "--experiments",
+                     "identification", "--run-dir", str(tmp_path), "--workers", "0",
+                     "--no-progress"]) == 0
+    assert "4 computed (4 ok, 0 errors, 0 n/a)" in capsys.readouterr().out  # 2 inputs x 2 cases
+    assert cli_main(["run", "--scale", "smoke", "--methods", "prio"]) == 2
+    assert "Did you mean 'prior'" in capsys.readouterr().err
+
+
+def test_agreement_with_nuts_is_the_quantile_distance():
+    """A posterior equal to the reference shifted by 0.1 is at W1 = 0.1, shift = 0.1 / std."""
+    rows = []
+    for m, shift in (("nuts", 0.0), ("other", 0.1)):
+        for case in (0, 1):
+            for j, p in enumerate("egdr"):
+                base = 0.2 + 0.1 * j
+                for q in QUANTILES:
+                    rows.append((m, "video", case, 50, f"q{int(round(q * 100)):02d}_{p}",
+                                 base + shift + 0.05 * (q - 0.5)))
+                rows.append((m, "video", case, 50, f"mean_{p}", base + shift))
+                rows.append((m, "video", case, 50, f"std_{p}", 0.05))
+    df = pd.DataFrame(rows, columns=["method", "input", "case", "n_frames", "metric", "value"])
+    ag = Calibration().agreement(df)
+    assert set(ag.method) == {"other"} and len(ag) == 2 * 4
+    np.testing.assert_allclose(ag.w1, 0.1)
+    np.testing.assert_allclose(ag["shift"], 2.0)
+
+
+def test_frames_to_follow():
+    n = np.arange(10, 201, 10)
+    est = np.where(n <= 70, 0.2, 0.8)  # jumps to the new value 20 frames after the change at 50
+    assert frames_to_follow(n, est, 0.2, 0.8, 50, 50) == 30  # first estimate past the midpoint
+    assert np.isnan(frames_to_follow(n, np.full(n.shape, 0.2), 0.2, 0.8, 50, 50))
