@@ -133,7 +133,11 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
         if scale is not None:
             md += [f"Cases per experiment: {json.dumps(scale.n_cases)}; per-method caps: "
                    f"{json.dumps(scale.method_cases) if scale.method_cases else 'none'}; "
-                   f"method options: {json.dumps(scale.method_options)}.", ""]
+                   f"method options: {json.dumps(scale.method_options)}."
+                   + (f" Expensive methods ({', '.join(scale.expensive)}) are evaluated at "
+                      f"{list(scale.expensive_lengths)} frames in experiment 1 and every "
+                      f"{scale.expensive_stride} frames in experiment 3." if scale.expensive else ""),
+                   ""]
         _write_table(df, out / "results")  # the whole long-format run, for anyone's analysis
         readings = []
         for name in exps:

@@ -51,8 +51,8 @@ class Scale:
         Test videos per experiment (``identification``, ``forecasting``, ``changing``,
         ``sensitivity``, ``calibration``).
     method_cases : dict
-        Per method, the most test videos it gets in any experiment (expensive samplers get
-        fewer; they see the first ``k`` of the same cases).
+        Per method, the most test videos it gets (an int for every experiment or a dict per
+        experiment): expensive samplers get fewer; they see the first ``k`` of the same cases.
     method_options : dict
         Per method, hyperparameters passed to ``methods.get``.
     lengths : tuple of int
@@ -65,8 +65,15 @@ class Scale:
         (streaming ones every frame).
     calibration_lengths : tuple of int
     calibration_inputs : tuple of str
+    expensive : tuple of str
+        Methods that take seconds per identification (samplers, Bayesian optimisation): in
+        experiment 1 they are evaluated at ``expensive_lengths`` only and in experiment 3 every
+        ``expensive_stride`` frames, so a default run fits its time budget.
+    expensive_lengths : tuple of int
+    expensive_stride : int
     sensitivity : dict
-        Experiment 4: ``n_train`` training videos per condition, ``fit_options`` for the
+        Experiment 4 (its test videos: ``n_cases["sensitivity"]``): ``n_train`` training
+        videos of ``n_frames`` frames per condition, ``fit_options`` for the
         method's ``fit`` budget, ``extrapolation`` parameters, ``label_noise`` levels,
         ``simplified`` (bool), ``lengths``.
     """
@@ -83,12 +90,28 @@ class Scale:
     changing_stride: int = 10
     calibration_lengths: tuple = (50, 100, 200)
     calibration_inputs: tuple = ("video",)
+    expensive: tuple = ()
+    expensive_lengths: tuple = (20, 50, 100, 150, 200)
+    expensive_stride: int = 25
     sensitivity: dict = field(default_factory=dict)
 
+    def lengths_for(self, method: str) -> tuple:
+        """Observed-frame counts of experiment 1 for ``method``."""
+        return self.expensive_lengths if method in self.expensive else self.lengths
+
+    def stride_for(self, method: str) -> int:
+        """Frames between estimates in experiment 3 for a non-streaming ``method``."""
+        return self.expensive_stride if method in self.expensive else self.changing_stride
+
     def cases(self, experiment: str, method: str) -> int:
-        """Number of test videos ``method`` gets in ``experiment``."""
+        """Number of test videos ``method`` gets in ``experiment``.
+
+        ``method_cases[method]`` is a cap for every experiment, or a dict of caps per experiment.
+        """
         n = int(self.n_cases[experiment])
         cap = self.method_cases.get(method)
+        if isinstance(cap, dict):
+            cap = cap.get(experiment)
         return n if cap is None else min(n, int(cap))
 
     def grid_config(self) -> dict:
@@ -120,7 +143,6 @@ _ONE_THREAD = {"vid2param": {"threads": 1}}
 _SENS_SMALL = {
     "n_train": 400,
     "n_frames": 100,
-    "n_test": 20,
     "fit_options": {"fit_steps": 120, "fit_lr": 1e-3, "warm_start": False},
     "extrapolation": ("e",),
     "label_noise": (0.0, 0.5),
@@ -145,7 +167,6 @@ SCALES: dict[str, Scale] = {
         sensitivity={
             "n_train": 16,
             "n_frames": 50,
-            "n_test": 2,
             "fit_options": {"fit_steps": 2, "fit_lr": 1e-3, "warm_start": False},
             "extrapolation": ("e",),
             "label_noise": (0.0, 0.5),
@@ -156,10 +177,12 @@ SCALES: dict[str, Scale] = {
     # <= 15 min on 2 cores with the shipped Vid2Param checkpoint (measured in the report)
     "default": Scale(
         name="default",
-        n_cases={"identification": 40, "forecasting": 30, "changing": 20, "sensitivity": 30,
-                 "calibration": 30},
-        method_cases={"nuts": 6, "bo": 10, "emcee": 10},
+        n_cases={"identification": 30, "forecasting": 20, "changing": 10, "sensitivity": 20,
+                 "calibration": 20},
+        # seconds per identification: they see the first cases only (same cases as the others)
+        method_cases={"nuts": 5, "bo": 5, "emcee": 5},
         method_options=_ONE_THREAD,
+        expensive=("bo", "emcee", "nuts"),
         sensitivity=_SENS_SMALL,
     ),
     # the paper's sizes: 100 test videos, 10,000 training videos per sensitivity model
@@ -174,7 +197,6 @@ SCALES: dict[str, Scale] = {
         sensitivity={
             "n_train": 10_000,
             "n_frames": 200,
-            "n_test": 100,
             "fit_options": {"fit_steps": 5000, "fit_lr": 1e-3, "warm_start": False},
             "extrapolation": ("e", "g", "d", "r"),
             "label_noise": (0.0, 0.1, 0.2, 0.3, 0.4, 0.5),

@@ -82,7 +82,7 @@ class Changing(Experiment):
         obs = observation(ds, i, cell.input)
         T = obs.n_frames
         est = ctx.estimator(cell.method)
-        step = 1 if streams(est) else sc.changing_stride
+        step = 1 if streams(est) else sc.stride_for(cell.method)
         lengths = list(range(step, T + 1, step))
         truth = normalise(ds.theta[i])  # (T, 4)
         out = CellOutput()

@@ -57,7 +57,7 @@ class Identification(Experiment):
         ds = ctx.test_set("interleaved", sc.n_cases[self.name])
         i = int(cell.case)
         obs = observation(ds, i, cell.input)
-        lengths = [n for n in sc.lengths if n <= obs.n_frames]
+        lengths = [n for n in sc.lengths_for(cell.method) if n <= obs.n_frames]
         est = ctx.estimator(cell.method)
         truth = np.asarray(ds.theta[i, 0])
         out = CellOutput()

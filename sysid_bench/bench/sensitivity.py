@@ -13,7 +13,7 @@ Each cell trains a **fresh** model with the scale's small budget (``sensitivity.
 not the shipped checkpoint, which saw every training sub-range and would hide extrapolation
 failures) on ``n_train`` videos of ``n_frames`` frames, pickles it into
 ``<run_dir>/models/`` (atomically; a resumed run loads it instead of retraining), then
-identifies ``n_test`` test videos. Because every condition gets the same budget, the
+identifies ``n_cases["sensitivity"]`` test videos. Because every condition gets the same budget, the
 comparison between conditions is fair even though absolute errors are those of a small model.
 Rows per case and frame count: ``se_<p>``, ``se``; ``train_wall_s`` at case -1.
 """
@@ -134,7 +134,7 @@ class Sensitivity(Experiment):
         sens = ctx.scale.sensitivity
         est, wall = trained_model(ctx, cell.method, cell.condition)
         kind, _, arg = cell.condition.partition(":")
-        n_test = sens.get("n_test", ctx.scale.n_cases[self.name])
+        n_test = ctx.scale.cases(self.name, cell.method)
         if kind == "extrapolation":
             ds = ctx.test_set("extrapolation", n_test, param=arg)
         else:
