@@ -130,6 +130,11 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
                "(`--from-store` re-renders it). Methods see the same seeded test cases. "
                "Intervals are 95% bootstrap CIs over cases.", ""]
         md += ["## Run", "", *prov, ""]
+        sc_name = info["last"].get("scale", "default")
+        md += ["Reproduce: `python -m sysid_bench.report" + ("" if sc_name == "default" else
+               f" --scale {sc_name}") + "` (or `sysid-bench report`, `tox -e bench`); a killed "
+               "run resumes where it stopped; `python -m sysid_bench.report --from-store "
+               f"runs/{sc_name}/results.sqlite` re-renders this file without computing.", ""]
         if scale is not None:
             md += [f"Cases per experiment: {json.dumps(scale.n_cases)}; per-method caps: "
                    f"{json.dumps(scale.method_cases) if scale.method_cases else 'none'}; "

@@ -17,7 +17,7 @@ from sysid_bench.bench.cases import SCALES, Scale
 from sysid_bench.bench.experiment import Cell, Context
 from sysid_bench.bench.runner import STORE_NAME, build_grid, run
 from sysid_bench.bench.store import Store, StoreConfigError
-from sysid_bench.estimator import Estimator, Forecast, Observation, prior_posterior
+from sysid_bench.estimator import Estimator, Forecast, Observation
 
 ROOT = Path(__file__).resolve().parents[1]
 HAVE_LSQ = "lsq" in methods.available()

@@ -18,10 +18,10 @@ import numpy as np
 
 from sysid_bench.bench.cases import observation
 from sysid_bench.bench.experiment import (
+    SPAN,
     Cell,
     CellOutput,
     Context,
-    SPAN,
     Experiment,
     ci_summary,
     fmt_ci,
@@ -148,7 +148,7 @@ class Changing(Experiment):
             if truth is not None:
                 ax.step(np.arange(1, len(truth) + 1), truth[:, j], where="post", color="g",
                         lw=2, label="truth")
-            for (m, inp), g in ex.groupby(["method", "input"]):
+            for (m, _inp), g in ex.groupby(["method", "input"]):
                 mu = g[g.metric == f"mean_{p}"].sort_values("n_frames")
                 sd = g[g.metric == f"std_{p}"].sort_values("n_frames")
                 line, = ax.plot(mu.n_frames, mu.value, lw=1, label=m)
