@@ -103,6 +103,43 @@ def _run_summary(store) -> tuple[list[str], dict]:
     return lines, {"elapsed_s": elapsed, "last": last}
 
 
+def summary_table(df):
+    """One row per (method, input): the headline number of each experiment.
+
+    Returns
+    -------
+    pandas.DataFrame
+    """
+    import pandas as pd
+
+    ok = df[df.status == "ok"]
+    keys = sorted({(m, i) for m, i in zip(ok.method, ok.input)
+                   if not str(m).startswith("_")})
+    recs = []
+    ident = ok[ok.experiment == "identification"]
+    last = int(ident.n_frames.max()) if len(ident) else None
+    fc = ok[(ok.experiment == "forecasting") & (ok.metric == "pos_mse")]
+    fc_at = 50 if (fc.n_frames == 50).any() else (int(fc.n_frames.min()) if len(fc) else None)
+    ch = ok[(ok.experiment == "changing") & ok.metric.str.startswith("followed_")]
+    cal = ok[(ok.experiment == "calibration") & ok.metric.str.startswith("hit90_")]
+    for m, i in keys:
+        rec = {"method": m, "input": i}
+        sel = ident[(ident.method == m) & (ident.input == i) & (ident.n_frames == last)]
+        se = sel[sel.metric == "se"].value
+        rec[f"param MSE @ {last}"] = se.mean() if len(se) else np.nan
+        w = sel[sel.metric == "wall_s"].value
+        rec[f"s / identification @ {last}"] = w.median() if len(w) else np.nan
+        f = fc[(fc.method == m) & (fc.input == i) & (fc.n_frames == fc_at)].value
+        rec[f"forecast MSE after {fc_at}"] = f.mean() if len(f) else np.nan
+        c = ch[(ch.method == m) & (ch.input == i)].value
+        rec["changes followed"] = c.mean() if len(c) else np.nan
+        h = cal[(cal.method == m) & (cal.input == i)].value
+        rec["90% coverage"] = h.mean() if len(h) else np.nan
+        if len(sel) or len(f) or len(c) or len(h):
+            recs.append(rec)
+    return pd.DataFrame(recs)
+
+
 def render(store_path, out_dir="reports", experiments=None, title: str | None = None) -> Path:
     """Write the report of the store at ``store_path`` into ``out_dir``.
 
@@ -144,6 +181,13 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
                       f"{scale.expensive_stride} frames in experiment 3." if scale.expensive else ""),
                    ""]
         _write_table(df, out / "results")  # the whole long-format run, for anyone's analysis
+        head = summary_table(df)
+        if len(head):
+            _write_table(head, tabdir / "summary")
+            md += ["## Summary", "",
+                   "Means over the cases of each experiment (details, case counts and confidence "
+                   "intervals in the sections below); `-`: not run or not applicable.", "",
+                   markdown_table(head, floatfmt=".3g"), ""]
         readings = []
         for name in exps:
             e = EXPERIMENTS[name]

@@ -107,5 +107,9 @@ def test_agreement_with_nuts_is_the_quantile_distance():
 def test_frames_to_follow():
     n = np.arange(10, 201, 10)
     est = np.where(n <= 70, 0.2, 0.8)  # jumps to the new value 20 frames after the change at 50
-    assert frames_to_follow(n, est, 0.2, 0.8, 50, 50) == 30  # first estimate past the midpoint
+    assert frames_to_follow(n, est, 0.2, 0.8, 50, 50) == 30  # first estimate within half the jump
+    ramp = np.where(n <= 50, 0.2, np.minimum(0.2 + 0.01 * (n - 50), 0.8))
+    assert frames_to_follow(n, ramp, 0.2, 0.8, 50, 50) == 40  # 0.2 + 0.4 > 0.8 - 0.3
     assert np.isnan(frames_to_follow(n, np.full(n.shape, 0.2), 0.2, 0.8, 50, 50))
+    # a constant guess near the new value before the change does not count as following it
+    assert frames_to_follow(n, np.full(n.shape, 0.75), 0.2, 0.8, 50, 50) == -1

@@ -33,6 +33,19 @@ from sysid_bench.bench.identification import _save, method_inputs
 from sysid_bench.metrics import gaussian_nll
 from sysid_bench.physics import PARAMS
 
+def _verdict(c50: float, c90: float, tol: float = 0.05) -> str:
+    """Words for empirical coverages ``c50`` and ``c90`` of nominal 50% and 90% intervals."""
+    d50, d90 = c50 - 0.5, c90 - 0.9
+    if abs(d50) <= tol and abs(d90) <= tol:
+        return "calibrated within 0.05"
+    if d50 < tol and d90 < tol:
+        return "over-confident (intervals too narrow)"
+    if d50 > -tol and d90 > -tol:
+        return "under-confident (intervals too wide)"
+    return ("too narrow at 50% but too wide at 90% (heavy tails)" if d50 < 0
+            else "too wide at 50% but too narrow at 90%")
+
+
 QUANTILES = tuple(np.round(np.arange(0.05, 1.0, 0.1), 2))  # 0.05, 0.15, ..., 0.95
 REFERENCE = "nuts"
 
@@ -206,8 +219,7 @@ class Calibration(Experiment):
         for (m, inp), g in df.groupby(["method", "input"]):
             c90 = self._pooled(g, "hit90").value.mean()
             c50 = self._pooled(g, "hit50").value.mean()
-            verdict = ("over-confident" if c90 < 0.8 else "under-confident" if c90 > 0.97
-                       else "roughly calibrated")
+            verdict = _verdict(c50, c90)
             parts.append(f"{m} ({inp}) {c50:.2f}/{c90:.2f}, {verdict}")
         out.append("Not in the paper. Coverage of the 50%/90% intervals: " + "; ".join(parts) + ".")
         ag = self.agreement(df)

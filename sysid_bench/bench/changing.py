@@ -6,8 +6,10 @@ frame (streaming methods) or every ``changing_stride`` frames (the others, which
 from scratch). Rows per case and frame count: ``mean_<p>`` / ``std_<p>`` (normalised to [0, 1]),
 ``se_<p>`` and ``se`` against the parameters in force at that frame. For every change of a
 parameter by at least :data:`MIN_JUMP` of its range, at the change frame ``c``: ``follow_<p>``,
-the frames after ``c`` until the estimate is first closer to the new value than to the old one
-(missing if never within the segment), ``followed_<p>`` (1 / 0) and ``jump_<p>``.
+the frames after ``c`` until the estimate first comes within half the jump of the new value
+(missing if never within the segment), ``followed_<p>`` (1 / 0) and ``jump_<p>``. Changes the
+estimate was already that close to before they happened are left out (a constant guess would
+otherwise "follow" every change towards it).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ MIN_JUMP = 0.1
 
 
 def frames_to_follow(lengths, est, old, new, c, every):
-    """Frames after change frame ``c`` until ``est`` is closer to ``new`` than to ``old``.
+    """Frames after change frame ``c`` until ``est`` comes within half the jump of ``new``.
 
     Parameters
     ----------
@@ -45,17 +47,25 @@ def frames_to_follow(lengths, est, old, new, c, every):
     est : ndarray, shape (L,)
         Estimates (normalised) after each of ``lengths``.
     old, new : float
+        Values before and after the change.
     c, every : int
         Change frame and segment length: only ``c < n <= c + every`` counts.
 
     Returns
     -------
     float
-        ``n - c`` at the first such estimate, NaN when none.
+        ``n - c`` at the first estimate within ``|new - old| / 2`` of ``new``; NaN when none;
+        ``-1`` when the last estimate at or before ``c`` was already that close (the change
+        cannot be seen in the estimates: such changes are left out of the counts).
     """
     lengths = np.asarray(lengths)
+    est = np.asarray(est)
+    tol = abs(new - old) / 2
+    before = lengths <= c
+    if before.any() and abs(est[before][-1] - new) < tol:
+        return -1.0
     win = (lengths > c) & (lengths <= c + every)
-    ok = win & (np.abs(est - new) < np.abs(est - old))
+    ok = win & (np.abs(est - new) < tol)
     return float(lengths[ok][0] - c) if ok.any() else float("nan")
 
 
@@ -67,8 +77,10 @@ class Changing(Experiment):
         "constant parameters, reports its estimate as the video unrolls (every frame for "
         "streaming methods, every `changing_stride` frames for the others, which re-identify "
         "from scratch). Error is against the parameters in force at the last observed frame; "
-        "'frames to follow' counts frames after a change (of at least 10% of the range) until "
-        "the estimate is closer to the new value than to the old. Input: video."
+        "'followed' counts changes (of at least 10% of the range) after which the estimate comes "
+        "within half the jump of the new value before the next change; 'frames' is the median "
+        "number of frames that took. Changes the estimate was already that close to beforehand "
+        "are not counted. Input: video."
     )
 
     def cells(self, scale, methods):
@@ -108,6 +120,8 @@ class Changing(Experiment):
                 if abs(new - old) < MIN_JUMP:
                     continue
                 f = frames_to_follow(ns, means[:, j], old, new, c, sc.change_every)
+                if f < 0:  # already near the new value before the change: not measurable
+                    continue
                 out.add(i, c, f"jump_{p}", new - old)
                 out.add(i, c, f"followed_{p}", float(np.isfinite(f)))
                 out.add(i, c, f"follow_{p}", f)
