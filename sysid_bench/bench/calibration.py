@@ -33,6 +33,7 @@ from sysid_bench.bench.identification import _save, method_inputs
 from sysid_bench.metrics import gaussian_nll
 from sysid_bench.physics import PARAMS
 
+
 def _verdict(c50: float, c90: float, tol: float = 0.05) -> str:
     """Words for empirical coverages ``c50`` and ``c90`` of nominal 50% and 90% intervals."""
     d50, d90 = c50 - 0.5, c90 - 0.9
