@@ -241,3 +241,63 @@ def test_every_experiment_has_cells_for_its_methods():
     # prior does not train: no sensitivity cells; every other experiment runs it
     assert exps == set(EXPERIMENTS) - {"sensitivity"}
     assert all(isinstance(c, Cell) for c in grid)
+
+
+_TERM_SCRIPT = """
+import sys
+from sysid_bench.bench.runner import run
+if __name__ == "__main__":
+    run(scale="smoke", methods=sys.argv[2].split(","), experiments=["identification", "forecasting"],
+        run_dir=sys.argv[1], workers=2, progress=False)
+"""
+
+
+def _children(pid: int) -> set[int]:
+    out = set()
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.add(int(d.name))
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to find worker processes")
+def test_sigterm_stops_the_workers_and_keeps_finished_cells(tmp_path):
+    script = tmp_path / "term.py"
+    script.write_text(_TERM_SCRIPT)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, str(script), str(tmp_path / "r"), ",".join(FAST)],
+                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    store = tmp_path / "r" / STORE_NAME
+    workers: set[int] = set()
+    deadline = time.time() + 60
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            workers |= _children(proc.pid)
+            if store.is_file() and workers:
+                try:
+                    with Store(store) as s:
+                        if len(s.done_cells()) >= 1:
+                            break
+                except Exception:
+                    pass
+            time.sleep(0.05)
+        assert proc.poll() is None, "the run finished before it could be stopped"
+        workers |= _children(proc.pid)
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 128 + signal.SIGTERM
+    time.sleep(0.5)
+    alive = [p for p in workers if Path(f"/proc/{p}").exists()
+             and "Z" not in (Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[:1])]
+    assert not alive, f"worker processes left running: {alive}"
+    with Store(store) as s:
+        assert len(s.done_cells()) >= 1

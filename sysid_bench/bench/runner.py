@@ -10,7 +10,9 @@ Execution
   ``distributed.Client``); workers keep their loaded estimators and test sets between tasks.
 
 Only this process writes the store, one transaction per finished cell, so a run killed at any
-moment keeps every cell it finished and a restart computes only the rest. A worker process that
+moment keeps every cell it finished and a restart computes only the rest (SIGTERM and Ctrl-C
+also stop the workers). Local workers are spawned, so a script calling :func:`run` needs the
+usual ``if __name__ == "__main__":`` guard. A worker process that
 dies takes its cell with it: the cell is retried once on a fresh pool, then stored as an error.
 """
 
@@ -36,6 +38,8 @@ __all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "prove
 
 STORE_NAME = "results.sqlite"
 DEFAULT_INLINE = ("prior", "vid2param")
+#: reference helpers run by default next to the contenders: "prior" is the score of guessing
+DEFAULT_REFERENCE = ("prior",)
 #: rough relative cost of one cell, to start the longest first (less idle tail at the end)
 _COST = {"nuts": 50, "bo": 30, "emcee": 20, "lsq": 8, "sindy": 4, "dmd": 2, "vid2param": 1, "prior": 0}
 _VERSIONED = ("numpy", "scipy", "pandas", "pyarrow", "torch", "jax", "numpyro", "emcee",
@@ -67,7 +71,7 @@ def resolve_methods(names=None) -> tuple[list[str], dict[str, str]]:
     """Validated method names and the ones skipped because they cannot be imported.
 
     Unknown names raise ``ValueError`` listing the known ones. Without ``names``, every
-    registered contender (not the reference helpers).
+    registered contender plus :data:`DEFAULT_REFERENCE`.
 
     Returns
     -------
@@ -77,7 +81,7 @@ def resolve_methods(names=None) -> tuple[list[str], dict[str, str]]:
     import methods
 
     known = methods.available(include_reference=True)
-    wanted = methods.available() if names is None else list(names)
+    wanted = [*methods.available(), *DEFAULT_REFERENCE] if names is None else list(names)
     usable, skipped = [], {}
     for n in wanted:
         if n not in known:
@@ -174,7 +178,7 @@ def run(
     scale : str or Scale
         "smoke", "default" or "paper".
     methods, experiments : list of str, optional
-        Default: every contender (that imports) and every experiment.
+        Default: every contender (that imports), the ``prior`` reference, every experiment.
     run_dir : path, optional
         Default ``runs/<scale>``. Holds the store and cached trained models.
     workers : int, optional
@@ -232,7 +236,8 @@ def run(
             if scheduler is not None:
                 _run_dask(todo, sc, run_dir, scheduler, write)
             else:
-                _run_local(todo, sc, run_dir, workers, set(inline), write)
+                with _sigterm_as_exit():
+                    _run_local(todo, sc, run_dir, workers, set(inline), write)
         finally:
             bar.close()
         return {"store": store.path, "cells": len(grid), "already": len(grid) - len(todo),
@@ -297,12 +302,44 @@ def _run_local(todo, sc, run_dir, workers, inline, write) -> None:
         for f in futs:
             f.cancel()
         if pool is not None:
-            pool.shutdown(wait=False, cancel_futures=True)
+            _terminate(pool)
         th.shutdown(wait=False, cancel_futures=True)
         raise
     if pool is not None:
         pool.shutdown(wait=True)
     th.shutdown(wait=True)
+
+
+def _terminate(pool: ProcessPoolExecutor) -> None:
+    """Stop a pool now: cancel what waits, end the workers (their cells are not stored)."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    for p in procs:
+        p.join(timeout=5)
+
+
+@contextlib.contextmanager
+def _sigterm_as_exit():
+    """SIGTERM (``timeout``, a scheduler's kill) unwinds like Ctrl-C: workers are stopped and
+    every finished cell is already in the store."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise SystemExit(128 + signum)
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 def _run_dask(todo, sc, run_dir, scheduler, write) -> None:
