@@ -177,8 +177,10 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
                    f"{json.dumps(scale.method_cases) if scale.method_cases else 'none'}; "
                    f"method options: {json.dumps(scale.method_options)}."
                    + (f" Expensive methods ({', '.join(scale.expensive)}) are evaluated at "
-                      f"{list(scale.expensive_lengths)} frames in experiment 1 and every "
-                      f"{scale.expensive_stride} frames in experiment 3." if scale.expensive else ""),
+                      f"{list(scale.expensive_lengths)} frames in experiment 1, every "
+                      f"{scale.expensive_stride} frames in experiment 3 and at "
+                      f"{max(scale.calibration_lengths)} frames in experiment 5."
+                      if scale.expensive else ""),
                    ""]
         _write_table(df, out / "results")  # the whole long-format run, for anyone's analysis
         head = summary_table(df)

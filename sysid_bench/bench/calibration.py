@@ -87,7 +87,7 @@ class Calibration(Experiment):
         tn = normalise(truth)
         est = ctx.estimator(cell.method)
         out = CellOutput()
-        lengths = [n for n in sc.calibration_lengths if n <= obs.n_frames]
+        lengths = [n for n in sc.calibration_lengths_for(cell.method) if n <= obs.n_frames]
         for n, post, _ in timed_prefixes(est, obs, lengths, out, case=i):
             hits = {}
             for level in (0.5, 0.9):

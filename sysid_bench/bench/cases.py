@@ -67,8 +67,9 @@ class Scale:
     calibration_inputs : tuple of str
     expensive : tuple of str
         Methods that take seconds per identification (samplers, Bayesian optimisation): in
-        experiment 1 they are evaluated at ``expensive_lengths`` only and in experiment 3 every
-        ``expensive_stride`` frames, so a default run fits its time budget.
+        experiment 1 they are evaluated at ``expensive_lengths`` only, in experiment 3 every
+        ``expensive_stride`` frames and in experiment 5 at the longest of
+        ``calibration_lengths``, so a default run fits its time budget.
     expensive_lengths : tuple of int
     expensive_stride : int
     sensitivity : dict
@@ -98,6 +99,12 @@ class Scale:
     def lengths_for(self, method: str) -> tuple:
         """Observed-frame counts of experiment 1 for ``method``."""
         return self.expensive_lengths if method in self.expensive else self.lengths
+
+    def calibration_lengths_for(self, method: str) -> tuple:
+        """Frame counts of experiment 5 for ``method``: expensive ones only the longest."""
+        if method in self.expensive:
+            return (max(self.calibration_lengths),)
+        return self.calibration_lengths
 
     def stride_for(self, method: str) -> int:
         """Frames between estimates in experiment 3 for a non-streaming ``method``."""
@@ -177,12 +184,23 @@ SCALES: dict[str, Scale] = {
     # <= 15 min on 2 cores with the shipped Vid2Param checkpoint (measured in the report)
     "default": Scale(
         name="default",
-        n_cases={"identification": 30, "forecasting": 20, "changing": 10, "sensitivity": 20,
-                 "calibration": 20},
-        # seconds per identification: they see the first cases only (same cases as the others)
-        method_cases={"nuts": 5, "bo": 5, "emcee": 5},
-        method_options=_ONE_THREAD,
+        n_cases={"identification": 15, "forecasting": 15, "changing": 8, "sensitivity": 15,
+                 "calibration": 15},
+        # Seconds per cell on one core of the 2-core machine, measured under a load of ~4
+        # (`runs/probe`, one case per cell kind): lsq 1-9, bo 8-29, emcee 24-74, nuts ~140 per
+        # posterior. The expensive ones see the first cases only (the same cases as everyone);
+        # nuts, the reference posterior, only in experiment 5. `--scale paper` runs every
+        # method on every case.
+        method_cases={
+            "bo": {"identification": 3, "forecasting": 3, "changing": 2, "calibration": 3},
+            "emcee": {"identification": 3, "forecasting": 3, "changing": 2, "calibration": 3},
+            "nuts": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 2},
+        },
+        method_options={**_ONE_THREAD, "nuts": {"num_warmup": 150, "num_samples": 150}},
         expensive=("bo", "emcee", "nuts"),
+        expensive_lengths=(20, 50, 100, 200),
+        expensive_stride=50,
+        calibration_lengths=(50, 200),
         sensitivity=_SENS_SMALL,
     ),
     # the paper's sizes: 100 test videos, 10,000 training videos per sensitivity model
