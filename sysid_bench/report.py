@@ -7,7 +7,8 @@ already there) and writes:
   the places where our numbers differ from the paper's claims, failures and "n/a" cells;
 * ``reports/tables/*.csv`` and ``*.parquet``: every table of the report;
 * ``reports/figures/*.png``;
-* ``reports/results.parquet``: the long-format rows of the run.
+* ``reports/results.parquet``: the long-format rows of the run (``reports/tables/summary.*``
+  the headline numbers).
 
 ``--from-store PATH`` re-renders from an existing store without computing anything.
 """
@@ -63,10 +64,11 @@ def _atomic_write(path: Path, data: bytes | str) -> None:
     os.replace(tmp, path)
 
 
-def _write_table(df, base: Path) -> None:
+def _write_table(df, base: Path, csv: bool = True) -> None:
     import io
 
-    _atomic_write(base.with_suffix(".csv"), df.to_csv(index=False))
+    if csv:
+        _atomic_write(base.with_suffix(".csv"), df.to_csv(index=False))
     buf = io.BytesIO()
     df.astype({c: str for c in df.columns if df[c].dtype == object}).to_parquet(buf, index=False)
     _atomic_write(base.with_suffix(".parquet"), buf.getvalue())
@@ -182,7 +184,8 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
                       f"{max(scale.calibration_lengths)} frames in experiment 5."
                       if scale.expensive else ""),
                    ""]
-        _write_table(df, out / "results")  # the whole long-format run, for anyone's analysis
+        # the whole long-format run, for anyone's analysis (Parquet only: compressed)
+        _write_table(df, out / "results", csv=False)
         head = summary_table(df)
         if len(head):
             _write_table(head, tabdir / "summary")
