@@ -113,3 +113,18 @@ def test_frames_to_follow():
     assert np.isnan(frames_to_follow(n, np.full(n.shape, 0.2), 0.2, 0.8, 50, 50))
     # a constant guess near the new value before the change does not count as following it
     assert frames_to_follow(n, np.full(n.shape, 0.75), 0.2, 0.8, 50, 50) == -1
+
+
+@pytest.mark.slow
+def test_full_smoke_run_of_every_method_renders(tmp_path):
+    """Every registered method through every experiment at the smoke scale, then the report."""
+    res = run(scale="smoke", run_dir=tmp_path / "run", progress=False)
+    with Store(res["store"]) as s:
+        cells = s.cells()
+    bad = cells[cells.status == "error"]
+    assert bad.empty, bad[["cell_id", "error"]].to_string()
+    ran = set(cells.method)
+    assert ran == set(methods.available()) | {"prior"} - set(res["skipped_methods"])
+    text = render(res["store"], tmp_path / "rep").read_text()
+    for m in ran:
+        assert f"| {m} |" in text
