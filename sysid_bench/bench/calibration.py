@@ -29,7 +29,7 @@ from sysid_bench.bench.experiment import (
     normalise,
     timed_prefixes,
 )
-from sysid_bench.bench.identification import _save, method_inputs
+from sysid_bench.bench.identification import _save, method_color, method_inputs
 from sysid_bench.metrics import gaussian_nll
 from sysid_bench.physics import PARAMS
 
@@ -194,7 +194,8 @@ class Calibration(Experiment):
                 ys.append(s["mean"])
                 los.append(s["mean"] - s["lo"])
                 his.append(s["hi"] - s["mean"])
-            ax.errorbar([0.5, 0.9], ys, yerr=[los, his], marker="o", capsize=3, label=f"{m} ({inp})")
+            ax.errorbar([0.5, 0.9], ys, yerr=[los, his], marker="o", capsize=3, label=f"{m} ({inp})",
+                        color=method_color(m), ls="-" if inp == "video" else "--")
         ax.set(xlabel="nominal interval level", ylabel="empirical coverage", xlim=(0.4, 1.0),
                ylim=(0, 1), title="Calibration of posteriors (95% CI)")
         ax.legend(fontsize=7)
@@ -204,7 +205,8 @@ class Calibration(Experiment):
             s = ci_summary(ag.groupby(["method", "input", "case"]).w1.mean().reset_index(),
                            ["method", "input"], value="w1")
             lab = [f"{m}\n({i})" for m, i in zip(s.method, s.input)]
-            ax.bar(lab, s["mean"], yerr=[s["mean"] - s.lo, s.hi - s["mean"]], capsize=3)
+            ax.bar(lab, s["mean"], yerr=[s["mean"] - s.lo, s.hi - s["mean"]], capsize=3,
+                   color=[method_color(m) for m in s.method])
             ax.set(ylabel="W1 to the nuts posterior (normalised)", title="Agreement with NUTS")
             ax.tick_params(axis="x", labelsize=7)
         else:

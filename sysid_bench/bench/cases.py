@@ -8,8 +8,11 @@ that asks for more cases later extends the earlier ones instead of replacing the
 
 Inputs
 ------
-``video``       the frames only, floor unknown (what Vid2Param gets; position methods go
-                through :mod:`sysid_bench.tracking`).
+``video``       the frames and the floor height (what Vid2Param gets; position methods go
+                through :mod:`sysid_bench.tracking`). The floor is given because the simulated
+                test videos, like Vid2Param's training videos, all have the floor at the bottom
+                of the view: a learned method knows it implicitly, and leaving position methods
+                to guess it made them forecast bounces on the lowest point seen so far.
 ``privileged``  true positions and the true initial state, floor known, no frames (what the
                 paper's lsq / bo baselines got). Only for methods that take positions.
 """
@@ -28,6 +31,9 @@ __all__ = ["INPUTS", "Scale", "SCALES", "get_scale", "test_set", "train_set", "o
            "inputs_for", "unknown_name"]
 
 INPUTS = ("video", "privileged")
+#: Bump when what a cell computes changes meaning (inputs, metrics): part of the grid config, so
+#: a store computed under an older protocol is refused instead of mixed with new cells.
+PROTOCOL = 2
 
 
 def unknown_name(kind: str, name, known) -> ValueError:
@@ -129,6 +135,7 @@ class Scale:
         d = asdict(self)
         for k in ("n_cases", "method_cases", "name"):
             d.pop(k)
+        d["protocol"] = PROTOCOL
         # tuples -> lists so a JSON round trip compares equal
         return _jsonable(d)
 
@@ -271,7 +278,8 @@ def train_set(variant: str, n: int, seed: int, **options):
 def observation(ds, i: int, input: str) -> Observation:
     """Test video ``i`` of ``ds`` as the ``input`` kind (see the module docstring)."""
     if input == "video":
-        return Observation(frames=np.asarray(ds.frames[i]), dt=float(ds.meta["dt"]), floor=None)
+        return Observation(frames=np.asarray(ds.frames[i]), dt=float(ds.meta["dt"]),
+                           floor=float(ds.floor[i]))
     if input == "privileged":
         full = ds.observation(i, positions=True, state0=True)
         return Observation(positions=full.positions, dt=full.dt, floor=full.floor,

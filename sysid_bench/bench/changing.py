@@ -31,7 +31,7 @@ from sysid_bench.bench.experiment import (
     streams,
     timed_prefixes,
 )
-from sysid_bench.bench.identification import _save
+from sysid_bench.bench.identification import _save, method_color
 from sysid_bench.physics import PARAMS
 
 MIN_JUMP = 0.1
@@ -165,7 +165,7 @@ class Changing(Experiment):
             for (m, _inp), g in ex.groupby(["method", "input"]):
                 mu = g[g.metric == f"mean_{p}"].sort_values("n_frames")
                 sd = g[g.metric == f"std_{p}"].sort_values("n_frames")
-                line, = ax.plot(mu.n_frames, mu.value, lw=1, label=m)
+                line, = ax.plot(mu.n_frames, mu.value, lw=1, label=m, color=method_color(m))
                 ax.fill_between(mu.n_frames, mu.value.to_numpy() - sd.value.to_numpy(),
                                 mu.value.to_numpy() + sd.value.to_numpy(),
                                 color=line.get_color(), alpha=0.15)
@@ -177,8 +177,8 @@ class Changing(Experiment):
         fig, ax = plt.subplots(figsize=(7, 3.6))
         s = ci_summary(df[df.metric == "se"], ["method", "n_frames"])
         for m, g in s.groupby("method"):
-            ax.plot(g.n_frames, g["mean"], label=m)
-            ax.fill_between(g.n_frames, g.lo, g.hi, alpha=0.15)
+            ax.plot(g.n_frames, g["mean"], label=m, color=method_color(m))
+            ax.fill_between(g.n_frames, g.lo, g.hi, alpha=0.15, color=method_color(m))
         for c in range(50, int(df.n_frames.max()), 50):
             ax.axvline(c, color="k", ls=":", lw=0.8)
         ax.set(xlabel="observed frames", ylabel="normalised MSE vs current parameters",

@@ -9,7 +9,7 @@ import matplotlib
 
 matplotlib.use("Agg")  # reports are rendered on machines with no display
 
-__all__ = ["save_figure"]
+__all__ = ["save_figure", "method_color"]
 
 
 def save_figure(fig, path) -> Path:
@@ -28,3 +28,15 @@ def save_figure(fig, path) -> Path:
         if tmp.exists():
             tmp.unlink()
     return path
+
+
+_ORDER = ("vid2param", "nuts", "emcee", "lsq", "bo", "sindy", "dmd", "prior")
+
+
+def method_color(method: str) -> str:
+    """The same colour for a method in every figure (tab10; unknown names hash into it)."""
+    import matplotlib
+
+    cmap = matplotlib.colormaps["tab10"]
+    k = _ORDER.index(method) if method in _ORDER else 8 + sum(map(ord, method)) % 2
+    return matplotlib.colors.to_hex(cmap(k % 10))

@@ -40,8 +40,8 @@ class Identification(Experiment):
     description = (
         "Normalised parameter MSE (each parameter scaled to [0, 1] by its prior range; always "
         f"answering the prior mean scores {GUESS_MSE:.3f}) after 10, 20, ..., 200 observed frames, "
-        "and seconds per identification. `video`: frames only, floor unknown (position methods "
-        "track the ball); `privileged`: true positions and initial state, floor known, as the "
+        "and seconds per identification. `video`: frames (and the floor height) only, position "
+        "methods track the ball; `privileged`: true positions and initial state, floor known, as the "
         "paper's lsq/bo baselines had."
     )
 
@@ -110,10 +110,10 @@ class Identification(Experiment):
         for (m, inp), row in med.iterrows():
             rec = {"method": m, "input": inp}
             for n in [n for n in (20, 50, 100, 200) if n in med.columns]:
-                rec[f"s @ {n}"] = f"{row[n]:.3g}"
-            rec[f"s/frame @ {last}"] = f"{row[last] / last:.3g}"
+                rec[f"s @ {n}"] = _g(row[n])
+            rec[f"s/frame @ {last}"] = _g(row[last] / last)
             if ref:
-                rec[f"x vid2param @ {last}"] = f"{row[last] / ref:.3g}"
+                rec[f"x vid2param @ {last}"] = _g(row[last] / ref)
             sp.append(rec)
         speed = pd.DataFrame(sp)
         return {
@@ -134,8 +134,8 @@ class Identification(Experiment):
                                  sharey=True)
         for ax, inp in zip(axes[0], inputs):
             for m, g in s[s.input == inp].groupby("method"):
-                ax.plot(g.n_frames, g["mean"], marker="o", ms=3, label=m)
-                ax.fill_between(g.n_frames, g.lo, g.hi, alpha=0.2)
+                ax.plot(g.n_frames, g["mean"], marker="o", ms=3, label=m, color=method_color(m))
+                ax.fill_between(g.n_frames, g.lo, g.hi, alpha=0.2, color=method_color(m))
             ax.axhline(GUESS_MSE, color="k", ls=":", lw=1, label="prior mean")
             ax.set(title=f"input: {inp}", xlabel="observed frames", ylabel="normalised param MSE",
                    yscale="log")
@@ -148,7 +148,7 @@ class Identification(Experiment):
             sp = self._summary(df, f"se_{p}")
             for (m, inp), g in sp.groupby(["method", "input"]):
                 ax.plot(g.n_frames, g["mean"], ls="-" if inp == "video" else "--",
-                        label=f"{m} ({inp})")
+                        label=f"{m} ({inp})", color=method_color(m))
             ax.axhline(GUESS_MSE, color="k", ls=":", lw=1)
             ax.set(title=p, xlabel="observed frames", yscale="log")
         axes[0].set_ylabel("normalised MSE")
@@ -161,7 +161,7 @@ class Identification(Experiment):
         for (m, inp), g in w.groupby(level=[0, 1]):
             g = g.droplevel([0, 1])
             ax.plot(g.index, g.values, ls="-" if inp == "video" else "--", marker="o", ms=3,
-                    label=f"{m} ({inp})")
+                    label=f"{m} ({inp})", color=method_color(m))
         ax.set(xlabel="observed frames", ylabel="seconds per identification (median)",
                yscale="log", title="Speed vs observed frames")
         ax.legend(fontsize=7)
@@ -217,7 +217,18 @@ class Identification(Experiment):
         return out
 
 
+def _g(x: float) -> str:
+    """3 significant digits, ``-`` for missing."""
+    return "-" if x is None or not np.isfinite(x) else f"{x:.3g}"
+
+
 def _save(fig, path: Path) -> Path:
     from sysid_bench.bench.figures import save_figure
 
     return save_figure(fig, path)
+
+
+def method_color(method: str) -> str:
+    from sysid_bench.bench.figures import method_color as mc
+
+    return mc(method)
