@@ -152,16 +152,18 @@ def _jsonable(x):
 # inside a worker only oversubscribe the machine (and distort the timings).
 _ONE_THREAD = {"vid2param": {"threads": 1}}
 
-# Default-scale sensitivity: measured ~0.6 s per training step of a fresh Vid2Param on 100-frame
-# videos on one core of the 2-core machine, so 4 conditions x 120 steps ~ 5 core-minutes.
+# Default-scale sensitivity: a fresh Vid2Param trains at ~0.2 s per step on 50-frame videos on
+# one core under load, so 4 conditions x 200 steps ~ 3-4 core-minutes. Measured: at 120-400
+# steps the model is still at the guessing level (normalised MSE ~0.08), so at this scale the
+# experiment exercises the machinery; the report says so when the control does not beat guessing.
 _SENS_SMALL = {
     "n_train": 400,
-    "n_frames": 100,
-    "fit_options": {"fit_steps": 120, "fit_lr": 1e-3, "warm_start": False},
+    "n_frames": 50,
+    "fit_options": {"fit_steps": 200, "fit_lr": 1e-3, "warm_start": False},
     "extrapolation": ("e",),
     "label_noise": (0.0, 0.5),
     "simplified": True,
-    "lengths": (25, 50, 75, 100),
+    "lengths": (10, 25, 50),
 }
 
 SCALES: dict[str, Scale] = {
