@@ -96,6 +96,15 @@ def _run_summary(store) -> tuple[list[str], dict]:
                  + (f", Dask scheduler {last['scheduler']}" if last.get("scheduler") else ""))
     lines.append(f"- git commit `{last.get('git_commit')}`"
                  + (" (uncommitted changes)" if last.get("git_dirty") else ""))
+    per_commit = {}
+    for inv in invs:
+        n = int((cells.invocation == inv["id"]).sum())
+        if n:
+            key = inv.get("git_commit", "?")[:10] + ("+dirty" if inv.get("git_dirty") else "")
+            per_commit[key] = per_commit.get(key, 0) + n
+    if len(per_commit) > 1:
+        lines.append("- NOTE: cells were computed at several commits (resumed runs): "
+                     + ", ".join(f"`{k}` {n} cells" for k, n in per_commit.items()))
     v = last.get("versions", {})
     if v:
         lines.append("- versions: " + ", ".join(f"{k} {v[k]}" for k in sorted(v)))
