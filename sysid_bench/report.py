@@ -221,14 +221,16 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
             if r:
                 md += ["Reading:", "", *[f"- {s}" for s in r], ""]
                 readings += [f"({e.title.split('.')[0]}) {s}" for s in r]
-            bad = sub[sub.status != "ok"]
+            bad = sub[(sub.status != "ok") | (sub.metric == "failed")]
             if len(bad):
+                bad = bad.assign(status=np.where(bad.status == "ok", "partly failed", bad.status))
                 g = (bad.groupby(["method", "input", "status"])
                      .agg(cells=("cell_id", "nunique"), first_message=("error", "first"))
                      .reset_index())
                 g["first_message"] = g.first_message.str.slice(0, 160)
-                md += ["Cells that failed or do not apply (`n/a`: the method raised "
-                       "NotImplementedError):", "", markdown_table(g), ""]
+                md += ["Cells that failed, failed at some frame counts (`partly failed`: the "
+                       "other frame counts are in the tables) or do not apply (`n/a`: the method "
+                       "raised NotImplementedError):", "", markdown_table(g), ""]
         md += ["## Where our figures differ from the paper (and where they agree)", ""]
         md += [f"- {s}" for s in readings] or ["_Nothing to compare yet._"]
         md.append("")
