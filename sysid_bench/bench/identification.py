@@ -42,7 +42,9 @@ class Identification(Experiment):
         f"answering the prior mean scores {GUESS_MSE:.3f}) after 10, 20, ..., 200 observed frames, "
         "and seconds per identification. `video`: frames (and the floor height) only, position "
         "methods track the ball; `privileged`: true positions and initial state, floor known, as the "
-        "paper's lsq/bo baselines had."
+        "paper's lsq/bo baselines had. Seconds are wall-clock time of one identification in "
+        "a single-threaded worker while the other workers run other cells: ratios between "
+        "methods of one run compare, absolute values depend on the machine's load."
     )
 
     def cells(self, scale, methods):
