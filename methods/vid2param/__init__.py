@@ -1,0 +1,10 @@
+"""Vid2Param: online system identification from video with a physics-supervised VRNN.
+
+``Vid2Param`` is the ``Estimator`` (``methods.get("vid2param")`` loads the shipped 28x28
+checkpoint); ``python -m methods.vid2param.train`` trains one. This package, and only this one,
+imports torch.
+"""
+
+from methods.vid2param.estimator import SHIPPED_CHECKPOINT, Vid2Param, Vid2ParamStream
+
+__all__ = ["Vid2Param", "Vid2ParamStream", "SHIPPED_CHECKPOINT"]

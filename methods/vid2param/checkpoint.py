@@ -1,0 +1,149 @@
+"""Reading and writing Vid2Param checkpoints.
+
+A checkpoint is a ``torch.save`` dict of tensors and plain Python values (loadable with
+``weights_only=True``, so loading never runs pickled code):
+
+``format``            "vid2param-checkpoint"
+``format_version``    int, ``FORMAT_VERSION``
+``config``            ``V2PConfig.to_dict()``
+``state_dict``        network weights
+``train``             training settings (includes ``data_seed``), step, wall time
+``git_commit``        commit the training code was at (``"unknown"`` outside git) and ``dirty``
+``source_sha256``     hash of model.py + train.py + data.py when trained
+``val_metrics``       validation metrics at the time of writing
+``optimizer`` etc.    only in resumable training states, not in shipped checkpoints
+
+Writes are atomic (temporary file in the same folder, then ``os.replace``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import tempfile
+import zipfile
+from pathlib import Path
+
+import torch
+
+from methods.vid2param.model import V2PConfig, Vid2ParamNet
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "save_atomic", "load_checkpoint", "build_net", "git_info"]
+
+FORMAT = "vid2param-checkpoint"
+FORMAT_VERSION = 1
+_HERE = Path(__file__).resolve().parent
+
+
+def save_atomic(obj: dict, path) -> Path:
+    """``torch.save`` to a temporary file next to ``path``, then rename over it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            torch.save(obj, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def load_checkpoint(path, *, expect_resumable: bool = False) -> dict:
+    """Load and check a checkpoint; every problem is a ``ValueError`` that names the file.
+
+    Parameters
+    ----------
+    path : str or Path
+    expect_resumable : bool
+        Also require the optimizer state of a training run.
+
+    Returns
+    -------
+    dict
+        The checkpoint dict (see the module docstring).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"checkpoint: expected an existing file, got {str(path)!r}")
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, EOFError, zipfile.BadZipFile, OSError, ValueError, TypeError,
+            AttributeError, KeyError, IndexError) as exc:
+        raise ValueError(
+            f"checkpoint: {str(path)!r} is corrupt or truncated, not a readable Vid2Param "
+            f"checkpoint ({type(exc).__name__}: {str(exc)[:200]})"
+        ) from exc
+    except Exception as exc:  # the unpickler raises its own types for foreign content
+        raise ValueError(
+            f"checkpoint: {str(path)!r} could not be read as a Vid2Param checkpoint "
+            f"({type(exc).__name__}: {str(exc)[:200]})"
+        ) from exc
+    if not isinstance(ck, dict) or ck.get("format") != FORMAT:
+        got = ck.get("format") if isinstance(ck, dict) else type(ck).__name__
+        raise ValueError(f"checkpoint: expected format {FORMAT!r} in {str(path)!r}, got {got!r}")
+    if ck.get("format_version") != FORMAT_VERSION:
+        raise ValueError(
+            f"checkpoint: expected format_version {FORMAT_VERSION} in {str(path)!r}, "
+            f"got {ck.get('format_version')!r}"
+        )
+    for key in ("config", "state_dict"):
+        if key not in ck:
+            raise ValueError(f"checkpoint: {str(path)!r} lacks {key!r}")
+    if expect_resumable and "optimizer" not in ck:
+        raise ValueError(f"checkpoint: {str(path)!r} holds no optimizer state to resume from")
+    return ck
+
+
+def build_net(ck: dict, path="checkpoint") -> Vid2ParamNet:
+    """The network described by a loaded checkpoint, weights loaded, in eval mode.
+
+    Raises ``ValueError`` when the weights do not match the stored config.
+    """
+    try:
+        cfg = V2PConfig.from_dict(dict(ck["config"]))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"checkpoint: {str(path)!r} has an invalid config ({exc})") from exc
+    net = Vid2ParamNet(cfg)
+    try:
+        net.load_state_dict(ck["state_dict"], strict=True)
+    except (RuntimeError, TypeError, AttributeError) as exc:
+        raise ValueError(
+            f"checkpoint: weights in {str(path)!r} do not match its config "
+            f"({str(exc).splitlines()[0][:200]})"
+        ) from exc
+    net.eval()
+    return net
+
+
+def git_info() -> dict:
+    """Commit and dirtiness of the repository holding this package (``unknown`` outside git)."""
+    root = _HERE.parent.parent
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10
+        ).stdout.strip() or "unknown"
+        status = subprocess.run(
+            ["git", "status", "--porcelain", "--", "methods/vid2param"], cwd=root,
+            capture_output=True, text=True, timeout=10,
+        ).stdout
+        dirty = bool(status.strip())
+    except (OSError, subprocess.SubprocessError):
+        commit, dirty = "unknown", True
+    return {"commit": commit, "dirty": dirty}
+
+
+def source_sha256() -> str:
+    """Hash of the files that define the model and its training."""
+    h = hashlib.sha256()
+    for name in ("model.py", "train.py", "data.py"):
+        p = _HERE / name
+        if p.exists():
+            h.update(name.encode())
+            h.update(p.read_bytes())
+    return h.hexdigest()

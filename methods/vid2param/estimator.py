@@ -1,0 +1,425 @@
+"""Vid2Param behind the suite's ``Estimator`` interface.
+
+Identification reads the encoder's posterior over the supervised latent dimensions,
+``N(mu_enc, sigma_enc)``, after the last frame and maps it from [0, 1] to physical units by
+``PRIOR``. Forecasting runs the filter with several particles, then unrolls the prior in latent
+space and reads the positions from the position dimensions: no frame is decoded.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from sysid_bench._validate import check_positive_int
+from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, Stream
+from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
+
+from methods.vid2param.checkpoint import build_net, load_checkpoint
+
+__all__ = ["Vid2Param", "Vid2ParamStream", "SHIPPED_CHECKPOINT"]
+
+#: The shipped 28x28 checkpoint (``checkpoint=None``).
+SHIPPED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "v2p_28x28.pt"
+
+_LO = np.array([PRIOR[p][0] for p in PARAMS])
+_HI = np.array([PRIOR[p][1] for p in PARAMS])
+_SPAN = _HI - _LO
+
+
+def _check_frames_array(frames, expected_hw, name: str, ndim: int) -> np.ndarray:
+    """Frames as a NumPy array of a supported dtype and the checkpoint's size.
+
+    uint8, or any real integer/float dtype with values in [0, 255]; bool, complex, object and
+    strings are refused, as are NaN/inf and a frame size other than ``expected_hw``.
+    """
+    fr = np.asarray(frames)
+    if fr.dtype == np.bool_ or not (np.issubdtype(fr.dtype, np.integer)
+                                    or np.issubdtype(fr.dtype, np.floating)):
+        raise ValueError(
+            f"{name}: expected uint8 (or real numbers in [0, 255]) grey-scale pixels, got dtype {fr.dtype}"
+        )
+    if fr.ndim != ndim:
+        want = "(H, W)" if ndim == 2 else ("(T, H, W)" if ndim == 3 else "(N, T, H, W)")
+        raise ValueError(f"{name}: expected a {want} array, got shape {fr.shape}")
+    if tuple(fr.shape[-2:]) != tuple(expected_hw):
+        raise ValueError(
+            f"{name}: the checkpoint was trained on {expected_hw[0]}x{expected_hw[1]} (HxW) frames, "
+            f"got {fr.shape[-2]}x{fr.shape[-1]}"
+        )
+    if fr.dtype != np.uint8:
+        if np.issubdtype(fr.dtype, np.floating) and not np.isfinite(fr).all():
+            raise ValueError(f"{name}: expected finite pixel values, got NaN or inf")
+        if fr.size and (fr.min() < 0 or fr.max() > 255):
+            raise ValueError(
+                f"{name}: expected pixel values in [0, 255], got [{fr.min():g}, {fr.max():g}]"
+            )
+        fr = fr.astype(np.float32)
+    return fr
+
+
+class Vid2Param(Estimator):
+    """Vid2Param (a VRNN with a physics-supervised latent space), online from video.
+
+    Parameters
+    ----------
+    checkpoint : str or Path, optional
+        A checkpoint written by ``methods.vid2param.train``; ``None`` means the shipped 28x28
+        one (``SHIPPED_CHECKPOINT``).
+    device : str
+        "auto" (CUDA when available, else CPU), "cpu", "cuda", ...
+    n_samples : int
+        Samples in each ``Posterior`` and particles/samples of each ``Forecast``.
+    seed : int
+        Seed of all sampling (same seed, same numbers for the same call).
+    threads : int, optional
+        ``torch.set_num_threads`` when the model is loaded; ``None`` leaves torch's setting.
+    batch : int
+        Videos per forward pass in ``identify_batch``.
+    clip : bool
+        Clip posterior means and samples to the prior range (the prior is uniform on it, so
+        the posterior has no mass outside).
+    fit_steps : int
+        Optimiser steps of ``fit`` (short by default: a fine-tune, not a full training; the
+        shipped checkpoint took thousands, see its ``train`` record).
+    fit_lr : float
+        Peak learning rate of ``fit``.
+    warm_start : bool
+        ``fit`` continues from ``checkpoint``'s weights when its frame size matches the data;
+        otherwise (or if False) it trains a fresh network of the same architecture.
+    sample_state : bool
+        Feed a sampled z_t to the LSTM at each frame, as in training (True), or the encoder
+        mean (False: deterministic filtering).
+    """
+
+    name = "vid2param"
+    input_kind = "frames"
+    #: cheap settings for the registry's contract test (same code path)
+    _contract_options = {"n_samples": 20}
+
+    def __init__(
+        self,
+        *,
+        checkpoint=None,
+        device: str = "auto",
+        n_samples: int = 200,
+        seed: int = 0,
+        threads: int | None = None,
+        batch: int = 100,
+        clip: bool = True,
+        fit_steps: int = 200,
+        fit_lr: float = 1e-4,
+        warm_start: bool = True,
+        sample_state: bool = True,
+    ):
+        self.checkpoint = checkpoint
+        self.device = device
+        self.n_samples = n_samples
+        self.seed = seed
+        self.threads = threads
+        self.batch = batch
+        self.clip = clip
+        self.fit_steps = fit_steps
+        self.fit_lr = fit_lr
+        self.warm_start = warm_start
+        self.sample_state = sample_state
+
+    # -- loading --------------------------------------------------------------------------------
+    def _checkpoint_path(self) -> Path:
+        return SHIPPED_CHECKPOINT if self.checkpoint is None else Path(self.checkpoint)
+
+    def _ensure_net(self):
+        if getattr(self, "net_", None) is None:
+            from methods.vid2param.train import resolve_device
+
+            path = self._checkpoint_path()
+            if self.checkpoint is None and not path.exists():
+                raise ValueError(
+                    f"checkpoint: the shipped checkpoint {str(path)!r} is missing; train it with "
+                    "`python -m methods.vid2param.train` (see the README) or pass checkpoint=PATH"
+                )
+            ck = load_checkpoint(path)
+            net = build_net(ck, path)
+            if self.threads is not None:
+                torch.set_num_threads(check_positive_int(self.threads, "threads"))
+            self.device_ = resolve_device(self.device)
+            self.net_ = net.to(self.device_)
+            self.config_ = net.config
+            self.checkpoint_info_ = {k: ck.get(k) for k in ("train", "git_commit", "val_metrics",
+                                                            "source_sha256")}
+            self.checkpoint_info_["path"] = str(path)
+        return self.net_
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        """(H, W) the loaded checkpoint takes."""
+        return tuple(self._ensure_net().config.frame_size)
+
+    def _index(self) -> list[int]:
+        names = self.config_.targets
+        missing = [p for p in PARAMS if p not in names]
+        if missing:
+            raise ValueError(f"checkpoint: its latent space carries no {missing}")
+        return [names.index(p) for p in PARAMS]
+
+    def _rng(self, salt: int = 0) -> np.random.Generator:
+        return np.random.default_rng([int(self.seed), salt])
+
+    def _generator(self, salt: int = 0) -> torch.Generator:
+        return torch.Generator(device=self.device_).manual_seed(int(self.seed) * 1000003 + salt)
+
+    # -- posterior assembly ---------------------------------------------------------------------
+    def _posterior(self, mu_n: np.ndarray, sd_n: np.ndarray, extras: dict,
+                   rng: np.random.Generator) -> Posterior:
+        """Posterior from normalised mean/std (4,) of (e, g, d, r)."""
+        mean = _LO + _SPAN * mu_n
+        std = _SPAN * sd_n
+        samples = None
+        if self.n_samples:
+            samples = mean + std * rng.standard_normal((int(self.n_samples), len(PARAMS)))
+        if self.clip:
+            mean = np.clip(mean, _LO, _HI)
+            if samples is not None:
+                samples = np.clip(samples, _LO, _HI)
+        extras = {"n_simulations": 0, "normalised_mean": mu_n.copy(), "normalised_std": sd_n.copy(),
+                  **extras}
+        return Posterior(mean=mean, std=std, samples=samples, extras=extras)
+
+    def _frames_of(self, obs: Observation) -> np.ndarray:
+        if not isinstance(obs, Observation):
+            raise ValueError(f"obs: expected an Observation, got {type(obs).__name__}")
+        if obs.frames is None:
+            raise NotImplementedError(
+                "vid2param identifies from video frames; this observation holds positions only."
+            )
+        return _check_frames_array(obs.frames, self.frame_size, "frames", 3)
+
+    def _run(self, frames: np.ndarray, salt: int = 0):
+        """Filter (N, T, H, W) frames; returns normalised mu, std (N, T, 4) and wall time."""
+        net = self._ensure_net()
+        idx = self._index()
+        t0 = time.perf_counter()
+        with torch.inference_mode():
+            fr = torch.as_tensor(frames, device=self.device_)
+            mu, sd, _ = net.filter(fr, generator=self._generator(salt),
+                                   sample=bool(self.sample_state))
+            mu = mu[..., idx].cpu().numpy().astype(np.float64)
+            sd = sd[..., idx].cpu().numpy().astype(np.float64)
+        return mu, sd, time.perf_counter() - t0
+
+    # -- the interface --------------------------------------------------------------------------
+    def fit(self, train=None) -> Vid2Param:
+        """Train on a ``sysid_bench.datasets.Dataset`` for ``fit_steps`` steps.
+
+        Short by default (a fine-tune of the loaded checkpoint when ``warm_start`` and the frame
+        sizes match; else a fresh network). For a full training run use
+        ``python -m methods.vid2param.train``. ``train=None`` leaves the model as loaded.
+
+        Returns
+        -------
+        self
+        """
+        if train is None:
+            self._ensure_net()
+            return self
+        from methods.vid2param.model import V2PConfig, Vid2ParamNet
+        from methods.vid2param.train import TrainConfig, resolve_device
+        from methods.vid2param.train import train as run_training
+
+        frames = np.asarray(train.frames)
+        if frames.ndim != 4:
+            raise ValueError(f"train.frames: expected (N, T, H, W), got shape {frames.shape}")
+        size = tuple(int(v) for v in frames.shape[-2:])
+        base = None
+        path = self._checkpoint_path()
+        if path.exists():
+            ck = load_checkpoint(path)
+            base = build_net(ck, path)
+        if base is not None:
+            mc = V2PConfig.from_dict({**base.config.to_dict(), "frame_size": list(size)})
+        else:
+            mc = V2PConfig(frame_size=size)
+        steps = check_positive_int(self.fit_steps, "fit_steps")
+        tc = TrainConfig(steps=steps, batch=min(16, len(frames)), lr=float(self.fit_lr),
+                         lr_min=float(self.fit_lr) / 10, warmup=min(20, steps), seed=int(self.seed),
+                         n_frames=int(frames.shape[1]), val_n=0, size=size,
+                         p_full=1.0 if frames.shape[1] <= 50 else 0.7,
+                         min_obs=max(1, min(50, frames.shape[1] - 1)))
+        init = base if (self.warm_start and base is not None and base.config.frame_size == size) else None
+        net, info = run_training(mc, tc, dataset=train, device=self.device, progress=False,
+                                 init_net=init, log=lambda s: None)
+        self.device_ = resolve_device(self.device)
+        self.net_ = net.to(self.device_)
+        self.config_ = net.config
+        self.checkpoint_info_ = {"path": None, "fit": {"steps": info["step"], "wall_s": info["wall_s"],
+                                                       "warm_start": init is not None}}
+        return self
+
+    def identify(self, obs: Observation) -> Posterior:
+        """Posterior over ``(e, g, d, r)`` after the last frame of ``obs``."""
+        return self.identify_prefixes(obs, [obs.n_frames if isinstance(obs, Observation) else 1])[0]
+
+    def identify_prefixes(self, obs: Observation, lengths) -> list[Posterior]:
+        """Posteriors after each of ``lengths`` frames, from ONE pass over the video.
+
+        ``extras["wall_s"]`` of each is the time of the pass up to that prefix, pro rata.
+        """
+        frames = self._frames_of(obs)
+        T = frames.shape[0]
+        lengths = [check_positive_int(int(n), "lengths") for n in np.atleast_1d(lengths)]
+        for n in lengths:
+            if n > T:
+                raise ValueError(f"lengths: expected values <= {T}, got {n}")
+        mu, sd, wall = self._run(frames[None])
+        rng = self._rng()
+        return [
+            self._posterior(mu[0, n - 1], sd[0, n - 1],
+                            {"wall_s": wall * n / T, "n_frames": n}, rng)
+            for n in lengths
+        ]
+
+    def normalised_prefixes(self, frames, lengths) -> tuple[np.ndarray, np.ndarray]:
+        """Posterior means and stds in normalised units, many videos and prefixes at once.
+
+        One pass per ``batch`` videos; the means are clipped to [0, 1] when ``clip``.
+
+        Parameters
+        ----------
+        frames : ndarray, shape (N, T, H, W)
+        lengths : sequence of int
+            Prefix lengths, each in [1, T].
+
+        Returns
+        -------
+        mu, std : ndarray, shape (N, L, 4)
+            ``(theta - lo) / (hi - lo)`` scale, ``PARAMS`` order.
+        """
+        fr = _check_frames_array(frames, self.frame_size, "frames", 4)
+        T = fr.shape[1]
+        lengths = [check_positive_int(int(n), "lengths") for n in np.atleast_1d(lengths)]
+        if max(lengths) > T:
+            raise ValueError(f"lengths: expected values <= {T}, got {max(lengths)}")
+        b = check_positive_int(self.batch, "batch")
+        sel = [n - 1 for n in lengths]
+        mus, sds = [], []
+        for i in range(0, fr.shape[0], b):
+            mu, sd, _ = self._run(fr[i : i + b], salt=i)
+            mus.append(mu[:, sel])
+            sds.append(sd[:, sel])
+        mu, sd = np.concatenate(mus), np.concatenate(sds)
+        if self.clip:
+            mu = np.clip(mu, 0.0, 1.0)
+        return mu, sd
+
+    def identify_batch(self, frames) -> list[Posterior]:
+        """Identify many videos of equal length at once (batched through the network).
+
+        Parameters
+        ----------
+        frames : ndarray, shape (N, T, H, W)
+
+        Returns
+        -------
+        list of Posterior, length N
+            ``extras["wall_s"]`` is the batch's time divided by N.
+        """
+        t0 = time.perf_counter()
+        fr = np.asarray(frames)
+        T = fr.shape[1] if fr.ndim == 4 else 1
+        mu, sd = self.normalised_prefixes(fr, [T])
+        n = mu.shape[0]
+        wall = time.perf_counter() - t0
+        rng = self._rng()
+        return [self._posterior(mu[i, 0], sd[i, 0], {"wall_s": wall / n, "n_frames": T}, rng)
+                for i in range(n)]
+
+    def forecast(self, obs: Observation, horizon: int) -> Forecast:
+        """Positions of the ``horizon`` frames after ``obs``, unrolled in latent space.
+
+        ``n_samples`` particles filter the video (z sampled at each frame), then the prior is
+        unrolled, z sampled and fed back at each step; positions are read from the latent
+        position dimensions (``x = 10 z_x``, ``y = floor + 10 z_y``, floor 0 when unknown).
+
+        Returns
+        -------
+        Forecast
+            mean, std (horizon, 2) and samples (n_samples, horizon, 2), metres.
+        """
+        frames = self._frames_of(obs)
+        horizon = check_positive_int(horizon, "horizon")
+        net = self._ensure_net()
+        names = self.config_.targets
+        if "x" not in names or "y" not in names:
+            raise NotImplementedError("this vid2param checkpoint carries no position dimensions.")
+        ix, iy = names.index("x"), names.index("y")
+        S = max(1, int(self.n_samples))
+        gen = self._generator(7)
+        t0 = time.perf_counter()
+        with torch.inference_mode():
+            fr = torch.as_tensor(frames[None], device=self.device_)
+            stochastic = bool(self.sample_state) and self.config_.recur_noise > 0
+            # a deterministic recurrence gives identical particles: filter once, then copy
+            _, _, state = net.filter(fr, particles=S if stochastic else 1, generator=gen,
+                                     sample=stochastic)
+            if not stochastic:
+                state = [(h.expand(S, -1).contiguous(), c.expand(S, -1).contiguous())
+                         for h, c in state]
+            _, _, z = net.rollout(state, horizon, generator=gen)
+            z = z.cpu().numpy().astype(np.float64)
+        floor = 0.0 if obs.floor is None else float(obs.floor)
+        samples = np.stack([BOX_WIDTH * z[..., ix], floor + BOX_WIDTH * z[..., iy]], axis=-1)
+        wall = time.perf_counter() - t0
+        return Forecast(mean=samples.mean(0), std=samples.std(0), samples=samples,
+                        extras={"wall_s": wall, "n_simulations": 0, "particles": S})
+
+    def stream(self) -> Vid2ParamStream:
+        """A streaming session: ``push`` one frame at a time, constant cost per frame."""
+        self._ensure_net()
+        return Vid2ParamStream(self)
+
+
+class Vid2ParamStream(Stream):
+    """Online identification with Vid2Param: the LSTM state is kept between pushes.
+
+    Each ``push`` encodes one frame, runs the encoder head and one LSTM step: constant time per
+    frame, whatever the number of frames so far.
+    """
+
+    def __init__(self, estimator: Vid2Param):
+        self.est = estimator
+        self.net = estimator._ensure_net()
+        self.idx = torch.as_tensor(estimator._index())
+        self.hw = tuple(self.net.config.frame_size)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget all frames (zero state, sampling restarts from the seed)."""
+        self.state = self.net.init_state(1, self.est.device_)
+        self.n = 0
+        # same noise streams as identify(): pushing a video frame by frame gives exactly
+        # identify()'s posteriors on its prefixes
+        self.gen = self.est._generator(0)
+        self.rng = self.est._rng(0)
+
+    def push(self, frame) -> Posterior:
+        """Add one (H, W) frame; returns the posterior given every frame since ``reset``."""
+        fr = _check_frames_array(frame, self.hw, "frame", 2)
+        t0 = time.perf_counter()
+        with torch.inference_mode():
+            x = torch.from_numpy(np.ascontiguousarray(fr)).to(self.est.device_)
+            fx = self.net.encode_frames(x[None])
+            mu, sd = self.net.enc_step(fx, self.state[-1][0])
+            noise = self.net.config.recur_noise
+            if self.est.sample_state and noise > 0:
+                eps = torch.randn(mu.shape, generator=self.gen, device=mu.device)
+                self.state = self.net.step_rnn(mu + noise * sd * eps, self.state)
+            else:
+                self.state = self.net.step_rnn(mu, self.state)
+            mu_n = mu[0, self.idx].cpu().numpy().astype(np.float64)
+            sd_n = sd[0, self.idx].cpu().numpy().astype(np.float64)
+        self.n += 1
+        wall = time.perf_counter() - t0
+        return self.est._posterior(mu_n, sd_n, {"wall_s": wall, "n_frames": self.n}, self.rng)

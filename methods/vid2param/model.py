@@ -1,0 +1,397 @@
+"""The Vid2Param network: a VRNN whose first latent dimensions are the physical quantities.
+
+Shapes use B = batch, T = frames, H x W = frame size, Z = latent size, K = supervised dims
+(``len(config.targets)``, the first K latent dimensions).
+
+Cost is part of the design (training runs on a 2-core CPU): everything that does not depend on
+the recurrence is computed for all frames at once -- the conv encoder on all B*T frames before the
+time loop, the prior network, the decoder and every loss term after it. Only the encoder head,
+the sampling, phi_z and the LSTM step run once per frame. As in the paper's final model, the LSTM
+sees phi_z(z_t) only, so forecasting runs entirely in latent space without decoding frames.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+__all__ = ["V2PConfig", "Vid2ParamNet", "TARGETS"]
+
+#: Supervised quantities the latent dimensions can carry, in this order when present.
+TARGETS = ("x", "y", "e", "g", "d", "r", "vx", "vy")
+
+_MIN_STD = 1e-3
+_LOG2PI = math.log(2 * math.pi)
+
+
+@dataclass
+class V2PConfig:
+    """Architecture and loss weights; stored in every checkpoint.
+
+    Attributes
+    ----------
+    frame_size : (int, int)
+        (H, W) of the frames the network takes.
+    targets : tuple of str
+        Supervised quantities, normalised to about [0, 1], in the first latent dimensions.
+    latent : int
+        Z, total latent size (>= len(targets)).
+    hidden : int
+        LSTM hidden size.
+    layers : int
+        Stacked LSTM layers.
+    feat : int
+        Size of phi_x(x) and phi_z(z).
+    channels : tuple of int
+        Conv encoder channels; each layer halves the frame size (stride 2).
+    alpha, beta, gamma : float
+        Weights of reconstruction, KL and the parameter NLL (paper: 1, 1, 10).
+    gamma_prior : float
+        Weight of the NLL of the prior's parameter dimensions against the targets of the same
+        frame; it teaches the prior the one-step dynamics that forecasting unrolls.
+    recur_noise : float
+        Scale of the sampling noise in the z fed back to the LSTM: 1 feeds the full sample
+        z = mu + sigma * eps (the paper's VRNN), 0 feeds the mean (a deterministic recurrence).
+        The decoder and the KL always use the full sample. Default 0: with 1, no parameter was
+        learnt in 1500 steps on CPU (the noise in the fed-back positions, ~0.1 m early in
+        training, buries the 2.5 cm per-frame^2 signal of gravity).
+    pixel_skip : bool
+        Add a linear map of the raw pixels to phi_x, beside the conv path. For a bright ball on
+        black the centroid is linear in the pixels, so positions become precise from the start
+        of training instead of after the conv layers have learnt to localise.
+    """
+
+    frame_size: tuple[int, int] = (28, 28)
+    targets: tuple[str, ...] = ("x", "y", "e", "g", "d", "r")
+    latent: int = 24
+    hidden: int = 128
+    layers: int = 1
+    feat: int = 128
+    channels: tuple[int, ...] = (8, 16)
+    alpha: float = 1.0
+    beta: float = 1.0
+    gamma: float = 10.0
+    gamma_prior: float = 10.0
+    recur_noise: float = 0.0
+    pixel_skip: bool = False
+
+    def __post_init__(self) -> None:
+        self.frame_size = tuple(int(v) for v in self.frame_size)
+        self.targets = tuple(self.targets)
+        self.channels = tuple(int(c) for c in self.channels)
+        bad = [t for t in self.targets if t not in TARGETS]
+        if bad:
+            raise ValueError(f"targets: expected names from {TARGETS}, got {bad}")
+        if self.latent < len(self.targets):
+            raise ValueError(
+                f"latent: expected at least len(targets)={len(self.targets)}, got {self.latent}"
+            )
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["frame_size"] = list(self.frame_size)
+        d["targets"] = list(self.targets)
+        d["channels"] = list(self.channels)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> V2PConfig:
+        known = set(cls.__dataclass_fields__)
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"config: unknown fields {sorted(unknown)}")
+        return cls(**d)
+
+
+def _gauss(raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Split a (..., 2Z) head output into mean and std (softplus keeps std positive)."""
+    mu, s = raw.chunk(2, dim=-1)
+    return mu, F.softplus(s) + _MIN_STD
+
+
+def gaussian_nll(mu, std, target) -> torch.Tensor:
+    """Elementwise Gaussian negative log-likelihood (the paper's eq. for the theta loss)."""
+    return 0.5 * _LOG2PI + torch.log(std) + 0.5 * ((target - mu) / std) ** 2
+
+
+def gaussian_kl(mu_q, std_q, mu_p, std_p) -> torch.Tensor:
+    """Elementwise KL( N(mu_q, std_q) || N(mu_p, std_p) )."""
+    return (
+        torch.log(std_p / std_q)
+        + (std_q**2 + (mu_q - mu_p) ** 2) / (2 * std_p**2)
+        - 0.5
+    )
+
+
+class Vid2ParamNet(nn.Module):
+    """VRNN with supervised latent dimensions (Vid2Param).
+
+    Parameters
+    ----------
+    config : V2PConfig
+    """
+
+    def __init__(self, config: V2PConfig):
+        super().__init__()
+        self.config = c = config
+        H, W = c.frame_size
+        convs, ch = [], 1
+        for out in c.channels:
+            convs += [nn.Conv2d(ch, out, 4, stride=2, padding=1), nn.ReLU()]
+            ch = out
+        self.conv = nn.Sequential(*convs)
+        with torch.no_grad():
+            self._conv_shape = tuple(self.conv(torch.zeros(1, 1, H, W)).shape[1:])
+        n_conv = int(math.prod(self._conv_shape))
+        self.phi_x = nn.Sequential(nn.Flatten(), nn.Linear(n_conv, c.feat), nn.ReLU())
+        self.skip = nn.Linear(H * W, c.feat) if c.pixel_skip else None
+        self.phi_z = nn.Sequential(nn.Linear(c.latent, c.feat), nn.ReLU())
+        self.cells = nn.ModuleList(
+            [nn.LSTMCell(c.feat if i == 0 else c.hidden, c.hidden) for i in range(c.layers)]
+        )
+        self.enc = nn.Sequential(
+            nn.Linear(c.feat + c.hidden, c.hidden), nn.ReLU(), nn.Linear(c.hidden, 2 * c.latent)
+        )
+        self.prior = nn.Sequential(
+            nn.Linear(c.hidden, c.hidden), nn.ReLU(), nn.Linear(c.hidden, 2 * c.latent)
+        )
+        # Decoder mirrors the encoder: dense to the conv shape, then stride-2 transposed convs.
+        self.dec_in = nn.Sequential(
+            nn.Linear(c.feat + c.hidden, c.feat), nn.ReLU(), nn.Linear(c.feat, n_conv), nn.ReLU()
+        )
+        deconvs = []
+        chans = list(c.channels[::-1]) + [1]
+        for i in range(len(c.channels)):
+            deconvs.append(nn.ConvTranspose2d(chans[i], chans[i + 1], 4, stride=2, padding=1))
+            if i < len(c.channels) - 1:
+                deconvs.append(nn.ReLU())
+        self.deconv = nn.Sequential(*deconvs)
+
+    # -- pieces ---------------------------------------------------------------------------------
+    def encode_frames(self, frames: torch.Tensor) -> torch.Tensor:
+        """phi_x of frames, any leading shape.
+
+        Parameters
+        ----------
+        frames : Tensor, shape (..., H, W)
+            uint8 or float in [0, 255].
+
+        Returns
+        -------
+        Tensor, shape (..., feat)
+        """
+        lead = frames.shape[:-2]
+        x = frames.reshape(-1, 1, *frames.shape[-2:]).to(torch.float32) / 255.0
+        if self.skip is None:
+            return self.phi_x(self.conv(x)).reshape(*lead, -1)
+        conv = self.phi_x[1](self.phi_x[0](self.conv(x)))  # pre-activation of the conv path
+        return torch.relu(conv + self.skip(x.flatten(1))).reshape(*lead, -1)
+
+    def init_state(self, batch: int, device=None) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Zero LSTM state, one (h, c) pair of shape (B, hidden) per layer."""
+        z = torch.zeros(batch, self.config.hidden, device=device)
+        return [(z, z) for _ in self.cells]
+
+    def step_rnn(self, z: torch.Tensor, state):
+        """h_t = f(phi_z(z_t), h_{t-1}); returns the new state list."""
+        inp = self.phi_z(z)
+        new = []
+        for cell, (h, cc) in zip(self.cells, state):
+            h, cc = cell(inp, (h, cc))
+            new.append((h, cc))
+            inp = h
+        return new
+
+    def enc_step(self, fx: torch.Tensor, h: torch.Tensor):
+        """Encoder q(z_t | x_t, h_{t-1}) -> (mu, std), each (B, Z)."""
+        return _gauss(self.enc(torch.cat([fx, h], dim=-1)))
+
+    def prior_step(self, h: torch.Tensor):
+        """Prior p(z_t | h_{t-1}) -> (mu, std), each (..., Z)."""
+        return _gauss(self.prior(h))
+
+    def decode(self, z: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """Frame logits from (z_t, h_{t-1}); leading shapes are flattened and restored.
+
+        Returns
+        -------
+        Tensor, shape (..., H, W)
+        """
+        lead = z.shape[:-1]
+        u = self.dec_in(torch.cat([self.phi_z(z.reshape(-1, z.shape[-1])), h.reshape(-1, h.shape[-1])], -1))
+        u = self.deconv(u.reshape(-1, *self._conv_shape))
+        return u.reshape(*lead, *u.shape[-2:])
+
+    # -- training pass --------------------------------------------------------------------------
+    def forward(
+        self,
+        frames: torch.Tensor,
+        targets: torch.Tensor,
+        n_obs: int | None = None,
+        rec_frac: float = 1.0,
+        generator: torch.Generator | None = None,
+    ) -> dict[str, torch.Tensor]:
+        """Loss terms for a batch of videos.
+
+        Frames ``[0, n_obs)`` are observed (z from the encoder); frames ``[n_obs, T)`` are
+        forecast (z sampled from the prior, fed back, no encoder), which trains the
+        closed-loop rollout that ``forecast`` uses.
+
+        Parameters
+        ----------
+        frames : Tensor, shape (B, T, H, W)
+        targets : Tensor, shape (B, T, K)
+            Normalised targets for the first K latent dimensions.
+        n_obs : int, optional
+            Observed frames; default all T.
+        rec_frac : float in (0, 1]
+            Fraction of observed frames (chosen at random, shared across the batch) that are
+            decoded for the reconstruction term. Decoding is the costliest part after the
+            encoder; a random subset gives an unbiased estimate of the per-frame mean.
+        generator : torch.Generator, optional
+            Source of the sampling noise and the decoded subset.
+
+        Returns
+        -------
+        dict
+            ``loss`` (scalar to minimise), ``rec``, ``kl``, ``nll``, ``nll_prior`` (per frame
+            means), ``mse`` (B, K) squared error of the encoder means on observed frames
+            averaged over time, ``mse_last`` (B, K) at the last observed frame.
+        """
+        c = self.config
+        B, T = frames.shape[:2]
+        K = len(c.targets)
+        n_obs = T if n_obs is None else int(n_obs)
+        fx = self.encode_frames(frames[:, :n_obs])  # (B, n_obs, feat), all frames at once
+        state = self.init_state(B, frames.device)
+        hs, zs, mus, stds = [], [], [], []
+        fmu, fstd = [], []
+        for t in range(T):
+            h = state[-1][0]
+            hs.append(h)
+            if t < n_obs:
+                mu, std = self.enc_step(fx[:, t], h)
+                mus.append(mu)
+                stds.append(std)
+            else:
+                mu, std = self.prior_step(h)
+                fmu.append(mu)
+                fstd.append(std)
+            eps = torch.randn(mu.shape, generator=generator, device=mu.device)
+            z = mu + std * eps
+            zs.append(z)
+            state = self.step_rnn(z if c.recur_noise == 1.0 else mu + c.recur_noise * std * eps,
+                                  state)
+        H = torch.stack(hs, 1)  # (B, T, hidden): h_{t-1} for each t
+        Zs = torch.stack(zs, 1)
+        Hobs = H[:, :n_obs]
+        pmu, pstd = self.prior_step(Hobs)  # batched over time
+        qmu, qstd = torch.stack(mus, 1), torch.stack(stds, 1)
+        tgt_obs = targets[:, :n_obs]
+        n_rec = max(1, min(n_obs, round(rec_frac * n_obs)))
+        if n_rec < n_obs:
+            idx = torch.randperm(n_obs, generator=generator, device=frames.device)[:n_rec]
+        else:
+            idx = torch.arange(n_obs, device=frames.device)
+        logits = self.decode(Zs[:, idx], Hobs[:, idx])
+        rec = F.binary_cross_entropy_with_logits(
+            logits, frames[:, idx].to(torch.float32) / 255.0, reduction="none"
+        ).sum((-1, -2))  # (B, n_rec): summed over pixels as the authors did
+        kl = gaussian_kl(qmu, qstd, pmu, pstd).sum(-1)
+        nll = gaussian_nll(qmu[..., :K], qstd[..., :K], tgt_obs).sum(-1)
+        nll_prior = gaussian_nll(pmu[..., :K], pstd[..., :K], tgt_obs).sum(-1)
+        if n_obs < T:
+            fm, fs = torch.stack(fmu, 1), torch.stack(fstd, 1)
+            nll_fc = gaussian_nll(fm[..., :K], fs[..., :K], targets[:, n_obs:]).sum(-1)
+            nll_prior = torch.cat([nll_prior, nll_fc], 1)
+        per_frame = c.alpha * rec.mean() + c.beta * kl.mean() + c.gamma * nll.mean()
+        loss = per_frame + c.gamma_prior * nll_prior.mean()
+        err = (qmu[..., :K] - tgt_obs) ** 2
+        return {
+            "loss": loss,
+            "rec": rec.mean().detach(),
+            "kl": kl.mean().detach(),
+            "nll": nll.mean().detach(),
+            "nll_prior": nll_prior.mean().detach(),
+            "mse": err.mean(1).detach(),
+            "mse_last": err[:, -1].detach(),
+        }
+
+    # -- inference ------------------------------------------------------------------------------
+    @torch.no_grad()
+    def filter(self, frames: torch.Tensor, state=None, particles: int = 1,
+               generator: torch.Generator | None = None, sample: bool = True):
+        """Run the encoder over frames and return every frame's posterior.
+
+        Parameters
+        ----------
+        frames : Tensor, shape (B, T, H, W)
+        state : list of (h, c), optional
+            Recurrent state to continue from; default zeros.
+        particles : int
+            P independent runs per video (z is sampled at every frame, so runs differ); the
+            frames are encoded once and shared. Output rows are video-major: row ``b * P + p``.
+        generator : torch.Generator, optional
+            Source of the z samples.
+        sample : bool
+            Feed sampled z to the LSTM (as in training); False feeds the encoder mean
+            (deterministic filtering).
+
+        Returns
+        -------
+        mu, std : Tensor, shape (B * P, T, Z)
+            q(z_t | x_{<=t}) after each frame.
+        state : list of (h, c), each (B * P, hidden)
+            State after the last frame, z sampled from q as in training.
+        """
+        B, T = frames.shape[:2]
+        fx = self.encode_frames(frames)
+        if particles > 1:
+            fx = fx.repeat_interleave(particles, dim=0)
+        if state is None:
+            state = self.init_state(B * particles, frames.device)
+        mus, stds = [], []
+        for t in range(T):
+            mu, std = self.enc_step(fx[:, t], state[-1][0])
+            mus.append(mu)
+            stds.append(std)
+            if sample and self.config.recur_noise > 0:
+                eps = torch.randn(mu.shape, generator=generator, device=mu.device)
+                state = self.step_rnn(mu + self.config.recur_noise * std * eps, state)
+            else:
+                state = self.step_rnn(mu, state)
+        return torch.stack(mus, 1), torch.stack(stds, 1), state
+
+    @torch.no_grad()
+    def rollout(self, state, horizon: int, generator: torch.Generator | None = None):
+        """Unroll the prior in latent space, sampling z and feeding it back.
+
+        Parameters
+        ----------
+        state : list of (h, c), each (S, hidden)
+        horizon : int
+
+        Returns
+        -------
+        mu, std, z : Tensor, shape (S, horizon, Z)
+            The prior's mean and std at each future frame and the sampled z.
+        """
+        mus, stds, zs = [], [], []
+        for _ in range(horizon):
+            mu, std = self.prior_step(state[-1][0])
+            eps = torch.randn(mu.shape, generator=generator, device=mu.device)
+            z = mu + std * eps
+            mus.append(mu)
+            stds.append(std)
+            zs.append(z)
+            state = self.step_rnn(mu + self.config.recur_noise * std * eps, state)
+        return torch.stack(mus, 1), torch.stack(stds, 1), torch.stack(zs, 1)
+
+
+def count_parameters(net: nn.Module) -> int:
+    return sum(p.numel() for p in net.parameters())
+

@@ -1,0 +1,505 @@
+"""Train Vid2Param: ``python -m methods.vid2param.train --help``.
+
+Training data are fresh chunks of the ``train`` split (sub-ranges 0, 2, 4, 6, 8), each drawn with
+its own seed derived from ``--data-seed`` (so no video repeats and the run is reproducible), or a
+fixed dataset passed to :func:`train` (what ``Vid2Param.fit`` does). Validation uses the ``test``
+split with ``--val-seed`` (distinct from the seed of the reported evaluation).
+
+Every random choice is a function of ``(seed, step)``: a run killed and resumed from its last
+state (``<out>/state.pt``, written atomically every ``--ckpt-every`` seconds) continues with the
+same batches and noise it would have drawn.
+
+Example (the shipped 28x28 checkpoint; see the README for the exact command)::
+
+    PYTHONPATH=. python -m methods.vid2param.train --out runs/v2p_28x28 \\
+        --export methods/vid2param/checkpoints/v2p_28x28.pt
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from methods.vid2param.checkpoint import (
+    FORMAT,
+    FORMAT_VERSION,
+    git_info,
+    load_checkpoint,
+    save_atomic,
+    source_sha256,
+)
+from methods.vid2param.data import chunk_seed, make_split, rolls_mask, targets_from_dataset
+from methods.vid2param.model import V2PConfig, Vid2ParamNet, count_parameters
+
+__all__ = ["TrainConfig", "train", "evaluate", "export", "resolve_device", "main"]
+
+
+@dataclass
+class TrainConfig:
+    """Optimisation and data settings (stored in checkpoints).
+
+    Attributes
+    ----------
+    steps : int
+        Optimiser steps (batches) in total.
+    batch : int
+        Videos per batch.
+    lr, lr_min, warmup : float, float, int
+        Adam learning rate: linear warm-up for ``warmup`` steps, then cosine decay to ``lr_min``.
+    seed : int
+        Initial weights, batch order, sampling noise, observed lengths.
+    data_seed : int
+        Seeds of the training chunks.
+    chunk : int
+        Fresh training videos generated at a time (memory: chunk x T x H x W bytes).
+    n_frames : int
+        Frames per training video.
+    rec_frac : float
+        Fraction of frames decoded for the reconstruction term (see ``Vid2ParamNet.forward``).
+    p_full : float
+        Probability that a batch is observed for all frames; otherwise only the first
+        ``U[min_obs, n_frames)`` frames are observed and the rest forecast from the prior.
+    min_obs : int
+    p_blank : float
+        Probability that a video's frames are all blanked (ball never seen), so the network
+        learns to answer such input with a wide posterior near the prior.
+    clip : float
+        Gradient-norm clip.
+    val_n, val_seed, val_every : int
+        Validation videos (``test`` split, this seed) and how often (steps) to validate.
+    ckpt_every : float
+        Seconds between resumable states.
+    threads : int
+        ``torch.set_num_threads`` on CPU.
+    size : (int, int)
+        Frame size (H, W).
+    nuisance : dict, optional
+        Options passed to the renderer through ``make_dataset`` (camera-like configuration).
+    """
+
+    steps: int = 5000
+    batch: int = 16
+    lr: float = 1e-3
+    lr_min: float = 5e-5
+    warmup: int = 100
+    seed: int = 0
+    data_seed: int = 0
+    chunk: int = 2000
+    n_frames: int = 200
+    rec_frac: float = 0.25
+    p_full: float = 0.7
+    min_obs: int = 50
+    p_blank: float = 0.02
+    clip: float = 10.0
+    val_n: int = 200
+    val_seed: int = 1
+    val_every: int = 250
+    ckpt_every: float = 180.0
+    threads: int = 1
+    size: tuple[int, int] = (28, 28)
+    nuisance: dict | None = field(default=None)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["size"] = list(self.size)
+        return d
+
+
+def resolve_device(device: str = "auto") -> torch.device:
+    """``"auto"``: CUDA when available, else CPU; otherwise the named device."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        return torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}") from exc
+
+
+def _lr_at(step: int, tc: TrainConfig) -> float:
+    if step < tc.warmup:
+        return tc.lr * (step + 1) / tc.warmup
+    frac = (step - tc.warmup) / max(1, tc.steps - tc.warmup)
+    return tc.lr_min + 0.5 * (tc.lr - tc.lr_min) * (1 + math.cos(math.pi * min(1.0, frac)))
+
+
+class _Feed:
+    """Batches of (frames, targets), a pure function of (seed, step).
+
+    With ``dataset`` given, chunk k is epoch k over that dataset; else chunk k is a fresh draw
+    of ``chunk`` videos from the train split with seed ``chunk_seed(data_seed, k)``.
+    """
+
+    def __init__(self, tc: TrainConfig, targets: tuple[str, ...], dataset=None):
+        self.tc, self.names = tc, targets
+        self.fixed = dataset
+        if dataset is not None:
+            self.frames = np.asarray(dataset.frames)
+            self.targets = targets_from_dataset(dataset, targets)
+            self.per_chunk = len(self.frames) // tc.batch
+            if self.per_chunk < 1:
+                raise ValueError(
+                    f"train: expected at least batch={tc.batch} videos, got {len(self.frames)}"
+                )
+        else:
+            self.per_chunk = tc.chunk // tc.batch
+        self.k = None
+        self.source = None
+
+    def _load_chunk(self, k: int) -> None:
+        tc = self.tc
+        if self.fixed is None:
+            ds = make_split("train", tc.chunk, chunk_seed(tc.data_seed, k), tc.size, tc.nuisance,
+                            tc.n_frames)
+            self.frames = np.asarray(ds.frames)
+            self.targets = targets_from_dataset(ds, self.names)
+            self.source = dict(getattr(ds, "meta", {}) or {}).get("source", "sysid_bench.datasets")
+        rng = np.random.default_rng([tc.seed, k, 17])
+        self.order = rng.permutation(len(self.frames))
+        self.k = k
+
+    def batch(self, step: int):
+        k, pos = divmod(step, self.per_chunk)
+        if k != self.k:
+            self._load_chunk(k)
+        idx = np.sort(self.order[pos * self.tc.batch : (pos + 1) * self.tc.batch])
+        return self.frames[idx], self.targets[idx]
+
+
+@torch.no_grad()
+def evaluate(net: Vid2ParamNet, ds, lengths=(10, 25, 50, 100, 150, 200), batch: int = 100,
+             device="cpu", seed: int = 0) -> dict:
+    """Parameter errors of the encoder posterior after each of ``lengths`` frames.
+
+    Errors are MSEs of parameters normalised by ``PRIOR``; ``r`` is reported over all videos
+    and over those in which the ball rolls (``rolls_mask``).
+
+    Parameters
+    ----------
+    net : Vid2ParamNet
+    ds : Dataset-like with frames (N, T, H, W), states (N, T, 4), theta/labels, floor (N,)
+
+    Returns
+    -------
+    dict
+        ``nmse`` {length: {param: float}}, ``nmse_r_rolling`` {length: float},
+        ``coverage90`` / ``coverage50`` {param: float} at the last length,
+        ``r_std_not_rolling`` mean posterior std of normalised r where the ball never rolls,
+        ``n``, ``n_rolling``.
+    """
+    names = net.config.targets
+    tg = targets_from_dataset(ds, names)
+    frames = np.asarray(ds.frames)
+    n, t = frames.shape[:2]
+    lengths = [int(L) for L in lengths if L <= t]
+    torch.manual_seed(seed)
+    mus, stds = [], []
+    for i in range(0, n, batch):
+        fr = torch.as_tensor(frames[i : i + batch], device=device)
+        mu, sd, _ = net.filter(fr)
+        mus.append(mu[:, [L - 1 for L in lengths], : len(names)].cpu().numpy())
+        stds.append(sd[:, [L - 1 for L in lengths], : len(names)].cpu().numpy())
+    mu, sd = np.concatenate(mus), np.concatenate(stds)  # (N, L, K)
+    truth = tg[:, [L - 1 for L in lengths]]
+    rolls = rolls_mask(ds.states, ds.floor)
+    params = [p for p in ("e", "g", "d", "r") if p in names]
+    out = {"n": int(n), "n_rolling": int(rolls.sum()), "nmse": {}, "nmse_r_rolling": {}}
+    err = (mu - truth) ** 2
+    for j, L in enumerate(lengths):
+        out["nmse"][L] = {p: float(err[:, j, names.index(p)].mean()) for p in params}
+        if "r" in names and rolls.any():
+            out["nmse_r_rolling"][L] = float(err[rolls, j, names.index("r")].mean())
+    z = np.abs(mu[:, -1] - truth[:, -1]) / sd[:, -1]
+    out["coverage90"] = {p: float((z[:, names.index(p)] <= 1.6448536).mean()) for p in params}
+    out["coverage50"] = {p: float((z[:, names.index(p)] <= 0.6744898).mean()) for p in params}
+    if "r" in names and (~rolls).any():
+        out["r_std_not_rolling"] = float(sd[~rolls, -1, names.index("r")].mean())
+        out["r_std_rolling"] = float(sd[rolls, -1, names.index("r")].mean()) if rolls.any() else None
+    return out
+
+
+def _summary(m: dict) -> str:
+    L = max(m["nmse"])
+    s = " ".join(f"{p}={v:.4f}" for p, v in m["nmse"][L].items())
+    r = m["nmse_r_rolling"].get(L)
+    cov = " ".join(f"{p}={v:.2f}" for p, v in m["coverage90"].items())
+    return f"nMSE@{L}: {s} r_rolling={r if r is None else round(r, 4)} | cov90: {cov}"
+
+
+def _state_dict(net, opt, mc, tc, step, wall, history, final=False) -> dict:
+    ck = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "config": mc.to_dict(),
+        "state_dict": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()},
+        "train": {**tc.to_dict(), "step": int(step), "wall_s": float(wall)},
+        "git_commit": git_info(),
+        "source_sha256": source_sha256(),
+        "torch_version": str(torch.__version__),
+        "val_history": history,
+        "val_metrics": history[-1][1] if history else None,
+    }
+    if not final:
+        ck["optimizer"] = opt.state_dict()
+    return ck
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    return o
+
+
+def export(state_path, out_path, card: bool = True) -> Path:
+    """Write a shipped checkpoint (no optimizer state) and a JSON card from a training state.
+
+    Parameters
+    ----------
+    state_path : path of ``state.pt`` written by :func:`train`
+    out_path : path of the ``.pt`` to write; the card goes next to it as ``.json``.
+    """
+    ck = load_checkpoint(state_path)
+    ck.pop("optimizer", None)
+    out_path = Path(out_path)
+    save_atomic(ck, out_path)
+    if card:
+        info = {k: ck.get(k) for k in ("format", "format_version", "config", "train", "git_commit",
+                                        "source_sha256", "torch_version", "val_metrics")}
+        info["file_bytes"] = out_path.stat().st_size
+        info["n_parameters"] = int(sum(v.numel() for v in ck["state_dict"].values()))
+        text = json.dumps(_jsonable(info), indent=1, sort_keys=True)
+        jp = out_path.with_suffix(".json")
+        fd, tmp = tempfile.mkstemp(prefix=jp.name + ".", suffix=".tmp", dir=jp.parent)
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text + "\n")
+        os.replace(tmp, jp)
+    return out_path
+
+
+def train(
+    model_config: V2PConfig | None = None,
+    train_config: TrainConfig | None = None,
+    *,
+    dataset=None,
+    out=None,
+    resume: bool = True,
+    device: str = "auto",
+    max_minutes: float | None = None,
+    stop_at: int | None = None,
+    progress: bool = True,
+    log=None,
+    init_net: Vid2ParamNet | None = None,
+) -> tuple[Vid2ParamNet, dict]:
+    """Train a Vid2Param network.
+
+    Parameters
+    ----------
+    model_config : V2PConfig, optional
+        Architecture; default ``V2PConfig()``. Ignored when resuming (the state's is used).
+    train_config : TrainConfig, optional
+    dataset : Dataset, optional
+        Fixed training set (epochs over it); default fresh chunks of the train split.
+    out : path, optional
+        Folder for ``state.pt`` (resumable, atomic, every ``ckpt_every`` s and at the end).
+    resume : bool
+        Continue from ``<out>/state.pt`` when it exists.
+    device : str
+        "auto" (CUDA if present), "cpu", "cuda", ...
+    max_minutes : float, optional
+        Stop after this much wall-clock time (state saved; resume continues the same run).
+    stop_at : int, optional
+        Stop once this many steps are done (state saved), e.g. to change ``steps`` (the
+        learning-rate schedule's length) on resume at an exact step.
+    progress : bool
+        tqdm progress bar.
+    log : callable, optional
+        Receives progress lines; default prints to stderr.
+    init_net : Vid2ParamNet, optional
+        Start from these weights (fine-tuning; its config must equal ``model_config``).
+
+    Returns
+    -------
+    net : Vid2ParamNet
+        In eval mode, on CPU.
+    info : dict
+        ``step``, ``wall_s``, ``val_history`` [(step, metrics)], ``done`` (all steps run).
+    """
+    mc = model_config or V2PConfig()
+    tc = train_config or TrainConfig()
+    dev = resolve_device(device)
+    if dev.type == "cpu":
+        torch.set_num_threads(int(tc.threads))
+    log = log or (lambda s: print(s, file=sys.stderr, flush=True))
+    state_path = Path(out) / "state.pt" if out is not None else None
+    start, wall0, history = 0, 0.0, []
+    ck = None
+    if resume and state_path is not None and state_path.exists():
+        ck = load_checkpoint(state_path, expect_resumable=True)
+        mc = V2PConfig.from_dict(ck["config"])
+        saved = dict(ck["train"])
+        start, wall0 = int(saved.pop("step")), float(saved.pop("wall_s"))
+        saved["size"] = tuple(saved["size"])
+        saved["steps"] = tc.steps  # a resumed run may be extended
+        tc = TrainConfig(**saved)
+        history = [tuple(h) for h in ck.get("val_history", [])]
+        log(f"resuming from {state_path} at step {start}")
+    if tuple(mc.frame_size) != tuple(tc.size):
+        raise ValueError(
+            f"size: expected the model's frame_size {tuple(mc.frame_size)}, got {tuple(tc.size)}"
+        )
+    torch.manual_seed(tc.seed)
+    net = Vid2ParamNet(mc).to(dev)
+    opt = torch.optim.Adam(net.parameters(), lr=tc.lr)
+    if ck is not None:
+        net.load_state_dict(ck["state_dict"])
+        opt.load_state_dict(ck["optimizer"])
+    elif init_net is not None:
+        if init_net.config.to_dict() != mc.to_dict():
+            raise ValueError("init_net: expected a network with model_config's architecture")
+        net.load_state_dict(init_net.state_dict())
+    log(f"Vid2Param: {count_parameters(net)} parameters, device {dev}, threads "
+        f"{torch.get_num_threads()}, steps {start}->{tc.steps}, batch {tc.batch}")
+    feed = _Feed(tc, mc.targets, dataset)
+    val = make_split("test", tc.val_n, tc.val_seed, tc.size, tc.nuisance, tc.n_frames) \
+        if tc.val_n > 0 else None
+    t_start = time.time()
+    t_ckpt = t_start
+
+    def wall() -> float:
+        return wall0 + time.time() - t_start
+
+    def save(step: int) -> None:
+        if state_path is not None:
+            save_atomic(_state_dict(net, opt, mc, tc, step, wall(), history), state_path)
+
+    def validate(step: int) -> None:
+        net.eval()
+        m = evaluate(net, val, device=dev, seed=tc.seed)
+        net.train()
+        history.append((int(step), m))
+        log(f"[val step {step}, {wall() / 60:.1f} min] {_summary(m)}")
+
+    net.train()
+    bar = tqdm(range(start, tc.steps), disable=not progress, mininterval=5 if sys.stderr.isatty() else 60,
+               desc="vid2param", initial=start, total=tc.steps)
+    run_avg = None
+    step = start
+    for step in bar:
+        fr_np, tg_np = feed.batch(step)
+        rng = np.random.default_rng([tc.seed, step])
+        T = fr_np.shape[1]
+        n_obs = T if rng.random() < tc.p_full else int(rng.integers(tc.min_obs, T))
+        fr = torch.as_tensor(fr_np, device=dev)
+        blank = rng.random(len(fr_np)) < tc.p_blank
+        if blank.any():
+            fr = fr.clone()
+            fr[torch.as_tensor(blank, device=dev)] = 0
+        gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
+        for g in opt.param_groups:
+            g["lr"] = _lr_at(step, tc)
+        outd = net(fr, torch.as_tensor(tg_np, device=dev), n_obs=n_obs, rec_frac=tc.rec_frac,
+                   generator=gen)
+        opt.zero_grad(set_to_none=True)
+        outd["loss"].backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), tc.clip)
+        opt.step()
+        cur = np.array([outd["loss"].item(), outd["rec"].item(), outd["kl"].item(),
+                        outd["nll"].item(), outd["nll_prior"].item()])
+        run_avg = cur if run_avg is None else 0.98 * run_avg + 0.02 * cur
+        if progress:
+            bar.set_postfix(loss=f"{run_avg[0]:.1f}", nll=f"{run_avg[3]:.2f}", refresh=False)
+        if (step + 1) % 100 == 0:
+            log(f"step {step + 1} {wall() / 60:.1f} min lr {_lr_at(step, tc):.2e} loss "
+                f"{run_avg[0]:.2f} rec {run_avg[1]:.2f} kl {run_avg[2]:.2f} nll {run_avg[3]:.3f} "
+                f"nll_prior {run_avg[4]:.3f}")
+        if val is not None and (step + 1) % tc.val_every == 0:
+            validate(step + 1)
+        if time.time() - t_ckpt > tc.ckpt_every:
+            save(step + 1)
+            t_ckpt = time.time()
+        if stop_at is not None and step + 1 >= stop_at:
+            log(f"stopping at step {step + 1} as asked (resumable)")
+            step += 1
+            break
+        if max_minutes is not None and time.time() - t_start > 60 * max_minutes:
+            log(f"stopping after {max_minutes} min at step {step + 1} (resumable)")
+            step += 1
+            break
+    else:
+        step = tc.steps
+    bar.close()
+    done = step >= tc.steps
+    if done and val is not None and (not history or history[-1][0] != step):
+        validate(step)
+    save(step)
+    net.eval()
+    return net.cpu(), {"step": step, "wall_s": wall(), "val_history": history, "done": done}
+
+
+def _parse(argv=None):
+    p = argparse.ArgumentParser(prog="python -m methods.vid2param.train", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    mc, tc = V2PConfig(), TrainConfig()
+    p.add_argument("--out", required=True, help="folder for the resumable state.pt")
+    p.add_argument("--export", help="write a shipped checkpoint (+ .json card) here at the end")
+    p.add_argument("--export-only", action="store_true",
+                   help="only export <out>/state.pt to --export, no training")
+    p.add_argument("--no-resume", action="store_true", help="start afresh even if state.pt exists")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--max-minutes", type=float, default=None)
+    p.add_argument("--stop-at", type=int, default=None, help="stop (resumable) after this step")
+    p.add_argument("--no-progress", action="store_true")
+    for name, val in asdict(tc).items():
+        if name in ("size", "nuisance"):
+            continue
+        p.add_argument("--" + name.replace("_", "-"), type=type(val), default=val)
+    p.add_argument("--size", type=int, nargs=2, default=list(tc.size), metavar=("H", "W"))
+    p.add_argument("--nuisance", type=json.loads, default=None,
+                   help='renderer options as JSON, e.g. \'{"blur": 0.5, "drop": 0.05}\'')
+    for name in ("latent", "hidden", "layers", "feat"):
+        p.add_argument("--" + name, type=int, default=getattr(mc, name))
+    for name in ("alpha", "beta", "gamma", "gamma_prior", "recur_noise"):
+        p.add_argument("--" + name.replace("_", "-"), type=float, default=getattr(mc, name))
+    p.add_argument("--channels", type=int, nargs="+", default=list(mc.channels))
+    p.add_argument("--pixel-skip", action="store_true", help="linear pixel path into phi_x")
+    p.add_argument("--targets", nargs="+", default=list(mc.targets))
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    a = _parse(argv)
+    out = Path(a.out)
+    if a.export_only:
+        if not a.export:
+            raise SystemExit("--export-only needs --export PATH")
+        print(export(out / "state.pt", a.export))
+        return 0
+    tc = TrainConfig(**{k: getattr(a, k) for k in asdict(TrainConfig()) if k not in ("size", "nuisance")},
+                     size=tuple(a.size), nuisance=a.nuisance)
+    mc = V2PConfig(frame_size=tuple(a.size), targets=tuple(a.targets), latent=a.latent,
+                   hidden=a.hidden, layers=a.layers, feat=a.feat, channels=tuple(a.channels),
+                   alpha=a.alpha, beta=a.beta, gamma=a.gamma, gamma_prior=a.gamma_prior,
+                   recur_noise=a.recur_noise, pixel_skip=a.pixel_skip)
+    _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
+                    max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
+    if info["done"] and a.export:
+        print(export(out / "state.pt", a.export))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

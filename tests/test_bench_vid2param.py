@@ -1,0 +1,68 @@
+"""Vid2Param speed: one streamed frame on one CPU thread; 100 videos x 200 frames identified at once.
+
+Run with ``pytest tests/test_bench_vid2param.py --benchmark-only``. Targets (issue 4): a ``push``
+at most 1 ms on one thread (>= 50x real time at 20 frames/s); batched identification of 100 x 200
+frames at most 2 s on 2 cores. The median is compared with the target and reported in
+``extra_info``; a miss fails the benchmark.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from sysid_bench.datasets import make_dataset  # noqa: E402
+
+from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param  # noqa: E402
+
+pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")
+
+PUSH_TARGET_S = 1e-3
+BATCH_TARGET_S = 2.0
+
+
+@pytest.fixture
+def threads():
+    """Run under a chosen torch thread count, restoring the previous one afterwards."""
+    before = torch.get_num_threads()
+    yield torch.set_num_threads
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def videos():
+    return np.asarray(make_dataset("test", 100, 2024).frames)
+
+
+@pytest.mark.benchmark(group="vid2param")
+def test_bench_push_one_thread(benchmark, threads, videos):
+    threads(1)
+    est = Vid2Param(device="cpu")
+    stream = est.stream()
+    frames = videos[0]
+    for f in frames[:20]:  # warm up: first calls allocate
+        stream.push(f)
+    it = iter(np.concatenate([frames] * 50))
+    post = benchmark.pedantic(lambda: stream.push(next(it)), rounds=2000, iterations=1)
+    assert np.isfinite(post.mean).all()
+    med = benchmark.stats.stats.median
+    benchmark.extra_info.update({"median_s": med, "target_s": PUSH_TARGET_S,
+                                 "x_real_time_at_20fps": 0.05 / med})
+    print(f"\npush median {med * 1e3:.3f} ms = {0.05 / med:.0f}x real time at 20 fps")
+    assert med <= PUSH_TARGET_S
+
+
+@pytest.mark.benchmark(group="vid2param")
+def test_bench_identify_100_videos_200_frames(benchmark, threads, videos):
+    threads(2)
+    est = Vid2Param(device="cpu", batch=100, n_samples=200)
+    posts = benchmark.pedantic(est.identify_batch, args=(videos,), rounds=3, iterations=1,
+                               warmup_rounds=1)
+    assert len(posts) == 100
+    med = benchmark.stats.stats.median
+    benchmark.extra_info.update({"median_s": med, "target_s": BATCH_TARGET_S,
+                                 "per_video_s": med / 100})
+    print(f"\n100 x 200 frames in {med:.3f} s ({med * 10:.1f} ms per video)")
+    assert med <= BATCH_TARGET_S

@@ -1,0 +1,268 @@
+"""Vid2Param: model mechanics on a tiny freshly trained checkpoint, behaviour on the shipped one."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from sysid_bench.datasets import make_dataset  # noqa: E402
+from sysid_bench.estimator import Observation, Posterior  # noqa: E402
+from sysid_bench.physics import PARAMS, PRIOR  # noqa: E402
+
+from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param  # noqa: E402
+from methods.vid2param.checkpoint import load_checkpoint, save_atomic  # noqa: E402
+from methods.vid2param.data import rolls_mask, targets_from_dataset  # noqa: E402
+from methods.vid2param.model import V2PConfig  # noqa: E402
+from methods.vid2param.train import TrainConfig, export, train  # noqa: E402
+
+LO = np.array([PRIOR[p][0] for p in PARAMS])
+HI = np.array([PRIOR[p][1] for p in PARAMS])
+TINY = V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8))
+
+needs_shipped = pytest.mark.skipif(
+    not SHIPPED_CHECKPOINT.exists(), reason="shipped checkpoint not trained yet"
+)
+
+
+@pytest.fixture(scope="module")
+def tiny_data():
+    return make_dataset("train", 4, 0, n_frames=24)
+
+
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory, tiny_data):
+    """A tiny network trained for 3 steps, exported like a shipped checkpoint."""
+    out = tmp_path_factory.mktemp("v2p")
+    tc = TrainConfig(steps=3, batch=2, n_frames=24, val_n=0, warmup=1, min_obs=10)
+    train(TINY, tc, dataset=tiny_data, out=out, progress=False, device="cpu", log=lambda s: None)
+    return export(out / "state.pt", out / "tiny.pt")
+
+
+@pytest.fixture(scope="module")
+def est(tiny_ckpt):
+    return Vid2Param(checkpoint=tiny_ckpt, device="cpu", n_samples=32)
+
+
+@pytest.fixture(scope="module")
+def test_data():
+    return make_dataset("test", 40, 123)
+
+
+# -- data and targets ---------------------------------------------------------------------------
+def test_targets_normalised_by_prior_and_view(tiny_data):
+    tg = targets_from_dataset(tiny_data, ("x", "y", "e", "g", "d", "r"))
+    assert tg.shape == (4, 24, 6)
+    np.testing.assert_allclose(tg[..., 0], tiny_data.states[..., 0] / 10, rtol=1e-6)
+    np.testing.assert_allclose(tg[..., 2:], (tiny_data.labels - LO) / (HI - LO), rtol=1e-5, atol=1e-6)
+    assert (tg[..., 2:] >= 0).all() and (tg[..., 2:] <= 1).all()
+
+
+def test_rolls_mask_detects_rolling():
+    st = np.zeros((2, 10, 4))
+    st[0, :, 2] = 1.0  # on the floor, vy = 0, moving: rolling
+    st[1, :, 1] = 3.0  # in the air
+    assert rolls_mask(st, np.zeros(2)).tolist() == [True, False]
+
+
+# -- estimator mechanics ------------------------------------------------------------------------
+def test_constructor_only_stores(tiny_ckpt):
+    e = Vid2Param(checkpoint=tiny_ckpt, n_samples=7, seed=3)
+    assert e.get_params()["n_samples"] == 7 and e.get_params()["seed"] == 3
+    assert not [k for k in vars(e) if k.endswith("_")]
+
+
+def test_identify_returns_posterior_in_physical_units(est, tiny_data):
+    post = est.identify(tiny_data.observation(0))
+    assert isinstance(post, Posterior)
+    assert post.samples.shape == (32, 4)
+    assert ((post.mean >= LO) & (post.mean <= HI)).all()
+    assert (post.std > 0).all()
+    assert post.extras["n_simulations"] == 0 and post.extras["wall_s"] > 0
+
+
+def test_identify_prefixes_equals_identify_on_prefixes(est, tiny_data):
+    obs = tiny_data.observation(1)
+    posts = est.identify_prefixes(obs, [1, 5, 24])
+    for n, p in zip([1, 5, 24], posts):
+        q = est.identify(obs.prefix(n))
+        np.testing.assert_allclose(p.mean, q.mean, rtol=1e-6)
+        np.testing.assert_allclose(p.std, q.std, rtol=1e-6)
+    with pytest.raises(ValueError, match="lengths"):
+        est.identify_prefixes(obs, [25])
+
+
+def test_stream_keeps_state_and_matches_identify(est, tiny_data):
+    obs = tiny_data.observation(2)
+    s = est.stream()
+    posts = [s.push(f) for f in obs.frames]
+    ref = est.identify(obs)
+    np.testing.assert_allclose(posts[-1].mean, ref.mean, rtol=1e-5)
+    np.testing.assert_allclose(posts[-1].std, ref.std, rtol=1e-5)
+    assert posts[-1].extras["n_frames"] == 24
+    # state is kept: the first push differs from the last
+    assert not np.allclose(posts[0].mean, posts[-1].mean)
+    s.reset()
+    again = s.push(obs.frames[0])
+    np.testing.assert_allclose(again.mean, posts[0].mean, rtol=1e-6)
+
+
+def test_stochastic_recurrence_stream_matches_identify(tiny_data, tmp_path):
+    """recur_noise=1 (the paper's sampled z in the recurrence): same noise stream either way."""
+    tc = TrainConfig(steps=1, batch=2, n_frames=24, val_n=0, warmup=1, min_obs=10)
+    cfg = V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8), recur_noise=1.0)
+    train(cfg, tc, dataset=tiny_data, out=tmp_path, progress=False, device="cpu", log=lambda s: None)
+    est = Vid2Param(checkpoint=export(tmp_path / "state.pt", tmp_path / "n1.pt"), device="cpu")
+    obs = tiny_data.observation(3)
+    s = est.stream()
+    last = [s.push(f) for f in obs.frames][-1]
+    np.testing.assert_allclose(last.mean, est.identify(obs).mean, rtol=1e-5)
+    fc = est.forecast(obs, 5)
+    assert (fc.std > 0).all()
+
+
+def test_same_seed_same_numbers(tiny_ckpt, tiny_data):
+    obs = tiny_data.observation(0)
+    a = Vid2Param(checkpoint=tiny_ckpt, device="cpu", seed=5).identify(obs)
+    b = Vid2Param(checkpoint=tiny_ckpt, device="cpu", seed=5).identify(obs)
+    np.testing.assert_array_equal(a.samples, b.samples)
+    np.testing.assert_array_equal(a.mean, b.mean)
+
+
+def test_identify_batch_matches_shapes(est, tiny_data):
+    posts = est.identify_batch(tiny_data.frames)
+    assert len(posts) == 4 and all(isinstance(p, Posterior) for p in posts)
+
+
+def test_forecast_shapes_and_floor(est, tiny_data):
+    obs = tiny_data.observation(0)
+    fc = est.forecast(obs, 7)
+    assert fc.mean.shape == (7, 2) and fc.std.shape == (7, 2) and fc.samples.shape == (32, 7, 2)
+    lifted = Observation(frames=obs.frames, floor=2.0)
+    fc2 = est.forecast(lifted, 7)
+    np.testing.assert_allclose(fc2.mean[:, 1] - fc.mean[:, 1], 2.0, atol=1e-9)
+    with pytest.raises(ValueError, match="horizon"):
+        est.forecast(obs, 0)
+
+
+# -- bad input ----------------------------------------------------------------------------------
+def test_wrong_frame_size_names_both_sizes(est):
+    obs = Observation(frames=np.zeros((5, 50, 100), np.uint8))
+    with pytest.raises(ValueError, match=r"28x28.*50x100"):
+        est.identify(obs)
+    with pytest.raises(ValueError, match=r"28x28.*30x30"):
+        est.stream().push(np.zeros((30, 30), np.uint8))
+
+
+@pytest.mark.parametrize("bad", [np.zeros((28, 28), bool), np.zeros((28, 28), complex),
+                                 np.full((28, 28), "a")])
+def test_wrong_dtype_rejected(est, bad):
+    with pytest.raises(ValueError, match="dtype"):
+        est.stream().push(bad)
+
+
+def test_nan_frames_rejected(est):
+    fr = np.zeros((28, 28))
+    fr[3, 4] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        est.stream().push(fr)
+    with pytest.raises(ValueError):
+        est.identify(Observation(frames=np.stack([fr, fr])))
+
+
+def test_positions_only_is_not_implemented(est):
+    obs = Observation(positions=np.ones((10, 2)))
+    with pytest.raises(NotImplementedError, match="frames"):
+        est.identify(obs)
+
+
+# -- checkpoints --------------------------------------------------------------------------------
+def test_checkpoint_carries_provenance(tiny_ckpt):
+    ck = load_checkpoint(tiny_ckpt)
+    assert ck["format_version"] == 1 and "optimizer" not in ck
+    assert ck["config"]["hidden"] == 16 and ck["train"]["data_seed"] == 0
+    assert "commit" in ck["git_commit"] and len(ck["source_sha256"]) == 64
+    card = json.loads(tiny_ckpt.with_suffix(".json").read_text())
+    assert card["n_parameters"] > 0
+
+
+def test_corrupt_truncated_and_mismatched_checkpoints(tiny_ckpt, tmp_path, tiny_data):
+    obs = tiny_data.observation(0)
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"\x00not a checkpoint" * 100)
+    trunc = tmp_path / "trunc.pt"
+    data = tiny_ckpt.read_bytes()
+    trunc.write_bytes(data[: len(data) // 2])
+    ck = load_checkpoint(tiny_ckpt)
+    ck["config"] = {**ck["config"], "hidden": 32}
+    mism = save_atomic(ck, tmp_path / "mismatch.pt")
+    ck2 = load_checkpoint(tiny_ckpt)
+    ck2["format_version"] = 99
+    future = save_atomic(ck2, tmp_path / "future.pt")
+    for path, msg in [(junk, "corrupt|could not be read"), (trunc, "corrupt|could not be read"),
+                      (mism, "do not match"), (future, "format_version"),
+                      (tmp_path / "missing.pt", "existing file")]:
+        with pytest.raises(ValueError, match=msg):
+            Vid2Param(checkpoint=path).identify(obs)
+
+
+def test_training_resumes_where_it_stopped(tiny_data, tmp_path):
+    tc = TrainConfig(steps=4, batch=2, n_frames=24, val_n=0, warmup=1, min_obs=10)
+    net_a, info_a = train(TINY, tc, dataset=tiny_data, out=tmp_path / "a", progress=False,
+                          device="cpu", log=lambda s: None)
+    tc2 = TrainConfig(steps=2, batch=2, n_frames=24, val_n=0, warmup=1, min_obs=10)
+    train(TINY, tc2, dataset=tiny_data, out=tmp_path / "b", progress=False, device="cpu",
+          log=lambda s: None)
+    net_b, info_b = train(TINY, tc, dataset=tiny_data, out=tmp_path / "b", progress=False,
+                          device="cpu", log=lambda s: None)
+    assert info_a["step"] == info_b["step"] == 4
+    for (k, va), vb in zip(net_a.state_dict().items(), net_b.state_dict().values()):
+        torch.testing.assert_close(va, vb, msg=k)
+
+
+def test_fit_trains_briefly(tiny_ckpt, tiny_data):
+    e = Vid2Param(checkpoint=tiny_ckpt, device="cpu", fit_steps=2)
+    w0 = load_checkpoint(tiny_ckpt)["state_dict"]["enc.2.weight"].clone()
+    assert e.fit(tiny_data) is e
+    assert e.checkpoint_info_["fit"]["warm_start"]
+    assert not torch.equal(e.net_.state_dict()["enc.2.weight"], w0)
+    assert isinstance(e.identify(tiny_data.observation(0)), Posterior)
+
+
+# -- the shipped model --------------------------------------------------------------------------
+@needs_shipped
+def test_shipped_model_identifies_and_improves_with_frames(test_data):
+    est = Vid2Param(n_samples=0)
+    u = (test_data.theta[:, -1] - LO) / (HI - LO)
+    err = {}
+    for n in (20, 200):
+        mu = np.array([p.extras["normalised_mean"] for p in
+                       est.identify_batch(np.asarray(test_data.frames[:, :n]))])
+        err[n] = ((np.clip(mu, 0, 1) - u) ** 2).mean(0)
+    # e, g, d: well below the prior's 1/12 = 0.083 after 200 frames, and better than at 20
+    assert (err[200][:3] < 0.03).all(), err
+    assert (err[200][:3] < err[20][:3]).all(), err
+
+
+@needs_shipped
+def test_shipped_model_blank_video_gives_wide_posterior_near_prior():
+    est = Vid2Param(n_samples=0)
+    post = est.identify(Observation(frames=np.zeros((200, 28, 28), np.uint8)))
+    sd = post.extras["normalised_std"]
+    mu = post.extras["normalised_mean"]
+    # a uniform prior on [0, 1] has std 0.29: the answer must stay of that order, not confident
+    assert (sd > 0.15).all(), sd
+    assert (np.abs(mu - 0.5) < 0.25).all(), mu
+
+
+@needs_shipped
+def test_shipped_model_forecasts_near_future(test_data):
+    est = Vid2Param(n_samples=50)
+    i = 0
+    obs = test_data.observation(i).prefix(100)
+    fc = est.forecast(obs, 10)
+    truth = test_data.states[i, 100:110, :2]
+    assert np.sqrt(((fc.mean - truth) ** 2).sum(-1)).mean() < 1.0  # metres, box is 10 m
