@@ -203,17 +203,17 @@ SCALES: dict[str, Scale] = {
     # <= 15 min on 2 cores with the shipped Vid2Param checkpoint (measured in the report)
     "default": Scale(
         name="default",
-        n_cases={"identification": 15, "forecasting": 15, "changing": 8, "sensitivity": 15,
-                 "calibration": 15},
-        # Seconds per cell on one core of the 2-core machine, measured under a load of ~4
-        # (`runs/probe`, one case per cell kind): lsq 1-9, bo 8-29, emcee 24-74, nuts ~140 per
-        # posterior. The expensive ones see the first cases only (the same cases as everyone);
-        # nuts, the reference posterior, only in experiment 5. `--scale paper` runs every
-        # method on every case.
+        n_cases={"identification": 20, "forecasting": 20, "changing": 10, "sensitivity": 15,
+                 "calibration": 20},
+        # Measured seconds per cell, one worker at low load (a full default grid without
+        # vid2param summed to 690 core-seconds): lsq 0.5-3.4, sindy 0.3-1.4, bo 4-13,
+        # emcee 9-25, nuts ~25 per posterior (~100 under a load of 5). The expensive ones see
+        # the first cases only (the same cases as everyone); nuts, the reference posterior,
+        # only in experiment 5. `--scale paper` runs every method on every case.
         method_cases={
-            "bo": {"identification": 3, "forecasting": 3, "changing": 2, "calibration": 3},
-            "emcee": {"identification": 3, "forecasting": 3, "changing": 2, "calibration": 3},
-            "nuts": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 2},
+            "bo": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4},
+            "emcee": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4},
+            "nuts": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 3},
         },
         method_options={**_ONE_THREAD, "nuts": {"num_warmup": 150, "num_samples": 150}},
         expensive=("bo", "emcee", "nuts"),
