@@ -223,7 +223,9 @@ class Calibration(Experiment):
             c90 = self._pooled(g, "hit90").value.mean()
             c50 = self._pooled(g, "hit50").value.mean()
             verdict = _verdict(c50, c90)
-            parts.append(f"{m} ({inp}) {c50:.2f}/{c90:.2f}, {verdict}")
+            n = g.case.nunique()
+            few = ", too few cases to tell" if n < 5 else ""
+            parts.append(f"{m} ({inp}, {n} cases) {c50:.2f}/{c90:.2f}, {verdict}{few}")
         out.append("Not in the paper. Coverage of the 50%/90% intervals: " + "; ".join(parts) + ".")
         ag = self.agreement(df)
         if len(ag):

@@ -108,13 +108,13 @@ class Forecasting(Experiment):
             ["method", "input", "n_frames"]) for m in ("pos_mse", "cov90", "spread")}
         wall = df[df.metric == "wall_s"].groupby(["method", "input"]).value.median()
         for (m, inp) in sorted({k[:2] for k in summ["pos_mse"].index}):
-            rec = {"method": m, "input": inp}
+            rec = {"method": m, "input": inp,
+                   "cases": int(df[(df.method == m) & (df.input == inp)].case.nunique())}
             for t0 in afters:
                 k = (m, inp, t0)
                 if k in summ["pos_mse"].index:
                     r = summ["pos_mse"].loc[k]
                     rec[f"MSE after {t0}"] = fmt_ci(r["mean"], r["lo"], r["hi"])
-                    rec["cases"] = int(r["n"])
             for t0 in afters:
                 k = (m, inp, t0)
                 if k in summ["cov90"].index:
