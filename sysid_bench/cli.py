@@ -48,7 +48,8 @@ def _cmd_run(args) -> int:
     s = run(scale=args.scale, methods=args.methods, experiments=args.experiments,
             run_dir=args.run_dir, workers=args.workers, scheduler=args.scheduler,
             progress=not args.no_progress,
-            inline=DEFAULT_INLINE if args.inline is None else args.inline)
+            inline=DEFAULT_INLINE if args.inline is None else args.inline,
+            retry_errors=args.retry_errors)
     print(f"store {s['store']}: {s['cells']} cells in the grid, {s['already']} already stored, "
           f"{s['ran']} computed ({s['ok']} ok, {s['errors']} errors, {s['na']} n/a) "
           f"in {s['wall_s']:.1f} s")
@@ -79,6 +80,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--scheduler", default=None, help="Dask scheduler address")
     r.add_argument("--inline", nargs="*", default=None,
                    help="methods run in a thread of this process (default: prior vid2param)")
+    r.add_argument("--retry-errors", action="store_true",
+                   help="compute the stored cells that failed again")
     r.add_argument("--no-progress", action="store_true")
     r.set_defaults(fn=_cmd_run)
 

@@ -255,6 +255,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--experiments", nargs="+", default=None, help="default: all five")
     p.add_argument("--workers", type=int, default=None, help="local processes (default: cores)")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address")
+    p.add_argument("--retry-errors", action="store_true",
+                   help="compute the stored cells that failed again (e.g. after adding a checkpoint)")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -273,7 +275,7 @@ def report_command(args) -> int:
     else:
         summary = run_grid(scale=args.scale, methods=args.methods, experiments=args.experiments,
                            run_dir=args.run_dir, workers=args.workers, scheduler=args.scheduler,
-                           progress=not args.no_progress)
+                           progress=not args.no_progress, retry_errors=args.retry_errors)
         print(f"{summary['ran']} cells computed ({summary['errors']} errors, {summary['na']} n/a), "
               f"{summary['already']} already stored, {summary['wall_s']:.0f} s", file=sys.stderr)
         store = summary["store"]

@@ -17,7 +17,7 @@ from sysid_bench.bench.cases import SCALES, Scale
 from sysid_bench.bench.experiment import Cell, Context
 from sysid_bench.bench.runner import STORE_NAME, build_grid, run
 from sysid_bench.bench.store import Store, StoreConfigError
-from sysid_bench.estimator import Estimator, Forecast, Observation
+from sysid_bench.estimator import Estimator, Forecast, Observation, prior_posterior
 
 ROOT = Path(__file__).resolve().parents[1]
 HAVE_LSQ = "lsq" in methods.available()
@@ -301,3 +301,17 @@ def test_sigterm_stops_the_workers_and_keeps_finished_cells(tmp_path):
     assert not alive, f"worker processes left running: {alive}"
     with Store(store) as s:
         assert len(s.done_cells()) >= 1
+
+
+def test_retry_errors_recomputes_failed_cells(tmp_path, doubles, monkeypatch):
+    kw = dict(scale="smoke", methods=["boom"], experiments=["identification"], run_dir=tmp_path,
+              workers=0, progress=False)
+    first = run(**kw)
+    assert first["errors"] == 4
+    assert run(**kw)["ran"] == 0  # a plain resume keeps the failures
+    # the method is fixed (here: made to answer the prior) and the failures are retried
+    monkeypatch.setattr(Boom, "identify", lambda self, obs: prior_posterior())
+    again = run(**kw, retry_errors=True)
+    assert again["retried"] == 4 and again["ok"] == 4
+    with Store(tmp_path / STORE_NAME) as s:
+        assert set(s.cells().status) == {"ok"}

@@ -114,3 +114,14 @@ def test_invocations_are_recorded(tmp_path):
         inv = s.invocations()
         assert [v["id"] for v in inv] == [i1, i2]
         assert inv[0]["git_commit"] == "abc" and "host" in inv[0]
+
+
+def test_drop_cells_forgets_failed_cells_only(tmp_path):
+    with Store(tmp_path / "r.sqlite", CFG) as s:
+        s.add_cell("ok", KEY, _rows(), artifacts={"a": np.zeros(2)})
+        s.add_cell("bad", {**KEY, "case": 4}, [], status="error", error="boom")
+        assert s.drop_cells("error") == 1
+        assert s.done_cells() == {"ok"}
+        assert set(s.results().cell_id) == {"ok"}
+        assert s.artifact("ok", "a") is not None
+        assert s.drop_cells("error") == 0

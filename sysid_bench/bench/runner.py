@@ -170,6 +170,7 @@ def run(
     progress: bool = True,
     argv=None,
     max_cells: int | None = None,
+    retry_errors: bool = False,
 ) -> dict:
     """Run (or resume) a benchmark into ``run_dir/results.sqlite``.
 
@@ -191,12 +192,15 @@ def run(
         tqdm progress bar over the cells.
     max_cells : int, optional
         Stop after this many new cells (for tests; the rest stays for a resume).
+    retry_errors : bool
+        First drop the stored cells whose status is "error" (a missing checkpoint, a bug since
+        fixed), so they are computed again; otherwise a resumed run keeps them as they are.
 
     Returns
     -------
     dict
         ``store`` (Path), ``cells`` (grid size), ``already`` (stored before), ``ran``, ``ok``,
-        ``errors``, ``na``, ``skipped_methods``, ``wall_s``.
+        ``errors``, ``na``, ``skipped_methods``, ``retried`` (error cells dropped), ``wall_s``.
     """
     from tqdm.auto import tqdm
 
@@ -212,8 +216,9 @@ def run(
             "argv": list(sys.argv if argv is None else argv), "scale": sc.name,
             "methods": meths, "skipped_methods": skipped, "experiments": exps,
             "workers": workers, "scheduler": None if scheduler is None else str(scheduler),
-            "inline": list(inline), **provenance(),
+            "inline": list(inline), "retry_errors": bool(retry_errors), **provenance(),
         })
+        retried = store.drop_cells("error") if retry_errors else 0
         grid = build_grid(sc, meths, exps)
         done = store.done_cells()
         todo = _order([c for c in grid if c.id not in done])
@@ -242,7 +247,7 @@ def run(
             bar.close()
         return {"store": store.path, "cells": len(grid), "already": len(grid) - len(todo),
                 "ran": sum(counts.values()), "ok": counts["ok"], "errors": counts["error"],
-                "na": counts["n/a"], "skipped_methods": skipped,
+                "na": counts["n/a"], "skipped_methods": skipped, "retried": retried,
                 "wall_s": time.perf_counter() - t0}
     finally:
         store.close()

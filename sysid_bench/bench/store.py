@@ -279,6 +279,26 @@ class Store:
             raise
         return True
 
+    def drop_cells(self, status: str = "error") -> int:
+        """Forget every cell of ``status`` (rows, artifacts, record) so a run computes it again.
+
+        Returns
+        -------
+        int
+            Cells dropped.
+        """
+        con = self._con
+        con.execute("BEGIN IMMEDIATE")
+        try:
+            ids = [r[0] for r in con.execute("SELECT cell_id FROM cells WHERE status=?", (status,))]
+            for table in ("results", "artifacts", "cells"):
+                con.executemany(f"DELETE FROM {table} WHERE cell_id=?", [(i,) for i in ids])
+            con.execute("COMMIT")
+        except BaseException:
+            con.execute("ROLLBACK")
+            raise
+        return len(ids)
+
     # -- reading ----------------------------------------------------------------------------
     def results(self, experiment: str | None = None):
         """The long-format results as a pandas DataFrame (columns :data:`RESULT_COLUMNS`)."""
