@@ -128,3 +128,23 @@ def test_full_smoke_run_of_every_method_renders(tmp_path):
     text = render(res["store"], tmp_path / "rep").read_text()
     for m in ran:
         assert f"| {m} |" in text
+
+
+def _ident_rows(method, inp, se, wall):
+    rows = []
+    for case in range(5):
+        for n in (20, 50, 200):
+            for p in "egdr":
+                rows.append((method, inp, case, n, f"se_{p}", se * (1 + 0.1 * case)))
+            rows.append((method, inp, case, n, "se", se * (1 + 0.1 * case)))
+            rows.append((method, inp, case, n, "wall_s", wall))
+    return rows
+
+
+@pytest.mark.parametrize("v2p_se, verdict", [(0.01, "the claim holds"), (0.05, "does NOT hold")])
+def test_identification_reading_checks_the_paper_claim(v2p_se, verdict):
+    rows = _ident_rows("vid2param", "video", v2p_se, 0.01) + _ident_rows("lsq", "privileged", 0.02, 0.5)
+    df = pd.DataFrame(rows, columns=["method", "input", "case", "n_frames", "metric", "value"])
+    text = " ".join(EXPERIMENTS["identification"].reading(df))
+    assert verdict in text
+    assert "lsq (privileged) 50x" in text  # speed ratio to vid2param
