@@ -225,9 +225,9 @@ def test_dask_local_cluster_gives_the_same_rows_as_the_pool(tmp_path):
     kw = dict(scale="smoke", methods=FAST, experiments=["identification"], progress=False)
     run(run_dir=local, workers=2, **kw)
     with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
-                                  dashboard_address=None) as cluster, \
-            distributed.Client(cluster) as client:
-        out = run(run_dir=dask_dir, scheduler=client, **kw)
+                                  dashboard_address=None) as cluster:
+        # the address string, as `--scheduler ADDRESS` passes it
+        out = run(run_dir=dask_dir, scheduler=cluster.scheduler_address, **kw)
     assert out["ok"] == out["cells"] == 2 * 2 * len(FAST)
     vl, vd = _values(local / STORE_NAME), _values(dask_dir / STORE_NAME)
     assert len(vl) and vl.equals(vd)
