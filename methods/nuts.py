@@ -1,0 +1,571 @@
+"""NUTS (NumPyro) on the differentiable JAX simulator: the suite's reference posterior.
+
+Model
+-----
+* **Likelihood** — exactly :func:`methods._common.gaussian_loglik`, written in JAX: observed
+  positions are the simulated ones plus independent N(0, ``sigma``^2) noise per coordinate,
+  ``sigma`` **fixed** (hyperparameter, default ``_common.DEFAULT_SIGMA`` = 0.02 m; see _common for
+  why it is not inferred); unseen (NaN) frames contribute nothing. A unit test checks the JAX
+  and NumPy functions agree.
+* **Prior** — uniform on ``PRIOR`` for ``(e, g, d, r)``. NumPyro samples each parameter through
+  its unit-interval logit transform (the sampler sees an unconstrained space, with the
+  transform's log-Jacobian), so hard prior edges do not stop NUTS.
+* **Initial state** — ``Observation.state0`` when given (held fixed). Otherwise it is *sampled*
+  as a nuisance parameter with a uniform prior on the box (``x0`` in [0, 10], ``y0`` in
+  [floor, floor + 10]) and on ``[-V0_MAX, V0_MAX]`` m/s for each velocity, starting from
+  ``_common.prepare``'s estimate. Sampling it makes the intervals honest about how well the
+  start is known; holding the polynomial estimate fixed would bias ``e``/``g`` with no
+  spread to show for it.
+* **Floor** — ``Observation.floor``, else ``_common.prepare``'s point estimate.
+
+Gradients go through the JAX simulator including its contact times
+(:mod:`sysid_bench.physics_jax`). They are computed in **forward mode** (one ``jvp`` per
+sampled dimension, vectorised) behind a ``custom_vjp``: through a 200-frame ``lax.scan`` with
+masked contact passes forward mode is several times faster than reverse mode on a CPU.
+
+Initialisation
+--------------
+NUTS adapts its step size and mass matrix from wherever it starts; with ``sigma`` = 2 cm the
+log-likelihood spans 10^4-10^5 nats across the prior, so it is started at the mode:
+``n_init`` prior draws simulated in one NumPy batch from the initial state (as ``lsq``), the best
+refined by L-BFGS (SciPy) on NumPyro's own potential energy, then ``num_chains`` chains started
+there (chains after the first jittered by about two posterior standard deviations).
+
+Counting
+--------
+``extras["n_simulations"]`` counts trajectories, one per simulator call per ball, as
+``_common.CountingSimulator``: the ``n_init`` batch, one per L-BFGS evaluation, and one per
+leapfrog step (``num_steps``, warm-up included) — each is one trajectory with its gradient.
+NumPyro's initialisation (a handful of potential evaluations to pick a step size) is not
+counted.
+
+Diagnostics
+-----------
+``extras`` holds split R-hat and ESS per parameter (``numpyro.diagnostics``; with one chain the
+split halves still give R-hat), the number of divergent transitions, the mean tree size and
+``converged`` (R-hat < 1.05, ESS >= 50 for e, g, d and fewer than 2% divergences). A run that
+does not converge is returned, not raised: ``converged`` is False and ``warning`` says why.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache, partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import numpyro
+import numpyro.distributions as dist
+from jax import lax
+from numpyro.diagnostics import effective_sample_size, split_gelman_rubin
+from numpyro.infer.hmc import hmc
+from numpyro.infer.util import potential_energy
+from scipy.optimize import minimize
+
+from methods import _common as C
+from sysid_bench import physics
+from sysid_bench import physics_jax as pj
+from sysid_bench._validate import check_positive_int
+from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior
+
+__all__ = ["NUTS", "loglik_jax", "V0_MAX"]
+
+#: Bound (m/s) of the uniform prior on each initial velocity when the initial state is sampled.
+V0_MAX = 20.0
+_LO = jnp.asarray(C.LO)
+_SPAN = jnp.asarray(C.SPAN)
+_EPS = 1e-6  # keeps initial values off the unit interval's ends, where the logit is infinite
+
+
+# ------------------------------------------------------------------------------------------
+# likelihood (JAX mirror of _common.gaussian_loglik) with forward-mode gradients
+def loglik_jax(sim_pos, obs_pos, mask, sigma):
+    """``_common.gaussian_loglik`` in JAX.
+
+    Parameters
+    ----------
+    sim_pos : array, shape (..., T, 2)
+    obs_pos : array, shape (T, 2)
+        NaN allowed where ``mask`` is False.
+    mask : array of bool, shape (T,)
+    sigma : float
+
+    Returns
+    -------
+    array, shape (...)
+    """
+    n = 2.0 * jnp.count_nonzero(mask)
+    m = mask[:, None]
+    diff = jnp.where(m, sim_pos - jnp.where(m, obs_pos, 0.0), 0.0)
+    sse = jnp.sum(diff * diff, axis=(-2, -1))
+    return -0.5 * sse / sigma**2 - n * jnp.log(sigma) - 0.5 * n * jnp.log(2.0 * jnp.pi)
+
+
+def _loglik_value(theta, state0, data, n_frames, dt):
+    """Log-likelihood of one ball (theta (4,), state0 (4,)); -inf if the simulator gave up."""
+    obs_pos, mask, floor, sigma = data
+    states, bad = pj.simulate_core(theta[None], state0[None], floor[None], n_frames=n_frames, dt=dt)
+    ll = loglik_jax(states[0, :, :2], obs_pos, mask, sigma)
+    return jnp.where(bad[0], -jnp.inf, ll)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(3, 4, 5))
+def _loglik(theta, state0, data, n_frames, dt, free_state):
+    """Log-likelihood of theta (4,) and state0 (4,); its derivative is taken in forward mode.
+
+    ``data`` is treated as a constant (its tangent is ignored); ``state0`` is differentiated
+    only when ``free_state``.
+    """
+    return _loglik_value(theta, state0, data, n_frames, dt)
+
+
+@_loglik.defjvp
+def _loglik_jvp(n_frames, dt, free_state, primals, tangents):
+    theta, state0, data = primals
+    d_theta, d_state0, _ = tangents
+    if free_state:
+        x = jnp.concatenate((theta, state0))
+        f = lambda x: _loglik_value(x[:4], x[4:], data, n_frames, dt)  # noqa: E731
+        dx = jnp.concatenate((d_theta, d_state0))
+    else:
+        x = theta
+        f = lambda x: _loglik_value(x, state0, data, n_frames, dt)  # noqa: E731
+        dx = d_theta
+    # every directional derivative in one vectorised forward pass (the gradient), then contract:
+    # linear in the tangents, so reverse mode transposes this and never differentiates the scan
+    val, grad = jax.vmap(lambda t: jax.jvp(f, (x,), (t,)), out_axes=(None, 0))(jnp.eye(x.size))
+    return val, jnp.dot(grad, dx)
+
+
+# ------------------------------------------------------------------------------------------
+# the NumPyro model, in coordinates whitened by the Laplace approximation
+def _state_box(floor):
+    """Lower corner and size of the initial-state prior box, arrays (4,)."""
+    lo = jnp.stack([0.0, jnp.asarray(floor, jnp.float64), -V0_MAX, -V0_MAX])
+    span = jnp.array([physics.BOX_WIDTH, physics.BOX_WIDTH, 2 * V0_MAX, 2 * V0_MAX])
+    return lo, span
+
+
+def _physical(x, floor, s0_fixed, free_state):
+    """Unconstrained (logit) coordinates x (..., D) -> theta (..., 4), state0 (..., 4)."""
+    u = jax.nn.sigmoid(x)
+    theta = _LO + _SPAN * u[..., :4]
+    if free_state:
+        lo, span = _state_box(floor)
+        return theta, lo + span * u[..., 4:]
+    return theta, jnp.broadcast_to(s0_fixed, theta.shape)
+
+
+def _model(data, *, n_frames, dt, free_state):
+    """Uniform prior on PRIOR (and on the state box when free), Gaussian position noise.
+
+    The sampled site ``z`` (D,) has a flat base measure; ``x = x_ref + L z`` are the logit
+    coordinates of the prior's unit intervals, and the prior density of uniform ``u`` in logit
+    coordinates, ``sigmoid(x) sigmoid(-x)``, enters with the likelihood. ``x_ref`` and ``L`` are
+    data (the Laplace mode and Cholesky factor of its covariance), so NUTS sees a roughly
+    isotropic target and one compiled sampler serves every observation of a given length.
+    """
+    obs_pos, mask, floor, sigma, s0_fixed, x_ref, chol = data
+    D = 8 if free_state else 4
+    z = numpyro.sample("z", dist.ImproperUniform(dist.constraints.real_vector, (), event_shape=(D,)))
+    x = x_ref + chol @ z
+    log_prior = jnp.sum(jax.nn.log_sigmoid(x) + jax.nn.log_sigmoid(-x))
+    theta, state0 = _physical(x, floor, s0_fixed, free_state)
+    ll = _loglik(theta, state0, (obs_pos, mask, floor, sigma), n_frames, dt, free_state)
+    numpyro.factor("log_post", ll + log_prior)
+
+
+def _potential(z, data, *, n_frames, dt, free_state):
+    """NumPyro's potential energy (minus log posterior density) of the model at ``z`` (D,)."""
+    model = partial(_model, n_frames=n_frames, dt=dt, free_state=free_state)
+    return potential_energy(model, (data,), {}, {"z": z})
+
+
+@lru_cache(maxsize=16)
+def _compiled(n_frames, dt, free_state, num_warmup, num_samples, dense_mass, target_accept, max_tree_depth):
+    """Jitted potential (value, gradient) and one jitted NUTS chain for a configuration.
+
+    NumPyro's ``hmc(potential_fn_gen=..., algo="NUTS")`` kernel does the sampling and the
+    windowed step-size / mass-matrix adaptation; the loop over iterations is a ``lax.scan``
+    here, with the observation as an argument, so every identification of the same (bucketed)
+    length reuses one compiled chain instead of recompiling (``MCMC`` re-jits its loop per run).
+    """
+    pe = partial(_potential, n_frames=n_frames, dt=dt, free_state=free_state)
+    init_kernel, sample_kernel = hmc(potential_fn_gen=lambda data: partial(pe, data=data), algo="NUTS")
+
+    @jax.jit
+    def chain(rng_key, z0, data):
+        state = init_kernel(
+            z0,
+            num_warmup,
+            dense_mass=dense_mass,
+            target_accept_prob=target_accept,
+            max_tree_depth=max_tree_depth,
+            model_args=(data,),
+            rng_key=rng_key,
+        )
+
+        def body(state, _):
+            state = sample_kernel(state, model_args=(data,))
+            return state, (state.z, state.num_steps, state.diverging)
+
+        state, (zs, steps, div) = lax.scan(body, state, None, length=num_warmup + num_samples)
+        return zs[num_warmup:], steps, div[num_warmup:], state.adapt_state.step_size
+
+    return jax.jit(jax.value_and_grad(pe)), chain
+
+
+def _bucket(n, size):
+    """Frames simulated for an observation of ``n`` frames: rounded up to a multiple of ``size``
+    so prefixes of different lengths share a handful of compiled samplers."""
+    return int(-(-n // size) * size)
+
+
+class _Potential:
+    """Potential energy and gradient in plain logit coordinates x (D,), counting evaluations."""
+
+    def __init__(self, pe_vg, data_base, D):
+        self.pe_vg, self.base, self.D, self.n = pe_vg, data_base, D, 0
+        self._data = data_base + (jnp.zeros(D), jnp.eye(D))
+
+    def __call__(self, x):
+        self.n += 1
+        val, grad = self.pe_vg(jnp.asarray(x, jnp.float64), self._data)
+        val, grad = float(val), np.asarray(grad, dtype=np.float64)
+        if not np.isfinite(val) or not np.isfinite(grad).all():
+            return np.inf, np.zeros(self.D)
+        return val, grad
+
+    def hessian(self, x, scale):
+        """Central differences of the exact gradient, steps ``1e-3 * scale`` (D,); symmetrised."""
+        D = self.D
+        H = np.empty((D, D))
+        for i in range(D):
+            h = 1e-3 * scale[i]
+            e = np.zeros(D)
+            e[i] = h
+            H[i] = (self(x + e)[1] - self(x - e)[1]) / (2.0 * h)
+        return 0.5 * (H + H.T)
+
+
+def _laplace(pot, starts, *, maxiter_lbfgs=300, newton_iters=6):
+    """Mode and covariance of the posterior in logit coordinates.
+
+    L-BFGS-B from each of ``starts`` (keeping the lowest potential), then damped Newton steps
+    with a finite-difference Hessian of the exact gradient (L-BFGS stalls early on a target
+    whose curvatures span 1e0-1e8). Returns ``(x_map, cov, info)``; ``cov`` is made positive
+    definite by clipping eigenvalues.
+    """
+    best = None
+    for x0 in starts:
+        opt = minimize(pot, x0, jac=True, method="L-BFGS-B", options={"maxiter": maxiter_lbfgs})
+        if best is None or opt.fun < best.fun:
+            best = opt
+    opt = best
+    x, f = np.asarray(opt.x, dtype=np.float64), float(opt.fun)
+    scale = np.full(x.size, 1e-2)
+    n_newton = 0
+    for _ in range(newton_iters):
+        H = pot.hessian(x, scale)
+        w, V = np.linalg.eigh(H)
+        w = np.maximum(w, 1e-8 * max(w.max(), 1e-8) + 1e-6)
+        cov = (V / w) @ V.T
+        scale = np.sqrt(np.diag(cov))
+        g = pot(x)[1]
+        step = -cov @ g
+        t, improved = 1.0, False
+        for _ in range(8):
+            fn, _ = pot(x + t * step)
+            if fn < f:
+                improved = True
+                break
+            t *= 0.5
+        n_newton += 1
+        if not improved:
+            break
+        x, f_old, f = x + t * step, f, fn
+        if f_old - f < 1e-6:
+            break
+    H = pot.hessian(x, scale)
+    w, V = np.linalg.eigh(H)
+    n_neg = int((w <= 0).sum())
+    w = np.maximum(w, 1e-8 * max(w.max(), 1e-8) + 1e-6)
+    cov = (V / w) @ V.T
+    return x, cov, {"map_potential": f, "n_newton": n_newton, "hessian_nonpd": n_neg, "lbfgs_iters": int(opt.nit)}
+
+
+def _search(sim, track, sigma, free, rng, n, rounds, n_starts):
+    """Cross-entropy search for starting points, on batched NumPy simulations.
+
+    Round 0 draws ``n`` parameter vectors from the prior with the initial state at its estimate
+    (as ``lsq``); each later round draws ``n`` from a Gaussian fitted to the best 5% seen so far
+    (the initial state included when it is sampled, starting from the estimate's standard
+    error). The likelihood has cliffs where a bounce or the start of rolling comes and goes, so
+    a gradient method started from a prior draw can stall on the wrong side of one; this search
+    narrows in on the right basin first.
+
+    Returns
+    -------
+    starts : list of ndarray, shape (D,)
+        Up to ``n_starts`` best distinct points, logit coordinates, best first.
+    info : dict
+    """
+    T, dt, floor = track.n_frames, track.dt, track.floor
+    D = 8 if free else 4
+    lo_s, span_s = (np.asarray(a) for a in _state_box(floor))
+    u_s0 = np.clip((track.state0 - lo_s) / span_s, _EPS, 1 - _EPS)
+    v = np.empty((n, D))
+    v[:, :4] = rng.random((n, 4))
+    if free:
+        v[:, 4:] = u_s0
+    pool_v, pool_ll = np.empty((0, D)), np.empty(0)
+    n_elite = max(10, n // 20)
+    for r in range(rounds):
+        theta = C.LO + C.SPAN * v[:, :4]
+        state = lo_s + span_s * v[:, 4:] if free else np.repeat(track.state0[None], n, 0)
+        pos = sim.positions(theta, C.clip_state(state, floor), T, dt, floor)
+        ll = C.gaussian_loglik(pos, track.positions, track.mask, sigma)
+        pool_v, pool_ll = np.concatenate((pool_v, v)), np.concatenate((pool_ll, ll))
+        if r == rounds - 1:
+            break
+        elite = pool_v[np.argsort(-pool_ll)[:n_elite]]
+        cov = np.cov(elite.T) + np.diag(np.full(D, 1e-12))
+        if free and r == 0:  # the state did not vary yet: start from its estimate's error
+            cov[4:, :] = cov[:, 4:] = 0.0
+            cov[4:, 4:] = np.diag((np.maximum(track.state0_std, 1e-3) / span_s) ** 2)
+        v = np.clip(rng.multivariate_normal(elite.mean(0), cov, size=n, method="eigh"), _EPS, 1 - _EPS)
+    order = np.argsort(-pool_ll)
+    starts = []
+    for i in order:
+        if len(starts) == n_starts:
+            break
+        if all(np.abs(pool_v[i] - pool_v[j]).max() > 1e-9 for j in starts):
+            starts.append(i)
+    return [_logit(pool_v[i]) for i in starts], {"search_best_loglik": float(pool_ll[order[0]])}
+
+
+class NUTS(Estimator):
+    """NumPyro's No-U-Turn sampler on the JAX simulator.
+
+    Parameters
+    ----------
+    num_warmup : int
+        Warm-up (step size and mass matrix adaptation) iterations per chain.
+    num_samples : int
+        Kept iterations per chain.
+    num_chains : int
+        Chains, run one after another (``chain_method="sequential"``: vectorised chains would
+        lose the simulator's skip of contact-free frames, and the machine has 2 cores).
+    sigma : float
+        Position noise standard deviation (m) of the likelihood, fixed.
+    n_init : int
+        Simulations per round of the starting-point search.
+    search_rounds : int
+        Rounds of that cross-entropy search (the first draws from the prior).
+    n_starts : int
+        Best search points each refined by L-BFGS; the lowest potential wins.
+    dense_mass : bool
+        Adapt a dense mass matrix in the whitened coordinates (diagonal by default: the Laplace
+        whitening already removes the correlations).
+    target_accept : float
+        NUTS target acceptance probability.
+    max_tree_depth : int
+        Cap of the trajectory doubling (at most ``2**max_tree_depth - 1`` leapfrog steps).
+    n_forecast : int
+        Posterior samples simulated by ``forecast``.
+    frame_bucket : int
+        Observations are padded (with unseen frames) to a multiple of this many frames, so that
+        prefixes of different lengths share one compiled sampler per multiple. Compiling costs
+        about half a minute per (length, known/unknown initial state) the first time.
+    seed : int
+    """
+
+    name = "nuts"
+    input_kind = "positions"
+    min_frames = 3  # fewer seen frames cannot fix a state and parameters (``_common.prepare``)
+    #: cheap budgets for the contract test (same code path; one frame bucket for every prefix)
+    _contract_options = {
+        "num_warmup": 40,
+        "num_samples": 40,
+        "n_init": 100,
+        "search_rounds": 2,
+        "n_starts": 1,
+        "n_forecast": 20,
+        "frame_bucket": 100,
+    }
+
+    def __init__(
+        self,
+        *,
+        num_warmup: int = 200,
+        num_samples: int = 300,
+        num_chains: int = 1,
+        sigma: float = C.DEFAULT_SIGMA,
+        n_init: int = 1000,
+        search_rounds: int = 4,
+        n_starts: int = 3,
+        dense_mass: bool = False,
+        target_accept: float = 0.85,
+        max_tree_depth: int = 6,
+        n_forecast: int = 200,
+        frame_bucket: int = 50,
+        seed: int = 0,
+    ):
+        self.num_warmup = num_warmup
+        self.num_samples = num_samples
+        self.num_chains = num_chains
+        self.sigma = sigma
+        self.n_init = n_init
+        self.search_rounds = search_rounds
+        self.n_starts = n_starts
+        self.dense_mass = dense_mass
+        self.target_accept = target_accept
+        self.max_tree_depth = max_tree_depth
+        self.n_forecast = n_forecast
+        self.frame_bucket = frame_bucket
+        self.seed = seed
+
+    # --------------------------------------------------------------------------------------
+    def _check(self):
+        for k in (
+            "num_warmup", "num_samples", "num_chains", "n_init", "search_rounds", "n_starts",
+            "max_tree_depth", "n_forecast", "frame_bucket",
+        ):
+            check_positive_int(getattr(self, k), k)
+        sigma = C.check_sigma(self.sigma)
+        try:
+            ta = float(self.target_accept)
+        except (TypeError, ValueError):
+            ta = np.nan
+        if not 0.0 < ta < 1.0:
+            raise ValueError(f"target_accept: expected a probability in (0, 1), got {self.target_accept!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)):
+            raise ValueError(f"seed: expected an int, got {self.seed!r}")
+        return sigma
+
+    def identify(self, obs: Observation) -> Posterior:
+        """Posterior over ``(e, g, d, r)`` given all frames of ``obs``."""
+        return self._run(obs)[0]
+
+    def _run(self, obs):
+        sw = C.Stopwatch()
+        sigma = self._check()
+        track = C.prepare(obs)
+        sim = C.CountingSimulator()
+        T, dt, floor = track.n_frames, track.dt, track.floor
+        Tb = _bucket(T, int(self.frame_bucket))
+        free = not track.state0_known
+        D = 8 if free else 4
+        rng = C.make_rng(self.seed, 0)
+
+        # data, padded to the bucket length (padded frames are unseen)
+        obs_pos = np.zeros((Tb, 2))
+        mask = np.zeros(Tb, bool)
+        obs_pos[:T] = np.where(track.mask[:, None], track.positions, 0.0)
+        mask[:T] = track.mask
+        s0_est = np.asarray(track.state0, dtype=np.float64)
+        base = (
+            jnp.asarray(obs_pos),
+            jnp.asarray(mask),
+            jnp.asarray(floor, jnp.float64),
+            jnp.asarray(sigma, jnp.float64),
+            jnp.asarray(s0_est),
+        )
+
+        # 1. global: cross-entropy search with batched NumPy simulations (starts as lsq does)
+        starts, search_info = _search(
+            sim, track, sigma, free, rng, int(self.n_init), int(self.search_rounds), int(self.n_starts)
+        )
+
+        # 2. local: the mode and curvature (Laplace) of the model's potential
+        pe_vg, chain = _compiled(
+            Tb, dt, free, int(self.num_warmup), int(self.num_samples),
+            bool(self.dense_mass), float(self.target_accept), int(self.max_tree_depth),
+        )
+        pot = _Potential(pe_vg, base, D)
+        x_map, cov, lap_info = _laplace(pot, starts)
+        sim.n_simulations += pot.n
+        chol = np.linalg.cholesky(cov)
+
+        # 3. NUTS in the whitened coordinates z (x = x_map + chol z), chains started near z = 0
+        nc = int(self.num_chains)
+        data = base + (jnp.asarray(x_map), jnp.asarray(chol))
+        keys = jax.random.split(jax.random.PRNGKey(int(self.seed)), nc)
+        zs, steps, divs, step_sizes = [], [], [], []
+        for c in range(nc):
+            z0 = np.zeros(D) if c == 0 else 0.5 * rng.standard_normal(D)
+            zc, st, dv, ss = chain(keys[c], jnp.asarray(z0), data)
+            zs.append(np.asarray(zc))
+            steps.append(np.asarray(st))
+            divs.append(np.asarray(dv))
+            step_sizes.append(float(ss))
+        z = np.stack(zs)  # (chains, S, D)
+        steps, div = np.stack(steps), np.stack(divs)
+        sim.n_simulations += int(steps.sum())
+        steps_run = steps[:, int(self.num_warmup) :]
+
+        x = x_map + z @ chol.T
+        th, s0s = (np.asarray(a) for a in _physical(jnp.asarray(x), floor, jnp.asarray(s0_est), free))
+        rhat = np.asarray(split_gelman_rubin(th))
+        ess = np.asarray(effective_sample_size(th))
+        flat = th.reshape(-1, 4)
+        n_div = int(div.sum())
+        frac_div = n_div / div.size
+        problems = []
+        if not np.all(rhat[:3] < 1.05):
+            problems.append(f"R-hat {np.round(rhat[:3], 3).tolist()} (e, g, d) not all < 1.05")
+        if not np.all(ess[:3] >= 50):
+            problems.append(f"ESS {np.round(ess[:3], 1).tolist()} (e, g, d) not all >= 50")
+        if frac_div >= 0.02:
+            problems.append(f"{n_div} divergent transitions ({100 * frac_div:.1f}%)")
+        # how well the mode fits: a wrong basin or a misspecified model shows as RMS >> sigma
+        th_map, s0_map = (np.asarray(a) for a in _physical(jnp.asarray(x_map), floor, jnp.asarray(s0_est), free))
+        fit = sim.positions(th_map[None], s0_map[None], T, dt, floor)
+        rms = float(np.sqrt(C.mean_sq_error(fit, track.positions, track.mask)[0]))
+        if rms > 3.0 * sigma:
+            problems.append(f"the mode misses the track by {rms:.3g} m RMS (> 3 sigma = {3 * sigma:.3g} m)")
+        extras = {
+            "n_simulations": int(sim.n_simulations),
+            "wall_s": sw(),
+            "rhat": dict(zip(physics.PARAMS, rhat.tolist())),
+            "ess": dict(zip(physics.PARAMS, ess.tolist())),
+            "divergences": n_div,
+            "mean_tree_size": float(steps_run.mean()),
+            "step_size": float(np.mean(step_sizes)),
+            "converged": not problems,
+            "warning": "; ".join(problems),
+            "map_rms_m": rms,
+            "n_potential_evals_init": pot.n,
+            "sigma": sigma,
+            "state0_sampled": free,
+            **search_info,
+            **lap_info,
+            **track.describe(),
+        }
+        post = Posterior(mean=flat.mean(0), std=flat.std(0, ddof=1), samples=flat, extras=extras)
+        return post, (flat, s0s.reshape(-1, 4), track, sim, sw)
+
+    def forecast(self, obs: Observation, horizon: int) -> Forecast:
+        """Positions of the ``horizon`` frames after ``obs``: ``n_forecast`` posterior samples'
+        trajectories (their parameters and, when sampled, their initial states) continued past
+        the last frame.
+
+        Returns
+        -------
+        Forecast
+            mean/std (horizon, 2); samples (n_forecast, horizon, 2); ``extras["n_simulations"]``
+            counts the identification's simulations too.
+        """
+        horizon = C.check_horizon(horizon)
+        m = check_positive_int(self.n_forecast, "n_forecast")
+        post, (theta, s0s, track, sim, clock) = self._run(obs)
+        idx = C.make_rng(self.seed, 1).choice(len(theta), size=m, replace=len(theta) < m)
+        return C.forecast_by_simulation(
+            sim, theta[idx], s0s[idx], track.floor, track.dt, horizon,
+            skip=track.n_frames - 1, clock=clock, extras={"posterior_extras": post.extras},
+        )
+
+
+def _logit(u):
+    u = np.clip(np.asarray(u, dtype=np.float64), _EPS, 1.0 - _EPS)
+    return np.log(u) - np.log1p(-u)

@@ -1,0 +1,195 @@
+"""NUTS on the JAX simulator: its likelihood, its gradients, accuracy, diagnostics, bad input.
+
+Accuracy (normalised MSE over e, g, d; guessing the prior mean scores 0.083) on test-split cases
+of ``make_dataset("test", n=20, seed=5)``, clean positions, 200 frames, floor known, the initial
+state *unknown* (sampled by NUTS). Default run: the first 5 cases with short chains
+(100 warm-up + 100 samples), bound 1e-3; slow run: all 20 with the defaults, same bound.
+Measured on the 2-core development machine: see the report of the session that wrote this.
+"""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("numpyro")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+from methods import _common as C  # noqa: E402
+from methods import nuts as N  # noqa: E402
+from sysid_bench import physics  # noqa: E402
+from sysid_bench.datasets import make_dataset  # noqa: E402
+from sysid_bench.estimator import Forecast, Observation, Posterior  # noqa: E402
+from sysid_bench.metrics import interval_coverage, param_mse  # noqa: E402
+
+GUESS = 0.083
+BOUND = 1e-3
+FAST = {"num_warmup": 100, "num_samples": 100}
+
+
+@pytest.fixture(scope="module")
+def ds():
+    return make_dataset("test", n=20, seed=5)
+
+
+def _obs(ds, i, known_state=False, n=None):
+    n = ds.states.shape[1] if n is None else n
+    return Observation(
+        positions=ds.states[i, :n, :2],
+        floor=float(ds.floor[i]),
+        state0=ds.states[i, 0] if known_state else None,
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# the likelihood and its gradient
+def test_loglik_mirrors_common_gaussian_loglik():
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(40, 2))
+    obs[[2, 9, 30]] = np.nan
+    mask = np.isfinite(obs).all(axis=1)
+    sim = rng.normal(size=(6, 40, 2))
+    want = C.gaussian_loglik(sim, obs, mask, 0.05)
+    got = np.asarray(N.loglik_jax(jnp.asarray(sim), jnp.asarray(obs), jnp.asarray(mask), 0.05))
+    np.testing.assert_allclose(got, want, rtol=1e-13)
+
+
+def test_loglik_gradient_matches_finite_differences(ds):
+    """The forward-mode custom derivative (what NUTS uses) vs central differences of the NumPy
+    likelihood, for theta and the initial state, on a 200-frame case with bounces and walls."""
+    obs = _obs(ds, 0)
+    T = obs.n_frames
+    mask = np.ones(T, bool)
+    data = (jnp.asarray(obs.positions), jnp.asarray(mask), jnp.asarray(0.0), jnp.asarray(C.DEFAULT_SIGMA))
+    theta = ds.theta[0, 0] * np.array([1.01, 0.99, 1.05, 1.0])  # off the mode: gradients are large
+    s0 = ds.states[0, 0] + np.array([0.05, -0.03, 0.1, 0.05])
+
+    def np_ll(x):
+        sim = physics.simulate(x[None, :4], x[None, 4:], n_frames=T)[..., :2]
+        return C.gaussian_loglik(sim, obs.positions, mask, C.DEFAULT_SIGMA)[0]
+
+    grad = jax.jit(jax.grad(lambda th, s: N._loglik(th, s, data, T, obs.dt, True), argnums=(0, 1)))
+    g = np.concatenate([np.asarray(a) for a in grad(jnp.asarray(theta), jnp.asarray(s0))])
+    x = np.concatenate((theta, s0))
+    fd = np.empty(8)
+    for i in range(8):
+        h = 1e-7 * max(abs(x[i]), 1e-2)
+        xp, xm = x.copy(), x.copy()
+        xp[i] += h
+        xm[i] -= h
+        fd[i] = (np_ll(xp) - np_ll(xm)) / (2 * h)
+    np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+
+
+# ------------------------------------------------------------------------------------------
+# accuracy, calibration on clean data, diagnostics
+def _accuracy(ds, cases, **options):
+    est = N.NUTS(**options)
+    posts = [est.identify(_obs(ds, i)) for i in cases]
+    truth = ds.theta[list(cases), 0]
+    means = np.array([p.mean for p in posts])
+    nmse = float(param_mse(truth, means)[:3].mean())
+    lo, hi = zip(*(p.interval(0.9) for p in posts))
+    cover = interval_coverage(truth, np.array(lo), np.array(hi))
+    return nmse, cover, posts
+
+
+def test_accuracy_on_test_split_state_unknown(ds):
+    nmse, cover, posts = _accuracy(ds, range(5), **FAST)
+    print(f"\nnuts (5 cases, 100+100): nMSE(e,g,d) = {nmse:.2e}, 90% coverage {cover.round(2)}")
+    assert nmse < BOUND < GUESS
+    assert (cover[:3] >= 0.8).all()
+    for p in posts:
+        assert isinstance(p, Posterior) and p.samples.shape == (100, 4)
+        ex = p.extras
+        assert ex["state0_sampled"] and set(ex["rhat"]) == set(physics.PARAMS) == set(ex["ess"])
+        assert isinstance(ex["divergences"], int) and ex["divergences"] >= 0
+        assert ex["map_rms_m"] < 1e-3  # clean positions: the mode fits to well under sigma
+        # the counting rule: search batches + potential evaluations + leapfrog steps + fit check
+        assert ex["n_simulations"] >= 1000 * 4 + 200 + ex["n_potential_evals_init"] + 1
+        # within the prior box, physical units
+        assert np.all((p.samples >= C.LO) & (p.samples <= C.HI))
+
+
+@pytest.mark.slow
+def test_accuracy_on_20_cases_with_defaults(ds):
+    nmse, cover, posts = _accuracy(ds, range(20))
+    conv = np.mean([p.extras["converged"] for p in posts])
+    print(f"\nnuts (20 cases, defaults): nMSE(e,g,d) = {nmse:.2e}, 90% coverage {cover.round(2)}, converged {conv:.0%}")
+    assert nmse < BOUND
+    assert conv >= 0.9
+
+
+def test_known_state_is_used_and_forecast_continues_the_track(ds):
+    """With the initial state given it is held fixed; the forecast follows the true future."""
+    est = N.NUTS(**N.NUTS._contract_options)
+    obs = _obs(ds, 1, known_state=True, n=100)
+    post = est.identify(obs)
+    assert not post.extras["state0_sampled"]
+    assert param_mse(ds.theta[1, 0][None], post.mean[None])[:3].mean() < BOUND
+    fc = est.forecast(obs, 10)
+    assert isinstance(fc, Forecast) and fc.samples.shape == (20, 10, 2)
+    err = np.abs(fc.mean - ds.states[1, 100:110, :2]).max()
+    assert err < 0.05, f"forecast off by {err:.3g} m"
+    assert fc.extras["n_simulations"] > post.extras["n_simulations"] - 1
+
+
+def test_misfit_is_reported_not_raised():
+    """A track no ball can make (level flight at 5 m for 3 s) gives a posterior that says so."""
+    t = np.arange(60) * 0.05
+    pos = np.column_stack([1.0 + 2.0 * t, np.full(60, 5.0)])
+    post = N.NUTS(**N.NUTS._contract_options).identify(Observation(positions=pos, floor=0.0))
+    assert post.extras["converged"] is False
+    assert "misses the track" in post.extras["warning"]
+    assert np.isfinite(post.mean).all() and (post.std >= 0).all()
+
+
+# ------------------------------------------------------------------------------------------
+# bad input and packaging
+@pytest.mark.parametrize(
+    "options, name",
+    [
+        ({"sigma": -1.0}, "sigma"),
+        ({"num_samples": 0}, "num_samples"),
+        ({"num_chains": 1.5}, "num_chains"),
+        ({"target_accept": 1.5}, "target_accept"),
+        ({"frame_bucket": 0}, "frame_bucket"),
+        ({"seed": "a"}, "seed"),
+    ],
+)
+def test_bad_hyperparameters_name_themselves(options, name):
+    obs = Observation(positions=np.column_stack([np.linspace(1, 3, 10), np.linspace(5, 4, 10)]), floor=0.0)
+    est = N.NUTS(**options)  # the constructor only stores
+    with pytest.raises(ValueError, match=name):
+        est.identify(obs)
+
+
+def test_too_few_seen_frames_is_a_value_error():
+    pos = np.full((10, 2), np.nan)
+    pos[:2] = [[1.0, 5.0], [1.1, 5.0]]
+    with pytest.raises(ValueError, match="positions"):
+        N.NUTS().identify(Observation(positions=pos, floor=0.0))
+
+
+def test_importing_methods_does_not_import_jax():
+    code = "import sys, methods; methods.available(); assert 'jax' not in sys.modules, 'jax imported'"
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=str(__import__("pathlib").Path(__file__).parents[1]))
+
+
+# ------------------------------------------------------------------------------------------
+# speed (pytest-benchmark; skipped in the default run)
+@pytest.mark.benchmark(group="nuts")
+@pytest.mark.parametrize("known_state", [True, False], ids=["state0-given", "state0-sampled"])
+def test_bench_nuts_identify_200_frames(benchmark, ds, known_state):
+    """One identification, 200 frames, defaults, after a warm-up round (compilation)."""
+    est = N.NUTS()
+    obs = _obs(ds, 2, known_state=known_state)
+    post = benchmark.pedantic(est.identify, args=(obs,), rounds=3, iterations=1, warmup_rounds=1)
+    assert np.isfinite(post.mean).all()
+    median = benchmark.stats.stats.median
+    benchmark.extra_info.update({"median_s": median, "n_simulations": post.extras["n_simulations"]})
+    print(f"\nnuts ({'given' if known_state else 'sampled'} state0): {median:.2f} s per identification")
+    assert median <= 15.0
