@@ -1,7 +1,7 @@
 """Speed of the classical baselines: one identification (dmd: one forecast) on 200 frames.
 
 Targets on the 2-core machine (issue 3): lsq <= 0.1 s, sindy <= 1 s, dmd <= 0.5 s, bo <= 5 s,
-emcee <= 15 s. Each is timed after one warm-up round (imports, caches) on the same test-split
+emcee and nuts <= 15 s. Each is timed after one warm-up round (imports, caches) on the same test-split
 case: clean positions, known initial state and floor (the paper's baseline setting).
 
 Run with ``pytest tests/test_bench_baselines.py --benchmark-only``.
@@ -14,6 +14,7 @@ from methods.bo import BayesOpt
 from methods.dmd import DMD
 from methods.ensemble import Emcee
 from methods.lsq import LSQ
+from methods.nuts import NUTS
 from methods.sindy import SINDy
 from sysid_bench.datasets import make_dataset
 from sysid_bench.estimator import Observation
@@ -25,6 +26,7 @@ CASES = {
     "dmd": (DMD, 0.5, 7),
     "bo": (BayesOpt, 5.0, 3),
     "emcee": (Emcee, 15.0, 2),
+    "nuts": (NUTS, 15.0, 3),
 }
 DMD_HORIZON = 100
 
@@ -45,7 +47,7 @@ def obs():
 
 @pytest.mark.benchmark(group="baselines")
 @pytest.mark.parametrize(
-    "name", [pytest.param("lsq", marks=LSQ_SLOW), "sindy", "dmd", "bo", "emcee"]
+    "name", [pytest.param("lsq", marks=LSQ_SLOW), "sindy", "dmd", "bo", "emcee", "nuts"]
 )
 def test_bench_identify_200_frames(benchmark, obs, name):
     make, target, rounds = CASES[name]
