@@ -14,11 +14,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from methods.vid2param.checkpoint import build_net, load_checkpoint
 from sysid_bench._validate import check_positive_int
 from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, Stream
 from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
-
-from methods.vid2param.checkpoint import build_net, load_checkpoint
 
 __all__ = ["Vid2Param", "Vid2ParamStream", "SHIPPED_CHECKPOINT"]
 
@@ -225,7 +224,7 @@ class Vid2Param(Estimator):
         if train is None:
             self._ensure_net()
             return self
-        from methods.vid2param.model import V2PConfig, Vid2ParamNet
+        from methods.vid2param.model import V2PConfig
         from methods.vid2param.train import TrainConfig, resolve_device
         from methods.vid2param.train import train as run_training
 
@@ -365,8 +364,7 @@ class Vid2Param(Estimator):
             _, _, state = net.filter(fr, particles=S if stochastic else 1, generator=gen,
                                      sample=stochastic)
             if not stochastic:
-                state = [(h.expand(S, -1).contiguous(), c.expand(S, -1).contiguous())
-                         for h, c in state]
+                state = [tuple(t.expand(S, -1).contiguous() for t in layer) for layer in state]
             _, _, z = net.rollout(state, horizon, generator=gen)
             z = z.cpu().numpy().astype(np.float64)
         floor = 0.0 if obs.floor is None else float(obs.floor)
