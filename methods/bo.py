@@ -20,7 +20,6 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from methods._common import (
     DEFAULT_SIGMA,
@@ -34,6 +33,7 @@ from methods._common import (
     forecast_by_simulation,
     make_rng,
     mean_sq_error,
+    one_blas_thread,
     prepare,
     resample,
     tempered_weights,
@@ -133,9 +133,7 @@ class BayesOpt(Estimator):
         info = {"ok": True, "message": ""}
         res = None
         try:
-            # one BLAS thread: the GP's matrices are tiny, and threads fighting over two shared
-            # cores made each L-BFGS call ~6x slower (19 s vs 3 s per identification here)
-            with warnings.catch_warnings(), threadpool_limits(limits=1):
+            with warnings.catch_warnings(), one_blas_thread():
                 # skopt warns when it re-proposes a point already evaluated; that is not a failure
                 warnings.simplefilter("ignore", UserWarning)
                 res = gp_minimize(

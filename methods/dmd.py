@@ -23,7 +23,7 @@ import warnings
 
 import numpy as np
 
-from methods._common import check_horizon
+from methods._common import check_horizon, one_blas_thread
 from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, observed_positions
 
 __all__ = ["DMD"]
@@ -81,15 +81,15 @@ class DMD(Estimator):
         n = X.shape[1]
         d = min(self._delays(n), n)
         dmd = HankelDMD(svd_rank=self.svd_rank, d=d)
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), one_blas_thread():
             # a Hankel matrix of a smooth track is ill-conditioned by construction; the SVD
             # truncation is what handles it, so pydmd's condition-number warning is noise here
             warnings.simplefilter("ignore", UserWarning)
             dmd.fit(X)
-        if self.stabilize:
-            stabilize_modes(dmd, 1.0)
-        dmd.dmd_time["tend"] = n - 1 + n_out
-        rec = np.real(dmd.reconstructed_data)
+            if self.stabilize:
+                stabilize_modes(dmd, 1.0)
+            dmd.dmd_time["tend"] = n - 1 + n_out
+            rec = np.real(dmd.reconstructed_data)
         rms = float(np.sqrt(np.mean((rec[:, :n] - X) ** 2)))
         return rec, rms
 

@@ -45,6 +45,7 @@ from methods._common import (
     gaussian_loglik,
     make_rng,
     mean_sq_error,
+    one_blas_thread,
     prepare,
 )
 from sysid_bench import physics
@@ -212,10 +213,11 @@ class Emcee(Estimator):
             # dogbox, not trf: on 25 calibration cases trf crawled along the e-g valley and hit
             # max_nfev in 4-7 of them (left 3-8 sd off the mode); dogbox converged in all, in 6-9
             # evaluations
-            res = least_squares(
-                fun, z0, jac=jac, bounds=(prob.lo, prob.hi), method="dogbox",
-                max_nfev=check_positive_int(self.max_opt_evals, "max_opt_evals"),
-            )
+            with one_blas_thread():
+                res = least_squares(
+                    fun, z0, jac=jac, bounds=(prob.lo, prob.hi), method="dogbox",
+                    max_nfev=check_positive_int(self.max_opt_evals, "max_opt_evals"),
+                )
             z_opt, J = res.x, res.jac
             info.update(opt_status=int(res.status), opt_message=str(res.message), opt_cost=float(res.cost))
         except (ValueError, np.linalg.LinAlgError, RuntimeError) as exc:  # report, do not raise

@@ -42,6 +42,7 @@ from methods._common import (
     clip_state,
     forecast_by_simulation,
     make_rng,
+    one_blas_thread,
     prepare,
     segment_track,
 )
@@ -147,7 +148,8 @@ class SINDy(Estimator):
                 feature_library=lib,
                 differentiation_method=diff,
             )
-            model.fit(vel, t=dt, feature_names=["vx", "vy"])
+            with one_blas_thread():
+                model.fit(vel, t=dt, feature_names=["vx", "vy"])
             coef = np.asarray(model.coefficients())  # rows vx', vy'; columns _FEATURES
             V = np.concatenate(vel)
             A = np.concatenate([np.asarray(diff(v, np.arange(len(v)) * dt)) for v in vel])

@@ -1,19 +1,21 @@
 """The classical baselines (lsq, bo, emcee, sindy, dmd) and their shared machinery.
 
-Accuracy bounds (normalised MSE over e, g, d on 20 test-split cases, clean positions, 200
-frames; guessing the prior mean scores 0.083). Measured on ``make_dataset("test", n=20, seed=5)``
-on the 2-core development machine (see the module constants ``MEASURED``); each asserted bound is
-several times the measured value and well below 0.083:
+Accuracy (the issue's check): normalised MSE over e, g, d on 20 test-split cases
+(``make_dataset("test", n=20, seed=5)``: sub-ranges 1, 3, 5, 7, 9), clean positions, 200 frames.
+Guessing the prior mean scores 0.083. Measured on the shared 2-core machine:
 
-=========  ====================  ==========  =====================================
-method     input                 bound       measured
-=========  ====================  ==========  =====================================
-lsq        positions + state0    0.01        see MEASURED
-lsq        positions only        0.015
-sindy      positions (either)    0.002
-emcee      positions + state0    0.002       (slow test)
-bo         positions + state0    0.05        (slow test; 20 evaluations in 4-D)
-=========  ====================  ==========  =====================================
+=========  =========================  =========  ==========
+method     input                      measured   asserted
+=========  =========================  =========  ==========
+lsq        positions + state0, floor  0.0043     < 0.01
+lsq        positions only             0.0039     < 0.015
+sindy      positions (either)         3e-6       < 0.002
+emcee      positions + state0, floor  1e-6       < 0.002 (slow)
+bo         positions + state0, floor  0.047      < 0.065 (slow)
+=========  =========================  =========  ==========
+
+bo's figure is what 20 evaluations in four dimensions give: 0.02-0.05 over other seeds and case
+sets, with g the weak parameter; it is below guessing, not far below it.
 """
 
 import numpy as np
@@ -168,7 +170,7 @@ def test_emcee_accuracy(ds):
 
 @pytest.mark.slow
 def test_bo_accuracy(ds):
-    assert _nmse_egd(BayesOpt(), ds) < 0.05
+    assert _nmse_egd(BayesOpt(), ds) < 0.065
 
 
 # ------------------------------------------------------------------------------------------
