@@ -6,7 +6,7 @@ model is well specified and a correct sampler covers ~90%; the initial state and
 as to the paper's baselines. Noisy positions a wall or the floor would put outside the box are
 moved onto its edge (the suite rejects positions outside the box; this touches a few frames).
 
-Run with ``pytest tests/test_bench_calibration.py --benchmark-only`` (emcee: about 10 minutes on
+Run with ``pytest tests/test_bench_calibration.py --benchmark-only`` (emcee: about 7 minutes on
 2 cores). ``METHODS`` lists the samplers checked; nuts joins when its module lands.
 """
 
