@@ -149,7 +149,12 @@ def observed_positions(obs: Observation, *, min_seen: int = 3) -> np.ndarray:
     else:
         from sysid_bench.tracking import track  # local: tracking is only needed for video input
 
-        pos = track(obs.frames)
+        pos = track(obs.frames, floor=0.0 if obs.floor is None else obs.floor)
+        # a ball touching a wall or the floor can be tracked a few mm outside the box: that is
+        # tracking error, not bad input, so it is moved onto the edge instead of rejected
+        pos[:, 0] = np.clip(pos[:, 0], 0.0, BOX_WIDTH)
+        if obs.floor is not None:
+            pos[:, 1] = np.clip(pos[:, 1], obs.floor, obs.floor + BOX_WIDTH)
     seen = np.isfinite(pos).all(axis=1)
     if seen.sum() < min_seen:
         raise ValueError(
