@@ -2,49 +2,61 @@
 
 Model
 -----
-* **Likelihood** — exactly :func:`methods._common.gaussian_loglik`, written in JAX: observed
-  positions are the simulated ones plus independent N(0, ``sigma``^2) noise per coordinate,
-  ``sigma`` **fixed** (hyperparameter, default ``_common.DEFAULT_SIGMA`` = 0.02 m; see _common for
-  why it is not inferred); unseen (NaN) frames contribute nothing. A unit test checks the JAX
-  and NumPy functions agree.
-* **Prior** — uniform on ``PRIOR`` for ``(e, g, d, r)``. NumPyro samples each parameter through
-  its unit-interval logit transform (the sampler sees an unconstrained space, with the
-  transform's log-Jacobian), so hard prior edges do not stop NUTS.
+* **Likelihood** — exactly :func:`methods._common.gaussian_loglik`, written in JAX
+  (:func:`loglik_jax`, tested equal): observed positions are the simulated ones plus independent
+  N(0, ``sigma``^2) noise per coordinate, ``sigma`` **fixed** (hyperparameter, default
+  ``_common.DEFAULT_SIGMA`` = 0.02 m; see ``_common`` for why it is not inferred); unseen (NaN)
+  frames contribute nothing.
+* **Prior** — uniform on ``PRIOR`` for ``(e, g, d, r)``. Each parameter is sampled through the
+  logit of its position in its range (an unconstrained space; the uniform prior there has
+  density ``sigmoid(x) sigmoid(-x)``), so hard prior edges do not stop NUTS.
 * **Initial state** — ``Observation.state0`` when given (held fixed). Otherwise it is *sampled*
-  as a nuisance parameter with a uniform prior on the box (``x0`` in [0, 10], ``y0`` in
-  [floor, floor + 10]) and on ``[-V0_MAX, V0_MAX]`` m/s for each velocity, starting from
-  ``_common.prepare``'s estimate. Sampling it makes the intervals honest about how well the
-  start is known; holding the polynomial estimate fixed would bias ``e``/``g`` with no
-  spread to show for it.
-* **Floor** — ``Observation.floor``, else ``_common.prepare``'s point estimate.
+  as a nuisance parameter, uniform on the box (``x0`` in [0, 10], ``y0`` in [floor, floor + 10])
+  and on ``[-V0_MAX, V0_MAX]`` m/s for each velocity, starting from ``_common.prepare``'s
+  estimate. Sampling it makes the intervals honest about how well the start is known; holding
+  the polynomial estimate fixed would bias ``e`` and ``g`` with no spread to show for it.
+* **Floor** — ``Observation.floor``, else ``_common.prepare``'s point estimate (fixed).
 
 Gradients go through the JAX simulator including its contact times
 (:mod:`sysid_bench.physics_jax`). They are computed in **forward mode** (one ``jvp`` per
-sampled dimension, vectorised) behind a ``custom_vjp``: through a 200-frame ``lax.scan`` with
-masked contact passes forward mode is several times faster than reverse mode on a CPU.
+sampled dimension, vectorised) behind a ``custom_jvp``: through a 200-frame ``lax.scan`` with
+masked contact passes this is several times faster on a CPU than reverse mode, and reverse
+mode (what NumPyro asks for) then only transposes a dot product.
 
-Initialisation
---------------
-NUTS adapts its step size and mass matrix from wherever it starts; with ``sigma`` = 2 cm the
-log-likelihood spans 10^4-10^5 nats across the prior, so it is started at the mode:
-``n_init`` prior draws simulated in one NumPy batch from the initial state (as ``lsq``), the best
-refined by L-BFGS (SciPy) on NumPyro's own potential energy, then ``num_chains`` chains started
-there (chains after the first jittered by about two posterior standard deviations).
+How it runs
+-----------
+With ``sigma`` = 2 cm the log-likelihood spans 10^4-10^5 nats over the prior and has cliffs
+where a bounce or the start of rolling comes and goes, so NUTS is not left to find the mode
+alone:
+
+1. a cross-entropy search on batched NumPy simulations (:func:`_search`: prior draws, then
+   Gaussians fitted to the best 5%) finds the right basin;
+2. L-BFGS (SciPy) from its best points, then Newton steps with a finite-difference Hessian of
+   the exact gradient, give the mode and the Laplace covariance ``L L^T`` in logit coordinates;
+3. NUTS (``numpyro.infer.hmc.hmc(..., algo="NUTS")`` with its windowed step-size and mass-matrix
+   adaptation) samples ``z`` with ``x = x_mode + L z``: a roughly isotropic target, so trees
+   stay shallow (about 5 leapfrog steps per iteration). The chain loop is one jitted
+   ``lax.scan`` taking the observation as an argument, compiled once per (frame bucket, known
+   or sampled initial state, budgets) and reused — NumPyro's ``MCMC`` driver re-jits its loop
+   for every run. Chains run one after another (the first from the mode, the others from
+   ``z ~ N(0, 0.25 I)``).
 
 Counting
 --------
-``extras["n_simulations"]`` counts trajectories, one per simulator call per ball, as
-``_common.CountingSimulator``: the ``n_init`` batch, one per L-BFGS evaluation, and one per
-leapfrog step (``num_steps``, warm-up included) — each is one trajectory with its gradient.
-NumPyro's initialisation (a handful of potential evaluations to pick a step size) is not
-counted.
+``extras["n_simulations"]`` counts trajectories as ``_common.CountingSimulator`` does (one
+trajectory = one simulation): the search batches (``n_init`` per round), one per potential
+evaluation of the optimiser, Newton steps and Hessian, one per leapfrog step (``num_steps``,
+warm-up included) and one per chain for NumPyro's initial potential — each of these is one
+trajectory with its gradient — and one for the fit check below.
 
 Diagnostics
 -----------
 ``extras`` holds split R-hat and ESS per parameter (``numpyro.diagnostics``; with one chain the
-split halves still give R-hat), the number of divergent transitions, the mean tree size and
-``converged`` (R-hat < 1.05, ESS >= 50 for e, g, d and fewer than 2% divergences). A run that
-does not converge is returned, not raised: ``converged`` is False and ``warning`` says why.
+split halves still give R-hat), divergent transitions, mean tree size, step size, the RMS
+residual of the mode's trajectory (``map_rms_m``) and ``converged``: R-hat < 1.05, ESS >= 50 for
+e, g, d, fewer than 2% divergences and ``map_rms_m`` <= 3 sigma (a larger residual means a wrong
+basin or a track the model cannot make). A run that fails these is returned, not raised:
+``converged`` is False and ``warning`` says why.
 """
 
 from __future__ import annotations
@@ -493,7 +505,7 @@ class NUTS(Estimator):
         keys = jax.random.split(jax.random.PRNGKey(int(self.seed)), nc)
         zs, steps, divs, step_sizes = [], [], [], []
         for c in range(nc):
-            z0 = np.zeros(D) if c == 0 else 0.5 * rng.standard_normal(D)
+            z0 = np.zeros(D) if c == 0 else 0.5 * rng.standard_normal(D)  # ~half a posterior sd
             zc, st, dv, ss = chain(keys[c], jnp.asarray(z0), data)
             zs.append(np.asarray(zc))
             steps.append(np.asarray(st))
@@ -501,7 +513,7 @@ class NUTS(Estimator):
             step_sizes.append(float(ss))
         z = np.stack(zs)  # (chains, S, D)
         steps, div = np.stack(steps), np.stack(divs)
-        sim.n_simulations += int(steps.sum())
+        sim.n_simulations += int(steps.sum()) + nc  # leapfrog steps + NumPyro's initial potential
         steps_run = steps[:, int(self.num_warmup) :]
 
         x = x_map + z @ chol.T

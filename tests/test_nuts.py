@@ -137,11 +137,20 @@ def test_known_state_is_used_and_forecast_continues_the_track(ds):
     assert fc.extras["n_simulations"] > post.extras["n_simulations"] - 1
 
 
+def test_several_chains_are_pooled_and_compared(ds):
+    opts = dict(N.NUTS._contract_options, num_chains=2)
+    post = N.NUTS(**opts).identify(_obs(ds, 1, known_state=True, n=100))
+    assert post.samples.shape == (2 * opts["num_samples"], 4)
+    assert all(np.isfinite(v) for v in post.extras["rhat"].values())
+    assert post.extras["rhat"]["g"] < 1.1  # two chains from the same mode agree
+
+
 def test_misfit_is_reported_not_raised():
     """A track no ball can make (level flight at 5 m for 3 s) gives a posterior that says so."""
     t = np.arange(60) * 0.05
     pos = np.column_stack([1.0 + 2.0 * t, np.full(60, 5.0)])
-    post = N.NUTS(**N.NUTS._contract_options).identify(Observation(positions=pos, floor=0.0))
+    # padded to 200 frames: shares the compiled sampler of the accuracy test
+    post = N.NUTS(**FAST, frame_bucket=200).identify(Observation(positions=pos, floor=0.0))
     assert post.extras["converged"] is False
     assert "misses the track" in post.extras["warning"]
     assert np.isfinite(post.mean).all() and (post.std >= 0).all()
