@@ -17,7 +17,10 @@ What differs is only how the work is laid out for XLA:
 * frames are a ``lax.scan`` and each frame makes a **fixed** number of masked passes after its
   plain steps (:data:`MAX_PASSES`), instead of a data-dependent loop, so reverse-mode AD works
   (no ``lax.while_loop`` on the differentiated path). A frame in which no ball has a contact
-  skips the passes with ``lax.cond`` (under ``vmap`` the skip becomes a select, still correct).
+  skips the passes with ``lax.cond`` (under ``vmap`` the skip becomes a select, still correct);
+  in a large batch the balls with a contact are gathered into a fraction of the lanes
+  (:func:`_slots`) for the passes and scattered back, since only a few percent of balls have a
+  contact in any one frame.
   A ball that would need more passes than that is marked bad: :func:`simulate` raises
   ``RuntimeError`` on concrete input, and returns NaN states for it from that frame on under a
   JAX transformation (so a sampler rejects the point instead of using a wrong trajectory);
@@ -207,6 +210,12 @@ def _contact_pass(state, rem, h, th, fl):
     return new, rem
 
 
+def _slots(n: int) -> int:
+    """Lanes for the contact passes of a batch of ``n`` balls (static): all of them for small
+    batches, an eighth (at least 64) for large ones, where a frame's contacts are a few percent."""
+    return n if n <= 128 else max(64, n // 8)
+
+
 def _frame(carry, th, *, dt, fl, max_passes):
     """Advance every ball by one frame (``physics._Balls.advance_frame``)."""
     x, y, vx, vy, roll, bad = carry
@@ -231,18 +240,44 @@ def _frame(carry, th, *, dt, fl, max_passes):
         st = tuple(jnp.where(hit, a, b) for a, b in zip(start, end)) + (roll,)
         rem = jnp.where(hit, dt - first.astype(x.dtype) * h, 0.0)
 
-        def one_pass(c, _):
-            st, rem = c
-            out = lax.cond(
-                jnp.any(rem > 0),
-                lambda c: _contact_pass(c[0], c[1], h, th, fl),
-                lambda c: c,
-                (st, rem),
-            )
-            return out, None
+        def passes(st, rem, th, fl):
+            def one_pass(c, _):
+                st, rem = c
+                out = lax.cond(
+                    jnp.any(rem > 0),
+                    lambda c: _contact_pass(c[0], c[1], h, th, fl),
+                    lambda c: c,
+                    (st, rem),
+                )
+                return out, None
 
-        (st, rem), _ = lax.scan(one_pass, (st, rem), None, length=max_passes)
-        return st, rem > 0
+            (st, rem), _ = lax.scan(one_pass, (st, rem), None, length=max_passes)
+            return st, rem
+
+        def full(_):
+            return passes(st, rem, th, fl)
+
+        n = x.shape[0]
+        slots = _slots(n)
+        if slots == n:
+            st_out, rem_out = full(None)
+        else:
+            # Few balls have a contact in a frame: gather them into `slots` lanes, run the passes
+            # there and scatter back (the full width only when more balls than lanes hit).
+            def compact(_):
+                idx = jnp.nonzero(hit, size=slots, fill_value=n)[0]  # n = no ball (dropped)
+
+                def take(a):
+                    return a.at[idx].get(mode="fill", fill_value=0)
+
+                sub_st, sub_rem = passes(
+                    tuple(take(a) for a in st), take(rem), tuple(take(a) for a in th), take(fl)
+                )
+                out = tuple(a.at[idx].set(b, mode="drop") for a, b in zip(st, sub_st))
+                return out, rem.at[idx].set(sub_rem, mode="drop")
+
+            st_out, rem_out = lax.cond(jnp.sum(hit) <= slots, compact, full, None)
+        return st_out, rem_out > 0
 
     def plain(_):
         return end + (roll,), jnp.zeros_like(roll)

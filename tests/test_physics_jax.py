@@ -51,7 +51,8 @@ def test_equal_on_random_balls_with_per_ball_floor():
 
 
 def test_equal_on_adversarial_many_contact_balls():
-    """Strong gravity, e near 1, skimming the floor at 15 m/s between the walls."""
+    """Strong gravity, e near 1, skimming the floor at 15 m/s between the walls: more balls
+    than contact lanes hit in most frames, so the passes also run at full width."""
     rng = np.random.default_rng(5)
     n = 300
     theta = P.sample_theta(n, rng)
@@ -63,6 +64,21 @@ def test_equal_on_adversarial_many_contact_balls():
     )
     ref, out = _both(theta, s0)
     _assert_equal(ref, out, tol=1e-9)
+
+
+def test_equal_when_more_balls_hit_than_there_are_contact_lanes():
+    """200 balls dropped together bounce in the same frames: the passes run at full width."""
+    rng = np.random.default_rng(4)
+    n = 200
+    theta = np.column_stack(
+        [rng.uniform(0.6, 1.0, n), np.full(n, -9.81), rng.uniform(0.0, 0.001, n), rng.uniform(0, 0.7, n)]
+    )
+    s0 = np.column_stack([rng.uniform(0, 10, n), np.full(n, 5.0), rng.uniform(-8, 8, n), np.zeros(n)])
+    ref, out = _both(theta, s0, n_frames=60)
+    t_hit = np.sqrt(2 * 5.0 / 9.81)  # ~1.01 s: every ball's first bounce is in frame 20
+    assert (ref[:, 20, 3] < 0).all() and (ref[:, 21, 3] > 0).all() and n > PJ._slots(n)
+    _assert_equal(ref, out)
+    assert 20 * 0.05 < t_hit < 21 * 0.05
 
 
 def test_equal_with_time_varying_theta():
@@ -125,22 +141,25 @@ def jac_states():
 
 
 def test_reverse_and_forward_mode_agree(jac_states):
-    """Reverse mode (what a user's jax.grad does) through the scan and the masked contact
-    passes gives the forward-mode gradient used elsewhere, on bouncing, rolling balls."""
+    """Reverse mode (what a user's jax.grad does) through the scan, the masked contact passes and
+    the gather/scatter of a large batch's contact lanes gives, ball by ball, the forward-mode
+    gradient of a batch of one, on bouncing and rolling balls."""
     rng = np.random.default_rng(3)
-    theta = P.sample_theta(4, rng)
-    s0 = P.sample_state0(4, rng)
-    w = rng.standard_normal((N_GRAD, 4))
+    n = 136  # > 128: the contact passes run on gathered lanes
+    assert PJ._slots(n) < n
+    theta = P.sample_theta(n, rng)
+    s0 = P.sample_state0(n, rng)
+    w = rng.standard_normal((n, N_GRAD, 4))
 
-    def f(th, s):
-        return jnp.sum(w * PJ.simulate_core(th[None], s[None], jnp.zeros(1), n_frames=N_GRAD)[0][0])
+    def f(th):
+        return jnp.sum(w * PJ.simulate_core(th, jnp.asarray(s0), jnp.zeros(n), n_frames=N_GRAD)[0])
 
-    grad = jax.jit(jax.grad(f))
-    for i in range(4):
-        g_rev = np.asarray(grad(jnp.asarray(theta[i]), jnp.asarray(s0[i])))
-        g_fwd = np.einsum("tk,tkp->p", w, np.asarray(jac_states(jnp.asarray(theta[i]), jnp.asarray(s0[i]))))
-        assert np.isfinite(g_rev).all()
-        np.testing.assert_allclose(g_rev, g_fwd, rtol=1e-9, atol=1e-9 * np.abs(g_fwd).max())
+    g_rev = np.asarray(jax.jit(jax.grad(f))(jnp.asarray(theta)))
+    assert np.isfinite(g_rev).all()
+    for i in range(0, n, 9):
+        J = np.asarray(jac_states(jnp.asarray(theta[i]), jnp.asarray(s0[i])))
+        g_fwd = np.einsum("tk,tkp->p", w[i], J)
+        np.testing.assert_allclose(g_rev[i], g_fwd, rtol=1e-9, atol=1e-9 * np.abs(g_fwd).max())
 
 
 # ---------------------------------------------------------------------------------------------
