@@ -25,10 +25,9 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
+from methods.vid2param.data import rolls_mask
 from sysid_bench.datasets import make_dataset
 from sysid_bench.physics import PARAMS, PRIOR
-
-from methods.vid2param.data import rolls_mask
 
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
