@@ -315,3 +315,28 @@ def test_retry_errors_recomputes_failed_cells(tmp_path, doubles, monkeypatch):
     assert again["retried"] == 4 and again["ok"] == 4
     with Store(tmp_path / STORE_NAME) as s:
         assert set(s.cells().status) == {"ok"}
+
+
+def test_cells_of_a_changed_method_are_recomputed(tmp_path, monkeypatch):
+    from sysid_bench.bench import runner
+
+    kw = dict(scale="smoke", methods=["prior"], experiments=["identification"], run_dir=tmp_path,
+              workers=0, progress=False)
+    assert run(**kw)["ran"] == 4
+    assert run(**kw)["ran"] == 0
+    real = runner.method_fingerprint
+    monkeypatch.setattr(runner, "method_fingerprint",
+                        lambda m: "retrained" if m == "prior" else real(m))
+    again = run(**kw)  # e.g. a new checkpoint: its old cells must not be mixed with new ones
+    assert again["stale"] == 4 and again["ran"] == 4
+    with Store(tmp_path / STORE_NAME) as s:
+        assert len(s.cells()) == 4 and (s.cells().fingerprint == "retrained").all()
+        assert s.invocations()[-1]["fingerprints"] == {"prior": "retrained"}
+
+
+def test_fingerprint_covers_checkpoints_and_shared_code():
+    from sysid_bench.bench.runner import method_fingerprint
+
+    fp = method_fingerprint("prior")
+    assert fp == method_fingerprint("prior") and len(fp) == 16
+    assert method_fingerprint("lsq") != fp

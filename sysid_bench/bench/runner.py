@@ -34,6 +34,7 @@ from sysid_bench.bench.experiment import Cell, execute
 from sysid_bench.bench.store import Store
 
 __all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "provenance",
+           "method_fingerprint",
            "DEFAULT_INLINE", "default_run_dir", "STORE_NAME"]
 
 STORE_NAME = "results.sqlite"
@@ -103,6 +104,41 @@ def build_grid(scale: Scale, methods: list[str], experiments: list[str]) -> list
     for e in experiments:
         cells += EXPERIMENTS[e].cells(scale, methods)
     return cells
+
+
+def method_fingerprint(name: str) -> str:
+    """Hash of what decides a method's numbers: its module (or package, with its checkpoint
+    files) and the baselines' shared ``methods/_common.py``.
+
+    A store's cells of a method whose fingerprint changed are computed again by the next run,
+    so a retrained checkpoint or a fixed method never mixes with its old results.
+    """
+    import hashlib
+    import importlib.util
+
+    import methods
+
+    spec = methods._REGISTRY[name]
+    mod = spec.entry_point.split(":")[0]
+    found = importlib.util.find_spec(mod)
+    files: list[Path] = []
+    if found is not None and found.origin:
+        origin = Path(found.origin)
+        if found.submodule_search_locations:  # a package: all its sources and weights
+            root = origin.parent
+            files = sorted(p for p in root.rglob("*")
+                           if p.is_file() and p.suffix in (".py", ".pt", ".json", ".npz")
+                           and "__pycache__" not in p.parts and not p.name.endswith("_test.json"))
+        else:
+            files = [origin]
+    common = Path(methods.__file__).parent / "_common.py"
+    if common.is_file():
+        files.append(common)
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def provenance() -> dict:
@@ -200,7 +236,8 @@ def run(
     -------
     dict
         ``store`` (Path), ``cells`` (grid size), ``already`` (stored before), ``ran``, ``ok``,
-        ``errors``, ``na``, ``skipped_methods``, ``retried`` (error cells dropped), ``wall_s``.
+        ``errors``, ``na``, ``skipped_methods``, ``retried`` (error cells dropped), ``stale``
+        (cells dropped because their method's fingerprint changed), ``wall_s``.
     """
     from tqdm.auto import tqdm
 
@@ -212,12 +249,17 @@ def run(
     store = Store(run_dir / STORE_NAME, grid_config=sc.grid_config())
     t0 = time.perf_counter()
     try:
+        fps = {m: method_fingerprint(m) for m in meths}
         inv = store.record_invocation({
             "argv": list(sys.argv if argv is None else argv), "scale": sc.name,
             "methods": meths, "skipped_methods": skipped, "experiments": exps,
             "workers": workers, "scheduler": None if scheduler is None else str(scheduler),
-            "inline": list(inline), "retry_errors": bool(retry_errors), **provenance(),
+            "inline": list(inline), "retry_errors": bool(retry_errors),
+            "fingerprints": fps, **provenance(),
         })
+        stale = store.stale_cells(fps)
+        if stale:  # code or weights changed since: recompute, never mix
+            store.drop_cells(ids=stale)
         retried = store.drop_cells("error") if retry_errors else 0
         grid = build_grid(sc, meths, exps)
         done = store.done_cells()
@@ -232,7 +274,8 @@ def run(
         def write(res: dict) -> None:
             c: Cell = res["cell"]
             store.add_cell(c.id, c.key(), res["rows"], status=res["status"], error=res["error"],
-                           wall_s=res["wall_s"], artifacts=res["artifacts"], invocation=inv)
+                           wall_s=res["wall_s"], artifacts=res["artifacts"], invocation=inv,
+                           fingerprint=fps.get(c.method))
             counts[res["status"]] += 1
             bar.update(1)
             bar.set_postfix(err=counts["error"], na=counts["n/a"], refresh=False)
@@ -248,6 +291,7 @@ def run(
         return {"store": store.path, "cells": len(grid), "already": len(grid) - len(todo),
                 "ran": sum(counts.values()), "ok": counts["ok"], "errors": counts["error"],
                 "na": counts["n/a"], "skipped_methods": skipped, "retried": retried,
+                "stale": len(stale),
                 "wall_s": time.perf_counter() - t0}
     finally:
         store.close()

@@ -14,7 +14,9 @@ Layout
 ``invocations`` one row per ``run`` started on this store: argv/config, git commit, package
                versions, host, start time.
 ``cells``      one row per finished cell: id, experiment, method, input, condition, case,
-               status (``ok`` / ``error`` / ``n/a``), error text, wall seconds, finish time.
+               status (``ok`` / ``error`` / ``n/a``), error text, wall seconds, finish time,
+               invocation, and the fingerprint of the method's code and weights: a run finding
+               cells of a method whose fingerprint changed computes them again.
 ``results``    the long-format table: experiment, method, input, condition, case, n_frames,
                metric, value, status, error, wall_s (of the cell), cell_id. A failed cell has one
                row with ``metric = "error"``; a cell whose method cannot do the task (it raised
@@ -46,7 +48,7 @@ __all__ = [
 ]
 
 #: Bump when tables or the meaning of their columns change; other versions are refused.
-STORE_FORMAT = 1
+STORE_FORMAT = 2
 RESULT_COLUMNS = (
     "experiment",
     "method",
@@ -69,7 +71,7 @@ CREATE TABLE IF NOT EXISTS invocations (
 CREATE TABLE IF NOT EXISTS cells (
     cell_id TEXT PRIMARY KEY, experiment TEXT NOT NULL, method TEXT NOT NULL, input TEXT NOT NULL,
     condition TEXT NOT NULL, "case" TEXT NOT NULL, status TEXT NOT NULL, error TEXT,
-    wall_s REAL, finished REAL, invocation INTEGER);
+    wall_s REAL, finished REAL, invocation INTEGER, fingerprint TEXT);
 CREATE TABLE IF NOT EXISTS results (
     experiment TEXT NOT NULL, method TEXT NOT NULL, input TEXT NOT NULL, condition TEXT NOT NULL,
     "case" INTEGER NOT NULL, n_frames INTEGER NOT NULL, metric TEXT NOT NULL, value REAL,
@@ -230,6 +232,7 @@ class Store:
         wall_s: float = float("nan"),
         artifacts: Mapping[str, np.ndarray] | None = None,
         invocation: int | None = None,
+        fingerprint: str | None = None,
     ) -> bool:
         """Store one finished cell atomically; returns False when it was already stored.
 
@@ -245,6 +248,11 @@ class Store:
         wall_s : float
             Seconds the whole cell took.
         artifacts : dict of str to ndarray, optional
+        invocation : int, optional
+            Id from :meth:`record_invocation`.
+        fingerprint : str, optional
+            Hash of the method's code and weights the cell was computed with (see
+            :meth:`stale_cells`).
         """
         if status not in ("ok", "error", "n/a"):
             raise ValueError(f"status: expected 'ok', 'error' or 'n/a', got {status!r}")
@@ -270,8 +278,9 @@ class Store:
                 np.save(buf, np.asarray(arr), allow_pickle=False)
                 con.execute("INSERT INTO artifacts VALUES (?, ?, ?)", (cell_id, name, buf.getvalue()))
             con.execute(
-                "INSERT INTO cells VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (cell_id, *k, str(key["case"]), status, error, wall_s, time.time(), invocation),
+                "INSERT INTO cells VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (cell_id, *k, str(key["case"]), status, error, wall_s, time.time(), invocation,
+                 fingerprint),
             )
             con.execute("COMMIT")
         except BaseException:
@@ -279,8 +288,20 @@ class Store:
             raise
         return True
 
-    def drop_cells(self, status: str = "error") -> int:
-        """Forget every cell of ``status`` (rows, artifacts, record) so a run computes it again.
+    def stale_cells(self, fingerprints: Mapping[str, str]) -> list[str]:
+        """Ids of cells of the methods in ``fingerprints`` computed with another fingerprint."""
+        rows = self._con.execute("SELECT cell_id, method, fingerprint FROM cells").fetchall()
+        return [c for c, m, fp in rows if m in fingerprints and fp != fingerprints[m]]
+
+    def drop_cells(self, status: str | None = "error", ids: Iterable[str] | None = None) -> int:
+        """Forget cells (rows, artifacts, record) so a run computes them again.
+
+        Parameters
+        ----------
+        status : str, optional
+            Drop every cell with this status ...
+        ids : iterable of str, optional
+            ... or exactly these cells (then ``status`` is ignored).
 
         Returns
         -------
@@ -290,7 +311,10 @@ class Store:
         con = self._con
         con.execute("BEGIN IMMEDIATE")
         try:
-            ids = [r[0] for r in con.execute("SELECT cell_id FROM cells WHERE status=?", (status,))]
+            if ids is None:
+                ids = [r[0] for r in
+                       con.execute("SELECT cell_id FROM cells WHERE status=?", (status,))]
+            ids = list(ids)
             for table in ("results", "artifacts", "cells"):
                 con.executemany(f"DELETE FROM {table} WHERE cell_id=?", [(i,) for i in ids])
             con.execute("COMMIT")
