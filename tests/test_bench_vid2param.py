@@ -13,9 +13,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from sysid_bench.datasets import make_dataset  # noqa: E402
-
 from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param  # noqa: E402
+from sysid_bench.datasets import make_dataset  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")
 

@@ -9,15 +9,14 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from sysid_bench.datasets import make_dataset  # noqa: E402
-from sysid_bench.estimator import Observation, Posterior  # noqa: E402
-from sysid_bench.physics import PARAMS, PRIOR  # noqa: E402
-
 from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param  # noqa: E402
 from methods.vid2param.checkpoint import load_checkpoint, save_atomic  # noqa: E402
 from methods.vid2param.data import rolls_mask, targets_from_dataset  # noqa: E402
 from methods.vid2param.model import V2PConfig  # noqa: E402
 from methods.vid2param.train import TrainConfig, export, train  # noqa: E402
+from sysid_bench.datasets import make_dataset  # noqa: E402
+from sysid_bench.estimator import Observation, Posterior  # noqa: E402
+from sysid_bench.physics import PARAMS, PRIOR  # noqa: E402
 
 LO = np.array([PRIOR[p][0] for p in PARAMS])
 HI = np.array([PRIOR[p][1] for p in PARAMS])
