@@ -177,6 +177,14 @@ class Identification(Experiment):
         s = self._summary(df, "se").set_index(["method", "input", "n_frames"])
         last = int(df.n_frames.max())
         v2p = ("vid2param", "video")
+        if (*v2p, last) in s.index:
+            a = s.loc[(*v2p, last)]
+            if a["lo"] <= GUESS_MSE:
+                out.append(
+                    f"Vid2param (video) does not beat guessing the prior mean: "
+                    f"{fmt_ci(a['mean'], a['lo'], a['hi'])} at {last} frames vs {GUESS_MSE:.3f}; "
+                    "every comparison with it below reflects the checkpoint this run used "
+                    "(see its training card in methods/vid2param/checkpoints/).")
         for base in ("lsq", "bo"):
             if (*v2p, last) in s.index and (base, "privileged", last) in s.index:
                 a, b = s.loc[(*v2p, last)], s.loc[(base, "privileged", last)]
@@ -186,6 +194,8 @@ class Identification(Experiment):
                     for n in frames if (base, "privileged", n) in s.index
                 )
                 verdict = "holds" if a["mean"] <= b["hi"] else "does NOT hold"
+                if a["lo"] <= GUESS_MSE <= a["hi"] and b["lo"] <= GUESS_MSE <= b["hi"]:
+                    verdict += f" only in that both are at the guessing level ({GUESS_MSE:.3f})"
                 out.append(
                     f"Paper: Vid2Param from video is similar to or better than {base} with true "
                     f"positions and initial state. Here at {last} frames vid2param (video) scores "
