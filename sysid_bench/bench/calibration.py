@@ -29,7 +29,7 @@ from sysid_bench.bench.experiment import (
     normalise,
     timed_prefixes,
 )
-from sysid_bench.bench.identification import _save, method_color, method_inputs
+from sysid_bench.bench.identification import _save, case_cells, method_color
 from sysid_bench.metrics import gaussian_nll
 from sysid_bench.physics import PARAMS
 
@@ -72,11 +72,7 @@ class Calibration(Experiment):
     )
 
     def cells(self, scale, methods):
-        out = []
-        for m in methods:
-            for inp in method_inputs(m, scale.calibration_inputs):
-                out += [Cell(self.name, m, inp, "", i) for i in range(scale.cases(self.name, m))]
-        return out
+        return case_cells(self.name, scale, methods, scale.calibration_inputs)
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
         sc = ctx.scale

@@ -25,7 +25,7 @@ from sysid_bench.bench.experiment import (
     ci_summary,
     fmt_ci,
 )
-from sysid_bench.bench.identification import _save, method_inputs
+from sysid_bench.bench.identification import _save, case_cells
 from sysid_bench.metrics import position_mse
 from sysid_bench.physics import BOX_WIDTH
 
@@ -53,11 +53,7 @@ class Forecasting(Experiment):
     )
 
     def cells(self, scale, methods):
-        out = []
-        for m in methods:
-            for inp in method_inputs(m, ("video", "privileged")):
-                out += [Cell(self.name, m, inp, "", i) for i in range(scale.cases(self.name, m))]
-        return out
+        return case_cells(self.name, scale, methods, ("video", "privileged"))
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
         sc = ctx.scale

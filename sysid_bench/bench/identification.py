@@ -34,6 +34,16 @@ def method_inputs(method: str, wanted) -> list[str]:
     return inputs_for(getattr(methods.get_class(method), "input_kind", "positions"), wanted)
 
 
+def case_cells(experiment: str, scale, methods: list[str], wanted) -> list[Cell]:
+    """One cell per (method, input kind it runs on, test case), in that nesting order."""
+    return [
+        Cell(experiment, m, inp, "", i)
+        for m in methods
+        for inp in method_inputs(m, wanted)
+        for i in range(scale.cases(experiment, m))
+    ]
+
+
 class Identification(Experiment):
     name = "identification"
     title = "1. Identification vs observed frames"
@@ -48,11 +58,7 @@ class Identification(Experiment):
     )
 
     def cells(self, scale, methods):
-        out = []
-        for m in methods:
-            for inp in method_inputs(m, ("video", "privileged")):
-                out += [Cell(self.name, m, inp, "", i) for i in range(scale.cases(self.name, m))]
-        return out
+        return case_cells(self.name, scale, methods, ("video", "privileged"))
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
         sc = ctx.scale
