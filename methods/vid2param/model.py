@@ -71,6 +71,13 @@ class V2PConfig:
         measured with a plain LSTM on true positions (scripts/lstm_probe.py), g stayed at prior
         level after 600 steps from positions, and reached nMSE ~0.005 with these features, also
         with 5 cm of position noise.
+    keypoints : int
+        Spatial-expectation channels (learned keypoints, as in deep spatial autoencoders): a
+        3x3 conv of the frame gives K non-negative heat maps, and each map's centre of mass
+        (column, row, in [0, 1]) and log total mass join phi_x. Channel 0 starts as the
+        identity, so at initialisation it is the intensity centroid of the ball: positions are
+        sub-pixel precise from the first step instead of after the conv layers learn to
+        localise, which is what the parameter inference downstream waits on. 0 turns it off.
     """
 
     frame_size: tuple[int, int] = (28, 28)
@@ -87,6 +94,7 @@ class V2PConfig:
     recur_noise: float = 0.0
     pixel_skip: bool = False
     diff_features: bool = False
+    keypoints: int = 0
 
     def __post_init__(self) -> None:
         self.frame_size = tuple(int(v) for v in self.frame_size)
@@ -97,6 +105,8 @@ class V2PConfig:
             raise ValueError(f"targets: expected names from {TARGETS}, got {bad}")
         if self.diff_features and not {"x", "y"} <= set(self.targets):
             raise ValueError("diff_features: needs 'x' and 'y' among targets")
+        if self.keypoints < 0:
+            raise ValueError(f"keypoints: expected an int >= 0, got {self.keypoints}")
         if self.latent < len(self.targets):
             raise ValueError(
                 f"latent: expected at least len(targets)={len(self.targets)}, got {self.latent}"
@@ -160,6 +170,19 @@ class Vid2ParamNet(nn.Module):
         n_conv = int(math.prod(self._conv_shape))
         self.phi_x = nn.Sequential(nn.Flatten(), nn.Linear(n_conv, c.feat), nn.ReLU())
         self.skip = nn.Linear(H * W, c.feat) if c.pixel_skip else None
+        self.kp = None
+        if c.keypoints:
+            self.kp = nn.Conv2d(1, c.keypoints, 3, padding=1)
+            with torch.no_grad():
+                self.kp.weight.mul_(0.1)
+                self.kp.bias.zero_()
+                self.kp.weight[0].zero_()
+                self.kp.weight[0, 0, 1, 1] = 1.0  # channel 0: the frame itself
+            gy, gx = torch.meshgrid((torch.arange(H) + 0.5) / H, (torch.arange(W) + 0.5) / W,
+                                    indexing="ij")
+            self.register_buffer("_grid", torch.stack([gx.flatten(), gy.flatten()], 0),
+                                 persistent=False)  # (2, H*W): column, row in [0, 1]
+        n_fx = c.feat + 3 * c.keypoints
         self.phi_z = nn.Sequential(nn.Linear(c.latent, c.feat), nn.ReLU())
         n_in = c.feat + (4 if c.diff_features else 0)
         self.cells = nn.ModuleList(
@@ -168,7 +191,7 @@ class Vid2ParamNet(nn.Module):
         if c.diff_features:
             self._pos_idx = [c.targets.index("x"), c.targets.index("y")]
         self.enc = nn.Sequential(
-            nn.Linear(c.feat + c.hidden, c.hidden), nn.ReLU(), nn.Linear(c.hidden, 2 * c.latent)
+            nn.Linear(n_fx + c.hidden, c.hidden), nn.ReLU(), nn.Linear(c.hidden, 2 * c.latent)
         )
         self.prior = nn.Sequential(
             nn.Linear(c.hidden, c.hidden), nn.ReLU(), nn.Linear(c.hidden, 2 * c.latent)
@@ -196,14 +219,21 @@ class Vid2ParamNet(nn.Module):
 
         Returns
         -------
-        Tensor, shape (..., feat)
+        Tensor, shape (..., feat + 3 * keypoints)
         """
         lead = frames.shape[:-2]
         x = frames.reshape(-1, 1, *frames.shape[-2:]).to(torch.float32) / 255.0
         if self.skip is None:
-            return self.phi_x(self.conv(x)).reshape(*lead, -1)
-        conv = self.phi_x[1](self.phi_x[0](self.conv(x)))  # pre-activation of the conv path
-        return torch.relu(conv + self.skip(x.flatten(1))).reshape(*lead, -1)
+            out = self.phi_x(self.conv(x))
+        else:
+            conv = self.phi_x[1](self.phi_x[0](self.conv(x)))  # pre-activation of the conv path
+            out = torch.relu(conv + self.skip(x.flatten(1)))
+        if self.kp is not None:
+            heat = torch.relu(self.kp(x)).flatten(2) + 1e-6  # (N, K, H*W); 1e-6: blank frames
+            mass = heat.sum(-1, keepdim=True)
+            centre = (heat / mass) @ self._grid.T  # (N, K, 2)
+            out = torch.cat([out, centre.flatten(1), torch.log(mass[..., 0])], -1)
+        return out.reshape(*lead, -1)
 
     def init_state(self, batch: int, device=None) -> list[tuple[torch.Tensor, ...]]:
         """Zero recurrent state: one tuple per layer, ``(h, c)`` each (B, hidden).

@@ -470,7 +470,7 @@ def _parse(argv=None):
     p.add_argument("--size", type=int, nargs=2, default=list(tc.size), metavar=("H", "W"))
     p.add_argument("--nuisance", type=json.loads, default=None,
                    help='renderer options as JSON, e.g. \'{"blur": 0.5, "drop": 0.05}\'')
-    for name in ("latent", "hidden", "layers", "feat"):
+    for name in ("latent", "hidden", "layers", "feat", "keypoints"):
         p.add_argument("--" + name, type=int, default=getattr(mc, name))
     for name in ("alpha", "beta", "gamma", "gamma_prior", "recur_noise"):
         p.add_argument("--" + name.replace("_", "-"), type=float, default=getattr(mc, name))
@@ -496,7 +496,7 @@ def main(argv=None) -> int:
                    hidden=a.hidden, layers=a.layers, feat=a.feat, channels=tuple(a.channels),
                    alpha=a.alpha, beta=a.beta, gamma=a.gamma, gamma_prior=a.gamma_prior,
                    recur_noise=a.recur_noise, pixel_skip=a.pixel_skip,
-                   diff_features=a.diff_features)
+                   diff_features=a.diff_features, keypoints=a.keypoints)
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
                     max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
     if info["done"] and a.export:
