@@ -30,15 +30,6 @@ CASES = {
 }
 DMD_HORIZON = 100
 
-LSQ_SLOW = pytest.mark.xfail(
-    strict=False,
-    reason=(
-        "simulator-bound: one batch of 2000 x 200-frame trajectories through "
-        "sysid_bench.physics.simulate alone takes ~0.15-0.3 s on this machine"
-    ),
-)
-
-
 @pytest.fixture(scope="module")
 def obs():
     ds = make_dataset("test", n=1, seed=11)
@@ -47,7 +38,7 @@ def obs():
 
 @pytest.mark.benchmark(group="baselines")
 @pytest.mark.parametrize(
-    "name", [pytest.param("lsq", marks=LSQ_SLOW), "sindy", "dmd", "bo", "emcee", "nuts"]
+    "name", ["lsq", "sindy", "dmd", "bo", "emcee", "nuts"]
 )
 def test_bench_identify_200_frames(benchmark, obs, name):
     make, target, rounds = CASES[name]

@@ -36,6 +36,7 @@ def test_bench_simulate_2000x200(benchmark, cases):
         {"reference_loop_s": ref_s, "simulate_median_s": sim_s, "speedup": ratio}
     )
     print(f"\nsimulate {sim_s * 1e3:.1f} ms, solve_ivp loop {ref_s:.1f} s, speed-up {ratio:.0f}x")
+    assert ratio >= 1000, f"speed-up {ratio:.0f}x, target >= 1000x (issue 2)"
 
 
 @pytest.mark.benchmark(group="physics")
