@@ -157,7 +157,7 @@ def _contact_time(x, y, vx, vy, h, cx, cy, k, on_y, target):
 
 
 def _contact_pass(state, rem, h, th, fl):
-    """One masked pass of ``physics._Balls._resolve`` (+ ``_contact``) over all balls.
+    """One masked pass of the contact loop of ``physics._advance_frame`` (+ ``_contact``) over all balls.
 
     Balls with ``rem <= 0`` are left as they are.
     """
@@ -217,7 +217,7 @@ def _slots(n: int) -> int:
 
 
 def _frame(carry, th, *, dt, fl, max_passes):
-    """Advance every ball by one frame (``physics._Balls.advance_frame``)."""
+    """Advance every ball by one frame (``physics._advance_frame``, batched with masks)."""
     x, y, vx, vy, roll, bad = carry
     e, g, d, r = th
     h = dt / SUBSTEPS
