@@ -42,6 +42,7 @@ __all__ = [
     "SUBSTEPS",
     "STATE0_RANGES",
     "simulate",
+    "simulate_perturbed",
     "sample_theta",
     "sample_state0",
     "normalise_theta",
@@ -273,9 +274,14 @@ def _forces(roll, vx, g, d, r):
 
 
 @_njit
-def _contact(x, y, vx, vy, xn, yn, hs, cx, cy, k, fl, roll, e, g, d, r):
+def _contact(x, y, vx, vy, xn, yn, hs, cx, cy, k, fl, roll, e, g, d, r, rem, spin, dwell):
     """Move a ball to its first contact within its step ``hs`` (which ends at (xn, yn)) and
-    apply it. Returns the new state, rolling flag and the time ``tau`` consumed."""
+    apply it. Returns the new state, rolling flag and the time ``tau`` consumed.
+
+    ``spin`` and ``dwell`` are the perturbations of :func:`simulate_perturbed` (0 for the
+    design's physics, where they change nothing: ``(1 - 0) * vx`` is ``vx`` exactly); ``rem``
+    is the time left in the frame, which bounds a dwell.
+    """
     left = xn < 0.0
     wall = left or xn > BOX_WIDTH
     down = yn < fl and not roll
@@ -292,9 +298,15 @@ def _contact(x, y, vx, vy, xn, yn, hs, cx, cy, k, fl, roll, e, g, d, r):
     if t_floor <= tau:
         y = fl
         vy = -e * vy
+        vx = (1.0 - spin) * vx
         if vy < ROLL_SPEED:
             vy = 0.0
             roll = True
+        elif dwell > 0.0:
+            # soft contact: the ball stays on the floor for `dwell`, sliding at vx
+            slide = min(dwell, rem - tau)
+            x = min(max(x + vx * slide, 0.0), BOX_WIDTH)
+            tau += slide
     if t_wall <= tau:
         x = wall_x
         vx = -vx
@@ -304,7 +316,7 @@ def _contact(x, y, vx, vy, xn, yn, hs, cx, cy, k, fl, roll, e, g, d, r):
 
 
 @_njit
-def _advance_frame(x, y, vx, vy, roll, fl, e, g, d, r, dt):
+def _advance_frame(x, y, vx, vy, roll, fl, e, g, d, r, dt, spin, dwell):
     """Advance one ball by ``dt`` in ``SUBSTEPS`` RK4 steps, each contact at its exact time.
 
     The plain steps run first; from the start of the first step that holds a contact, the rest
@@ -329,7 +341,7 @@ def _advance_frame(x, y, vx, vy, roll, fl, e, g, d, r, dt):
             rem = rem - hs
         else:
             x, y, vx, vy, roll, tau = _contact(
-                x, y, vx, vy, xn, yn, hs, cx, cy, k, fl, roll, e, g, d, r
+                x, y, vx, vy, xn, yn, hs, cx, cy, k, fl, roll, e, g, d, r, rem, spin, dwell
             )
             cx, cy, k = _forces(roll, vx, g, d, r)
             rem -= tau
@@ -339,8 +351,9 @@ def _advance_frame(x, y, vx, vy, roll, fl, e, g, d, r, dt):
 
 
 @_njit
-def _simulate_kernel(th, s0, fl, dt, out):
-    """Fill ``out`` (n_frames, 4, B) from ``s0`` (4, B); ``th`` is (1, 4, B) or (n_frames, 4, B).
+def _simulate_kernel(th, s0, fl, pert, dt, out):
+    """Fill ``out`` (n_frames, 4, B) from ``s0`` (4, B); ``th`` is (1, 4, B) or (n_frames, 4, B);
+    ``pert`` (2, B) is (spin, dwell) per ball, zeros for the design's physics.
 
     Each frame runs in two passes over the balls. The first takes every ball's plain
     ``SUBSTEPS`` steps with no branches, so the compiler vectorises it across balls (SIMD), and
@@ -381,7 +394,7 @@ def _simulate_kernel(th, s0, fl, dt, out):
             if flag[b] != 0.0:
                 x, y, vx, vy, rb = _advance_frame(
                     X[b], Y[b], VX[b], VY[b], R[b] != 0.0, fl[b],
-                    th[i, 0, b], G[b], D[b], RR[b], dt,
+                    th[i, 0, b], G[b], D[b], RR[b], dt, pert[0, b], pert[1, b],
                 )
                 NX[b], NY[b], NVX[b], NVY[b] = x, y, vx, vy
                 R[b] = 1.0 if rb else 0.0
@@ -425,7 +438,12 @@ def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0)
         )
     fl = _check_floor(floor, B)
     s0 = check_state0(s0, fl)
+    return _run(th, s0, fl, np.zeros((2, B)), n_frames, dt)
 
+
+def _run(th, s0, fl, pert, n_frames, dt):
+    """The kernel over chunks of balls; arguments validated, ``pert`` (2, B)."""
+    B = s0.shape[0]
     out = np.empty((B, n_frames, 4))
     for b0 in range(0, B, _CHUNK):
         b1 = min(B, b0 + _CHUNK)
@@ -433,6 +451,48 @@ def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0)
         scratch = np.empty((n_frames, 4, b1 - b0))  # contiguous: one compiled specialisation
         _simulate_kernel(np.ascontiguousarray(part.transpose(1, 2, 0)),
                          np.ascontiguousarray(s0[b0:b1].T), np.ascontiguousarray(fl[b0:b1]),
-                         dt, scratch)
+                         np.ascontiguousarray(pert[:, b0:b1]), dt, scratch)
         out[b0:b1] = scratch.transpose(2, 0, 1)
     return out
+
+
+def simulate_perturbed(theta, state0, spin=0.0, dwell=0.0, n_frames: int = N_FRAMES,
+                       dt: float = DT, floor=0.0) -> np.ndarray:
+    """``simulate`` with two deviations real balls show and the design's physics does not.
+
+    For robustness studies: methods identify with ``simulate``'s model, the videos come from
+    this one. Both act at floor bounces; with both 0 the result equals ``simulate``'s exactly.
+
+    Parameters
+    ----------
+    theta, state0, n_frames, dt, floor
+        As for :func:`simulate`.
+    spin : float or array_like, shape (B,)
+        Fraction of the horizontal speed lost at each floor bounce (spin and friction), in
+        [0, 1).
+    dwell : float or array_like, shape (B,)
+        Seconds a bouncing ball stays on the floor, sliding at its horizontal speed, before it
+        leaves (a soft contact), in [0, dt). A dwell is cut short at the end of a frame.
+
+    Returns
+    -------
+    ndarray, shape (B, n_frames, 4)
+    """
+    n_frames = check_positive_int(n_frames, "n_frames")
+    dt = check_positive_float(dt, "dt")
+    th = check_theta(theta, n_frames)
+    s0 = as_float_array(state0, "state0", ndim=2, last=4)
+    B = s0.shape[0]
+    if th.shape[0] != B:
+        raise ValueError(f"theta: expected {B} rows to match state0 (B={B}), got shape {th.shape}")
+    fl = _check_floor(floor, B)
+    s0 = check_state0(s0, fl)
+    pert = np.empty((2, B))
+    for j, (name, val, hi) in enumerate((("spin", spin, 1.0), ("dwell", dwell, dt))):
+        v = as_float_array(val, name, ndim=(0, 1))
+        if v.ndim == 1 and v.shape[0] != B:
+            raise ValueError(f"{name}: expected a scalar or shape ({B},), got shape {v.shape}")
+        if (v < 0).any() or (v >= hi).any():
+            raise ValueError(f"{name}: expected values in [0, {hi:g}), got [{v.min():g}, {v.max():g}]")
+        pert[j] = v
+    return _run(th, s0, fl, pert, n_frames, dt)

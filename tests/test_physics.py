@@ -210,3 +210,27 @@ def test_bad_other_arguments():
 
 def test_roll_threshold_is_named():
     assert 0 < ROLL_SPEED < 1.0
+
+
+def test_simulate_perturbed_zero_equals_simulate_and_deviations_act_at_bounces():
+    from sysid_bench.physics import simulate_perturbed
+
+    rng = np.random.default_rng(5)
+    th, s0 = sample_theta(50, rng), sample_state0(50, rng)
+    plain = simulate(th, s0)
+    np.testing.assert_array_equal(simulate_perturbed(th, s0), plain)
+    # one ball dropped straight down (no walls), no drag: spin scales vx at each bounce
+    th1 = np.array([[0.9, -9.81, 0.0, 0.3]])
+    s1 = np.array([[5.0, 5.0, 0.5, 0.0]])
+    base = simulate(th1, s1, n_frames=60)
+    spun = simulate_perturbed(th1, s1, spin=0.5, n_frames=60)
+    bounce = int(np.argmax(np.diff(base[0, :, 3]) > 1.0)) + 1  # first frame after the bounce
+    np.testing.assert_allclose(spun[0, bounce:bounce + 5, 2], 0.5 * base[0, bounce:bounce + 5, 2])
+    # a dwell delays the rebound: the ball is lower than the unperturbed one just after it
+    late = simulate_perturbed(th1, s1, dwell=0.02, n_frames=60)
+    assert late[0, bounce, 1] < base[0, bounce, 1]
+    assert (late[0, :, 1] >= 0).all()
+    with pytest.raises(ValueError, match="spin"):
+        simulate_perturbed(th1, s1, spin=1.0)
+    with pytest.raises(ValueError, match="dwell"):
+        simulate_perturbed(th1, s1, dwell=-0.01)
