@@ -7,7 +7,12 @@ the validation seed used during training), video only:
   which the ball rolls, and the mean posterior std of ``r`` where it never rolls);
 * 50% and 90% interval coverage after the last length;
 * the same errors for ``lsq`` (frames -> tracking -> fit) on the first ``--lsq-n`` cases, at
-  ``--lsq-lengths``, with the seconds per identification of both methods.
+  ``--lsq-lengths``, with the seconds per identification of both methods;
+* with ``--spin`` / ``--dwell``, a robustness study: the same test cases re-simulated with
+  ``sysid_bench.physics.simulate_perturbed`` (each video its own spin loss ~ U[0, spin] and
+  contact dwell ~ U[0, dwell]) and rendered again, scored the same way, plus the RMS position
+  error (m) of forecasts of ``--horizon`` frames after ``--forecast-from`` observed frames on
+  both the clean and the perturbed videos (first ``--forecast-n`` cases).
 
 The JSON result is printed and, with ``--json``, written atomically.
 """
@@ -94,6 +99,52 @@ def evaluate_lsq(ds, lengths, n: int, seed: int = 0) -> dict:
             "n_rolling": int(rolls.sum())}
 
 
+def perturb_dataset(ds, spin: float, dwell: float, seed: int = 0):
+    """The cases of ``ds`` (theta, initial state, floor) re-simulated with per-video deviations
+    from our physics and rendered again (same size, no nuisances).
+
+    Returns
+    -------
+    Dataset
+        ``extras["spin"]``, ``extras["dwell"]`` (N,) hold each video's deviations.
+    """
+    import dataclasses
+
+    from sysid_bench.physics import simulate_perturbed
+    from sysid_bench.render import render
+
+    rng = np.random.default_rng([seed, 99])
+    n, t = ds.states.shape[:2]
+    sp = rng.uniform(0.0, spin, n)
+    dw = rng.uniform(0.0, dwell, n)
+    states = simulate_perturbed(np.asarray(ds.theta)[:, 0], np.asarray(ds.states)[:, 0], spin=sp,
+                                dwell=dw, n_frames=t, floor=np.asarray(ds.floor))
+    size = tuple(np.asarray(ds.frames).shape[-2:])
+    frames = render(states, size=size, floor=np.asarray(ds.floor))
+    meta = {**ds.meta, "perturbed": {"spin_max": spin, "dwell_max": dwell, "seed": seed}}
+    return dataclasses.replace(ds, frames=frames, states=states, meta=meta,
+                               extras={**ds.extras, "spin": sp, "dwell": dw})
+
+
+def forecast_errors(est, ds, n: int, n_obs: int, horizon: int) -> dict:
+    """RMS position error (m) of ``est.forecast`` means after ``n_obs`` frames, per horizon step
+    averaged over the first ``n`` videos of ``ds``; also the 90% band's coverage."""
+    sq, cov = [], []
+    for i in tqdm(range(n), desc=f"{est.name} forecasts", mininterval=30):
+        obs = ds.observation(i).prefix(n_obs)
+        truth = np.asarray(ds.states)[i, n_obs : n_obs + horizon, :2]
+        try:
+            fc = est.forecast(obs, horizon)
+        except ValueError:
+            continue
+        sq.append(((fc.mean - truth) ** 2).sum(-1))
+        cov.append((np.abs(fc.mean - truth) <= _Z90 * np.maximum(fc.std, 1e-12)).all(-1))
+    sq, cov = np.array(sq), np.array(cov)
+    return {"rmse_m_by_step": np.sqrt(sq.mean(0)).round(4).tolist(),
+            "rmse_m": float(np.sqrt(sq.mean())), "coverage90": float(cov.mean()),
+            "n": int(len(sq)), "n_obs": int(n_obs), "horizon": int(horizon)}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m methods.vid2param.evaluate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -106,6 +157,11 @@ def main(argv=None) -> int:
     p.add_argument("--lsq-n", type=int, default=0)
     p.add_argument("--lsq-lengths", type=int, nargs="+", default=[50, 200])
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--spin", type=float, default=0.0, help="robustness study: max spin loss")
+    p.add_argument("--dwell", type=float, default=0.0, help="robustness study: max dwell (s)")
+    p.add_argument("--forecast-n", type=int, default=50)
+    p.add_argument("--forecast-from", type=int, default=100)
+    p.add_argument("--horizon", type=int, default=50)
     p.add_argument("--json", default=None)
     a = p.parse_args(argv)
 
@@ -119,6 +175,23 @@ def main(argv=None) -> int:
            "vid2param": evaluate_vid2param(est, ds, a.lengths)}
     if a.lsq_n > 0:
         out["lsq"] = evaluate_lsq(ds, a.lsq_lengths, min(a.lsq_n, a.n), seed=0)
+    if a.spin > 0 or a.dwell > 0:
+        import methods
+
+        pds = perturb_dataset(ds, a.spin, a.dwell, seed=a.seed)
+        rob = {"spin_max": a.spin, "dwell_max": a.dwell,
+               "vid2param": evaluate_vid2param(est, pds, a.lengths)}
+        if a.lsq_n > 0:
+            rob["lsq"] = evaluate_lsq(pds, a.lsq_lengths, min(a.lsq_n, a.n), seed=0)
+        nf = min(a.forecast_n, a.n)
+        fest = Vid2Param(checkpoint=a.checkpoint, device="cpu", threads=a.threads)
+        lsq = methods.get("lsq", seed=0)
+        rob["forecast"] = {
+            name: {kind: forecast_errors(e, d, nf, a.forecast_from, a.horizon)
+                   for kind, d in (("clean", ds), ("perturbed", pds))}
+            for name, e in (("vid2param", fest), ("lsq", lsq))
+        }
+        out["robustness"] = rob
     text = json.dumps(out, indent=1)
     print(text)
     if a.json:
