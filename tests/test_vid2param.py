@@ -288,3 +288,17 @@ def test_keypoint_encoder_localises_at_initialisation(tiny_data):
     net0 = Vid2ParamNet(V2PConfig())
     mu0, _, _ = net0.filter(torch.as_tensor(np.asarray(tiny_data.frames)), sample=False)
     assert 10.0 * np.sqrt(((mu0[..., :2].numpy() - truth) ** 2).mean()) > 1.0
+
+
+def test_perturbed_copy_of_a_test_split_keeps_cases_and_changes_bounces():
+    from methods.vid2param.evaluate import perturb_dataset
+
+    ds = make_dataset("test", n=4, seed=3, n_frames=80)
+    pds = perturb_dataset(ds, spin=0.3, dwell=0.02, seed=1)
+    assert pds.frames.shape == ds.frames.shape and pds.frames.dtype == np.uint8
+    np.testing.assert_array_equal(pds.theta, ds.theta)
+    np.testing.assert_array_equal(pds.states[:, 0], ds.states[:, 0])
+    assert ((pds.extras["spin"] >= 0) & (pds.extras["spin"] < 0.3)).all()
+    assert np.abs(pds.states - ds.states).max() > 0.1  # the bounces differ
+    again = perturb_dataset(ds, spin=0.3, dwell=0.02, seed=1)
+    np.testing.assert_array_equal(again.frames, pds.frames)
