@@ -302,3 +302,24 @@ def test_perturbed_copy_of_a_test_split_keeps_cases_and_changes_bounces():
     assert np.abs(pds.states - ds.states).max() > 0.1  # the bounces differ
     again = perturb_dataset(ds, spin=0.3, dwell=0.02, seed=1)
     np.testing.assert_array_equal(again.frames, pds.frames)
+
+
+def test_aux_grad_changes_gradients_into_the_lstm_not_the_loss(tiny_data):
+    import torch
+
+    from methods.vid2param.model import Vid2ParamNet, _scale_grad
+
+    x = torch.ones(3, requires_grad=True)
+    (g,) = torch.autograd.grad((_scale_grad(x, 0.25) * 2).sum(), x)
+    np.testing.assert_allclose(g.numpy(), 0.5)
+    fr = torch.as_tensor(np.asarray(tiny_data.frames[:4, :30]))
+    tg = torch.as_tensor(targets_from_dataset(tiny_data, V2PConfig().targets)[:4, :30])
+    grads, losses = [], []
+    for aux in (1.0, 0.01):
+        torch.manual_seed(0)
+        net = Vid2ParamNet(V2PConfig(aux_grad=aux))
+        out = net(fr, tg, n_obs=20, generator=torch.Generator().manual_seed(1))
+        grads.append(torch.autograd.grad(out["loss"], net.cells[0].weight_hh)[0])
+        losses.append(float(out["loss"]))
+    assert losses[0] == pytest.approx(losses[1], rel=1e-6)
+    assert float(grads[1].norm()) < 0.5 * float(grads[0].norm())

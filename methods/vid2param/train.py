@@ -472,7 +472,7 @@ def _parse(argv=None):
                    help='renderer options as JSON, e.g. \'{"blur": 0.5, "drop": 0.05}\'')
     for name in ("latent", "hidden", "layers", "feat", "keypoints"):
         p.add_argument("--" + name, type=int, default=getattr(mc, name))
-    for name in ("alpha", "beta", "gamma", "gamma_prior", "recur_noise"):
+    for name in ("alpha", "beta", "gamma", "gamma_prior", "recur_noise", "aux_grad"):
         p.add_argument("--" + name.replace("_", "-"), type=float, default=getattr(mc, name))
     p.add_argument("--channels", type=int, nargs="+", default=list(mc.channels))
     p.add_argument("--pixel-skip", action="store_true", help="linear pixel path into phi_x")
@@ -496,7 +496,7 @@ def main(argv=None) -> int:
                    hidden=a.hidden, layers=a.layers, feat=a.feat, channels=tuple(a.channels),
                    alpha=a.alpha, beta=a.beta, gamma=a.gamma, gamma_prior=a.gamma_prior,
                    recur_noise=a.recur_noise, pixel_skip=a.pixel_skip,
-                   diff_features=a.diff_features, keypoints=a.keypoints)
+                   diff_features=a.diff_features, keypoints=a.keypoints, aux_grad=a.aux_grad)
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
                     max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
     if info["done"] and a.export:
