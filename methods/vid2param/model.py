@@ -382,7 +382,8 @@ class Vid2ParamNet(nn.Module):
         Returns
         -------
         dict
-            ``loss`` (scalar to minimise), ``rec``, ``kl``, ``nll``, ``nll_prior`` (per frame
+            ``loss`` (scalar to minimise), ``loss_nll`` (its encoder-NLL term alone, for a
+            warm-up phase), ``rec``, ``kl``, ``nll``, ``nll_prior`` (per frame
             means), ``mse`` (B, K) squared error of the encoder means on observed frames
             averaged over time, ``mse_last`` (B, K) at the last observed frame.
         """
@@ -437,6 +438,7 @@ class Vid2ParamNet(nn.Module):
         err = (qmu[..., :K] - tgt_obs) ** 2
         return {
             "loss": loss,
+            "loss_nll": c.gamma * nll.mean(),
             "rec": rec.mean().detach(),
             "kl": kl.mean().detach(),
             "nll": nll.mean().detach(),
