@@ -323,3 +323,21 @@ def test_aux_grad_changes_gradients_into_the_lstm_not_the_loss(tiny_data):
         losses.append(float(out["loss"]))
     assert losses[0] == pytest.approx(losses[1], rel=1e-6)
     assert float(grads[1].norm()) < 0.8 * float(grads[0].norm())
+
+
+def test_shipped_style_options_stream_identify_forecast_agree(tiny_data, tmp_path):
+    """keypoints + diff_features + aux_grad + read_cell + the NLL warm-up, end to end."""
+    tc = TrainConfig(steps=3, batch=2, n_frames=24, val_n=0, warmup=1, min_obs=10,
+                     nll_only_steps=2)
+    cfg = V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8), keypoints=2,
+                    diff_features=True, aux_grad=0.01, read_cell=True)
+    train(cfg, tc, dataset=tiny_data, out=tmp_path, progress=False, device="cpu", log=lambda s: None)
+    est = Vid2Param(checkpoint=export(tmp_path / "state.pt", tmp_path / "opt.pt"), device="cpu",
+                    n_samples=8)
+    assert est.identify(tiny_data.observation(0)) is not None
+    obs = tiny_data.observation(1)
+    s = est.stream()
+    last = [s.push(f) for f in obs.frames][-1]
+    np.testing.assert_allclose(last.mean, est.identify(obs).mean, rtol=1e-5)
+    fc = est.forecast(obs, 5)
+    assert fc.mean.shape == (5, 2) and np.isfinite(fc.mean).all()

@@ -409,7 +409,7 @@ class Vid2ParamStream(Stream):
         with torch.inference_mode():
             x = torch.from_numpy(np.ascontiguousarray(fr)).to(self.est.device_)
             fx = self.net.encode_frames(x[None])
-            mu, sd = self.net.enc_step(fx, self.state[-1][0])
+            mu, sd = self.net.enc_step(fx, self.net.read(self.state))
             noise = self.net.config.recur_noise
             if self.est.sample_state and noise > 0:
                 eps = torch.randn(mu.shape, generator=self.gen, device=mu.device)

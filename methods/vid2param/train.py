@@ -483,6 +483,8 @@ def _parse(argv=None):
         p.add_argument("--" + name.replace("_", "-"), type=float, default=getattr(mc, name))
     p.add_argument("--channels", type=int, nargs="+", default=list(mc.channels))
     p.add_argument("--pixel-skip", action="store_true", help="linear pixel path into phi_x")
+    p.add_argument("--read-cell", action="store_true",
+                   help="heads read the LSTM's [h, c] (see V2PConfig.read_cell)")
     p.add_argument("--diff-features", action="store_true",
                    help="feed the LSTM differences of the fed-back positions (see V2PConfig)")
     p.add_argument("--targets", nargs="+", default=list(mc.targets))
@@ -503,7 +505,8 @@ def main(argv=None) -> int:
                    hidden=a.hidden, layers=a.layers, feat=a.feat, channels=tuple(a.channels),
                    alpha=a.alpha, beta=a.beta, gamma=a.gamma, gamma_prior=a.gamma_prior,
                    recur_noise=a.recur_noise, pixel_skip=a.pixel_skip,
-                   diff_features=a.diff_features, keypoints=a.keypoints, aux_grad=a.aux_grad)
+                   diff_features=a.diff_features, keypoints=a.keypoints, aux_grad=a.aux_grad,
+                   read_cell=a.read_cell)
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
                     max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
     if info["done"] and a.export:
