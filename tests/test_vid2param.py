@@ -233,9 +233,7 @@ def test_fit_trains_briefly(tiny_ckpt, tiny_data):
 
 # -- the shipped model --------------------------------------------------------------------------
 @needs_shipped
-@pytest.mark.xfail(strict=True, reason=(
-    "the shipped 28x28 checkpoint (3200 CPU steps) has not learnt the parameters yet: "
-    "test-split nMSE stays at the prior's ~0.08 (see README, Vid2Param)"))
+@needs_shipped
 def test_shipped_model_identifies_and_improves_with_frames(test_data):
     est = Vid2Param(n_samples=0)
     u = (test_data.theta[:, -1] - LO) / (HI - LO)
@@ -244,8 +242,10 @@ def test_shipped_model_identifies_and_improves_with_frames(test_data):
         mu = np.array([p.extras["normalised_mean"] for p in
                        est.identify_batch(np.asarray(test_data.frames[:, :n]))])
         err[n] = ((np.clip(mu, 0, 1) - u) ** 2).mean(0)
-    # e, g, d: well below the prior's 1/12 = 0.083 after 200 frames, and better than at 20
-    assert (err[200][:3] < 0.03).all(), err
+    # e, g: the 0.01 after 200 frames; d: 0.03 (measured 0.011 on 200 test videos,
+    # see README); all better than at 20 frames. The prior's guess scores 1/12 = 0.083.
+    assert (err[200][:2] < 0.01).all(), err
+    assert err[200][2] < 0.03, err
     assert (err[200][:3] < err[20][:3]).all(), err
 
 
