@@ -53,12 +53,16 @@ def test_bench_push_one_thread(benchmark, threads, videos):
     assert med <= PUSH_TARGET_S
 
 
+_BATCH_MEDIANS: dict[int, float] = {}
+
+
 @pytest.mark.benchmark(group="vid2param")
 @pytest.mark.parametrize("n_threads", [1, 2])
 def test_bench_identify_100_videos_200_frames(benchmark, threads, videos, n_threads):
-    """One thread already meets the 2-core target and is what we assert: on this shared 2-core
-    machine two OpenMP threads contend with other processes (measured 6-9 s vs 1.4-1.7 s with
-    one thread under load 5), so the 2-thread figure is recorded, not asserted."""
+    """The target is for the 2-core machine, and the better of 1 and 2 threads must meet it:
+    on this shared machine two OpenMP threads contend with other processes (measured 6-9 s vs
+    1.4-1.7 s with one thread under load 5 with the first checkpoint), while on a quiet one
+    two threads win (1.35 s vs 2.24 s with the second checkpoint, read_cell widens the heads)."""
     threads(n_threads)
     est = Vid2Param(device="cpu", batch=100, n_samples=200)
     posts = benchmark.pedantic(est.identify_batch, args=(videos,), rounds=3, iterations=1,
@@ -68,5 +72,6 @@ def test_bench_identify_100_videos_200_frames(benchmark, threads, videos, n_thre
     benchmark.extra_info.update({"median_s": med, "target_s": BATCH_TARGET_S,
                                  "per_video_s": med / 100, "threads": n_threads})
     print(f"\n100 x 200 frames in {med:.3f} s ({med * 10:.1f} ms per video), {n_threads} thread(s)")
-    if n_threads == 1:
-        assert med <= BATCH_TARGET_S
+    _BATCH_MEDIANS[n_threads] = med
+    if n_threads == 2:
+        assert min(_BATCH_MEDIANS.values()) <= BATCH_TARGET_S, _BATCH_MEDIANS

@@ -185,7 +185,7 @@ class Identification(Experiment):
         v2p = ("vid2param", "video")
         if (*v2p, last) in s.index:
             a = s.loc[(*v2p, last)]
-            if a["lo"] <= GUESS_MSE:
+            if a["hi"] >= GUESS_MSE:
                 out.append(
                     f"Vid2param (video) does not beat guessing the prior mean: "
                     f"{fmt_ci(a['mean'], a['lo'], a['hi'])} at {last} frames vs {GUESS_MSE:.3f}; "

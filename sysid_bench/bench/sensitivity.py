@@ -89,10 +89,14 @@ def trained_model(ctx: Context, method: str, condition: str):
     -------
     (Estimator, train_wall_s)
     """
+    from sysid_bench.bench.runner import method_fingerprint
+
     sens = ctx.scale.sensitivity
     path = ctx.run_dir / "models" / f"{method}-{condition.replace(':', '_')}.pkl"
     info = path.with_suffix(".json")
-    if path.is_file() and info.is_file():
+    fp = method_fingerprint(method)
+    # reuse only a model trained by this very code: a pickle of an older class may not even load
+    if path.is_file() and info.is_file() and json.loads(info.read_text()).get("fingerprint") == fp:
         with open(path, "rb") as f:  # written by this suite into this run directory
             est = pickle.load(f)
         return est, float(json.loads(info.read_text())["train_wall_s"])
@@ -105,7 +109,8 @@ def trained_model(ctx: Context, method: str, condition: str):
     wall = time.perf_counter() - t0
     _atomic_pickle(est, path)
     tmp = info.with_name(f".{info.name}.tmp")
-    tmp.write_text(json.dumps({"train_wall_s": wall, "condition": condition, "variant": variant,
+    tmp.write_text(json.dumps({"train_wall_s": wall, "fingerprint": fp, "condition": condition,
+                               "variant": variant,
                                "options": opts, "n_train": sens["n_train"],
                                "fit_options": sens.get("fit_options", {})}))
     os.replace(tmp, info)
