@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sysid_bench.datasets import make_dataset
 from sysid_bench.physics import BOX_WIDTH, normalise_theta
 
 __all__ = ["targets_from_dataset", "make_split", "rolls_mask", "chunk_seed"]
@@ -93,45 +94,6 @@ def chunk_seed(data_seed: int, k: int) -> int:
     return int(np.random.SeedSequence([int(data_seed), int(k)]).generate_state(1)[0])
 
 
-class SimpleSplit:
-    """Minimal stand-in with the fields of ``sysid_bench.datasets.Dataset`` that training uses."""
-
-    def __init__(self, frames, states, theta, floor, meta):
-        self.frames = frames
-        self.states = states
-        self.theta = theta
-        self.labels = theta
-        self.floor = floor
-        self.meta = meta
-
-
-_SUBRANGES = {"train": (0, 2, 4, 6, 8), "test": (1, 3, 5, 7, 9)}
-
-
-def _simulate_split(split, n, seed, size, nuisance, n_frames):
-    """The interleaved split drawn directly with physics + render (used while
-    ``sysid_bench.datasets`` is unavailable): same sub-ranges, own seeding."""
-    from sysid_bench import physics, render
-
-    rng = np.random.default_rng(seed)
-    theta = physics.sample_theta(n, rng, subranges=_SUBRANGES[split])
-    s0 = physics.sample_state0(n, rng)
-    states = physics.simulate(theta, s0, n_frames=n_frames)
-    nz = dict(nuisance or {})
-    frames = render.render(states, size=tuple(size), seed=rng.spawn(1)[0], **nz)
-    th = np.broadcast_to(theta[:, None, :], (n, n_frames, 4)).copy()
-    meta = {"source": "physics+render", "split": split, "seed": int(seed)}
-    return SimpleSplit(frames, states, th, np.zeros(n), meta)
-
-
 def make_split(split: str, n: int, seed: int, size=(28, 28), nuisance=None, n_frames: int = 200):
-    """One split of the interleaved variant.
-
-    Uses ``sysid_bench.datasets.make_dataset`` when that module is importable, else draws the
-    same split directly with ``physics`` + ``render`` (``meta["source"]`` says which).
-    """
-    try:
-        from sysid_bench.datasets import make_dataset
-    except ImportError:
-        return _simulate_split(split, n, seed, size, nuisance, n_frames)
+    """One split of the interleaved variant (``sysid_bench.datasets.make_dataset``)."""
     return make_dataset(split, n, seed, n_frames=n_frames, size=tuple(size), nuisance=nuisance)

@@ -161,7 +161,6 @@ class _Feed:
         else:
             self.per_chunk = tc.chunk // tc.batch
         self.k = None
-        self.source = None
 
     def _load_chunk(self, k: int) -> None:
         tc = self.tc
@@ -170,7 +169,6 @@ class _Feed:
                             tc.n_frames)
             self.frames = np.asarray(ds.frames)
             self.targets = targets_from_dataset(ds, self.names)
-            self.source = dict(getattr(ds, "meta", {}) or {}).get("source", "sysid_bench.datasets")
         rng = np.random.default_rng([tc.seed, k, 17])
         self.order = rng.permutation(len(self.frames))
         self.k = k
