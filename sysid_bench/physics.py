@@ -427,6 +427,12 @@ def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0)
     ndarray, shape (B, n_frames, 4)
         States at ``t = 0, dt, ..., (n_frames - 1) dt``; frame 0 equals ``state0``.
     """
+    th, s0, fl, n_frames, dt = _check_inputs(theta, state0, n_frames, dt, floor)
+    return _run(th, s0, fl, np.zeros((2, s0.shape[0])), n_frames, dt)
+
+
+def _check_inputs(theta, state0, n_frames, dt, floor):
+    """Validate ``simulate``'s arguments; returns (theta, state0, floor (B,), n_frames, dt)."""
     n_frames = check_positive_int(n_frames, "n_frames")
     dt = check_positive_float(dt, "dt")
     th = check_theta(theta, n_frames)
@@ -437,8 +443,7 @@ def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0)
             f"theta: expected {B} rows to match state0 (B={B}), got shape {th.shape}"
         )
     fl = _check_floor(floor, B)
-    s0 = check_state0(s0, fl)
-    return _run(th, s0, fl, np.zeros((2, B)), n_frames, dt)
+    return th, check_state0(s0, fl), fl, n_frames, dt
 
 
 def _run(th, s0, fl, pert, n_frames, dt):
@@ -478,15 +483,8 @@ def simulate_perturbed(theta, state0, spin=0.0, dwell=0.0, n_frames: int = N_FRA
     -------
     ndarray, shape (B, n_frames, 4)
     """
-    n_frames = check_positive_int(n_frames, "n_frames")
-    dt = check_positive_float(dt, "dt")
-    th = check_theta(theta, n_frames)
-    s0 = as_float_array(state0, "state0", ndim=2, last=4)
+    th, s0, fl, n_frames, dt = _check_inputs(theta, state0, n_frames, dt, floor)
     B = s0.shape[0]
-    if th.shape[0] != B:
-        raise ValueError(f"theta: expected {B} rows to match state0 (B={B}), got shape {th.shape}")
-    fl = _check_floor(floor, B)
-    s0 = check_state0(s0, fl)
     pert = np.empty((2, B))
     for j, (name, val, hi) in enumerate((("spin", spin, 1.0), ("dwell", dwell, dt))):
         v = as_float_array(val, name, ndim=(0, 1))

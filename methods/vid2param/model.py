@@ -224,6 +224,7 @@ class Vid2ParamNet(nn.Module):
             place = torch.zeros(2, c.latent)
             place[0, c.targets.index("x")] = place[1, c.targets.index("y")] = 1.0
             self.register_buffer("_kp_place", place, persistent=False)  # (2, Z) one-hot rows
+            self.register_buffer("_kp_mask", place.sum(0), persistent=False)  # (Z,) 1 at x, y
         n_fx = c.feat + 3 * c.keypoints
         self.phi_z = nn.Sequential(nn.Linear(c.latent, c.feat), nn.ReLU())
         n_in = c.feat + (4 if c.diff_features else 0)
@@ -343,9 +344,8 @@ class Vid2ParamNet(nn.Module):
         """Encoder q(z_t | x_t, h_{t-1}) -> (mu, std), each (B, Z)."""
         mu, std = _gauss(self.enc(torch.cat([fx, h], dim=-1)))
         if self.kp_pos is not None:
-            place = self._kp_place.sum(0)  # (Z,) 1 at x and y
             kp = self.kp_pos(fx[:, -3 * self.config.keypoints:]) @ self._kp_place
-            mu = mu * (1 - place + self.kp_gate * place) + kp
+            mu = mu * (1 - self._kp_mask + self.kp_gate * self._kp_mask) + kp
         return mu, std
 
     def prior_step(self, h: torch.Tensor):
