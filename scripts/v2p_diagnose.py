@@ -79,10 +79,11 @@ def grads(net) -> None:
     torch.manual_seed(0)
     fx = net.encode_frames(fr)
     state = net.init_state(len(fr))
-    hs, zs, mus, stds = [], [], [], []
+    hs, zs, mus, stds, lasts = [], [], [], [], []
     for t in range(fr.shape[1]):
         h = net.read(state)
         hs.append(h)
+        lasts.append(net.last_position(state))
         mu, std = net.enc_step(fx[:, t], h)
         mus.append(mu)
         stds.append(std)
@@ -90,7 +91,7 @@ def grads(net) -> None:
         state = net.step_rnn(mu, state)
     H = _scale_grad(torch.stack(hs, 1), c.aux_grad)
     Z = torch.stack(zs, 1)
-    pmu, pstd = net.prior_step(H)
+    pmu, pstd = net.prior_step(H, torch.stack(lasts, 1) if c.prior_residual else None)
     qmu, qstd = torch.stack(mus, 1), torch.stack(stds, 1)
     idx = torch.randperm(fr.shape[1])[:50]
     logits = net.decode(Z[:, idx], H[:, idx])

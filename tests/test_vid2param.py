@@ -291,7 +291,7 @@ def test_keypoint_encoder_localises_at_initialisation(tiny_data):
 
 
 def test_perturbed_copy_of_a_test_split_keeps_cases_and_changes_bounces():
-    from methods.vid2param.evaluate import perturb_dataset
+    from methods.vid2param.data import perturb_dataset
 
     ds = make_dataset("test", n=4, seed=3, n_frames=80)
     pds = perturb_dataset(ds, spin=0.3, dwell=0.02, seed=1)
@@ -341,3 +341,117 @@ def test_shipped_style_options_stream_identify_forecast_agree(tiny_data, tmp_pat
     np.testing.assert_allclose(last.mean, est.identify(obs).mean, rtol=1e-5)
     fc = est.forecast(obs, 5)
     assert fc.mean.shape == (5, 2) and np.isfinite(fc.mean).all()
+
+
+# -- camera-like configuration ------------------------------------------------------------------
+CAMERA_NUISANCE = {"blur": 0.5, "occlusion": 0.1, "drop": 0.1, "noise": 8.0, "floor_offset": 1.0}
+CAMERA_TINY = dict(frame_size=(20, 40), latent=8, hidden=16, feat=16, channels=(4, 8),
+                   keypoints=2, kp_threshold=0.2, kp_visibility=True, pool=2,
+                   diff_features=True, read_cell=True, aux_grad=0.1, prior_residual=True)
+
+
+@pytest.fixture(scope="module")
+def camera_data():
+    return make_dataset("train", 4, 5, n_frames=30, size=(20, 40), nuisance=CAMERA_NUISANCE)
+
+
+def test_perturb_a_fraction_keeps_the_rest_and_the_camera_nuisances(camera_data):
+    from methods.vid2param.data import perturb_dataset
+
+    pds = perturb_dataset(camera_data, spin=0.3, dwell=0.02, seed=2, p=0.5)
+    kept = pds.extras["spin"] == 0
+    assert kept.any() and (~kept).any()
+    np.testing.assert_array_equal(pds.frames[kept], camera_data.frames[kept])
+    np.testing.assert_array_equal(pds.states[kept], camera_data.states[kept])
+    # re-rendered with the dataset's nuisances: pixel noise lights most pixels
+    assert (pds.frames[~kept] > 0).mean() > 0.3
+    with pytest.raises(ValueError, match="p: expected a probability"):
+        perturb_dataset(camera_data, 0.3, 0.02, p=1.5)
+    with pytest.raises(ValueError, match="perturb: expected a dict"):
+        TrainConfig(perturb={"spin": 0.3, "wobble": 1})
+
+
+def test_thresholded_keypoint_ignores_pixel_noise(camera_data):
+    """On noisy frames the plain intensity centroid is pulled to the middle; the thresholded
+    one stays on the ball (frames neither dropped nor occluded)."""
+    from methods.vid2param.model import Vid2ParamNet
+
+    fr = torch.as_tensor(np.asarray(camera_data.frames))
+    seen = ~(camera_data.extras["dropped"] | camera_data.extras["occluded"])
+    truth = targets_from_dataset(camera_data, ("x",))[..., 0]
+    errs = []
+    for t in (0.0, 0.2):
+        cfg = {**CAMERA_TINY, "kp_threshold": t, "kp_visibility": False}
+        net = Vid2ParamNet(V2PConfig(**cfg))
+        mu, _, _ = net.filter(fr, sample=False)
+        errs.append(10 * np.sqrt(((mu[..., 0].numpy() - truth)[seen] ** 2).mean()))
+    assert errs[1] < 0.2 < errs[0], errs  # metres
+
+
+def test_visibility_is_low_on_dropped_frames_and_high_on_seen_ones(camera_data):
+    from methods.vid2param.model import Vid2ParamNet
+
+    net = Vid2ParamNet(V2PConfig(**CAMERA_TINY))
+    vis = net.visibility(net.encode_frames(torch.as_tensor(np.asarray(camera_data.frames)))
+                         .flatten(0, 1)).reshape(camera_data.frames.shape[:2]).detach().numpy()
+    dropped = camera_data.extras["dropped"]
+    seen = ~(dropped | camera_data.extras["occluded"])
+    assert dropped.any()
+    assert vis[dropped].max() < 0.05
+    assert np.median(vis[seen]) > 0.9
+
+
+def test_residual_prior_from_an_absolute_one_starts_at_a_step_of_zero(tiny_ckpt, tiny_data):
+    from methods.vid2param.model import Vid2ParamNet
+    from methods.vid2param.train import load_matching
+
+    cfg = V2PConfig.from_dict({**load_checkpoint(tiny_ckpt)["config"], "prior_residual": True,
+                               "diff_features": True})
+    net = Vid2ParamNet(cfg)
+    loaded, skipped = load_matching(net, tiny_ckpt)
+    assert "cells.0.weight_hh" in loaded and "prior.2.weight" in loaded
+    _, _, state = net.filter(torch.as_tensor(np.asarray(tiny_data.frames[:2, :10])), sample=False)
+    mu, _ = net.prior_step(net.read(state), net.last_position(state))
+    np.testing.assert_allclose(mu[:, :2].detach().numpy(), net.last_position(state).numpy(),
+                               atol=1e-6)
+    with pytest.raises(ValueError, match="last"):
+        net.prior_step(net.read(state))
+
+
+def test_load_matching_across_frame_sizes_copies_the_shared_parts(tiny_ckpt):
+    from methods.vid2param.model import Vid2ParamNet
+    from methods.vid2param.train import load_matching
+
+    base = load_checkpoint(tiny_ckpt)
+    net = Vid2ParamNet(V2PConfig.from_dict({**base["config"], "frame_size": [20, 40]}))
+    loaded, skipped = load_matching(net, tiny_ckpt)
+    assert "phi_x.1.weight" in skipped and "cells.0.weight_ih" in loaded
+    np.testing.assert_array_equal(net.state_dict()["cells.0.weight_ih"].numpy(),
+                                  base["state_dict"]["cells.0.weight_ih"].numpy())
+
+
+def test_camera_style_training_end_to_end(camera_data, tmp_path):
+    """pool + thresholded keypoints + visibility + residual prior + perturbed training data."""
+    from methods.vid2param.model import Vid2ParamNet
+
+    tc = TrainConfig(steps=2, batch=2, n_frames=30, val_n=0, warmup=1, min_obs=10,
+                     size=(20, 40), perturb={"spin": 0.3, "dwell": 0.02, "p": 1.0})
+    train(V2PConfig(**CAMERA_TINY), tc, dataset=camera_data, out=tmp_path, progress=False,
+          device="cpu", log=lambda s: None)
+    est = Vid2Param(checkpoint=export(tmp_path / "state.pt", tmp_path / "cam.pt"), device="cpu",
+                    n_samples=8)
+    assert est.frame_size == (20, 40)
+    obs = camera_data.observation(0)
+    s = est.stream()
+    last = [s.push(f) for f in obs.frames][-1]
+    # batched and single-frame float32 paths differ in the last bits
+    np.testing.assert_allclose(last.mean, est.identify(obs).mean, rtol=1e-4, atol=1e-6)
+    fc = est.forecast(obs, 5)
+    assert fc.mean.shape == (5, 2) and np.isfinite(fc.mean).all()
+    net = Vid2ParamNet(V2PConfig(**CAMERA_TINY))
+    z = torch.zeros(3, 8)
+    assert net.decode(z, torch.zeros(3, 32)).shape == (3, 10, 20)  # the pooled frame
+    with pytest.raises(ValueError, match="pool"):
+        V2PConfig(**{**CAMERA_TINY, "pool": 3})
+    with pytest.raises(ValueError, match="28x28"):
+        est.identify(Observation(frames=np.zeros((5, 28, 28), np.uint8)))

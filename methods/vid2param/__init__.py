@@ -5,6 +5,11 @@ checkpoint); ``python -m methods.vid2param.train`` trains one. This package, and
 imports torch.
 """
 
-from methods.vid2param.estimator import SHIPPED_CHECKPOINT, Vid2Param, Vid2ParamStream
+from methods.vid2param.estimator import (
+    SHIPPED_CHECKPOINT,
+    SHIPPED_CHECKPOINTS,
+    Vid2Param,
+    Vid2ParamStream,
+)
 
-__all__ = ["Vid2Param", "Vid2ParamStream", "SHIPPED_CHECKPOINT"]
+__all__ = ["Vid2Param", "Vid2ParamStream", "SHIPPED_CHECKPOINT", "SHIPPED_CHECKPOINTS"]

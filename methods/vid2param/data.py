@@ -16,7 +16,7 @@ import numpy as np
 from sysid_bench.datasets import make_dataset
 from sysid_bench.physics import BOX_WIDTH, normalise_theta
 
-__all__ = ["targets_from_dataset", "make_split", "rolls_mask", "chunk_seed"]
+__all__ = ["targets_from_dataset", "make_split", "rolls_mask", "chunk_seed", "perturb_dataset"]
 
 #: Velocities are divided by this (m/s) when used as targets.
 VEL_SCALE = 10.0
@@ -97,3 +97,60 @@ def chunk_seed(data_seed: int, k: int) -> int:
 def make_split(split: str, n: int, seed: int, size=(28, 28), nuisance=None, n_frames: int = 200):
     """One split of the interleaved variant (``sysid_bench.datasets.make_dataset``)."""
     return make_dataset(split, n, seed, n_frames=n_frames, size=tuple(size), nuisance=nuisance)
+
+
+def perturb_dataset(ds, spin: float, dwell: float, seed: int = 0, p: float = 1.0):
+    """The cases of ``ds`` re-simulated with per-video deviations from our physics.
+
+    A fraction ``p`` of the videos (each independently) draws a spin loss ``U(0, spin)`` and a
+    contact dwell ``U(0, dwell)`` s and is re-simulated from its own parameters, initial state
+    and floor with ``sysid_bench.physics.simulate_perturbed``, then rendered again with the
+    dataset's own camera nuisances (fresh nuisance draws, from ``seed``); the others are kept
+    byte for byte.
+
+    Parameters
+    ----------
+    ds : Dataset
+        Constant-parameter videos (not the ``changing`` variant).
+    spin : float in [0, 1)
+    dwell : float in [0, dt)
+    seed : int
+    p : float in [0, 1]
+
+    Returns
+    -------
+    Dataset
+        ``extras["spin"]``, ``extras["dwell"]`` (N,) hold each video's deviations (0 where
+        kept); ``meta["perturbed"]`` records the arguments.
+    """
+    import dataclasses
+
+    from sysid_bench.physics import simulate_perturbed
+    from sysid_bench.render import render
+
+    theta = np.asarray(ds.theta)
+    if theta.ndim == 3 and not (theta == theta[:, :1]).all():
+        raise ValueError("ds: expected constant parameters per video, got a changing variant")
+    if not 0.0 <= p <= 1.0:
+        raise ValueError(f"p: expected a probability in [0, 1], got {p!r}")
+    rng = np.random.default_rng([int(seed), 99])
+    n, t = ds.states.shape[:2]
+    chosen = rng.random(n) < p
+    sp = np.where(chosen, rng.uniform(0.0, spin, n), 0.0)
+    dw = np.where(chosen, rng.uniform(0.0, dwell, n), 0.0)
+    states = np.array(ds.states, copy=True)
+    frames = np.array(ds.frames, copy=True)
+    idx = np.flatnonzero(chosen)
+    if idx.size:
+        dt = float(ds.meta.get("dt", 0.05))
+        states[idx] = simulate_perturbed(theta[idx, 0] if theta.ndim == 3 else theta[idx],
+                                         states[idx, 0], spin=sp[idx], dwell=dw[idx], n_frames=t,
+                                         dt=dt, floor=np.asarray(ds.floor)[idx])
+        nuis = {k: v for k, v in (ds.meta.get("nuisance") or {}).items() if k != "floor_offset"}
+        # as make_dataset: the camera is framed on floor 0 (a raised floor shows as a lifted ball)
+        rngs = [np.random.default_rng([int(seed), 98, int(i)]) for i in idx]
+        frames[idx] = render(states[idx], size=tuple(frames.shape[-2:]), floor=0.0, seed=rngs,
+                             dt=dt, **nuis)
+    meta = {**ds.meta, "perturbed": {"spin_max": spin, "dwell_max": dwell, "p": p, "seed": seed}}
+    return dataclasses.replace(ds, frames=frames, states=states, meta=meta,
+                               extras={**ds.extras, "spin": sp, "dwell": dw})

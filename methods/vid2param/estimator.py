@@ -19,10 +19,18 @@ from sysid_bench._validate import check_positive_int
 from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, Stream
 from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
 
-__all__ = ["Vid2Param", "Vid2ParamStream", "SHIPPED_CHECKPOINT"]
+__all__ = ["Vid2Param", "Vid2ParamStream", "SHIPPED_CHECKPOINT", "SHIPPED_CHECKPOINTS"]
 
+_CKPT_DIR = Path(__file__).resolve().parent / "checkpoints"
+#: Shipped checkpoints by name: ``checkpoint="28x28"`` (also ``None``, the default) is the
+#: paper's simulated-video model; ``"camera"`` takes 100x50 (W x H) camera-like video (motion
+#: blur, black-out occlusions, dropped frames, pixel noise, a randomised floor height).
+SHIPPED_CHECKPOINTS = {
+    "28x28": _CKPT_DIR / "v2p_28x28.pt",
+    "camera": _CKPT_DIR / "v2p_camera_100x50.pt",
+}
 #: The shipped 28x28 checkpoint (``checkpoint=None``).
-SHIPPED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "v2p_28x28.pt"
+SHIPPED_CHECKPOINT = SHIPPED_CHECKPOINTS["28x28"]
 
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
@@ -66,8 +74,8 @@ class Vid2Param(Estimator):
     Parameters
     ----------
     checkpoint : str or Path, optional
-        A checkpoint written by ``methods.vid2param.train``; ``None`` means the shipped 28x28
-        one (``SHIPPED_CHECKPOINT``).
+        A checkpoint written by ``methods.vid2param.train``, or the name of a shipped one
+        (``SHIPPED_CHECKPOINTS``: ``"28x28"``, ``"camera"``); ``None`` means ``"28x28"``.
     device : str
         "auto" (CUDA when available, else CPU), "cpu", "cuda", ...
     n_samples : int
@@ -128,14 +136,19 @@ class Vid2Param(Estimator):
 
     # -- loading --------------------------------------------------------------------------------
     def _checkpoint_path(self) -> Path:
-        return SHIPPED_CHECKPOINT if self.checkpoint is None else Path(self.checkpoint)
+        if self.checkpoint is None:
+            return SHIPPED_CHECKPOINT
+        if isinstance(self.checkpoint, str) and self.checkpoint in SHIPPED_CHECKPOINTS:
+            return SHIPPED_CHECKPOINTS[self.checkpoint]
+        return Path(self.checkpoint)
 
     def _ensure_net(self):
         if getattr(self, "net_", None) is None:
             from methods.vid2param.train import resolve_device
 
             path = self._checkpoint_path()
-            if self.checkpoint is None and not path.exists():
+            shipped = self.checkpoint is None or self.checkpoint in SHIPPED_CHECKPOINTS
+            if shipped and not path.exists():
                 raise ValueError(
                     f"checkpoint: the shipped checkpoint {str(path)!r} is missing; train it with "
                     "`python -m methods.vid2param.train` (see the README) or pass checkpoint=PATH"
@@ -345,7 +358,9 @@ class Vid2Param(Estimator):
         Returns
         -------
         Forecast
-            mean, std (horizon, 2) and samples (n_samples, horizon, 2), metres.
+            mean, std (horizon, 2): the moments of the particles' Gaussian mixture (each
+            particle's prior mean and std at each step); samples (n_samples, horizon, 2), one
+            z drawn per particle and step; metres.
         """
         frames = self._frames_of(obs)
         horizon = check_positive_int(horizon, "horizon")
@@ -365,12 +380,18 @@ class Vid2Param(Estimator):
                                      sample=stochastic)
             if not stochastic:
                 state = [tuple(t.expand(S, -1).contiguous() for t in layer) for layer in state]
-            _, _, z = net.rollout(state, horizon, generator=gen)
-            z = z.cpu().numpy().astype(np.float64)
+            mu, sd, z = (a.cpu().numpy().astype(np.float64)
+                         for a in net.rollout(state, horizon, generator=gen))
         floor = 0.0 if obs.floor is None else float(obs.floor)
-        samples = np.stack([BOX_WIDTH * z[..., ix], floor + BOX_WIDTH * z[..., iy]], axis=-1)
+        scale = np.array([BOX_WIDTH, BOX_WIDTH])
+        shift = np.array([0.0, floor])
+        samples = shift + scale * z[..., [ix, iy]]
+        # moments of the particles' Gaussian mixture, exact rather than from the samples
+        m = mu[..., [ix, iy]]
+        mean = m.mean(0)
+        var = (sd[..., [ix, iy]] ** 2).mean(0) + m.var(0)
         wall = time.perf_counter() - t0
-        return Forecast(mean=samples.mean(0), std=samples.std(0), samples=samples,
+        return Forecast(mean=shift + scale * mean, std=scale * np.sqrt(var), samples=samples,
                         extras={"wall_s": wall, "n_simulations": 0, "particles": S})
 
     def stream(self) -> Vid2ParamStream:

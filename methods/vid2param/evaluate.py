@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from methods.vid2param.data import rolls_mask
+from methods.vid2param.data import perturb_dataset, rolls_mask
+from methods.vid2param.estimator import Vid2Param
 from sysid_bench.datasets import make_dataset
 from sysid_bench.physics import PARAMS, PRIOR
 
@@ -72,6 +73,27 @@ def evaluate_vid2param(est, ds, lengths) -> dict:
             "n": int(len(frames)), "n_rolling": int(rolls.sum())}
 
 
+def video_observation(ds, i: int):
+    """Video ``i`` of ``ds`` as the frame-based baselines should see it.
+
+    With a randomised floor (``nuisance["floor_offset"]``) the camera stays framed on floor 0
+    while ``Dataset.floor`` is the true floor, so tracking with ``Observation.floor`` would
+    shift every height by the floor (see the README's design notes). There the positions are
+    tracked with the camera's own framing and handed over with the true floor.
+    """
+    obs = ds.observation(i)
+    if not (ds.meta.get("nuisance") or {}).get("floor_offset", 0.0):
+        return obs
+    from sysid_bench.estimator import Observation
+    from sysid_bench.physics import BOX_WIDTH
+    from sysid_bench.tracking import track
+
+    pos = track(obs.frames, floor=0.0)
+    pos[:, 0] = np.clip(pos[:, 0], 0.0, BOX_WIDTH)
+    pos[:, 1] = np.clip(pos[:, 1], obs.floor, obs.floor + BOX_WIDTH)
+    return Observation(frames=obs.frames, positions=pos, dt=obs.dt, floor=obs.floor)
+
+
 def evaluate_lsq(ds, lengths, n: int, seed: int = 0) -> dict:
     """``lsq`` on frames (tracked) for the first ``n`` videos after each length."""
     import methods
@@ -83,7 +105,7 @@ def evaluate_lsq(ds, lengths, n: int, seed: int = 0) -> dict:
     for L in lengths:
         mu, sd, walls = [], [], []
         for i in tqdm(range(n), desc=f"lsq @ {L} frames", mininterval=30):
-            obs = ds.observation(i).prefix(L)
+            obs = video_observation(ds, i).prefix(L)
             t0 = time.perf_counter()
             try:
                 post = est.identify(obs)
@@ -99,39 +121,12 @@ def evaluate_lsq(ds, lengths, n: int, seed: int = 0) -> dict:
             "n_rolling": int(rolls.sum())}
 
 
-def perturb_dataset(ds, spin: float, dwell: float, seed: int = 0):
-    """The cases of ``ds`` (theta, initial state, floor) re-simulated with per-video deviations
-    from our physics and rendered again (same size, no nuisances).
-
-    Returns
-    -------
-    Dataset
-        ``extras["spin"]``, ``extras["dwell"]`` (N,) hold each video's deviations.
-    """
-    import dataclasses
-
-    from sysid_bench.physics import simulate_perturbed
-    from sysid_bench.render import render
-
-    rng = np.random.default_rng([seed, 99])
-    n, t = ds.states.shape[:2]
-    sp = rng.uniform(0.0, spin, n)
-    dw = rng.uniform(0.0, dwell, n)
-    states = simulate_perturbed(np.asarray(ds.theta)[:, 0], np.asarray(ds.states)[:, 0], spin=sp,
-                                dwell=dw, n_frames=t, floor=np.asarray(ds.floor))
-    size = tuple(np.asarray(ds.frames).shape[-2:])
-    frames = render(states, size=size, floor=np.asarray(ds.floor))
-    meta = {**ds.meta, "perturbed": {"spin_max": spin, "dwell_max": dwell, "seed": seed}}
-    return dataclasses.replace(ds, frames=frames, states=states, meta=meta,
-                               extras={**ds.extras, "spin": sp, "dwell": dw})
-
-
 def forecast_errors(est, ds, n: int, n_obs: int, horizon: int) -> dict:
     """RMS position error (m) of ``est.forecast`` means after ``n_obs`` frames, per horizon step
     averaged over the first ``n`` videos of ``ds``; also the 90% band's coverage."""
     sq, cov = [], []
     for i in tqdm(range(n), desc=f"{est.name} forecasts", mininterval=30):
-        obs = ds.observation(i).prefix(n_obs)
+        obs = video_observation(ds, i).prefix(n_obs)
         truth = np.asarray(ds.states)[i, n_obs : n_obs + horizon, :2]
         try:
             fc = est.forecast(obs, horizon)
@@ -145,14 +140,103 @@ def forecast_errors(est, ds, n: int, n_obs: int, horizon: int) -> dict:
             "n": int(len(sq)), "n_obs": int(n_obs), "horizon": int(horizon)}
 
 
+def figures(out: dict, ds, est, outdir, name: str, n_examples: int = 3) -> list[Path]:
+    """PNG figures of an evaluation: error against frames seen, forecast examples, frames.
+
+    Parameters
+    ----------
+    out : dict
+        The evaluation's result (``main``'s JSON).
+    ds : Dataset
+        The evaluated videos.
+    est : Vid2Param
+    outdir : path
+    name : str
+        File-name prefix.
+
+    Returns
+    -------
+    list of Path
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import methods
+    from sysid_bench.bench.figures import save_figure
+
+    outdir = Path(outdir)
+    paths = []
+    # 1. normalised MSE against frames seen, Vid2Param's curve and lsq's points
+    v = out["vid2param"]["by_length"]
+    lengths = [int(L) for L in v]
+    fig, axes = plt.subplots(1, 4, figsize=(13, 3.2), sharey=True)
+    for ax, p in zip(axes, PARAMS):
+        key = (lambda r: r["nmse_r_rolling"]) if p == "r" else (lambda r, p=p: r["nmse"][p])
+        ax.plot(lengths, [key(v[str(L)]) for L in lengths], "o-", label="Vid2Param")
+        if "lsq" in out:
+            ll = out["lsq"]["by_length"]
+            ax.plot([int(L) for L in ll], [key(ll[L]) for L in ll], "s", ms=8, label="lsq")
+        ax.axhline(1 / 12, color="grey", ls=":", label="prior guess")
+        ax.axhline(0.03 if p == "r" else 0.01, color="k", ls="--", lw=0.8, label="target")
+        ax.set_yscale("log")
+        ax.set_xlabel("frames seen")
+        ax.set_title(f"{p} (rolling videos)" if p == "r" else p)
+    axes[0].set_ylabel("normalised MSE")
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"{name}: test split, {out['n']} videos")
+    paths.append(save_figure(fig, outdir / f"{name}_nmse.png"))
+    # 2. forecasts after n_obs frames: truth, Vid2Param mean and 90% band, lsq mean
+    n_obs, horizon = 100, 50
+    fest = Vid2Param(checkpoint=est.checkpoint, device="cpu", threads=est.threads, n_samples=50)
+    lsq = methods.get("lsq", seed=0)
+    fig, axes = plt.subplots(2, n_examples, figsize=(4 * n_examples, 5), sharex=True)
+    t = np.arange(n_obs + horizon) * ds.meta.get("dt", 0.05)
+    for k in range(n_examples):
+        obs = video_observation(ds, k).prefix(n_obs)
+        fv = fest.forecast(ds.observation(k).prefix(n_obs), horizon)
+        try:
+            fl = lsq.forecast(obs, horizon).mean
+        except ValueError:
+            fl = None
+        for j, lab in enumerate(("x (m)", "y (m)")):
+            ax = axes[j, k]
+            ax.plot(t, ds.states[k, : n_obs + horizon, j], "k-", lw=1, label="truth")
+            tf = t[n_obs:]
+            ax.plot(tf, fv.mean[:, j], "C0-", label="Vid2Param")
+            ax.fill_between(tf, fv.mean[:, j] - 1.645 * fv.std[:, j],
+                            fv.mean[:, j] + 1.645 * fv.std[:, j], color="C0", alpha=0.25)
+            if fl is not None:
+                ax.plot(tf, fl[:, j], "C1--", label="lsq")
+            ax.axvline(t[n_obs - 1], color="grey", lw=0.8)
+            ax.set_ylabel(lab)
+        axes[1, k].set_xlabel("time (s)")
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle(f"{name}: forecasts of {horizon} frames after {n_obs} observed (90% band)")
+    paths.append(save_figure(fig, outdir / f"{name}_forecast.png"))
+    # 3. what the network sees: a strip of frames of the first video
+    idx = np.linspace(0, ds.frames.shape[1] - 1, 8).astype(int)
+    h, w = ds.frames.shape[-2:]
+    fig, axes = plt.subplots(1, len(idx), figsize=(1.6 * len(idx) * w / max(h, w) + 1, 2))
+    for ax, i in zip(axes, idx):
+        ax.imshow(ds.frames[0, i], cmap="gray", vmin=0, vmax=255)
+        ax.set_title(f"frame {i}", fontsize=8)
+        ax.axis("off")
+    paths.append(save_figure(fig, outdir / f"{name}_frames.png"))
+    return paths
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m methods.vid2param.evaluate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", default=None, help="default: the shipped 28x28 checkpoint")
+    p.add_argument("--checkpoint", default=None,
+                   help="a path or a shipped name (28x28, camera); default: the 28x28 one")
     p.add_argument("--n", type=int, default=200)
     p.add_argument("--seed", type=int, default=2024)
     p.add_argument("--variant", default="interleaved")
-    p.add_argument("--nuisance", type=json.loads, default=None)
+    p.add_argument("--nuisance", type=json.loads, default=None,
+                   help="renderer nuisances as JSON; default: those the checkpoint was trained on")
     p.add_argument("--lengths", type=int, nargs="+", default=[10, 25, 50, 100, 150, 200])
     p.add_argument("--lsq-n", type=int, default=0)
     p.add_argument("--lsq-lengths", type=int, nargs="+", default=[50, 200])
@@ -163,12 +247,14 @@ def main(argv=None) -> int:
     p.add_argument("--forecast-from", type=int, default=100)
     p.add_argument("--horizon", type=int, default=50)
     p.add_argument("--json", default=None)
+    p.add_argument("--figures", default=None, help="write PNG figures into this folder")
+    p.add_argument("--name", default=None, help="figure file prefix; default: checkpoint stem")
     a = p.parse_args(argv)
-
-    from methods.vid2param import Vid2Param
 
     est = Vid2Param(checkpoint=a.checkpoint, device="cpu", threads=a.threads, n_samples=0)
     size = est.frame_size
+    if a.nuisance is None:
+        a.nuisance = (est.checkpoint_info_.get("train") or {}).get("nuisance")
     ds = make_dataset("test", a.n, a.seed, variant=a.variant, size=size, nuisance=a.nuisance)
     out = {"checkpoint": str(est.checkpoint_info_["path"]), "split": "test", "n": a.n,
            "seed": a.seed, "variant": a.variant, "nuisance": a.nuisance, "size": list(size),
@@ -192,6 +278,9 @@ def main(argv=None) -> int:
             for name, e in (("vid2param", fest), ("lsq", lsq))
         }
         out["robustness"] = rob
+    if a.figures:
+        name = a.name or Path(str(est.checkpoint_info_["path"])).stem
+        out["figures"] = [str(q) for q in figures(out, ds, est, a.figures, name)]
     text = json.dumps(out, indent=1)
     print(text)
     if a.json:

@@ -84,6 +84,18 @@ class V2PConfig:
         ~10 cm off after 500 steps, which buries gravity's 2.5 cm per frame^2; with the map or
         heat maps learnable, the other loss terms dragged them to 3-20 cm within 100 steps.
         0 turns keypoints off.
+    kp_threshold : float in [0, 1)
+        Grey level (fraction of 255) subtracted from channel 0 before its centre of mass, so
+        that pixel noise spread over the frame does not pull the centroid to the middle. At
+        100x50 with noise sigma 8 (clipped at 0) the noise floor holds as much mass as the
+        ball; 0 (clean 28x28 video) keeps the plain intensity centroid.
+    kp_visibility : bool
+        Blend the keypoint map with the MLP by how visible the ball is: with
+        ``v = sigmoid(4 (log m0 - log m_ref))``, m0 channel 0's mass and m_ref a third of a
+        full ball's (from the view geometry), the x, y means are
+        ``v * (map + gate * mlp) + (1 - v) * mlp``. On dropped or occluded frames the map
+        would report the middle of the frame (or a sliver of the ball) and feed the LSTM a
+        jump of metres; there the MLP, which reads the LSTM state, carries the position on.
     aux_grad : float
         Scale of the gradient that the prior network and the decoder send back into the LSTM
         state (their own weights learn at full rate; the forward pass is unchanged). 1 is the
@@ -97,6 +109,18 @@ class V2PConfig:
         0.006 / 0.059 / 0.029 but from ``h`` alone only at 0.028 / 0.085 / 0.044 (the LSTM
         integrates the evidence in its cell, and ``h = o * tanh(c)`` hides it), and the encoder
         of ``h`` stayed at 0.055 / 0.087 / 0.081.
+    pool : int
+        The conv encoder, the learned keypoint channels and the decoder work on frames
+        average-pooled by this factor (the decoder reconstructs the pooled frame); keypoint
+        channel 0 keeps the full resolution. Measured on this 2-core CPU, one thread, batch 16
+        of 100x50 frames: a training step took ~10 s at full resolution, most of it in the
+        convolutions over 5000-pixel frames.
+    prior_residual : bool
+        The prior's x, y means are the last fed-back position plus the network's output (a
+        step), instead of the network's output alone. Forecasting unrolls the prior; a step of
+        at most 0.05 (0.5 m per frame) is a far easier target than an absolute position, which
+        the prior of the shipped 28x28 model only got to within ~1 m after 50 frames. Needs
+        ``diff_features`` (the state carries the last position).
     """
 
     frame_size: tuple[int, int] = (28, 28)
@@ -114,8 +138,12 @@ class V2PConfig:
     pixel_skip: bool = False
     diff_features: bool = False
     keypoints: int = 0
+    kp_threshold: float = 0.0
+    kp_visibility: bool = False
     aux_grad: float = 1.0
     read_cell: bool = False
+    prior_residual: bool = False
+    pool: int = 1
 
     def __post_init__(self) -> None:
         self.frame_size = tuple(int(v) for v in self.frame_size)
@@ -128,6 +156,17 @@ class V2PConfig:
             raise ValueError("diff_features: needs 'x' and 'y' among targets")
         if self.keypoints < 0:
             raise ValueError(f"keypoints: expected an int >= 0, got {self.keypoints}")
+        if int(self.pool) < 1 or any(v % int(self.pool) for v in self.frame_size):
+            raise ValueError(
+                f"pool: expected an int >= 1 dividing frame_size {self.frame_size}, got {self.pool}"
+            )
+        self.pool = int(self.pool)
+        if self.prior_residual and not self.diff_features:
+            raise ValueError("prior_residual: needs diff_features (the state's last position)")
+        if not 0.0 <= float(self.kp_threshold) < 1.0:
+            raise ValueError(f"kp_threshold: expected a float in [0, 1), got {self.kp_threshold}")
+        if self.kp_visibility and not (self.keypoints and {"x", "y"} <= set(self.targets)):
+            raise ValueError("kp_visibility: needs keypoints > 0 and 'x', 'y' among targets")
         if self.latent < len(self.targets):
             raise ValueError(
                 f"latent: expected at least len(targets)={len(self.targets)}, got {self.latent}"
@@ -147,6 +186,13 @@ class V2PConfig:
         if unknown:
             raise ValueError(f"config: unknown fields {sorted(unknown)}")
         return cls(**d)
+
+
+def _centre_grid(h: int, w: int) -> torch.Tensor:
+    """(2, h*w) pixel centres: column and row as fractions of the width and height."""
+    gy, gx = torch.meshgrid((torch.arange(h) + 0.5) / h, (torch.arange(w) + 0.5) / w,
+                            indexing="ij")
+    return torch.stack([gx.flatten(), gy.flatten()], 0)
 
 
 class _ScaleGrad(torch.autograd.Function):
@@ -198,24 +244,24 @@ class Vid2ParamNet(nn.Module):
         super().__init__()
         self.config = c = config
         H, W = c.frame_size
+        Hp, Wp = H // c.pool, W // c.pool  # what the conv paths and the decoder see
         convs, ch = [], 1
         for out in c.channels:
             convs += [nn.Conv2d(ch, out, 4, stride=2, padding=1), nn.ReLU()]
             ch = out
         self.conv = nn.Sequential(*convs)
         with torch.no_grad():
-            self._conv_shape = tuple(self.conv(torch.zeros(1, 1, H, W)).shape[1:])
+            self._conv_shape = tuple(self.conv(torch.zeros(1, 1, Hp, Wp)).shape[1:])
         n_conv = int(math.prod(self._conv_shape))
         self.phi_x = nn.Sequential(nn.Flatten(), nn.Linear(n_conv, c.feat), nn.ReLU())
-        self.skip = nn.Linear(H * W, c.feat) if c.pixel_skip else None
+        self.skip = nn.Linear(Hp * Wp, c.feat) if c.pixel_skip else None
         self.kp = None
         if c.keypoints:
             # channel 0 is the frame itself (fixed); channels 1.. are learned 3x3 convs of it
             self.kp = nn.Conv2d(1, c.keypoints - 1, 3, padding=1) if c.keypoints > 1 else None
-            gy, gx = torch.meshgrid((torch.arange(H) + 0.5) / H, (torch.arange(W) + 0.5) / W,
-                                    indexing="ij")
-            self.register_buffer("_grid", torch.stack([gx.flatten(), gy.flatten()], 0),
-                                 persistent=False)  # (2, H*W): column, row in [0, 1]
+            self.register_buffer("_grid", _centre_grid(H, W), persistent=False)
+            # the learned channels work on the pooled frame
+            self.register_buffer("_grid_pool", _centre_grid(Hp, Wp), persistent=False)
         self.kp_pos = None
         if c.keypoints and {"x", "y"} <= set(c.targets):
             self.kp_pos = nn.Linear(3 * c.keypoints, 2).requires_grad_(False)
@@ -234,6 +280,9 @@ class Vid2ParamNet(nn.Module):
         n_state = c.hidden * (2 if c.read_cell else 1)  # what the heads read of the LSTM
         if c.diff_features:
             self._pos_idx = [c.targets.index("x"), c.targets.index("y")]
+            place = torch.zeros(2, c.latent)
+            place[0, self._pos_idx[0]] = place[1, self._pos_idx[1]] = 1.0
+            self.register_buffer("_pos_place", place, persistent=False)  # (2, Z) one-hot rows
         self.enc = nn.Sequential(
             nn.Linear(n_fx + n_state, c.hidden), nn.ReLU(), nn.Linear(c.hidden, 2 * c.latent)
         )
@@ -242,9 +291,14 @@ class Vid2ParamNet(nn.Module):
         )
         if self.kp_pos is not None:
             self._init_kp_pos()
-        # Decoder mirrors the encoder: dense to the conv shape, then stride-2 transposed convs.
+        # Decoder mirrors the encoder: dense to a base grid, then stride-2 transposed convs
+        # (each doubles the size); the base is H, W / 2^layers rounded up and the output cropped
+        # to (H, W), so sizes not divisible by 2^layers (50x100) work.
+        k = 2 ** len(c.channels)
+        self._dec_shape = (c.channels[-1], -(-Hp // k), -(-Wp // k))
         self.dec_in = nn.Sequential(
-            nn.Linear(c.feat + n_state, c.feat), nn.ReLU(), nn.Linear(c.feat, n_conv), nn.ReLU()
+            nn.Linear(c.feat + n_state, c.feat), nn.ReLU(),
+            nn.Linear(c.feat, int(math.prod(self._dec_shape))), nn.ReLU()
         )
         deconvs = []
         chans = list(c.channels[::-1]) + [1]
@@ -271,6 +325,8 @@ class Vid2ParamNet(nn.Module):
             self.kp_pos.bias[0] = -geo.radius / (10.0 * sx)
             self.kp_pos.weight[1, 1] = -H / (10.0 * sy)
             self.kp_pos.bias[1] = (H - geo.radius) / (10.0 * sy)
+        # a full ball's mass in channel 0 (an anti-aliased disc of value 1, less the threshold)
+        self._log_mref = math.log(max(1e-3, math.pi * geo.radius**2 * (1 - c.kp_threshold) / 3))
         # The map stays fixed and the MLP's x, y outputs enter scaled by kp_gate (0 at first):
         # with both learnable, the other loss terms (KL to an imprecise prior, reconstruction)
         # dragged the means from 5 mm to 3-20 cm within 100 steps.
@@ -289,19 +345,36 @@ class Vid2ParamNet(nn.Module):
         Tensor, shape (..., feat + 3 * keypoints)
         """
         lead = frames.shape[:-2]
-        x = frames.reshape(-1, 1, *frames.shape[-2:]).to(torch.float32) / 255.0
+        full = frames.reshape(-1, 1, *frames.shape[-2:]).to(torch.float32) / 255.0
+        x = self.pooled(full)
         if self.skip is None:
             out = self.phi_x(self.conv(x))
         else:
             conv = self.phi_x[1](self.phi_x[0](self.conv(x)))  # pre-activation of the conv path
             out = torch.relu(conv + self.skip(x.flatten(1)))
         if self.config.keypoints:
-            heat = x if self.kp is None else torch.cat([x, torch.relu(self.kp(x))], 1)
-            heat = heat.flatten(2) + 1e-6  # (N, K, H*W); 1e-6: blank frames
-            mass = heat.sum(-1, keepdim=True)
-            centre = (heat / mass) @ self._grid.T  # (N, K, 2)
+            t = self.config.kp_threshold
+            heat0 = (full if not t else torch.relu(full - t)).flatten(2) + 1e-6  # 1e-6: blank
+            mass0 = heat0.sum(-1, keepdim=True)
+            centre = (heat0 / mass0) @ self._grid.T  # (N, 1, 2)
+            mass = mass0
+            if self.kp is not None:
+                heat = torch.relu(self.kp(x)).flatten(2) + 1e-6  # (N, K-1, Hp*Wp)
+                m = heat.sum(-1, keepdim=True)
+                centre = torch.cat([centre, (heat / m) @ self._grid_pool.T], 1)  # (N, K, 2)
+                mass = torch.cat([mass0, m], 1)
             out = torch.cat([out, centre.flatten(1), torch.log(mass[..., 0])], -1)
         return out.reshape(*lead, -1)
+
+    @property
+    def decoded_size(self) -> tuple[int, int]:
+        """(H, W) of the decoder's frames: ``frame_size`` divided by ``pool``."""
+        H, W = self.config.frame_size
+        return H // self.config.pool, W // self.config.pool
+
+    def pooled(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 1, H, W) frames in [0, 1] average-pooled by ``config.pool``."""
+        return x if self.config.pool == 1 else F.avg_pool2d(x, self.config.pool)
 
     def init_state(self, batch: int, device=None) -> list[tuple[torch.Tensor, ...]]:
         """Zero recurrent state: one tuple per layer, ``(h, c)`` each (B, hidden).
@@ -344,13 +417,44 @@ class Vid2ParamNet(nn.Module):
         """Encoder q(z_t | x_t, h_{t-1}) -> (mu, std), each (B, Z)."""
         mu, std = _gauss(self.enc(torch.cat([fx, h], dim=-1)))
         if self.kp_pos is not None:
-            kp = self.kp_pos(fx[:, -3 * self.config.keypoints:]) @ self._kp_place
-            mu = mu * (1 - self._kp_mask + self.kp_gate * self._kp_mask) + kp
+            nk = self.config.keypoints
+            kp = self.kp_pos(fx[:, -3 * nk:]) @ self._kp_place
+            if self.config.kp_visibility:
+                vis = self.visibility(fx)
+                mu = (mu * (1 - self._kp_mask)
+                      + vis * (kp + self.kp_gate * mu * self._kp_mask)
+                      + (1 - vis) * mu * self._kp_mask)
+            else:
+                mu = mu * (1 - self._kp_mask + self.kp_gate * self._kp_mask) + kp
         return mu, std
 
-    def prior_step(self, h: torch.Tensor):
-        """Prior p(z_t | h_{t-1}) -> (mu, std), each (..., Z)."""
-        return _gauss(self.prior(h))
+    def last_position(self, state) -> torch.Tensor | None:
+        """The last fed-back (x, y), (B, 2), zeros before the first frame; None unless the
+        prior is residual (what :meth:`prior_step` adds its step to)."""
+        if not self.config.prior_residual:
+            return None
+        _, _, pos, _, n = state[-1]
+        # detached: the prior learns the step; the encoder's positions stay anchored to the
+        # targets rather than pulled towards what the prior predicts
+        return (pos * (n >= 1)).detach()
+
+    def visibility(self, fx: torch.Tensor) -> torch.Tensor:
+        """How visible the ball is, (B, 1) in (0, 1), from keypoint channel 0's mass in
+        ``fx`` (B, feat + 3 keypoints): 0.5 at a third of a full ball's mass."""
+        return torch.sigmoid(4.0 * (fx[:, -self.config.keypoints, None] - self._log_mref))
+
+    def prior_step(self, h: torch.Tensor, last: torch.Tensor | None = None):
+        """Prior p(z_t | h_{t-1}) -> (mu, std), each (..., Z).
+
+        ``last`` (..., 2): the last fed-back position, added to the x, y means when the prior
+        is residual (``config.prior_residual``); required then.
+        """
+        mu, std = _gauss(self.prior(h))
+        if self.config.prior_residual:
+            if last is None:
+                raise ValueError("last: a residual prior needs the last position")
+            mu = mu + last @ self._pos_place
+        return mu, std
 
     def decode(self, z: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
         """Frame logits from (z_t, h_{t-1}); leading shapes are flattened and restored.
@@ -361,7 +465,8 @@ class Vid2ParamNet(nn.Module):
         """
         lead = z.shape[:-1]
         u = self.dec_in(torch.cat([self.phi_z(z.reshape(-1, z.shape[-1])), h.reshape(-1, h.shape[-1])], -1))
-        u = self.deconv(u.reshape(-1, *self._conv_shape))
+        hw = self.decoded_size
+        u = self.deconv(u.reshape(-1, *self._dec_shape))[..., : hw[0], : hw[1]]
         return u.reshape(*lead, *u.shape[-2:])
 
     # -- training pass --------------------------------------------------------------------------
@@ -407,17 +512,19 @@ class Vid2ParamNet(nn.Module):
         n_obs = T if n_obs is None else int(n_obs)
         fx = self.encode_frames(frames[:, :n_obs])  # (B, n_obs, feat), all frames at once
         state = self.init_state(B, frames.device)
-        hs, zs, mus, stds = [], [], [], []
+        hs, zs, mus, stds, lasts = [], [], [], [], []
         fmu, fstd = [], []
         for t in range(T):
             h = self.read(state)
             hs.append(h)
+            last = self.last_position(state)
+            lasts.append(last)
             if t < n_obs:
                 mu, std = self.enc_step(fx[:, t], h)
                 mus.append(mu)
                 stds.append(std)
             else:
-                mu, std = self.prior_step(_scale_grad(h, c.aux_grad))
+                mu, std = self.prior_step(_scale_grad(h, c.aux_grad), last)
                 fmu.append(mu)
                 fstd.append(std)
             eps = torch.randn(mu.shape, generator=generator, device=mu.device)
@@ -428,7 +535,8 @@ class Vid2ParamNet(nn.Module):
         H = torch.stack(hs, 1)  # (B, T, hidden): h_{t-1} for each t
         Zs = torch.stack(zs, 1)
         Hobs = _scale_grad(H[:, :n_obs], c.aux_grad)
-        pmu, pstd = self.prior_step(Hobs)  # batched over time
+        Lobs = torch.stack(lasts[:n_obs], 1) if c.prior_residual else None
+        pmu, pstd = self.prior_step(Hobs, Lobs)  # batched over time
         qmu, qstd = torch.stack(mus, 1), torch.stack(stds, 1)
         tgt_obs = targets[:, :n_obs]
         n_rec = max(1, min(n_obs, round(rec_frac * n_obs)))
@@ -437,9 +545,11 @@ class Vid2ParamNet(nn.Module):
         else:
             idx = torch.arange(n_obs, device=frames.device)
         logits = self.decode(Zs[:, idx], Hobs[:, idx])
-        rec = F.binary_cross_entropy_with_logits(
-            logits, frames[:, idx].to(torch.float32) / 255.0, reduction="none"
-        ).sum((-1, -2))  # (B, n_rec): summed over pixels as the authors did
+        target = frames[:, idx].to(torch.float32) / 255.0
+        if c.pool > 1:
+            target = self.pooled(target.reshape(-1, 1, *target.shape[-2:])).reshape(
+                *target.shape[:2], *self.decoded_size)
+        rec = F.binary_cross_entropy_with_logits(logits, target, reduction="none").sum((-1, -2))  # (B, n_rec): summed over pixels as the authors did
         kl = gaussian_kl(qmu, qstd, pmu, pstd).sum(-1)
         nll = gaussian_nll(qmu[..., :K], qstd[..., :K], tgt_obs).sum(-1)
         nll_prior = gaussian_nll(pmu[..., :K], pstd[..., :K], tgt_obs).sum(-1)
@@ -522,7 +632,7 @@ class Vid2ParamNet(nn.Module):
         """
         mus, stds, zs = [], [], []
         for _ in range(horizon):
-            mu, std = self.prior_step(self.read(state))
+            mu, std = self.prior_step(self.read(state), self.last_position(state))
             eps = torch.randn(mu.shape, generator=generator, device=mu.device)
             z = mu + std * eps
             mus.append(mu)

@@ -39,10 +39,16 @@ from methods.vid2param.checkpoint import (
     save_atomic,
     source_sha256,
 )
-from methods.vid2param.data import chunk_seed, make_split, rolls_mask, targets_from_dataset
+from methods.vid2param.data import (
+    chunk_seed,
+    make_split,
+    perturb_dataset,
+    rolls_mask,
+    targets_from_dataset,
+)
 from methods.vid2param.model import V2PConfig, Vid2ParamNet, count_parameters
 
-__all__ = ["TrainConfig", "train", "evaluate", "export", "resolve_device", "main"]
+__all__ = ["TrainConfig", "train", "evaluate", "export", "resolve_device", "load_matching", "main"]
 
 
 @dataclass
@@ -92,6 +98,12 @@ class TrainConfig:
         Frame size (H, W).
     nuisance : dict, optional
         Options passed to the renderer through ``make_dataset`` (camera-like configuration).
+    perturb : dict, optional
+        ``{"spin": s, "dwell": d, "p": q}``: a fraction q of the training videos is
+        re-simulated with a spin loss ``U(0, s)`` and a contact dwell ``U(0, d)`` s
+        (``data.perturb_dataset``), so the network meets physics that is not exactly ours.
+    init : str, optional
+        Checkpoint the weights started from (fine-tuning; see :func:`load_matching`).
     """
 
     steps: int = 5000
@@ -116,6 +128,16 @@ class TrainConfig:
     nll_only_steps: int = 0
     size: tuple[int, int] = (28, 28)
     nuisance: dict | None = field(default=None)
+    perturb: dict | None = field(default=None)
+    init: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.perturb is not None:
+            bad = set(self.perturb) - {"spin", "dwell", "p"}
+            if bad or not isinstance(self.perturb, dict):
+                raise ValueError(
+                    f"perturb: expected a dict with keys among spin, dwell, p, got {self.perturb!r}"
+                )
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -131,6 +153,43 @@ def resolve_device(device: str = "auto") -> torch.device:
         return torch.device(device)
     except (RuntimeError, TypeError) as exc:
         raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}") from exc
+
+
+def load_matching(net: Vid2ParamNet, path) -> tuple[list[str], list[str]]:
+    """Copy into ``net`` every tensor of the checkpoint at ``path`` whose name and shape match.
+
+    For fine-tuning from another configuration (a new loss weight or flag, another frame
+    size): what the two networks share starts trained, the rest starts fresh. The keypoint
+    map ``kp_pos`` is never copied: it is set from ``net``'s own view geometry. Going from an
+    absolute to a residual prior (``prior_residual``), the prior's x, y means start at a step
+    of 0.
+
+    Returns
+    -------
+    loaded, skipped : list of str
+        Names of ``net``'s tensors copied and not copied.
+    """
+    ck = load_checkpoint(path)
+    src = ck["state_dict"]
+    own = net.state_dict()
+    loaded, skipped = [], []
+    for name, val in own.items():
+        other = src.get(name)
+        if other is not None and other.shape == val.shape and not name.startswith("kp_pos."):
+            own[name] = other.to(val.dtype)
+            loaded.append(name)
+        else:
+            skipped.append(name)
+    c = net.config
+    if c.prior_residual and not V2PConfig.from_dict(ck["config"]).prior_residual:
+        # the source prior predicts absolute positions; as a step from the last position start
+        # its x, y means at 0 ("stay put") instead of doubling the position
+        w, b = own["prior.2.weight"], own["prior.2.bias"]
+        for name in ("x", "y"):
+            w[c.targets.index(name)] = 0.0
+            b[c.targets.index(name)] = 0.0
+    net.load_state_dict(own)
+    return loaded, skipped
 
 
 def _lr_at(step: int, tc: TrainConfig) -> float:
@@ -165,8 +224,10 @@ class _Feed:
     def _load_chunk(self, k: int) -> None:
         tc = self.tc
         if self.fixed is None:
-            ds = make_split("train", tc.chunk, chunk_seed(tc.data_seed, k), tc.size, tc.nuisance,
-                            tc.n_frames)
+            seed = chunk_seed(tc.data_seed, k)
+            ds = make_split("train", tc.chunk, seed, tc.size, tc.nuisance, tc.n_frames)
+            if tc.perturb:
+                ds = perturb_dataset(ds, seed=seed, **tc.perturb)
             self.frames = np.asarray(ds.frames)
             self.targets = targets_from_dataset(ds, self.names)
         rng = np.random.default_rng([tc.seed, k, 17])
@@ -376,6 +437,9 @@ def train(
         if init_net.config.to_dict() != mc.to_dict():
             raise ValueError("init_net: expected a network with model_config's architecture")
         net.load_state_dict(init_net.state_dict())
+    elif tc.init:
+        loaded, skipped = load_matching(net, tc.init)
+        log(f"init from {tc.init}: {len(loaded)} tensors copied, fresh: {skipped}")
     log(f"Vid2Param: {count_parameters(net)} parameters, device {dev}, threads "
         f"{torch.get_num_threads()}, steps {start}->{tc.steps}, batch {tc.batch}")
     feed = _Feed(tc, mc.targets, dataset)
@@ -469,20 +533,28 @@ def _parse(argv=None):
     p.add_argument("--stop-at", type=int, default=None, help="stop (resumable) after this step")
     p.add_argument("--no-progress", action="store_true")
     for name, val in asdict(tc).items():
-        if name in ("size", "nuisance"):
+        if name in ("size", "nuisance", "perturb", "init"):
             continue
         p.add_argument("--" + name.replace("_", "-"), type=type(val), default=val)
     p.add_argument("--size", type=int, nargs=2, default=list(tc.size), metavar=("H", "W"))
     p.add_argument("--nuisance", type=json.loads, default=None,
                    help='renderer options as JSON, e.g. \'{"blur": 0.5, "drop": 0.05}\'')
-    for name in ("latent", "hidden", "layers", "feat", "keypoints"):
+    p.add_argument("--perturb", type=json.loads, default=None,
+                   help='deviations from our physics in training, e.g. \'{"spin": 0.3, "dwell": 0.01, "p": 0.5}\'')
+    p.add_argument("--init", default=None,
+                   help="start from this checkpoint's weights where names and shapes match")
+    for name in ("latent", "hidden", "layers", "feat", "keypoints", "pool"):
         p.add_argument("--" + name, type=int, default=getattr(mc, name))
-    for name in ("alpha", "beta", "gamma", "gamma_prior", "recur_noise", "aux_grad"):
+    for name in ("alpha", "beta", "gamma", "gamma_prior", "recur_noise", "aux_grad", "kp_threshold"):
         p.add_argument("--" + name.replace("_", "-"), type=float, default=getattr(mc, name))
     p.add_argument("--channels", type=int, nargs="+", default=list(mc.channels))
     p.add_argument("--pixel-skip", action="store_true", help="linear pixel path into phi_x")
     p.add_argument("--read-cell", action="store_true",
                    help="heads read the LSTM's [h, c] (see V2PConfig.read_cell)")
+    p.add_argument("--kp-visibility", action="store_true",
+                   help="blend keypoints and MLP by the ball's visibility (see V2PConfig)")
+    p.add_argument("--prior-residual", action="store_true",
+                   help="the prior's x, y means are a step from the last position (see V2PConfig)")
     p.add_argument("--diff-features", action="store_true",
                    help="feed the LSTM differences of the fed-back positions (see V2PConfig)")
     p.add_argument("--targets", nargs="+", default=list(mc.targets))
@@ -497,14 +569,16 @@ def main(argv=None) -> int:
             raise SystemExit("--export-only needs --export PATH")
         print(export(out / "state.pt", a.export))
         return 0
-    tc = TrainConfig(**{k: getattr(a, k) for k in asdict(TrainConfig()) if k not in ("size", "nuisance")},
-                     size=tuple(a.size), nuisance=a.nuisance)
+    skip = ("size", "nuisance", "perturb", "init")
+    tc = TrainConfig(**{k: getattr(a, k) for k in asdict(TrainConfig()) if k not in skip},
+                     size=tuple(a.size), nuisance=a.nuisance, perturb=a.perturb, init=a.init)
     mc = V2PConfig(frame_size=tuple(a.size), targets=tuple(a.targets), latent=a.latent,
                    hidden=a.hidden, layers=a.layers, feat=a.feat, channels=tuple(a.channels),
                    alpha=a.alpha, beta=a.beta, gamma=a.gamma, gamma_prior=a.gamma_prior,
                    recur_noise=a.recur_noise, pixel_skip=a.pixel_skip,
                    diff_features=a.diff_features, keypoints=a.keypoints, aux_grad=a.aux_grad,
-                   read_cell=a.read_cell)
+                   read_cell=a.read_cell, kp_threshold=a.kp_threshold,
+                   kp_visibility=a.kp_visibility, prior_residual=a.prior_residual, pool=a.pool)
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
                     max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
     if info["done"] and a.export:
