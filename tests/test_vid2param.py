@@ -9,7 +9,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param  # noqa: E402
+from methods.vid2param import SHIPPED_CHECKPOINT, SHIPPED_CHECKPOINTS, Vid2Param  # noqa: E402
 from methods.vid2param.checkpoint import load_checkpoint, save_atomic  # noqa: E402
 from methods.vid2param.data import rolls_mask, targets_from_dataset  # noqa: E402
 from methods.vid2param.model import V2PConfig  # noqa: E402
@@ -455,3 +455,37 @@ def test_camera_style_training_end_to_end(camera_data, tmp_path):
         V2PConfig(**{**CAMERA_TINY, "pool": 3})
     with pytest.raises(ValueError, match="28x28"):
         est.identify(Observation(frames=np.zeros((5, 28, 28), np.uint8)))
+
+
+# -- the shipped camera-like checkpoint ---------------------------------------------------------
+needs_camera = pytest.mark.skipif(
+    not SHIPPED_CHECKPOINTS["camera"].exists(), reason="camera checkpoint not shipped"
+)
+
+
+@pytest.fixture(scope="module")
+def camera_test_data():
+    nuis = load_checkpoint(SHIPPED_CHECKPOINTS["camera"])["train"]["nuisance"]
+    return make_dataset("test", 40, 123, size=(50, 100), nuisance=nuis)
+
+
+@needs_camera
+def test_shipped_camera_model_identifies_from_camera_like_video(camera_test_data):
+    est = Vid2Param(checkpoint="camera", n_samples=0)
+    assert est.frame_size == (50, 100)
+    u = (camera_test_data.theta[:, -1] - LO) / (HI - LO)
+    err = {}
+    for n in (20, 200):
+        mu, _ = est.normalised_prefixes(np.asarray(camera_test_data.frames[:, :n]), [n])
+        err[n] = ((mu[:, 0] - u) ** 2).mean(0)
+    # measured on 200 test videos, see the README; bounds leave room for 40 videos' scatter
+    assert (err[200][:2] < CAMERA_BOUNDS[:2]).all(), err
+    assert err[200][2] < CAMERA_BOUNDS[2], err
+    assert (err[200][:3] < err[20][:3]).all(), err
+
+
+@needs_camera
+def test_shipped_camera_model_wants_its_own_frame_size():
+    est = Vid2Param(checkpoint="camera")
+    with pytest.raises(ValueError, match="50x100.*28x28"):
+        est.identify(Observation(frames=np.zeros((10, 28, 28), np.uint8)))

@@ -87,7 +87,7 @@ class TrainConfig:
     ckpt_every : float
         Seconds between resumable states.
     threads : int
-        ``torch.set_num_threads`` on CPU.
+        ``torch.set_num_threads`` on CPU (a resumed run takes the value given now).
     nll_only_steps : int
         Warm-up: for the first steps the loss is the encoder's NLL of the supervised dimensions
         alone, as a plain recurrent regressor; the VRNN terms (reconstruction, KL, the prior's
@@ -341,10 +341,23 @@ def export(state_path, out_path, card: bool = True) -> Path:
     ck = load_checkpoint(state_path)
     ck.pop("optimizer", None)
     out_path = Path(out_path)
+    init = (ck.get("train") or {}).get("init")
+    if init and "init_checkpoint" not in ck and Path(init).exists():
+        # a fine-tune's starting point, identified by content: its path may be overwritten
+        # by this very export (a shipped checkpoint refined in place)
+        import hashlib
+
+        src = load_checkpoint(init)
+        ck["init_checkpoint"] = {
+            "path": str(init),
+            "sha256": hashlib.sha256(Path(init).read_bytes()).hexdigest(),
+            **{k: src.get(k) for k in ("config", "train", "git_commit", "val_metrics")},
+        }
     save_atomic(ck, out_path)
     if card:
         info = {k: ck.get(k) for k in ("format", "format_version", "config", "train", "git_commit",
-                                        "source_sha256", "torch_version", "val_metrics")}
+                                        "source_sha256", "torch_version", "val_metrics",
+                                        "init_checkpoint")}
         info["file_bytes"] = out_path.stat().st_size
         info["n_parameters"] = int(sum(v.numel() for v in ck["state_dict"].values()))
         text = json.dumps(_jsonable(info), indent=1, sort_keys=True)
@@ -419,7 +432,8 @@ def train(
         saved = dict(ck["train"])
         start, wall0 = int(saved.pop("step")), float(saved.pop("wall_s"))
         saved["size"] = tuple(saved["size"])
-        saved["steps"] = tc.steps  # a resumed run may be extended
+        saved["steps"] = tc.steps  # a resumed run may be extended (or shortened)
+        saved["threads"] = tc.threads  # and given the cores that are free now
         tc = TrainConfig(**saved)
         history = [tuple(h) for h in ck.get("val_history", [])]
         log(f"resuming from {state_path} at step {start}")
