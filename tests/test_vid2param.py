@@ -491,3 +491,43 @@ def test_shipped_camera_model_wants_its_own_frame_size():
     est = Vid2Param(checkpoint="camera")
     with pytest.raises(ValueError, match="50x100.*28x28"):
         est.identify(Observation(frames=np.zeros((10, 28, 28), np.uint8)))
+
+
+def test_export_calibrates_the_stds_and_the_estimator_applies_them(tiny_ckpt, tiny_data, tmp_path):
+    from methods.vid2param.checkpoint import build_net
+    from methods.vid2param.train import calibrate
+
+    ck = load_checkpoint(tiny_ckpt)
+    net = build_net(ck)
+    f = calibrate(net, tiny_data, lengths=(10, 24))
+    assert f.shape == (len(net.config.targets),) and (f > 0).all()
+    # after scaling, 90% intervals hold 90% of the calibration set's truths (per dimension)
+    mu, sd, _ = net.filter(torch.as_tensor(np.asarray(tiny_data.frames)), sample=False)
+    tg = targets_from_dataset(tiny_data, net.config.targets)
+    z = (np.abs(mu.numpy()[:, [9, 23], : len(f)] - tg[:, [9, 23]]) / (sd.numpy()[:, [9, 23], : len(f)] * f))
+    np.testing.assert_allclose((z.reshape(-1, len(f)) <= 1.6448536).mean(0), 0.9, atol=0.13)
+    ck["calibration"] = {"std_scale": [2.0] * len(f), "targets": list(net.config.targets)}
+    save_atomic(ck, tmp_path / "cal.pt")
+    obs = tiny_data.observation(0)
+    plain = Vid2Param(checkpoint=tiny_ckpt, device="cpu", n_samples=0).identify(obs)
+    cal_est = Vid2Param(checkpoint=tmp_path / "cal.pt", device="cpu", n_samples=0)
+    cal = cal_est.identify(obs)
+    np.testing.assert_allclose(cal.std, 2 * plain.std, rtol=1e-6)
+    np.testing.assert_allclose(cal.mean, plain.mean)
+    s = cal_est.stream()
+    last = [s.push(fr) for fr in obs.frames][-1]
+    np.testing.assert_allclose(last.std, cal.std, rtol=1e-4)
+    ck["calibration"] = {"std_scale": [float("nan")] * len(f), "targets": list(net.config.targets)}
+    save_atomic(ck, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="calibration"):
+        Vid2Param(checkpoint=tmp_path / "bad.pt", device="cpu").identify(obs)
+
+
+def test_export_with_calibration_writes_it_to_the_card(tiny_ckpt, tmp_path):
+    out = export(tiny_ckpt.parent / "state.pt", tmp_path / "c.pt", calibrate_n=3)
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["calibration"]["n"] == 3 and card["calibration"]["split"] == "train"
+    assert len(card["calibration"]["std_scale"]) == len(TINY.targets)
+    est = Vid2Param(checkpoint=out, device="cpu", n_samples=0)
+    est._ensure_net()
+    assert est.std_scale_.shape == (4,)

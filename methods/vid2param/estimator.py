@@ -37,6 +37,16 @@ _HI = np.array([PRIOR[p][1] for p in PARAMS])
 _SPAN = _HI - _LO
 
 
+def _std_scale(ck: dict) -> np.ndarray:
+    """The checkpoint's std calibration factors for ``PARAMS`` (ones when it has none)."""
+    cal = ck.get("calibration") or {}
+    scale = dict(zip(cal.get("targets", []), cal.get("std_scale", [])))
+    out = np.array([float(scale.get(p, 1.0)) for p in PARAMS])
+    if not (np.isfinite(out).all() and (out > 0).all()):
+        raise ValueError(f"checkpoint: calibration factors must be finite and > 0, got {out}")
+    return out
+
+
 def _check_frames_array(frames, expected_hw, name: str, ndim: int) -> np.ndarray:
     """Frames as a NumPy array of a supported dtype and the checkpoint's size.
 
@@ -160,8 +170,9 @@ class Vid2Param(Estimator):
             self.device_ = resolve_device(self.device)
             self.net_ = net.to(self.device_)
             self.config_ = net.config
+            self.std_scale_ = _std_scale(ck)
             self.checkpoint_info_ = {k: ck.get(k) for k in ("train", "git_commit", "val_metrics",
-                                                            "source_sha256")}
+                                                            "source_sha256", "calibration")}
             self.checkpoint_info_["path"] = str(path)
         return self.net_
 
@@ -219,7 +230,7 @@ class Vid2Param(Estimator):
             mu, sd, _ = net.filter(fr, generator=self._generator(salt),
                                    sample=bool(self.sample_state))
             mu = mu[..., idx].cpu().numpy().astype(np.float64)
-            sd = sd[..., idx].cpu().numpy().astype(np.float64)
+            sd = sd[..., idx].cpu().numpy().astype(np.float64) * self.std_scale_
         return mu, sd, time.perf_counter() - t0
 
     # -- the interface --------------------------------------------------------------------------
@@ -266,6 +277,7 @@ class Vid2Param(Estimator):
         self.device_ = resolve_device(self.device)
         self.net_ = net.to(self.device_)
         self.config_ = net.config
+        self.std_scale_ = np.ones(len(PARAMS))  # a new fit is not calibrated
         self.checkpoint_info_ = {"path": None, "fit": {"steps": info["step"], "wall_s": info["wall_s"],
                                                        "warm_start": init is not None}}
         return self
@@ -438,7 +450,7 @@ class Vid2ParamStream(Stream):
             else:
                 self.state = self.net.step_rnn(mu, self.state)
             mu_n = mu[0, self.idx].cpu().numpy().astype(np.float64)
-            sd_n = sd[0, self.idx].cpu().numpy().astype(np.float64)
+            sd_n = sd[0, self.idx].cpu().numpy().astype(np.float64) * self.est.std_scale_
         self.n += 1
         wall = time.perf_counter() - t0
         return self.est._posterior(mu_n, sd_n, {"wall_s": wall, "n_frames": self.n}, self.rng)

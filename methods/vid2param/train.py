@@ -48,7 +48,13 @@ from methods.vid2param.data import (
 )
 from methods.vid2param.model import V2PConfig, Vid2ParamNet, count_parameters
 
-__all__ = ["TrainConfig", "train", "evaluate", "export", "resolve_device", "load_matching", "main"]
+__all__ = ["TrainConfig", "train", "evaluate", "export", "calibrate", "resolve_device",
+           "load_matching", "main"]
+
+#: Seed of the calibration videos: fresh draws of the train split (the training chunks use
+#: ``chunk_seed(data_seed, k)``), so calibration sees neither the test sub-ranges nor the
+#: evaluation's videos.
+CALIBRATION_SEED = 424242
 
 
 @dataclass
@@ -294,6 +300,41 @@ def evaluate(net: Vid2ParamNet, ds, lengths=(10, 25, 50, 100, 150, 200), batch: 
     return out
 
 
+@torch.no_grad()
+def calibrate(net: Vid2ParamNet, ds, lengths=(50, 100, 150, 200), batch: int = 100,
+              level: float = 0.9) -> np.ndarray:
+    """Per-dimension factors for the encoder's stds so that ``level`` intervals hold ``level``
+    of the truths on ``ds`` (pooled over ``lengths``): the networks come out overconfident on
+    some parameters (90% intervals holding 72-80% of d's truths), a factor fixes that after
+    training without touching the means.
+
+    Parameters
+    ----------
+    net : Vid2ParamNet
+    ds : Dataset-like (frames, states, theta/labels, floor), calibration videos
+    lengths : prefix lengths pooled
+
+    Returns
+    -------
+    ndarray, shape (K,)
+        Factors for the supervised dimensions, ``config.targets`` order.
+    """
+    from scipy.stats import norm
+
+    names = net.config.targets
+    tg = targets_from_dataset(ds, names)
+    frames = np.asarray(ds.frames)
+    lengths = [int(L) for L in lengths if L <= frames.shape[1]]
+    sel = [L - 1 for L in lengths]
+    zs = []
+    for i in range(0, len(frames), batch):
+        mu, sd, _ = net.filter(torch.as_tensor(frames[i : i + batch]), sample=False)
+        mu, sd = mu[:, sel, : len(names)].numpy(), sd[:, sel, : len(names)].numpy()
+        zs.append(np.abs(mu - tg[i : i + batch, sel]) / sd)
+    z = np.concatenate(zs).reshape(-1, len(names))
+    return (np.quantile(z, level, axis=0) / norm.ppf(0.5 + level / 2)).astype(np.float64)
+
+
 def _summary(m: dict) -> str:
     L = max(m["nmse"])
     s = " ".join(f"{p}={v:.4f}" for p, v in m["nmse"][L].items())
@@ -330,16 +371,30 @@ def _jsonable(o):
     return o
 
 
-def export(state_path, out_path, card: bool = True) -> Path:
+def export(state_path, out_path, card: bool = True, calibrate_n: int = 0) -> Path:
     """Write a shipped checkpoint (no optimizer state) and a JSON card from a training state.
 
     Parameters
     ----------
     state_path : path of ``state.pt`` written by :func:`train`
     out_path : path of the ``.pt`` to write; the card goes next to it as ``.json``.
+    calibrate_n : int
+        With n > 0, fit std factors (:func:`calibrate`) on n fresh clean videos of the train
+        split (``CALIBRATION_SEED``, the run's size and nuisances) and store them as
+        ``calibration``; the estimator applies them.
     """
     ck = load_checkpoint(state_path)
     ck.pop("optimizer", None)
+    if calibrate_n > 0:
+        from methods.vid2param.checkpoint import build_net
+
+        tr = ck["train"]
+        ds = make_split("train", int(calibrate_n), CALIBRATION_SEED, tuple(tr["size"]),
+                        tr.get("nuisance"), int(tr.get("n_frames", 200)))
+        factors = calibrate(build_net(ck, state_path), ds)
+        ck["calibration"] = {"std_scale": factors.tolist(), "targets": list(ck["config"]["targets"]),
+                             "n": int(calibrate_n), "seed": CALIBRATION_SEED, "split": "train",
+                             "level": 0.9}
     out_path = Path(out_path)
     init = (ck.get("train") or {}).get("init")
     if init and "init_checkpoint" not in ck and Path(init).exists():
@@ -357,7 +412,7 @@ def export(state_path, out_path, card: bool = True) -> Path:
     if card:
         info = {k: ck.get(k) for k in ("format", "format_version", "config", "train", "git_commit",
                                         "source_sha256", "torch_version", "val_metrics",
-                                        "init_checkpoint")}
+                                        "init_checkpoint", "calibration")}
         info["file_bytes"] = out_path.stat().st_size
         info["n_parameters"] = int(sum(v.numel() for v in ck["state_dict"].values()))
         text = json.dumps(_jsonable(info), indent=1, sort_keys=True)
@@ -541,6 +596,8 @@ def _parse(argv=None):
     p.add_argument("--export", help="write a shipped checkpoint (+ .json card) here at the end")
     p.add_argument("--export-only", action="store_true",
                    help="only export <out>/state.pt to --export, no training")
+    p.add_argument("--calibrate-n", type=int, default=0,
+                   help="with --export: fit the stds' calibration on this many fresh train videos")
     p.add_argument("--no-resume", action="store_true", help="start afresh even if state.pt exists")
     p.add_argument("--device", default="auto")
     p.add_argument("--max-minutes", type=float, default=None)
@@ -581,7 +638,7 @@ def main(argv=None) -> int:
     if a.export_only:
         if not a.export:
             raise SystemExit("--export-only needs --export PATH")
-        print(export(out / "state.pt", a.export))
+        print(export(out / "state.pt", a.export, calibrate_n=a.calibrate_n))
         return 0
     skip = ("size", "nuisance", "perturb", "init")
     tc = TrainConfig(**{k: getattr(a, k) for k in asdict(TrainConfig()) if k not in skip},
@@ -596,7 +653,7 @@ def main(argv=None) -> int:
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
                     max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
     if info["done"] and a.export:
-        print(export(out / "state.pt", a.export))
+        print(export(out / "state.pt", a.export, calibrate_n=a.calibrate_n))
     return 0
 
 
