@@ -324,7 +324,7 @@ def calibrate(net: Vid2ParamNet, ds, lengths=(50, 100, 150, 200), batch: int = 1
     names = net.config.targets
     tg = targets_from_dataset(ds, names)
     frames = np.asarray(ds.frames)
-    lengths = [int(L) for L in lengths if L <= frames.shape[1]]
+    lengths = [int(L) for L in lengths if L <= frames.shape[1]] or [frames.shape[1]]
     sel = [L - 1 for L in lengths]
     zs = []
     for i in range(0, len(frames), batch):
