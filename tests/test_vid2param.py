@@ -242,10 +242,10 @@ def test_shipped_model_identifies_and_improves_with_frames(test_data):
         mu = np.array([p.extras["normalised_mean"] for p in
                        est.identify_batch(np.asarray(test_data.frames[:, :n]))])
         err[n] = ((np.clip(mu, 0, 1) - u) ** 2).mean(0)
-    # e, g: the 0.01 after 200 frames; d: 0.03 (measured 0.011 on 200 test videos,
-    # see README); all better than at 20 frames. The prior's guess scores 1/12 = 0.083.
-    assert (err[200][:2] < 0.01).all(), err
-    assert err[200][2] < 0.03, err
+    # the 0.01 after 200 frames for e, g, d (measured 0.0013 / 0.0001 / 0.0039 on 200
+    # test videos, see README; 0.0009 / 0.0001 / 0.0024 on these 40); all better than at 20
+    # frames. The prior's guess scores 1/12 = 0.083.
+    assert (err[200][:3] < 0.01).all(), err
     assert (err[200][:3] < err[20][:3]).all(), err
 
 

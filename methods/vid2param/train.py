@@ -380,8 +380,8 @@ def export(state_path, out_path, card: bool = True, calibrate_n: int = 0) -> Pat
     out_path : path of the ``.pt`` to write; the card goes next to it as ``.json``.
     calibrate_n : int
         With n > 0, fit std factors (:func:`calibrate`) on n fresh clean videos of the train
-        split (``CALIBRATION_SEED``, the run's size and nuisances) and store them as
-        ``calibration``; the estimator applies them.
+        split (``CALIBRATION_SEED``, the run's size and nuisances) after their last frame, and
+        store them as ``calibration``; the estimator applies them.
     """
     ck = load_checkpoint(state_path)
     ck.pop("optimizer", None)
@@ -391,10 +391,14 @@ def export(state_path, out_path, card: bool = True, calibrate_n: int = 0) -> Pat
         tr = ck["train"]
         ds = make_split("train", int(calibrate_n), CALIBRATION_SEED, tuple(tr["size"]),
                         tr.get("nuisance"), int(tr.get("n_frames", 200)))
-        factors = calibrate(build_net(ck, state_path), ds)
+        # at the full length, where the benchmark reports: measured on the shipped 28x28 model,
+        # factors pooled over 50-200 frames (e 1.22) left e's 90% intervals holding 74% of the
+        # test truths at 200 frames; earlier prefixes were already within 80-97%
+        n_fr = int(tr.get("n_frames", 200))
+        factors = calibrate(build_net(ck, state_path), ds, lengths=(n_fr,))
         ck["calibration"] = {"std_scale": factors.tolist(), "targets": list(ck["config"]["targets"]),
                              "n": int(calibrate_n), "seed": CALIBRATION_SEED, "split": "train",
-                             "level": 0.9}
+                             "level": 0.9, "lengths": [n_fr]}
     out_path = Path(out_path)
     init = (ck.get("train") or {}).get("init")
     if init and "init_checkpoint" not in ck and Path(init).exists():
