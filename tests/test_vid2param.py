@@ -533,3 +533,21 @@ def test_export_with_calibration_writes_it_to_the_card(tiny_ckpt, tmp_path):
     est = Vid2Param(checkpoint=out, device="cpu", n_samples=0)
     est._ensure_net()
     assert est.std_scale_.shape == (4,)
+
+
+def test_fine_tune_records_its_starting_checkpoint_even_if_replaced(tiny_ckpt, tiny_data, tmp_path):
+    import hashlib
+    import shutil
+
+    start = tmp_path / "start.pt"
+    shutil.copy(tiny_ckpt, start)
+    sha = hashlib.sha256(start.read_bytes()).hexdigest()
+    cfg = V2PConfig.from_dict(load_checkpoint(start)["config"])
+    tc = TrainConfig(steps=2, batch=2, n_frames=24, val_n=0, warmup=1, min_obs=10, init=str(start))
+    train(cfg, tc, dataset=tiny_data, out=tmp_path / "run", progress=False, device="cpu",
+          log=lambda s: None)
+    start.write_bytes(b"replaced")  # e.g. the shipped file refined in place
+    card = json.loads(export(tmp_path / "run" / "state.pt", tmp_path / "ft.pt")
+                      .with_suffix(".json").read_text())
+    assert card["init_checkpoint"]["sha256"] == sha
+    assert card["train"]["init"] == str(start)

@@ -161,6 +161,20 @@ def resolve_device(device: str = "auto") -> torch.device:
         raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}") from exc
 
 
+def init_record(path) -> dict:
+    """Identity of a checkpoint a run starts from: path, sha256 of its bytes, and its config,
+    training record, commit and validation metrics. Taken when the run starts, since the file
+    may be replaced later (a shipped checkpoint refined in place)."""
+    import hashlib
+
+    src = load_checkpoint(path)
+    return {
+        "path": str(path),
+        "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(),
+        **{k: src.get(k) for k in ("config", "train", "git_commit", "val_metrics")},
+    }
+
+
 def load_matching(net: Vid2ParamNet, path) -> tuple[list[str], list[str]]:
     """Copy into ``net`` every tensor of the checkpoint at ``path`` whose name and shape match.
 
@@ -343,7 +357,7 @@ def _summary(m: dict) -> str:
     return f"nMSE@{L}: {s} r_rolling={r if r is None else round(r, 4)} | cov90: {cov}"
 
 
-def _state_dict(net, opt, mc, tc, step, wall, history, final=False) -> dict:
+def _state_dict(net, opt, mc, tc, step, wall, history, final=False, init=None) -> dict:
     ck = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -356,6 +370,8 @@ def _state_dict(net, opt, mc, tc, step, wall, history, final=False) -> dict:
         "val_history": history,
         "val_metrics": history[-1][1] if history else None,
     }
+    if init is not None:
+        ck["init_checkpoint"] = init
     if not final:
         ck["optimizer"] = opt.state_dict()
     return ck
@@ -402,16 +418,8 @@ def export(state_path, out_path, card: bool = True, calibrate_n: int = 0) -> Pat
     out_path = Path(out_path)
     init = (ck.get("train") or {}).get("init")
     if init and "init_checkpoint" not in ck and Path(init).exists():
-        # a fine-tune's starting point, identified by content: its path may be overwritten
-        # by this very export (a shipped checkpoint refined in place)
-        import hashlib
-
-        src = load_checkpoint(init)
-        ck["init_checkpoint"] = {
-            "path": str(init),
-            "sha256": hashlib.sha256(Path(init).read_bytes()).hexdigest(),
-            **{k: src.get(k) for k in ("config", "train", "git_commit", "val_metrics")},
-        }
+        # states written before the record was taken at the start: identify the file now
+        ck["init_checkpoint"] = init_record(init)
     save_atomic(ck, out_path)
     if card:
         info = {k: ck.get(k) for k in ("format", "format_version", "config", "train", "git_commit",
@@ -485,6 +493,7 @@ def train(
     state_path = Path(out) / "state.pt" if out is not None else None
     start, wall0, history = 0, 0.0, []
     ck = None
+    init_ck = None  # identity of tc.init, kept in every state
     if resume and state_path is not None and state_path.exists():
         ck = load_checkpoint(state_path, expect_resumable=True)
         mc = V2PConfig.from_dict(ck["config"])
@@ -495,6 +504,7 @@ def train(
         saved["threads"] = tc.threads  # and given the cores that are free now
         tc = TrainConfig(**saved)
         history = [tuple(h) for h in ck.get("val_history", [])]
+        init_ck = ck.get("init_checkpoint")
         log(f"resuming from {state_path} at step {start}")
     if tuple(mc.frame_size) != tuple(tc.size):
         raise ValueError(
@@ -511,6 +521,7 @@ def train(
             raise ValueError("init_net: expected a network with model_config's architecture")
         net.load_state_dict(init_net.state_dict())
     elif tc.init:
+        init_ck = init_record(tc.init)
         loaded, skipped = load_matching(net, tc.init)
         log(f"init from {tc.init}: {len(loaded)} tensors copied, fresh: {skipped}")
     log(f"Vid2Param: {count_parameters(net)} parameters, device {dev}, threads "
@@ -526,7 +537,8 @@ def train(
 
     def save(step: int) -> None:
         if state_path is not None:
-            save_atomic(_state_dict(net, opt, mc, tc, step, wall(), history), state_path)
+            save_atomic(_state_dict(net, opt, mc, tc, step, wall(), history, init=init_ck),
+                        state_path)
 
     def validate(step: int) -> None:
         net.eval()
