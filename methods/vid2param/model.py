@@ -255,6 +255,11 @@ class Vid2ParamNet(nn.Module):
         n_conv = int(math.prod(self._conv_shape))
         self.phi_x = nn.Sequential(nn.Flatten(), nn.Linear(n_conv, c.feat), nn.ReLU())
         self.skip = nn.Linear(Hp * Wp, c.feat) if c.pixel_skip else None
+        if {"x", "y"} <= set(c.targets):
+            # (2, Z) one-hot rows: where an (x, y) pair goes in the latent vector
+            place = torch.zeros(2, c.latent)
+            place[0, c.targets.index("x")] = place[1, c.targets.index("y")] = 1.0
+            self.register_buffer("_xy_place", place, persistent=False)
         self.kp = None
         if c.keypoints:
             # channel 0 is the frame itself (fixed); channels 1.. are learned 3x3 convs of it
@@ -267,10 +272,7 @@ class Vid2ParamNet(nn.Module):
             self.kp_pos = nn.Linear(3 * c.keypoints, 2).requires_grad_(False)
             # scale of the MLP's correction to those two means; starts at 0 (see _init_kp_pos)
             self.kp_gate = nn.Parameter(torch.zeros(()))
-            place = torch.zeros(2, c.latent)
-            place[0, c.targets.index("x")] = place[1, c.targets.index("y")] = 1.0
-            self.register_buffer("_kp_place", place, persistent=False)  # (2, Z) one-hot rows
-            self.register_buffer("_kp_mask", place.sum(0), persistent=False)  # (Z,) 1 at x, y
+            self.register_buffer("_kp_mask", self._xy_place.sum(0), persistent=False)  # 1 at x, y
         n_fx = c.feat + 3 * c.keypoints
         self.phi_z = nn.Sequential(nn.Linear(c.latent, c.feat), nn.ReLU())
         n_in = c.feat + (4 if c.diff_features else 0)
@@ -280,9 +282,6 @@ class Vid2ParamNet(nn.Module):
         n_state = c.hidden * (2 if c.read_cell else 1)  # what the heads read of the LSTM
         if c.diff_features:
             self._pos_idx = [c.targets.index("x"), c.targets.index("y")]
-            place = torch.zeros(2, c.latent)
-            place[0, self._pos_idx[0]] = place[1, self._pos_idx[1]] = 1.0
-            self.register_buffer("_pos_place", place, persistent=False)  # (2, Z) one-hot rows
         self.enc = nn.Sequential(
             nn.Linear(n_fx + n_state, c.hidden), nn.ReLU(), nn.Linear(c.hidden, 2 * c.latent)
         )
@@ -418,7 +417,7 @@ class Vid2ParamNet(nn.Module):
         mu, std = _gauss(self.enc(torch.cat([fx, h], dim=-1)))
         if self.kp_pos is not None:
             nk = self.config.keypoints
-            kp = self.kp_pos(fx[:, -3 * nk:]) @ self._kp_place
+            kp = self.kp_pos(fx[:, -3 * nk:]) @ self._xy_place
             if self.config.kp_visibility:
                 vis = self.visibility(fx)
                 mu = (mu * (1 - self._kp_mask)
@@ -453,7 +452,7 @@ class Vid2ParamNet(nn.Module):
         if self.config.prior_residual:
             if last is None:
                 raise ValueError("last: a residual prior needs the last position")
-            mu = mu + last @ self._pos_place
+            mu = mu + last @ self._xy_place
         return mu, std
 
     def decode(self, z: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
