@@ -94,12 +94,11 @@ def video_observation(ds, i: int):
     obs = ds.observation(i)
     if not (ds.meta.get("nuisance") or {}).get("floor_offset", 0.0):
         return obs
-    from sysid_bench.estimator import Observation
+    from sysid_bench.estimator import Observation, observed_positions
     from sysid_bench.physics import BOX_WIDTH
-    from sysid_bench.tracking import track
 
-    pos = track(obs.frames, floor=0.0)
-    pos[:, 0] = np.clip(pos[:, 0], 0.0, BOX_WIDTH)
+    # the suite's own tracking path, framed on the camera's floor 0
+    pos = observed_positions(Observation(frames=obs.frames, dt=obs.dt, floor=0.0), min_seen=0)
     pos[:, 1] = np.clip(pos[:, 1], obs.floor, obs.floor + BOX_WIDTH)
     return Observation(frames=obs.frames, positions=pos, dt=obs.dt, floor=obs.floor)
 
@@ -113,10 +112,11 @@ def evaluate_lsq(ds, lengths, n: int, seed: int = 0) -> dict:
     rolls = rolls_mask(ds.states[:n], ds.floor[:n])
     long_rolls = rolls_mask(ds.states[:n], ds.floor[:n], min_frames=LONG_ROLL)
     res, secs = {}, {}
+    videos = [video_observation(ds, i) for i in range(n)]  # tracked once, cut per length
     for L in lengths:
         mu, sd, walls = [], [], []
         for i in tqdm(range(n), desc=f"lsq @ {L} frames", mininterval=30):
-            obs = video_observation(ds, i).prefix(L)
+            obs = videos[i].prefix(L)
             t0 = time.perf_counter()
             try:
                 post = est.identify(obs)
@@ -151,7 +151,7 @@ def forecast_errors(est, ds, n: int, n_obs: int, horizon: int) -> dict:
             "n": int(len(sq)), "n_obs": int(n_obs), "horizon": int(horizon)}
 
 
-def figures(out: dict, ds, est, outdir, name: str, n_examples: int = 3) -> list[Path]:
+def figures(out: dict, ds, fest, outdir, name: str, n_examples: int = 3) -> list[Path]:
     """PNG figures of an evaluation: error against frames seen, forecast examples, frames.
 
     Parameters
@@ -160,7 +160,8 @@ def figures(out: dict, ds, est, outdir, name: str, n_examples: int = 3) -> list[
         The evaluation's result (``main``'s JSON).
     ds : Dataset
         The evaluated videos.
-    est : Vid2Param
+    fest : Vid2Param
+        The estimator whose forecasts are drawn (with samples, see ``Vid2Param.forecast``).
     outdir : path
     name : str
         File-name prefix.
@@ -200,7 +201,6 @@ def figures(out: dict, ds, est, outdir, name: str, n_examples: int = 3) -> list[
     paths.append(save_figure(fig, outdir / f"{name}_nmse.png"))
     # 2. forecasts after n_obs frames: truth, Vid2Param mean and 90% band, lsq mean
     n_obs, horizon = 100, 50
-    fest = Vid2Param(checkpoint=est.checkpoint, device="cpu", threads=est.threads, n_samples=50)
     lsq = methods.get("lsq", seed=0)
     fig, axes = plt.subplots(2, n_examples, figsize=(4 * n_examples, 5), sharex=True)
     t = np.arange(n_obs + horizon) * ds.meta.get("dt", 0.05)
@@ -272,6 +272,8 @@ def main(argv=None) -> int:
            "vid2param": evaluate_vid2param(est, ds, a.lengths)}
     if a.lsq_n > 0:
         out["lsq"] = evaluate_lsq(ds, a.lsq_lengths, min(a.lsq_n, a.n), seed=0)
+    # forecasting needs samples: one estimator for the robustness study and the figures
+    fest = Vid2Param(checkpoint=a.checkpoint, device="cpu", threads=a.threads)
     if a.spin > 0 or a.dwell > 0:
         import methods
 
@@ -281,7 +283,6 @@ def main(argv=None) -> int:
         if a.lsq_n > 0:
             rob["lsq"] = evaluate_lsq(pds, a.lsq_lengths, min(a.lsq_n, a.n), seed=0)
         nf = min(a.forecast_n, a.n)
-        fest = Vid2Param(checkpoint=a.checkpoint, device="cpu", threads=a.threads)
         lsq = methods.get("lsq", seed=0)
         rob["forecast"] = {
             name: {kind: forecast_errors(e, d, nf, a.forecast_from, a.horizon)
@@ -291,7 +292,7 @@ def main(argv=None) -> int:
         out["robustness"] = rob
     if a.figures:
         name = a.name or Path(str(est.checkpoint_info_["path"])).stem
-        out["figures"] = [str(q) for q in figures(out, ds, est, a.figures, name)]
+        out["figures"] = [str(q) for q in figures(out, ds, fest, a.figures, name)]
     text = json.dumps(out, indent=1)
     print(text)
     if a.json:
