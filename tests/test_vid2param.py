@@ -551,3 +551,51 @@ def test_fine_tune_records_its_starting_checkpoint_even_if_replaced(tiny_ckpt, t
                       .with_suffix(".json").read_text())
     assert card["init_checkpoint"]["sha256"] == sha
     assert card["train"]["init"] == str(start)
+
+
+def test_roll_features_read_the_deceleration_of_a_rolling_track_and_ignore_flight():
+    """The rolling statistic, fed exact positions, reads r; a bouncing ball adds nothing."""
+    from methods.vid2param.model import Vid2ParamNet
+    from sysid_bench.physics import simulate
+
+    cfg = V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8), diff_features=True,
+                    roll_features=True)
+    net = Vid2ParamNet(cfg)
+    theta = np.array([[0.8, -9.8, 0.1, 0.1], [0.8, -9.8, 0.1, 0.6], [0.9, -9.8, 0.1, 0.6]])
+    s0 = np.array([[1.0, 0.0, 3.0, 0.0], [2.0, 0.0, -4.0, 0.0], [1.0, 5.0, 1.0, 0.0]])
+    # two roll from the start (the second into the left wall at ~0.5 s); one falls and bounces
+    states = simulate(theta, s0, n_frames=40)
+    assert (states[:2, :, 1] == 0).all() and (states[2, :, 1] > 0.02).sum() > 35
+    z = torch.zeros(3, 40, cfg.latent)
+    z[..., 0] = torch.as_tensor(states[..., 0] / 10.0)
+    z[..., 1] = torch.as_tensor(states[..., 1] / 10.0)
+    state = net.init_state(3)
+    for t in range(40):
+        state = net.step_rnn(z[:, t], state)
+    low, count, dec_sum = state[-1][5].T.numpy()
+    # frames 2..39 roll (the first two give no second difference); the two frames whose
+    # second difference spans the wall bounce are left out
+    np.testing.assert_array_equal(count, [38, 36, 0])
+    np.testing.assert_allclose(dec_sum[:2] / count[:2], [0.1, 0.6], atol=2e-3)
+    assert not state[-1][5].requires_grad
+
+
+def test_load_matching_widens_the_lstm_input_and_keeps_the_function(tiny_ckpt, tiny_data):
+    """Fine-tuning with new LSTM inputs starts from exactly the old network's answers."""
+    from methods.vid2param.model import Vid2ParamNet
+    from methods.vid2param.train import load_matching
+
+    ck = load_checkpoint(tiny_ckpt)
+    old = Vid2ParamNet(V2PConfig.from_dict(ck["config"]))
+    old.load_state_dict(ck["state_dict"])
+    net = Vid2ParamNet(V2PConfig.from_dict({**ck["config"], "diff_features": True,
+                                            "roll_features": True}))
+    loaded, _ = load_matching(net, tiny_ckpt)
+    assert {"cells.0.weight_ih", "enc.0.weight", "prior.0.weight"} <= set(loaded)
+    # the LSTM gains the 4 difference inputs, the heads the 2 rolling features
+    assert net.cells[0].weight_ih.shape[1] == old.cells[0].weight_ih.shape[1] + 4
+    assert net.enc[0].weight.shape[1] == old.enc[0].weight.shape[1] + 2
+    frames = torch.as_tensor(np.asarray(tiny_data.frames[:2]))
+    mu_new, _, _ = net.filter(frames, sample=False)
+    mu_old, _, _ = old.filter(frames, sample=False)
+    np.testing.assert_allclose(mu_new.numpy(), mu_old.numpy(), atol=1e-6)

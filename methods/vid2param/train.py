@@ -175,6 +175,10 @@ def init_record(path) -> dict:
     }
 
 
+#: First-layer weights whose new inputs, if any, are appended at the end of the old ones.
+_WIDENED = ("cells.0.weight_ih", "enc.0.weight", "prior.0.weight", "dec_in.0.weight")
+
+
 def load_matching(net: Vid2ParamNet, path) -> tuple[list[str], list[str]]:
     """Copy into ``net`` every tensor of the checkpoint at ``path`` whose name and shape match.
 
@@ -182,7 +186,9 @@ def load_matching(net: Vid2ParamNet, path) -> tuple[list[str], list[str]]:
     size): what the two networks share starts trained, the rest starts fresh. The keypoint
     map ``kp_pos`` is never copied: it is set from ``net``'s own view geometry. Going from an
     absolute to a residual prior (``prior_residual``), the prior's x, y means start at a step
-    of 0.
+    of 0. A first-layer weight whose input has grown by inputs appended at its end (the LSTM's
+    with ``diff_features``, the heads' with ``roll_features``) gets the old columns and zeros
+    for the new ones, so the fine-tune starts from exactly the old network's function.
 
     Returns
     -------
@@ -197,6 +203,12 @@ def load_matching(net: Vid2ParamNet, path) -> tuple[list[str], list[str]]:
         other = src.get(name)
         if other is not None and other.shape == val.shape and not name.startswith("kp_pos."):
             own[name] = other.to(val.dtype)
+            loaded.append(name)
+        elif (other is not None and name in _WIDENED and other.ndim == 2
+              and other.shape[0] == val.shape[0] and other.shape[1] < val.shape[1]):
+            w = torch.zeros_like(val)
+            w[:, : other.shape[1]] = other.to(val.dtype)
+            own[name] = w
             loaded.append(name)
         else:
             skipped.append(name)
@@ -649,6 +661,8 @@ def _parse(argv=None):
                    help="the prior's x, y means are a step from the last position (see V2PConfig)")
     p.add_argument("--diff-features", action="store_true",
                    help="feed the LSTM differences of the fed-back positions (see V2PConfig)")
+    p.add_argument("--roll-features", action="store_true",
+                   help="feed the LSTM a running mean of the rolling deceleration (see V2PConfig)")
     p.add_argument("--targets", nargs="+", default=list(mc.targets))
     return p.parse_args(argv)
 
@@ -670,7 +684,8 @@ def main(argv=None) -> int:
                    recur_noise=a.recur_noise, pixel_skip=a.pixel_skip,
                    diff_features=a.diff_features, keypoints=a.keypoints, aux_grad=a.aux_grad,
                    read_cell=a.read_cell, kp_threshold=a.kp_threshold,
-                   kp_visibility=a.kp_visibility, prior_residual=a.prior_residual, pool=a.pool)
+                   kp_visibility=a.kp_visibility, prior_residual=a.prior_residual, pool=a.pool,
+                   roll_features=a.roll_features)
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
                     max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
     if info["done"] and a.export:
