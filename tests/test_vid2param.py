@@ -578,6 +578,23 @@ def test_roll_features_read_the_deceleration_of_a_rolling_track_and_ignore_fligh
     np.testing.assert_array_equal(count, [38, 36, 0])
     np.testing.assert_allclose(dec_sum[:2] / count[:2], [0.1, 0.6], atol=2e-3)
     assert not state[-1][5].requires_grad
+    # the encoder's r: the network's own where nothing rolled, blended towards the statistic
+    # (r / 0.7 normalised) by the evidence n / (n + 10) where it did
+    from methods.vid2param.model import _gauss
+
+    h = net.read(state)
+    fx = torch.zeros(3, cfg.feat)
+    with torch.no_grad():
+        mu, sd = net.enc_step(fx, h)
+        mlp_mu, mlp_sd = _gauss(net.enc(torch.cat([fx, h], -1)))
+    i = cfg.targets.index("r")
+    v = np.array([38 / 48, 36 / 46, 0.0])
+    want = (1 - v) * mlp_mu[:, i].numpy() + v * np.array([0.1, 0.6, 0.0]) / 0.7
+    np.testing.assert_allclose(mu[:, i].numpy(), want, atol=3e-3)
+    np.testing.assert_allclose(sd[:, i].numpy(), (1 - v) * mlp_sd[:, i].numpy() + v * 0.06,
+                               rtol=1e-4)
+    others = [k for k in range(cfg.latent) if k != i]
+    np.testing.assert_array_equal(mu[:, others].numpy(), mlp_mu[:, others].numpy())
 
 
 def test_load_matching_widens_the_lstm_input_and_keeps_the_function(tiny_ckpt, tiny_data):

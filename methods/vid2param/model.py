@@ -151,8 +151,13 @@ class V2PConfig:
         stays that of two velocities: this statistic of the shipped model's own fed-back
         positions reads r at nMSE 0.002 on the test videos that roll for 2 s. It is a fixed
         function of the fed-back z (no weights, gradient stopped), so the LSTM still sees z
-        only and forecasting still needs no decoding. Fed to the LSTM's input instead, 300
-        fine-tuning steps left r where it was. Needs ``diff_features``.
+        only and forecasting still needs no decoding. The encoder's r is then blended, as the
+        keypoints are by visibility, by the rolling evidence ``v = n / (n + n_half)``:
+        ``mu_r = (1 - v) mlp + v (a * mean + b)``, ``std_r = (1 - v) mlp_std + v s``, with
+        ``a``, ``b``, ``s``, ``n_half`` learned (starting at 1, 0, 0.06, 10 frames). Why not
+        let the MLP learn the mapping: fed to the LSTM's input (300 fine-tuning steps) or to
+        the heads (150 steps), the statistic left r where it was. Needs ``diff_features``
+        and ``r`` among the targets.
     """
 
     frame_size: tuple[int, int] = (28, 28)
@@ -196,8 +201,8 @@ class V2PConfig:
         self.pool = int(self.pool)
         if self.prior_residual and not self.diff_features:
             raise ValueError("prior_residual: needs diff_features (the state's last position)")
-        if self.roll_features and not self.diff_features:
-            raise ValueError("roll_features: needs diff_features (the state's last position)")
+        if self.roll_features and not (self.diff_features and "r" in self.targets):
+            raise ValueError("roll_features: needs diff_features and 'r' among targets")
         if not 0.0 <= float(self.kp_threshold) < 1.0:
             raise ValueError(f"kp_threshold: expected a float in [0, 1), got {self.kp_threshold}")
         if self.kp_visibility and not (self.keypoints and {"x", "y"} <= set(self.targets)):
@@ -326,6 +331,13 @@ class Vid2ParamNet(nn.Module):
         )
         if self.kp_pos is not None:
             self._init_kp_pos()
+        if c.roll_features:
+            # the rolling statistic's blend into the encoder's r (see V2PConfig.roll_features)
+            self._r_idx = c.targets.index("r")
+            self.roll_scale = nn.Parameter(torch.ones(()))
+            self.roll_bias = nn.Parameter(torch.zeros(()))
+            self.roll_log_std = nn.Parameter(torch.tensor(math.log(0.06)))
+            self.roll_log_half = nn.Parameter(torch.tensor(math.log(10.0)))
         # Decoder mirrors the encoder: dense to a base grid, then stride-2 transposed convs
         # (each doubles the size); the base is H, W / 2^layers rounded up and the output cropped
         # to (H, W), so sizes not divisible by 2^layers (50x100) work.
@@ -488,7 +500,20 @@ class Vid2ParamNet(nn.Module):
                       + (1 - vis) * mu * self._kp_mask)
             else:
                 mu = mu * (1 - self._kp_mask + self.kp_gate * self._kp_mask) + kp
+        if self.config.roll_features:
+            mu, std = self._blend_roll(mu, std, h[:, -2:] / ROLL_GAIN)
         return mu, std
+
+    def _blend_roll(self, mu, std, feats):
+        """Blend the rolling statistic into the r dimension by its evidence (see config);
+        ``feats`` (B, 2): the mean (normalised r) and the count feature ``n / (n + 10)``."""
+        i = self._r_idx
+        n = 10.0 * feats[:, 1:2] / (1.0 - feats[:, 1:2]).clamp(min=1e-3)
+        v = n / (n + torch.exp(self.roll_log_half))
+        r_mu = (1 - v) * mu[:, i:i + 1] + v * (self.roll_scale * feats[:, 0:1] + self.roll_bias)
+        r_sd = (1 - v) * std[:, i:i + 1] + v * torch.exp(self.roll_log_std)
+        return (torch.cat([mu[:, :i], r_mu, mu[:, i + 1:]], -1),
+                torch.cat([std[:, :i], r_sd, std[:, i + 1:]], -1))
 
     def last_position(self, state) -> torch.Tensor | None:
         """The last fed-back (x, y), (B, 2), zeros before the first frame; None unless the
