@@ -616,3 +616,19 @@ def test_load_matching_widens_the_lstm_input_and_keeps_the_function(tiny_ckpt, t
     mu_new, _, _ = net.filter(frames, sample=False)
     mu_old, _, _ = old.filter(frames, sample=False)
     np.testing.assert_allclose(mu_new.numpy(), mu_old.numpy(), atol=1e-6)
+
+
+def test_rollout_keeps_forecast_positions_inside_the_box():
+    from methods.vid2param.model import Vid2ParamNet
+
+    net = Vid2ParamNet(TINY)
+    ix, iy = TINY.targets.index("x"), TINY.targets.index("y")
+    with torch.no_grad():
+        net.prior[-1].bias[ix] = 5.0  # a prior that throws the ball out of the right wall
+        net.prior[-1].bias[iy] = -5.0  # and through the floor
+    mu, _, z = net.rollout(net.init_state(3), 10, generator=torch.Generator().manual_seed(0))
+    for t in (mu, z):
+        assert t[..., [ix, iy]].min() >= 0.0 and t[..., [ix, iy]].max() <= 1.0
+    np.testing.assert_allclose(mu[..., ix].numpy(), 1.0)
+    np.testing.assert_allclose(mu[..., iy].numpy(), 0.0)
+    assert (mu[..., 2:] != 0).any()  # the other dimensions are untouched
