@@ -161,8 +161,7 @@ class V2PConfig:
         function of the fed-back z (no weights, gradient stopped), so the LSTM still sees z
         only and forecasting still needs no decoding. The encoder's r is then blended, as the
         keypoints are by visibility, by the rolling evidence ``v = n / (n + n_half)``:
-        ``mu_r = (1 - v) mlp + v (a * mean + b)`` and ``std_r`` the two-component mixture's
-        (``N(mlp, mlp_std)`` with weight ``1 - v``, ``N(a * mean + b, s)`` with ``v``), with
+        ``mu_r = (1 - v) mlp + v (a * mean + b)``, ``std_r = (1 - v) mlp_std + v s``, with
         ``a``, ``b``, ``s``, ``n_half`` learned (starting at 1, 0, 0.06, 10 frames). Why not
         let the MLP learn the mapping: fed to the LSTM's input (300 fine-tuning steps) or to
         the heads (150 steps), the statistic left r where it was. Needs ``diff_features``
@@ -551,14 +550,8 @@ class Vid2ParamNet(nn.Module):
         i = self._r_idx
         n = 10.0 * feats[:, 1:2] / (1.0 - feats[:, 1:2]).clamp(min=1e-3)
         v = n / (n + torch.exp(self.roll_log_half))
-        m1, s1 = mu[:, i:i + 1], std[:, i:i + 1]
-        m2, s2 = self.roll_scale * feats[:, 0:1] + self.roll_bias, torch.exp(self.roll_log_std)
-        # the moments of the two-component mixture: where the network and the statistic
-        # disagree the interval widens (measured on validation videos: 90% intervals of r on
-        # rolling videos held 0.81 of the truths with a linear blend of the stds, 0.85 so,
-        # 0.31 -> 0.59 in the top sub-range, which training never sees)
-        r_mu = (1 - v) * m1 + v * m2
-        r_sd = torch.sqrt((1 - v) * s1**2 + v * s2**2 + v * (1 - v) * (m1 - m2) ** 2)
+        r_mu = (1 - v) * mu[:, i:i + 1] + v * (self.roll_scale * feats[:, 0:1] + self.roll_bias)
+        r_sd = (1 - v) * std[:, i:i + 1] + v * torch.exp(self.roll_log_std)
         return (torch.cat([mu[:, :i], r_mu, mu[:, i + 1:]], -1),
                 torch.cat([std[:, :i], r_sd, std[:, i + 1:]], -1))
 
