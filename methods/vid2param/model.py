@@ -43,7 +43,6 @@ ROLL_DEC_MAX = 10.0
 #: weights start at 0 and Adam moves a weight by about the learning rate per step whatever the
 #: input's size, so the input's size sets how fast the new evidence can reach the outputs.
 ROLL_GAIN = 5.0
-_BOX = BOX_WIDTH  # m: positions are normalised by the view width (data.targets_from_arrays)
 _R_TOP = PRIOR["r"][1]  # m/s^2: top of the prior's r
 _LOG2PI = math.log(2 * math.pi)
 
@@ -338,6 +337,7 @@ class Vid2ParamNet(nn.Module):
             place = torch.zeros(2, c.latent)
             place[0, c.targets.index("x")] = place[1, c.targets.index("y")] = 1.0
             self.register_buffer("_xy_place", place, persistent=False)
+            self.register_buffer("_xy_mask", place.sum(0), persistent=False)  # (Z,) 1 at x, y
         self.kp = None
         if c.keypoints:
             # channel 0 is the frame itself (fixed); channels 1.. are learned 3x3 convs of it
@@ -350,7 +350,6 @@ class Vid2ParamNet(nn.Module):
             self.kp_pos = nn.Linear(3 * c.keypoints, 2).requires_grad_(False)
             # scale of the MLP's correction to those two means; starts at 0 (see _init_kp_pos)
             self.kp_gate = nn.Parameter(torch.zeros(()))
-            self.register_buffer("_kp_mask", self._xy_place.sum(0), persistent=False)  # 1 at x, y
         n_fx = c.feat + 3 * c.keypoints
         self.phi_z = nn.Sequential(nn.Linear(c.latent, c.feat), nn.ReLU())
         n_in = c.feat + (4 if c.diff_features else 0)
@@ -517,14 +516,14 @@ class Vid2ParamNet(nn.Module):
         ``V2PConfig.roll_features``). ``pos`` (B, 2) normalised; ``vel``, ``vel_prev`` (B, 2)
         metres per frame; ``n`` (B, 1) frames seen before this one (capped at 2)."""
         pos, vel, vel_prev = pos.detach(), vel.detach(), vel_prev.detach()
-        low = torch.where(pos[:, 1:2] * _BOX < ROLL_HEIGHT, stats[:, 0:1] + 1.0,
+        low = torch.where(pos[:, 1:2] * BOX_WIDTH < ROLL_HEIGHT, stats[:, 0:1] + 1.0,
                           torch.zeros_like(n)).clamp(max=3.0)
         vx, vxp = vel[:, 0:1], vel_prev[:, 0:1]
         dec = -torch.sign(vx) * (vx - vxp) / DT**2
-        x = pos[:, 0:1] * _BOX
+        x = pos[:, 0:1] * BOX_WIDTH  # positions are normalised by the view width
         ok = ((low >= 3) & (n >= 2) & (vx.abs() > 0.002) & (vxp.abs() > 0.002)
               & (vx * vxp > 0) & (dec.abs() < ROLL_DEC_MAX)
-              & (x > ROLL_WALL) & (x < _BOX - ROLL_WALL)).to(pos.dtype)
+              & (x > ROLL_WALL) & (x < BOX_WIDTH - ROLL_WALL)).to(pos.dtype)
         return torch.cat([low, stats[:, 1:2] + ok, stats[:, 2:3] + ok * dec], -1)
 
     def enc_step(self, fx: torch.Tensor, h: torch.Tensor):
@@ -535,11 +534,11 @@ class Vid2ParamNet(nn.Module):
             kp = self.kp_pos(fx[:, -3 * nk:]) @ self._xy_place
             if self.config.kp_visibility:
                 vis = self.visibility(fx)
-                mu = (mu * (1 - self._kp_mask)
-                      + vis * (kp + self.kp_gate * mu * self._kp_mask)
-                      + (1 - vis) * mu * self._kp_mask)
+                mu = (mu * (1 - self._xy_mask)
+                      + vis * (kp + self.kp_gate * mu * self._xy_mask)
+                      + (1 - vis) * mu * self._xy_mask)
             else:
-                mu = mu * (1 - self._kp_mask + self.kp_gate * self._kp_mask) + kp
+                mu = mu * (1 - self._xy_mask + self.kp_gate * self._xy_mask) + kp
         if self.config.roll_features:
             mu, std = self._blend_roll(mu, std, h[:, -2:] / ROLL_GAIN)
         return mu, std
@@ -548,8 +547,9 @@ class Vid2ParamNet(nn.Module):
         """Blend the rolling statistic into the r dimension by its evidence (see config);
         ``feats`` (B, 2): the mean (normalised r) and the count feature ``n / (n + 10)``."""
         i = self._r_idx
-        n = 10.0 * feats[:, 1:2] / (1.0 - feats[:, 1:2]).clamp(min=1e-3)
-        v = n / (n + torch.exp(self.roll_log_half))
+        # v = n / (n + n_half) written with the count feature c = n / (n + 10)
+        c = feats[:, 1:2]
+        v = 10.0 * c / (10.0 * c + torch.exp(self.roll_log_half) * (1.0 - c))
         r_mu = (1 - v) * mu[:, i:i + 1] + v * (self.roll_scale * feats[:, 0:1] + self.roll_bias)
         r_sd = (1 - v) * std[:, i:i + 1] + v * torch.exp(self.roll_log_std)
         return (torch.cat([mu[:, :i], r_mu, mu[:, i + 1:]], -1),
@@ -745,10 +745,9 @@ class Vid2ParamNet(nn.Module):
 
     def _in_box(self, z: torch.Tensor) -> torch.Tensor:
         """z (B, Z) with its position dimensions, if any, clamped to the box ([0, 1] each)."""
-        if not hasattr(self, "_xy_place"):
+        if not hasattr(self, "_xy_mask"):
             return z
-        mask = self._xy_place.sum(0).bool()
-        return torch.where(mask, z.clamp(0.0, 1.0), z)
+        return torch.where(self._xy_mask.bool(), z.clamp(0.0, 1.0), z)
 
     @torch.no_grad()
     def rollout(self, state, horizon: int, generator: torch.Generator | None = None):

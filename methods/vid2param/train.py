@@ -670,7 +670,8 @@ def _parse(argv=None):
     p.add_argument("--diff-features", action="store_true",
                    help="feed the LSTM differences of the fed-back positions (see V2PConfig)")
     p.add_argument("--roll-features", action="store_true",
-                   help="feed the LSTM a running mean of the rolling deceleration (see V2PConfig)")
+                   help="keep a running mean of the rolling deceleration in the state, blended "
+                        "into r by its evidence (see V2PConfig)")
     p.add_argument("--targets", nargs="+", default=list(mc.targets))
     return p.parse_args(argv)
 
