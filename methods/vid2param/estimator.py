@@ -32,6 +32,12 @@ SHIPPED_CHECKPOINTS = {
 #: The shipped 28x28 checkpoint (``checkpoint=None``).
 SHIPPED_CHECKPOINT = SHIPPED_CHECKPOINTS["28x28"]
 
+#: Forecast kinds (the ``forecast`` option).
+FORECASTS = {
+    "latent": "unroll the prior in latent space (physics step of the latent state + residual)",
+    "physics": "simulate posterior samples of state and parameters with sysid_bench.physics",
+}
+
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
 _SPAN = _HI - _LO
@@ -110,6 +116,11 @@ class Vid2Param(Estimator):
     sample_state : bool
         Feed a sampled z_t to the LSTM at each frame, as in training (True), or the encoder
         mean (False: deterministic filtering).
+    forecast : {"latent", "physics"}
+        How ``forecast`` predicts (see ``FORECASTS``): ``"latent"`` unrolls the network's
+        prior in latent space (the paper's forecast; no frame is decoded), ``"physics"`` draws
+        states and parameters from the filtered posterior and simulates them with
+        ``sysid_bench.physics``.
     """
 
     name = "vid2param"
@@ -131,6 +142,7 @@ class Vid2Param(Estimator):
         fit_lr: float = 1e-4,
         warm_start: bool = True,
         sample_state: bool = True,
+        forecast: str = "latent",
     ):
         self.checkpoint = checkpoint
         self.device = device
@@ -143,6 +155,24 @@ class Vid2Param(Estimator):
         self.fit_lr = fit_lr
         self.warm_start = warm_start
         self.sample_state = sample_state
+        if forecast not in FORECASTS:
+            raise ValueError(
+                f"forecast: expected one of {sorted(FORECASTS)}, got {forecast!r}"
+            )
+        self.forecast_kind = forecast
+
+    # ``forecast`` names a method too: the hyperparameter is stored as ``forecast_kind``
+    def get_params(self) -> dict:
+        params = {k: getattr(self, k) for k in self._param_names() if k != "forecast"}
+        return {**params, "forecast": self.forecast_kind}
+
+    def set_params(self, **params) -> Vid2Param:
+        if "forecast" in params:
+            kind = params.pop("forecast")
+            if kind not in FORECASTS:
+                raise ValueError(f"forecast: expected one of {sorted(FORECASTS)}, got {kind!r}")
+            self.forecast_kind = kind
+        return super().set_params(**params)
 
     # -- loading --------------------------------------------------------------------------------
     def _checkpoint_path(self) -> Path:
@@ -361,29 +391,89 @@ class Vid2Param(Estimator):
                 for i in range(n)]
 
     def forecast(self, obs: Observation, horizon: int) -> Forecast:
-        """Positions of the ``horizon`` frames after ``obs``, unrolled in latent space.
+        """Positions of the ``horizon`` frames after ``obs`` (metres), as ``forecast`` says.
 
-        ``n_samples`` particles filter the video (z sampled at each frame), then the prior is
-        unrolled, z sampled and fed back at each step; positions are read from the latent
-        position dimensions (``x = 10 z_x``, ``y = floor + 10 z_y``, floor 0 when unknown).
+        ``"latent"`` unrolls the network's prior (see :meth:`_forecast_latent`); ``"physics"``
+        simulates samples of the filtered posterior (see :meth:`_forecast_physics`). Positions
+        are ``x = 10 z_x``, ``y = floor + 10 z_y`` (floor 0 when unknown).
 
         Returns
         -------
         Forecast
-            mean, std (horizon, 2): the moments of the particles' Gaussian mixture (each
-            particle's prior mean and std at each step); samples (n_samples, horizon, 2), one
-            z drawn per particle and step; metres.
+            mean, std (horizon, 2) and samples (n_samples, horizon, 2), metres.
         """
         frames = self._frames_of(obs)
         horizon = check_positive_int(horizon, "horizon")
+        self._ensure_net()
+        if "x" not in self.config_.targets or "y" not in self.config_.targets:
+            raise NotImplementedError("this vid2param checkpoint carries no position dimensions.")
+        shift = np.array([0.0, 0.0 if obs.floor is None else float(obs.floor)])
+        t0 = time.perf_counter()
+        if self.forecast_kind == "physics":
+            mean, std, samples, extras = self._forecast_physics(frames, horizon, float(obs.dt))
+        else:
+            mean, std, samples, extras = self._forecast_latent(frames, horizon)
+        extras = {"wall_s": time.perf_counter() - t0, "n_simulations": 0,
+                  "forecast": self.forecast_kind, **extras}
+        return Forecast(mean=shift + mean, std=std, samples=shift + samples, extras=extras)
+
+    def filtered_track(self, frames) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The network's own track and its parameter posterior after the last frame.
+
+        Parameters
+        ----------
+        frames : ndarray, shape (T, H, W)
+
+        Returns
+        -------
+        positions : ndarray, shape (T, 2)
+            The encoder's mean position after each frame, floor-relative metres.
+        theta_mean, theta_std : ndarray, shape (4,)
+            Calibrated posterior of ``(e, g, d, r)`` after the last frame, physical units.
+        """
+        fr = _check_frames_array(frames, self.frame_size, "frames", 3)
         net = self._ensure_net()
         names = self.config_.targets
-        if "x" not in names or "y" not in names:
-            raise NotImplementedError("this vid2param checkpoint carries no position dimensions.")
+        with torch.inference_mode():
+            mu, sd, _ = net.filter(torch.as_tensor(fr[None], device=self.device_), sample=False)
+        mu = mu[0].cpu().numpy().astype(np.float64)
+        sd = sd[0].cpu().numpy().astype(np.float64)
+        idx = self._index()
+        pos = BOX_WIDTH * mu[:, [names.index("x"), names.index("y")]]
+        theta_mean = _LO + _SPAN * np.clip(mu[-1, idx], 0.0, 1.0)
+        theta_std = _SPAN * sd[-1, idx] * self.std_scale_
+        return pos, theta_mean, theta_std
+
+    def _forecast_physics(self, frames, horizon: int, dt: float):
+        """Simulate ``n_samples`` draws of the filtered posterior through the horizon.
+
+        The parameters come from the encoder's calibrated posterior after the last frame; the
+        state from a fit of one simulated trajectory (parameters held) to the network's own
+        positions of the last ``rollout.WINDOW`` frames, with its Laplace covariance
+        (``methods.vid2param.rollout``). Each draw is simulated by ``sysid_bench.physics``.
+        """
+        from methods.vid2param.rollout import fit_state, sample_trajectories
+
+        pos, th_mu, th_sd = self.filtered_track(frames)
+        fit = fit_state(pos, th_mu, th_sd, dt=dt)
+        S = max(2, int(self.n_samples))
+        samples = sample_trajectories(fit, len(pos), horizon, S, self._rng(11), dt)
+        extras = {"n_simulations": S, "state_fit_sigma_m": fit.sigma}
+        return samples.mean(0), samples.std(0), samples, extras
+
+    def _forecast_latent(self, frames, horizon: int):
+        """Unroll the prior in latent space from ``n_samples`` filtered particles.
+
+        The particles filter the video (z sampled at each frame when the recurrence is
+        stochastic), then the prior is unrolled, z sampled and fed back at each step; positions
+        are read from the latent position dimensions: no frame is decoded. mean and std are the
+        exact moments of the particles' Gaussian mixture.
+        """
+        net = self._ensure_net()
+        names = self.config_.targets
         ix, iy = names.index("x"), names.index("y")
         S = max(1, int(self.n_samples))
         gen = self._generator(7)
-        t0 = time.perf_counter()
         with torch.inference_mode():
             fr = torch.as_tensor(frames[None], device=self.device_)
             stochastic = bool(self.sample_state) and self.config_.recur_noise > 0
@@ -394,17 +484,10 @@ class Vid2Param(Estimator):
                 state = [tuple(t.expand(S, -1).contiguous() for t in layer) for layer in state]
             mu, sd, z = (a.cpu().numpy().astype(np.float64)
                          for a in net.rollout(state, horizon, generator=gen))
-        floor = 0.0 if obs.floor is None else float(obs.floor)
-        scale = np.array([BOX_WIDTH, BOX_WIDTH])
-        shift = np.array([0.0, floor])
-        samples = shift + scale * z[..., [ix, iy]]
-        # moments of the particles' Gaussian mixture, exact rather than from the samples
+        samples = BOX_WIDTH * z[..., [ix, iy]]
         m = mu[..., [ix, iy]]
-        mean = m.mean(0)
         var = (sd[..., [ix, iy]] ** 2).mean(0) + m.var(0)
-        wall = time.perf_counter() - t0
-        return Forecast(mean=shift + scale * mean, std=scale * np.sqrt(var), samples=samples,
-                        extras={"wall_s": wall, "n_simulations": 0, "particles": S})
+        return BOX_WIDTH * m.mean(0), BOX_WIDTH * np.sqrt(var), samples, {"particles": S}
 
     def stream(self) -> Vid2ParamStream:
         """A streaming session: ``push`` one frame at a time, constant cost per frame."""

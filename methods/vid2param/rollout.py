@@ -1,0 +1,244 @@
+"""The physical state behind Vid2Param's track, and forecasts by simulating it.
+
+Vid2Param's latent space carries positions and parameters but no velocity. Both forecasts
+(``forecast="physics"`` and the latent rollout's physics prior) need the ball's full state
+``[x, y, vx, vy]`` at the last observed frame. It is a fixed function of what the network
+already has -- its own filtered positions of the last ``window`` frames and its parameter
+estimate -- found by fitting one simulated trajectory of ``sysid_bench.physics`` to those
+positions (Levenberg-Marquardt on the state at the window's start, parameters held). Bounces and
+walls inside the window are simulated, not cut out, so the fit uses every frame.
+
+Positions here are floor-relative metres (``floor = 0``): the latent space's convention.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from sysid_bench.physics import BOX_WIDTH, DT, PARAMS, PRIOR, simulate
+
+__all__ = ["StateFit", "WINDOW", "fit_state", "sample_trajectories"]
+
+_LO = np.array([PRIOR[p][0] for p in PARAMS])
+_HI = np.array([PRIOR[p][1] for p in PARAMS])
+#: Finite-difference steps of the Jacobian (m, m, m/s, m/s).
+_EPS = np.array([1e-4, 1e-4, 1e-4, 1e-4])
+#: Smallest position noise (m) assumed for the state's covariance: a perfect fit of a short
+#: window would otherwise claim a certainty the keypoints (~5 mm on 28x28) do not have.
+_MIN_SIGMA = 0.004
+_Y_MIN = 1e-9  # the simulator wants the ball on or above the floor
+#: Frames fitted: 1.5 s holds a bounce or a stretch of rolling at any launch speed.
+WINDOW = 30
+
+
+@dataclass(frozen=True)
+class StateFit:
+    """The state fitted to a window of positions.
+
+    Attributes
+    ----------
+    start : int
+        Frame index of the window's first frame.
+    state0 : ndarray, shape (4,)
+        ``[x, y, vx, vy]`` at frame ``start`` (floor-relative metres, m/s).
+    theta : ndarray, shape (4,)
+        ``(e, g, d, r)`` at the fit (physical units).
+    cov : ndarray, shape (8, 8)
+        Covariance of ``[state0, theta]`` (Laplace approximation at the fit).
+    sigma : float
+        RMS residual of the fit (m), at least ``_MIN_SIGMA``.
+    n_used : int
+        Positions fitted (visible frames of the window).
+    """
+
+    start: int
+    state0: np.ndarray
+    theta: np.ndarray
+    cov: np.ndarray
+    sigma: float
+    n_used: int
+
+
+def _clamp(v: np.ndarray) -> np.ndarray:
+    """State and normalised parameters (..., 8) kept where the simulator accepts them."""
+    v = v.copy()
+    v[..., 0] = np.clip(v[..., 0], 0.0, BOX_WIDTH)
+    v[..., 1] = np.clip(v[..., 1], _Y_MIN, BOX_WIDTH)
+    v[..., 4:] = np.clip(v[..., 4:], 0.0, 1.0)
+    return v
+
+
+def _theta(v: np.ndarray) -> np.ndarray:
+    return _LO + (_HI - _LO) * v[..., 4:]
+
+
+def _starts(p: np.ndarray, valid: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+    """Initial guesses (K, 8): positions and velocities from the first visible frames with the
+    network's parameters, and the same with vx or vy reversed or vy zero (a bounce, a wall or
+    rolling in those frames breaks a difference)."""
+    idx = np.flatnonzero(valid)
+    first = idx[: min(5, len(idx))]
+    t = (first - first[0]) * dt
+    x0, y0 = p[first[0]]
+    g = _LO[1] + (_HI[1] - _LO[1]) * u[1]
+    if len(first) >= 2 and t[-1] > 0:
+        vx = np.polyfit(t, p[first, 0], 1)[0]
+        # y = y0 + vy t + g t^2 / 2 with the network's g: one unknown, least squares
+        yy = p[first, 1] - y0 - 0.5 * g * t**2
+        vy = float(t @ yy / (t @ t))
+    else:
+        vx = vy = 0.0
+    base = np.concatenate([[x0, y0, vx, vy], u])
+    flips = np.ones((4, 8))
+    flips[1, 3] = -1.0
+    flips[2, 2] = -1.0
+    flips[3, 3] = 0.0
+    return _clamp(base * flips)
+
+
+def _window_start(p: np.ndarray, window: int) -> int:
+    """First frame of the fitted window: the last ``window`` frames, moved earlier (by up to
+    ``window`` more) while a floor or wall contact falls in its first four frames, where the
+    starting guess's finite differences would straddle it."""
+    T = p.shape[0]
+    start = max(0, T - window)
+    lowest = max(0, T - 2 * window)
+    while start > lowest:
+        head = p[start:start + 5]
+        head = head[np.isfinite(head).all(1)]
+        if len(head) < 3:
+            break
+        dy = np.diff(head[:, 1])
+        dx = np.diff(head[:, 0])
+        turns = (np.sign(dy[1:]) != np.sign(dy[:-1])).any() or (np.sign(dx[1:]) != np.sign(dx[:-1])).any()
+        if not turns:
+            break
+        start = max(lowest, start - 5)
+    return start
+
+
+def fit_state(positions, theta_mean, theta_std, dt: float = DT, window: int = WINDOW,
+              sigma: float | None = None, iters: int = 10) -> StateFit:
+    """MAP state and parameters given the last ``window`` positions and the network's posterior.
+
+    Minimises ``sum |sim - pos|^2 / sigma^2 + sum ((u - u_net) / sd_net)^2`` over the state at
+    the window's start and the normalised parameters ``u``: the network's posterior is the
+    prior, the window's positions the likelihood. Where the window says little about a
+    parameter (``r`` while the ball flies) the network's estimate stands; where it says much
+    (``r`` while the ball rolls: its deceleration is in every frame) the window refines it.
+
+    Parameters
+    ----------
+    positions : ndarray, shape (T, 2)
+        Floor-relative positions (m); NaN rows are unseen frames.
+    theta_mean, theta_std : ndarray, shape (4,)
+        The network's posterior (``PARAMS`` order, physical units).
+    dt : float
+        Seconds between frames.
+    window : int
+        Frames fitted (the last ``window``, or all if fewer).
+    sigma : float, optional
+        Position noise (m); default: the RMS residual of a fit with the parameters held,
+        at least ``_MIN_SIGMA``.
+    iters : int
+        Levenberg-Marquardt iterations from each of four starting guesses.
+
+    Returns
+    -------
+    StateFit
+        With fewer than three visible frames the state is the last position at rest with a
+        wide covariance and the network's parameters (a forecast from it says it knows little).
+    """
+    p = np.asarray(positions, dtype=np.float64)
+    span = _HI - _LO
+    u_net = np.clip((np.clip(np.asarray(theta_mean, float), _LO, _HI) - _LO) / span, 0, 1)
+    sd_net = np.maximum(np.asarray(theta_std, float) / span, 1e-3)
+    T = p.shape[0]
+    start = _window_start(p, int(window))
+    w = p[start:]
+    valid = np.isfinite(w).all(1)
+    n = int(valid.sum())
+    if n < 3:
+        last = w[valid][-1] if n else np.array([BOX_WIDTH / 2, BOX_WIDTH / 2])
+        v = _clamp(np.concatenate([[last[0], last[1], 0.0, 0.0], u_net]))
+        cov = np.diag(np.concatenate([[1.0, 1.0, 16.0, 16.0], sd_net**2]))
+        return StateFit(T - 1, v[:4], _theta(v), cov, 1.0, n)
+    W = T - start
+    obs = w[valid]  # (n, 2)
+    # first the state alone, parameters held at the network's (a bounce early in the window
+    # trades the incoming speed against e: fitted jointly from a poor start, e ran to its bound)
+    starts = _starts(w, valid, u_net, dt)
+    held, held_cost, _ = _lm(starts, obs, valid, W, dt, 1.0, u_net, np.full(4, 1e-9), iters)
+    if sigma is None:
+        sigma = max(_MIN_SIGMA, float(np.sqrt(held_cost / max(1, 2 * n - 4))))
+    V, cost, J = _lm(np.vstack([held, starts]), obs, valid, W, dt, sigma, u_net, sd_net, iters)
+    cov = np.linalg.pinv(J.T @ J + 1e-12 * np.eye(8))
+    # the covariance is in (state, u) coordinates: scale u's rows/columns to physical units
+    scale = np.concatenate([np.ones(4), span])
+    return StateFit(start, V[:4], _theta(V), cov * np.outer(scale, scale), float(sigma), n)
+
+
+def _lm(V, obs, valid, W, dt, sigma, u_net, sd_net, iters):
+    """Levenberg-Marquardt from each row of ``V`` (K, 8); returns the best (8,), its cost and
+    its whitened Jacobian (n * 2 + 4, 8)."""
+    K = len(V)
+    lam = np.full(K, 1e-3)
+    eps = np.concatenate([_EPS, np.full(4, 1e-4)])
+
+    def residuals(v):  # (M, 8) -> (M, n * 2 + 4), whitened
+        v = _clamp(v)
+        sim = simulate(_theta(v), v[:, :4], W, dt)
+        pos = (sim[:, valid, :2] - obs).reshape(len(v), -1) / sigma
+        return np.concatenate([pos, (v[:, 4:] - u_net) / sd_net], 1)
+
+    def jacobian(v, r0):  # (M, n*2+4, 8) by forward differences, one batched simulation
+        pert = (v[:, None, :] + np.diag(eps)[None]).reshape(-1, 8)
+        rp = residuals(pert).reshape(len(v), 8, -1)
+        return np.transpose((rp - r0[:, None, :]) / eps[None, :, None], (0, 2, 1))
+
+    r = residuals(V)
+    cost = (r**2).sum(1)
+    for _ in range(int(iters)):
+        J = jacobian(V, r)
+        JtJ = np.einsum("kni,knj->kij", J, J)
+        g = np.einsum("kni,kn->ki", J, r)
+        diag = np.diagonal(JtJ, axis1=1, axis2=2)
+        step = -np.linalg.solve(JtJ + lam[:, None, None] * (np.eye(8) * (diag[:, None, :] + 1e-9)),
+                                g[..., None])[..., 0]
+        cand = _clamp(V + step)
+        rc = residuals(cand)
+        cc = (rc**2).sum(1)
+        better = cc < cost
+        V = np.where(better[:, None], cand, V)
+        r = np.where(better[:, None], rc, r)
+        cost = np.where(better, cc, cost)
+        lam = np.where(better, lam * 0.3, lam * 10.0)
+    k = int(np.argmin(cost))
+    return V[k], float(cost[k]), jacobian(V[k:k + 1], r[k:k + 1])[0]
+
+
+def sample_trajectories(fit: StateFit, n_last: int, horizon: int, n_samples: int,
+                        rng: np.random.Generator, dt: float = DT) -> np.ndarray:
+    """Positions of the ``horizon`` frames after frame ``n_last - 1``, one row per sample.
+
+    Each sample draws the window's start state and the parameters jointly from
+    ``N([fit.state0, fit.theta], fit.cov)`` (parameters clipped to the prior) and is simulated
+    from the window's start through the horizon.
+
+    Returns
+    -------
+    ndarray, shape (n_samples, horizon, 2)
+        Floor-relative metres.
+    """
+    S = int(n_samples)
+    L = np.linalg.cholesky(fit.cov + 1e-12 * np.eye(8))
+    v = np.concatenate([fit.state0, fit.theta]) + rng.standard_normal((S, 8)) @ L.T
+    s0 = v[:, :4].copy()
+    s0[:, 0] = np.clip(s0[:, 0], 0.0, BOX_WIDTH)
+    s0[:, 1] = np.clip(s0[:, 1], _Y_MIN, BOX_WIDTH)
+    th = np.clip(v[:, 4:], _LO, _HI)
+    lead = n_last - fit.start  # frames from the window's start to the first forecast frame
+    sim = simulate(th, s0, lead + int(horizon), dt)
+    return sim[:, lead:, :2]
