@@ -20,7 +20,10 @@ from sysid_bench.physics import PARAMS, PRIOR  # noqa: E402
 
 LO = np.array([PRIOR[p][0] for p in PARAMS])
 HI = np.array([PRIOR[p][1] for p in PARAMS])
-TINY = V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8))
+#: The plain VRNN: every option of the shipped configuration (V2PConfig()) off.
+BARE = dict(diff_features=False, keypoints=0, aux_grad=1.0, read_cell=False,
+            prior_residual=False, roll_features=False, physics_prior=False)
+TINY = V2PConfig(**BARE, latent=8, hidden=16, feat=16, channels=(4, 8))
 
 needs_shipped = pytest.mark.skipif(
     not SHIPPED_CHECKPOINT.exists(), reason="shipped checkpoint not trained yet"
@@ -112,7 +115,7 @@ def test_stream_keeps_state_and_matches_identify(est, tiny_data):
 def test_stochastic_recurrence_stream_matches_identify(tiny_data, tmp_path):
     """recur_noise=1 (the paper's sampled z in the recurrence): same noise stream either way."""
     tc = TrainConfig(steps=1, batch=2, n_frames=24, val_n=0, warmup=1, min_obs=10)
-    cfg = V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8), recur_noise=1.0)
+    cfg = V2PConfig(**BARE, latent=8, hidden=16, feat=16, channels=(4, 8), recur_noise=1.0)
     train(cfg, tc, dataset=tiny_data, out=tmp_path, progress=False, device="cpu", log=lambda s: None)
     est = Vid2Param(checkpoint=export(tmp_path / "state.pt", tmp_path / "n1.pt"), device="cpu")
     obs = tiny_data.observation(3)
@@ -292,7 +295,7 @@ def test_keypoint_encoder_localises_at_initialisation(tiny_data):
     rmse_m = 10.0 * np.sqrt(((mu[..., :2].numpy() - truth) ** 2).mean())
     assert rmse_m < 0.03, rmse_m
     # without keypoints the same untrained network knows nothing of the position
-    net0 = Vid2ParamNet(V2PConfig())
+    net0 = Vid2ParamNet(V2PConfig(**BARE))
     mu0, _, _ = net0.filter(torch.as_tensor(np.asarray(tiny_data.frames)), sample=False)
     assert 10.0 * np.sqrt(((mu0[..., :2].numpy() - truth) ** 2).mean()) > 1.0
 
@@ -354,7 +357,8 @@ def test_shipped_style_options_stream_identify_forecast_agree(tiny_data, tmp_pat
 CAMERA_NUISANCE = {"blur": 0.5, "occlusion": 0.1, "drop": 0.1, "noise": 8.0, "floor_offset": 1.0}
 CAMERA_TINY = dict(frame_size=(20, 40), latent=8, hidden=16, feat=16, channels=(4, 8),
                    keypoints=2, kp_threshold=0.2, kp_visibility=True, pool=2,
-                   diff_features=True, read_cell=True, aux_grad=0.1, prior_residual=True)
+                   diff_features=True, read_cell=True, aux_grad=0.1, prior_residual=True,
+                   roll_features=False, physics_prior=False)
 
 
 @pytest.fixture(scope="module")
@@ -565,8 +569,8 @@ def test_roll_features_read_the_deceleration_of_a_rolling_track_and_ignore_fligh
     from methods.vid2param.model import Vid2ParamNet
     from sysid_bench.physics import simulate
 
-    cfg = V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8), diff_features=True,
-                    roll_features=True)
+    cfg = V2PConfig(**{**BARE, "diff_features": True, "roll_features": True}, latent=8,
+                    hidden=16, feat=16, channels=(4, 8))
     net = Vid2ParamNet(cfg)
     theta = np.array([[0.8, -9.8, 0.1, 0.1], [0.8, -9.8, 0.1, 0.6], [0.9, -9.8, 0.1, 0.6]])
     s0 = np.array([[1.0, 0.0, 3.0, 0.0], [2.0, 0.0, -4.0, 0.0], [1.0, 5.0, 1.0, 0.0]])

@@ -6,10 +6,13 @@ imports torch.
 """
 
 from methods.vid2param.estimator import (
+    FORECASTS,
     SHIPPED_CHECKPOINT,
     SHIPPED_CHECKPOINTS,
     Vid2Param,
     Vid2ParamStream,
 )
+from methods.vid2param.model import PRESETS, V2PConfig
 
-__all__ = ["Vid2Param", "Vid2ParamStream", "SHIPPED_CHECKPOINT", "SHIPPED_CHECKPOINTS"]
+__all__ = ["Vid2Param", "Vid2ParamStream", "V2PConfig", "PRESETS", "FORECASTS",
+           "SHIPPED_CHECKPOINT", "SHIPPED_CHECKPOINTS"]

@@ -412,7 +412,7 @@ class Vid2Param(Estimator):
         if self.forecast_kind == "physics":
             mean, std, samples, extras = self._forecast_physics(frames, horizon, float(obs.dt))
         else:
-            mean, std, samples, extras = self._forecast_latent(frames, horizon)
+            mean, std, samples, extras = self._forecast_latent(frames, horizon, float(obs.dt))
         extras = {"wall_s": time.perf_counter() - t0, "n_simulations": 0,
                   "forecast": self.forecast_kind, **extras}
         return Forecast(mean=shift + mean, std=std, samples=shift + samples, extras=extras)
@@ -432,62 +432,83 @@ class Vid2Param(Estimator):
             Calibrated posterior of ``(e, g, d, r)`` after the last frame, physical units.
         """
         fr = _check_frames_array(frames, self.frame_size, "frames", 3)
+        return self._track(fr)[:3]
+
+    def _track(self, frames):
+        """``filtered_track`` of checked frames, plus the recurrent state after the last."""
         net = self._ensure_net()
         names = self.config_.targets
         with torch.inference_mode():
-            mu, sd, _ = net.filter(torch.as_tensor(fr[None], device=self.device_), sample=False)
+            mu, sd, state = net.filter(torch.as_tensor(frames[None], device=self.device_),
+                                       sample=False)
         mu = mu[0].cpu().numpy().astype(np.float64)
         sd = sd[0].cpu().numpy().astype(np.float64)
         idx = self._index()
         pos = BOX_WIDTH * mu[:, [names.index("x"), names.index("y")]]
         theta_mean = _LO + _SPAN * np.clip(mu[-1, idx], 0.0, 1.0)
         theta_std = _SPAN * sd[-1, idx] * self.std_scale_
-        return pos, theta_mean, theta_std
+        return pos, theta_mean, theta_std, state
+
+    def _posterior_draws(self, frames, horizon: int, dt: float):
+        """Filter, fit the physical state (``rollout.fit_state``) and simulate ``n_samples``
+        joint draws of state and parameters from the window's start through ``horizon``
+        frames after the last. Returns the states (S, horizon + 1, 4) from the last observed
+        frame on, the draws' parameters (S, 4), the fit and the recurrent state."""
+        from methods.vid2param.rollout import fit_state, sample_trajectories
+
+        pos, th_mu, th_sd, state = self._track(frames)
+        fit = fit_state(pos, th_mu, th_sd, dt=dt)
+        S = max(2, int(self.n_samples))
+        states, theta = sample_trajectories(fit, len(pos), horizon, S, self._rng(11), dt)
+        return states, theta, fit, state
 
     def _forecast_physics(self, frames, horizon: int, dt: float):
         """Simulate ``n_samples`` draws of the filtered posterior through the horizon.
 
-        The parameters come from the encoder's calibrated posterior after the last frame; the
-        state from a fit of one simulated trajectory (parameters held) to the network's own
-        positions of the last ``rollout.WINDOW`` frames, with its Laplace covariance
-        (``methods.vid2param.rollout``). Each draw is simulated by ``sysid_bench.physics``.
+        The state and parameters are the MAP of the network's posterior (the prior) and its
+        own positions of the last ``rollout.WINDOW`` frames (the likelihood), with their
+        Laplace covariance (``methods.vid2param.rollout``); each draw is simulated by
+        ``sysid_bench.physics``.
         """
-        from methods.vid2param.rollout import fit_state, sample_trajectories
-
-        pos, th_mu, th_sd = self.filtered_track(frames)
-        fit = fit_state(pos, th_mu, th_sd, dt=dt)
-        S = max(2, int(self.n_samples))
-        samples = sample_trajectories(fit, len(pos), horizon, S, self._rng(11), dt)
-        extras = {"n_simulations": S, "state_fit_sigma_m": fit.sigma}
+        states, _, fit, _ = self._posterior_draws(frames, horizon, dt)
+        samples = states[:, 1:, :2]
+        extras = {"n_simulations": len(samples), "state_fit_sigma_m": fit.sigma}
         return samples.mean(0), samples.std(0), samples, extras
 
-    def _forecast_latent(self, frames, horizon: int):
-        """Unroll the prior in latent space from ``n_samples`` filtered particles.
+    def _forecast_latent(self, frames, horizon: int, dt: float):
+        """Unroll the prior in latent space from ``n_samples`` particles; no frame is decoded.
 
-        The particles filter the video (z sampled at each frame when the recurrence is
-        stochastic), then the prior is unrolled, z sampled and fed back at each step; positions
-        are read from the latent position dimensions: no frame is decoded. mean and std are the
+        With a physics prior (``V2PConfig.physics_prior``) the particles start from joint
+        draws of the filtered state and parameters (as ``"physics"`` does) and the prior --
+        one frame of physics plus the learned process noise -- is unrolled. Without one (older checkpoints) the
+        learned prior is unrolled from the filtered recurrent state. mean and std are the
         exact moments of the particles' Gaussian mixture.
         """
         net = self._ensure_net()
-        names = self.config_.targets
-        ix, iy = names.index("x"), names.index("y")
-        S = max(1, int(self.n_samples))
+        S = max(2, int(self.n_samples))
         gen = self._generator(7)
         with torch.inference_mode():
-            fr = torch.as_tensor(frames[None], device=self.device_)
-            stochastic = bool(self.sample_state) and self.config_.recur_noise > 0
-            # a deterministic recurrence gives identical particles: filter once, then copy
-            _, _, state = net.filter(fr, particles=S if stochastic else 1, generator=gen,
-                                     sample=stochastic)
-            if not stochastic:
-                state = [tuple(t.expand(S, -1).contiguous() for t in layer) for layer in state]
-            mu, sd, z = (a.cpu().numpy().astype(np.float64)
-                         for a in net.rollout(state, horizon, generator=gen))
-        samples = BOX_WIDTH * z[..., [ix, iy]]
-        m = mu[..., [ix, iy]]
-        var = (sd[..., [ix, iy]] ** 2).mean(0) + m.var(0)
-        return BOX_WIDTH * m.mean(0), BOX_WIDTH * np.sqrt(var), samples, {"particles": S}
+            if net.phys_prior is not None:
+                states, theta, _, _ = self._posterior_draws(frames, 0, dt)
+                as_t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=self.device_)  # noqa: E731
+                mu, sd, z = (a.cpu().numpy().astype(np.float64) for a in net.rollout_physics(
+                    as_t(states[:, 0]), as_t(theta), horizon, dt=dt, generator=gen))
+                m, sd, samples = mu[..., :2], sd[..., :2], z[..., :2]
+            else:
+                names = self.config_.targets
+                xy = [names.index("x"), names.index("y")]
+                fr = torch.as_tensor(frames[None], device=self.device_)
+                stochastic = bool(self.sample_state) and self.config_.recur_noise > 0
+                # a deterministic recurrence gives identical particles: filter once, then copy
+                _, _, state = net.filter(fr, particles=S if stochastic else 1, generator=gen,
+                                         sample=stochastic)
+                if not stochastic:
+                    state = [tuple(t.expand(S, -1).contiguous() for t in layer) for layer in state]
+                mu, sd, z = (a.cpu().numpy().astype(np.float64)
+                             for a in net.rollout(state, horizon, generator=gen))
+                m, sd, samples = (BOX_WIDTH * a[..., xy] for a in (mu, sd, z))
+        var = (sd**2).mean(0) + m.var(0)
+        return m.mean(0), np.sqrt(var), samples, {"particles": S}
 
     def stream(self) -> Vid2ParamStream:
         """A streaming session: ``push`` one frame at a time, constant cost per frame."""

@@ -19,9 +19,10 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from methods.vid2param.prior import PhysicsPrior
 from sysid_bench.physics import BOX_WIDTH, DT, PRIOR
 
-__all__ = ["V2PConfig", "Vid2ParamNet", "TARGETS"]
+__all__ = ["V2PConfig", "Vid2ParamNet", "TARGETS", "PRESETS", "LEGACY_DEFAULTS"]
 
 #: Supervised quantities the latent dimensions can carry, in this order when present.
 TARGETS = ("x", "y", "e", "g", "d", "r", "vx", "vy")
@@ -180,15 +181,16 @@ class V2PConfig:
     gamma_prior: float = 10.0
     recur_noise: float = 0.0
     pixel_skip: bool = False
-    diff_features: bool = False
-    keypoints: int = 0
+    diff_features: bool = True
+    keypoints: int = 4
     kp_threshold: float = 0.0
     kp_visibility: bool = False
-    aux_grad: float = 1.0
-    read_cell: bool = False
-    prior_residual: bool = False
+    aux_grad: float = 0.1
+    read_cell: bool = True
+    prior_residual: bool = True
     pool: int = 1
-    roll_features: bool = False
+    roll_features: bool = True
+    physics_prior: bool = True
 
     def __post_init__(self) -> None:
         self.frame_size = tuple(int(v) for v in self.frame_size)
@@ -228,11 +230,43 @@ class V2PConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> V2PConfig:
+        """The config stored in a checkpoint.
+
+        Every field must be present: a checkpoint never silently takes today's defaults
+        (they are the shipped model's, not what an older run used). The one exception is a
+        field added after checkpoints were written, which takes the value that reproduces
+        their behaviour (``LEGACY_DEFAULTS``).
+        """
         known = set(cls.__dataclass_fields__)
         unknown = set(d) - known
         if unknown:
             raise ValueError(f"config: unknown fields {sorted(unknown)}")
-        return cls(**d)
+        missing = sorted(known - set(d) - set(LEGACY_DEFAULTS))
+        if missing:
+            raise ValueError(
+                f"config: the checkpoint's config lacks fields {missing}; it was written by an "
+                "older version whose defaults differ, so it cannot be loaded with today's"
+            )
+        return cls(**{**LEGACY_DEFAULTS, **d})
+
+    @classmethod
+    def preset(cls, name: str) -> V2PConfig:
+        """A named configuration of a shipped model (``PRESETS``)."""
+        if name not in PRESETS:
+            raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {name!r}")
+        return cls(**PRESETS[name])
+
+
+#: Fields added after checkpoints were written, with the value that reproduces those
+#: checkpoints (``V2PConfig.from_dict``).
+LEGACY_DEFAULTS = {"physics_prior": False}
+#: Named configurations: ``"28x28"`` is ``V2PConfig()``; ``"camera"`` is the 100x50
+#: camera-like model's (no rolling statistic: its gates were tuned on 28x28 keypoints).
+PRESETS = {
+    "28x28": {},
+    "camera": {"frame_size": (50, 100), "kp_threshold": 0.2, "kp_visibility": True, "pool": 2,
+               "roll_features": False},
+}
 
 
 def _centre_grid(h: int, w: int) -> torch.Tensor:
@@ -368,6 +402,8 @@ class Vid2ParamNet(nn.Module):
         )
         if self.kp_pos is not None:
             self._init_kp_pos()
+        # the latent rollout's physics transition (see methods.vid2param.prior)
+        self.phys_prior = PhysicsPrior() if c.physics_prior else None
         if c.roll_features:
             # the rolling statistic's blend into the encoder's r (see V2PConfig.roll_features)
             self._r_idx = c.targets.index("r")
@@ -777,6 +813,50 @@ class Vid2ParamNet(nn.Module):
             zs.append(z)
             state = self.step_rnn(mu + self.config.recur_noise * std * eps, state)
         return torch.stack(mus, 1), torch.stack(stds, 1), torch.stack(zs, 1)
+
+
+    def rollout_physics(self, phys: torch.Tensor, theta: torch.Tensor, horizon: int,
+                        dt: float = DT, generator: torch.Generator | None = None,
+                        sample: bool = True):
+        """Unroll the physics prior (``config.physics_prior``) from S particles.
+
+        The latent state of a particle is its ``[x, y, vx, vy]`` and its parameters; each step
+        the prior gives the next state's mean (one frame of the physics) and std (the learned
+        process noise), a state is sampled and becomes the next step's. No frame is decoded,
+        and the transition reads nothing else, so the LSTM is not stepped.
+
+        Parameters
+        ----------
+        phys : Tensor, shape (S, 4)
+            ``[x, y, vx, vy]`` at the last observed frame, floor-relative metres and m/s.
+        theta : Tensor, shape (S, 4)
+            ``(e, g, d, r)`` per particle, physical units.
+        horizon : int
+        sample : bool
+            Sample the process noise (False: each particle follows its mean).
+
+        Returns
+        -------
+        mean, std, states : Tensor, shape (S, horizon, 4)
+            The prior's mean and std at each future frame and the sampled states.
+        """
+        if self.phys_prior is None:
+            raise ValueError("rollout_physics: this network has no physics prior "
+                             "(config.physics_prior is False)")
+        lo_box = torch.tensor([0.0, 0.0, -torch.inf, -torch.inf], device=phys.device)
+        hi_box = torch.tensor([BOX_WIDTH, BOX_WIDTH, torch.inf, torch.inf], device=phys.device)
+        means, stds, states = [], [], []
+        for _ in range(int(horizon)):
+            mean, std = self.phys_prior(phys, theta, dt)
+            if sample:
+                eps = torch.randn(mean.shape, generator=generator, device=mean.device)
+                phys = torch.maximum(torch.minimum(mean + std * eps, hi_box), lo_box)
+            else:
+                phys = mean
+            means.append(mean)
+            stds.append(std)
+            states.append(phys)
+        return torch.stack(means, 1), torch.stack(stds, 1), torch.stack(states, 1)
 
 
 def count_parameters(net: nn.Module) -> int:

@@ -19,7 +19,7 @@ import numpy as np
 
 from sysid_bench.physics import BOX_WIDTH, DT, PARAMS, PRIOR, simulate
 
-__all__ = ["StateFit", "WINDOW", "fit_state", "sample_trajectories"]
+__all__ = ["StateFit", "WINDOW", "fit_state", "sample_posterior", "sample_trajectories"]
 
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
@@ -219,26 +219,37 @@ def _lm(V, obs, valid, W, dt, sigma, u_net, sd_net, iters):
     return V[k], float(cost[k]), jacobian(V[k:k + 1], r[k:k + 1])[0]
 
 
-def sample_trajectories(fit: StateFit, n_last: int, horizon: int, n_samples: int,
-                        rng: np.random.Generator, dt: float = DT) -> np.ndarray:
-    """Positions of the ``horizon`` frames after frame ``n_last - 1``, one row per sample.
-
-    Each sample draws the window's start state and the parameters jointly from
-    ``N([fit.state0, fit.theta], fit.cov)`` (parameters clipped to the prior) and is simulated
-    from the window's start through the horizon.
+def sample_posterior(fit: StateFit, n_samples: int,
+                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Joint draws of the window's start state and the parameters from ``N([state0, theta],
+    cov)``; the state is kept in the box and the parameters in the prior.
 
     Returns
     -------
-    ndarray, shape (n_samples, horizon, 2)
-        Floor-relative metres.
+    state0 : ndarray, shape (n_samples, 4)
+    theta : ndarray, shape (n_samples, 4)
     """
-    S = int(n_samples)
     L = np.linalg.cholesky(fit.cov + 1e-12 * np.eye(8))
-    v = np.concatenate([fit.state0, fit.theta]) + rng.standard_normal((S, 8)) @ L.T
+    v = np.concatenate([fit.state0, fit.theta]) + rng.standard_normal((int(n_samples), 8)) @ L.T
     s0 = v[:, :4].copy()
     s0[:, 0] = np.clip(s0[:, 0], 0.0, BOX_WIDTH)
     s0[:, 1] = np.clip(s0[:, 1], _Y_MIN, BOX_WIDTH)
-    th = np.clip(v[:, 4:], _LO, _HI)
+    return s0, np.clip(v[:, 4:], _LO, _HI)
+
+
+def sample_trajectories(fit: StateFit, n_last: int, horizon: int, n_samples: int,
+                        rng: np.random.Generator, dt: float = DT) -> np.ndarray:
+    """States of frames ``n_last - 1`` to ``n_last + horizon - 1`` for posterior draws.
+
+    Each draw (``sample_posterior``) is simulated from the window's start: frame 0 of the
+    result is the last observed frame, frames 1.. are the forecast.
+
+    Returns
+    -------
+    ndarray, shape (n_samples, horizon + 1, 4)
+        Floor-relative metres and m/s.
+    """
+    s0, th = sample_posterior(fit, n_samples, rng)
     lead = n_last - fit.start  # frames from the window's start to the first forecast frame
     sim = simulate(th, s0, lead + int(horizon), dt)
-    return sim[:, lead:, :2]
+    return sim[:, lead - 1:], th

@@ -46,7 +46,7 @@ from methods.vid2param.data import (
     rolls_mask,
     targets_from_dataset,
 )
-from methods.vid2param.model import V2PConfig, Vid2ParamNet, count_parameters
+from methods.vid2param.model import PRESETS, V2PConfig, Vid2ParamNet, count_parameters
 
 __all__ = ["TrainConfig", "train", "evaluate", "export", "calibrate", "resolve_device",
            "load_matching", "main"]
@@ -629,6 +629,12 @@ def train(
     return net.cpu(), {"step": step, "wall_s": wall(), "val_history": history, "done": done}
 
 
+#: Camera nuisances the camera preset trains on (the shipped camera model's).
+PRESET_NUISANCE = {
+    "camera": {"blur": 0.5, "occlusion": 0.05, "drop": 0.05, "noise": 8.0, "floor_offset": 1.0},
+}
+
+
 def _parse(argv=None):
     p = argparse.ArgumentParser(prog="python -m methods.vid2param.train", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -648,31 +654,27 @@ def _parse(argv=None):
         if name in ("size", "nuisance", "perturb", "init"):
             continue
         p.add_argument("--" + name.replace("_", "-"), type=type(val), default=val)
-    p.add_argument("--size", type=int, nargs=2, default=list(tc.size), metavar=("H", "W"))
-    p.add_argument("--nuisance", type=json.loads, default=None,
+    p.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
+                   help="frame size (default: the preset's)")
+    p.add_argument("--nuisance", type=json.loads, default=argparse.SUPPRESS,
                    help='renderer options as JSON, e.g. \'{"blur": 0.5, "drop": 0.05}\'')
     p.add_argument("--perturb", type=json.loads, default=None,
                    help='deviations from our physics in training, e.g. \'{"spin": 0.3, "dwell": 0.01, "p": 0.5}\'')
     p.add_argument("--init", default=None,
                    help="start from this checkpoint's weights where names and shapes match")
+    p.add_argument("--preset", default="28x28", choices=sorted(PRESETS),
+                   help="model configuration (V2PConfig.preset) and its data settings; the "
+                        "options below override single fields")
     for name in ("latent", "hidden", "layers", "feat", "keypoints", "pool"):
-        p.add_argument("--" + name, type=int, default=getattr(mc, name))
+        p.add_argument("--" + name, type=int, default=None)
     for name in ("alpha", "beta", "gamma", "gamma_prior", "recur_noise", "aux_grad", "kp_threshold"):
-        p.add_argument("--" + name.replace("_", "-"), type=float, default=getattr(mc, name))
-    p.add_argument("--channels", type=int, nargs="+", default=list(mc.channels))
-    p.add_argument("--pixel-skip", action="store_true", help="linear pixel path into phi_x")
-    p.add_argument("--read-cell", action="store_true",
-                   help="heads read the LSTM's [h, c] (see V2PConfig.read_cell)")
-    p.add_argument("--kp-visibility", action="store_true",
-                   help="blend keypoints and MLP by the ball's visibility (see V2PConfig)")
-    p.add_argument("--prior-residual", action="store_true",
-                   help="the prior's x, y means are a step from the last position (see V2PConfig)")
-    p.add_argument("--diff-features", action="store_true",
-                   help="feed the LSTM differences of the fed-back positions (see V2PConfig)")
-    p.add_argument("--roll-features", action="store_true",
-                   help="keep a running mean of the rolling deceleration in the state, blended "
-                        "into r by its evidence (see V2PConfig)")
-    p.add_argument("--targets", nargs="+", default=list(mc.targets))
+        p.add_argument("--" + name.replace("_", "-"), type=float, default=None)
+    p.add_argument("--channels", type=int, nargs="+", default=None)
+    for name in ("pixel_skip", "read_cell", "kp_visibility", "prior_residual", "diff_features",
+                 "roll_features", "physics_prior"):
+        p.add_argument("--" + name.replace("_", "-"), action=argparse.BooleanOptionalAction,
+                       default=None, help=f"V2PConfig.{name} (default: the preset's)")
+    p.add_argument("--targets", nargs="+", default=None)
     return p.parse_args(argv)
 
 
@@ -684,17 +686,18 @@ def main(argv=None) -> int:
             raise SystemExit("--export-only needs --export PATH")
         print(export(out / "state.pt", a.export, calibrate_n=a.calibrate_n))
         return 0
+    base = V2PConfig.preset(a.preset).to_dict()
+    for name in base:
+        v = getattr(a, name, None)
+        if v is not None:
+            base[name] = v
+    if a.size is not None:
+        base["frame_size"] = list(a.size)
+    mc = V2PConfig(**base)
+    nuisance = getattr(a, "nuisance", PRESET_NUISANCE.get(a.preset))
     skip = ("size", "nuisance", "perturb", "init")
     tc = TrainConfig(**{k: getattr(a, k) for k in asdict(TrainConfig()) if k not in skip},
-                     size=tuple(a.size), nuisance=a.nuisance, perturb=a.perturb, init=a.init)
-    mc = V2PConfig(frame_size=tuple(a.size), targets=tuple(a.targets), latent=a.latent,
-                   hidden=a.hidden, layers=a.layers, feat=a.feat, channels=tuple(a.channels),
-                   alpha=a.alpha, beta=a.beta, gamma=a.gamma, gamma_prior=a.gamma_prior,
-                   recur_noise=a.recur_noise, pixel_skip=a.pixel_skip,
-                   diff_features=a.diff_features, keypoints=a.keypoints, aux_grad=a.aux_grad,
-                   read_cell=a.read_cell, kp_threshold=a.kp_threshold,
-                   kp_visibility=a.kp_visibility, prior_residual=a.prior_residual, pool=a.pool,
-                   roll_features=a.roll_features)
+                     size=tuple(mc.frame_size), nuisance=nuisance, perturb=a.perturb, init=a.init)
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
                     max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
     if info["done"] and a.export:
