@@ -480,9 +480,12 @@ class Vid2Param(Estimator):
 
         With a physics prior (``V2PConfig.physics_prior``) the particles start from joint
         draws of the filtered state and parameters (as ``"physics"`` does) and the prior --
-        one frame of physics plus the learned process noise -- is unrolled. Without one (older checkpoints) the
-        learned prior is unrolled from the filtered recurrent state. mean and std are the
-        exact moments of the particles' Gaussian mixture.
+        one frame of physics plus the learned process noise -- is unrolled: the mean is that
+        of the particles' noise-free paths (the prior's mean unrolled; with the noise sampled,
+        wall and floor contacts of noisy particles bias the average), std and samples come
+        from the sampled rollout. Without one (older checkpoints) the learned prior is
+        unrolled from the filtered recurrent state; mean and std are then the exact moments
+        of the particles' Gaussian mixture.
         """
         net = self._ensure_net()
         S = max(2, int(self.n_samples))
@@ -491,9 +494,14 @@ class Vid2Param(Estimator):
             if net.phys_prior is not None:
                 states, theta, _, _ = self._posterior_draws(frames, 0, dt)
                 as_t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=self.device_)  # noqa: E731
+                phys, th = as_t(states[:, 0]), as_t(theta)
+                path = net.rollout_physics(phys, th, horizon, dt=dt, sample=False)[0]
                 mu, sd, z = (a.cpu().numpy().astype(np.float64) for a in net.rollout_physics(
-                    as_t(states[:, 0]), as_t(theta), horizon, dt=dt, generator=gen))
+                    phys, th, horizon, dt=dt, generator=gen))
+                mean = path[..., :2].cpu().numpy().astype(np.float64).mean(0)
                 m, sd, samples = mu[..., :2], sd[..., :2], z[..., :2]
+                var = (sd**2).mean(0) + m.var(0)
+                return mean, np.sqrt(var), samples, {"particles": S}
             else:
                 names = self.config_.targets
                 xy = [names.index("x"), names.index("y")]

@@ -112,40 +112,41 @@ def _pool(est, n: int, seed: int, cfg: PriorFitConfig, desc: str) -> dict:
     return out
 
 
-def _loss(net, pool, idx, cfg, gen, sample=True):
-    """Mean NLL (per coordinate and frame) and MSE (m^2) of the truths of videos ``idx``."""
+def _rollouts(net, pool, idx, cfg, gen):
+    """Mixture mean (noise-free paths) and variance (noisy paths) of videos ``idx``, each
+    (B, H, 2), and their truths."""
     P, H = cfg.particles, cfg.horizon
     phys = torch.as_tensor(np.concatenate([pool["phys"][i] for i in idx]), dtype=torch.float32)
     theta = torch.as_tensor(np.concatenate([pool["theta"][i] for i in idx]), dtype=torch.float32)
-    mean, std, _ = net.rollout_physics(phys, theta, H, generator=gen, sample=sample)
     B = len(idx)
+    with torch.no_grad():
+        path, _, _ = net.rollout_physics(phys, theta, H, sample=False)
+    mean, std, _ = net.rollout_physics(phys, theta, H, generator=gen)
     m = mean[..., :2].reshape(B, P, H, 2)
     s = std[..., :2].reshape(B, P, H, 2)
-    mix_m = m.mean(1)
+    mix_m = path[..., :2].reshape(B, P, H, 2).mean(1)
     mix_v = (s**2).mean(1) + m.var(1, unbiased=False)
     truth = torch.as_tensor(np.stack([pool["truth"][i] for i in idx]), dtype=torch.float32)
+    return mix_m, mix_v, truth
+
+
+def _loss(net, pool, idx, cfg, gen):
+    """Mean NLL (per coordinate and frame) and MSE (m^2) of the truths of videos ``idx``."""
+    mix_m, mix_v, truth = _rollouts(net, pool, idx, cfg, gen)
     nll = 0.5 * (math.log(2 * math.pi) + torch.log(mix_v) + (truth - mix_m) ** 2 / mix_v)
     # clipped: a few videos whose state fit failed (metres off) would otherwise set the noise
     return nll.clamp(max=NLL_CLIP).mean(), ((truth - mix_m) ** 2).mean()
 
 
 def _coverage(net, pool, cfg, seed: int) -> dict:
-    """Position MSE (m^2) and 90% coverage of the mixture on a pool, all videos at once."""
+    """NLL, position MSE (m^2) and 90% coverage of the mixture on a pool, all videos at once."""
     gen = torch.Generator().manual_seed(seed)
-    idx = list(range(len(pool["truth"])))
     with torch.no_grad():
-        nll, mse = _loss(net, pool, idx, cfg, gen)
-        P, H = cfg.particles, cfg.horizon
-        phys = torch.as_tensor(np.concatenate(pool["phys"]), dtype=torch.float32)
-        theta = torch.as_tensor(np.concatenate(pool["theta"]), dtype=torch.float32)
-        mean, std, _ = net.rollout_physics(phys, theta, H, generator=gen)
-    B = len(idx)
-    m = mean[..., :2].reshape(B, P, H, 2)
-    s = std[..., :2].reshape(B, P, H, 2)
-    mix_m, mix_s = m.mean(1), ((s**2).mean(1) + m.var(1, unbiased=False)).sqrt()
-    truth = torch.as_tensor(np.stack(pool["truth"]), dtype=torch.float32)
-    cov = ((truth - mix_m).abs() <= 1.645 * mix_s).float().mean()
-    return {"nll": float(nll), "mse_m2": float(mse), "cov90": float(cov)}
+        mix_m, mix_v, truth = _rollouts(net, pool, list(range(len(pool["truth"]))), cfg, gen)
+    nll = 0.5 * (math.log(2 * math.pi) + torch.log(mix_v) + (truth - mix_m) ** 2 / mix_v)
+    cov = ((truth - mix_m).abs() <= 1.645 * mix_v.sqrt()).float().mean()
+    return {"nll": float(nll.clamp(max=NLL_CLIP).mean()), "mse_m2": float(((truth - mix_m) ** 2).mean()),
+            "cov90": float(cov)}
 
 
 def fit_prior(checkpoint, out, cfg: PriorFitConfig | None = None, threads: int | None = None,
@@ -217,9 +218,13 @@ def main(argv=None) -> int:
     ap.add_argument("--n-videos", type=int, default=PriorFitConfig.n_videos)
     ap.add_argument("--n-val", type=int, default=PriorFitConfig.n_val)
     ap.add_argument("--seed", type=int, default=PriorFitConfig.seed)
+    ap.add_argument("--perturb-p", type=float, default=None,
+                    help="fraction of videos that deviate from our physics (default 0.5)")
     ap.add_argument("--threads", type=int, default=None)
     a = ap.parse_args(argv)
     cfg = PriorFitConfig(steps=a.steps, n_videos=a.n_videos, n_val=a.n_val, seed=a.seed)
+    if a.perturb_p is not None:
+        cfg.perturb = {**cfg.perturb, "p": a.perturb_p}
     fit_prior(a.checkpoint, Path(a.out), cfg, threads=a.threads)
     return 0
 

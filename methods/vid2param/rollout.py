@@ -29,6 +29,8 @@ _EPS = np.array([1e-4, 1e-4, 1e-4, 1e-4])
 #: window would otherwise claim a certainty the keypoints (~5 mm on 28x28) do not have.
 _MIN_SIGMA = 0.004
 _Y_MIN = 1e-9  # the simulator wants the ball on or above the floor
+#: Largest std of the fitted state (m, m, m/s, m/s) in a direction the window leaves open.
+_STATE_CAP = np.array([0.5, 0.5, 1.0, 1.0])
 #: Frames fitted: 1.5 s holds a bounce or a stretch of rolling at any launch speed.
 WINDOW = 30
 
@@ -174,7 +176,10 @@ def fit_state(positions, theta_mean, theta_std, dt: float = DT, window: int = WI
     if sigma is None:
         sigma = max(_MIN_SIGMA, float(np.sqrt(held_cost / max(1, 2 * n - 4))))
     V, cost, J = _lm(np.vstack([held, starts]), obs, valid, W, dt, sigma, u_net, sd_net, iters)
-    cov = np.linalg.pinv(J.T @ J + 1e-12 * np.eye(8))
+    # a direction the window does not see (vy of a rolling ball: a small hop changes no
+    # position to first order) keeps at most the spread of _STATE_CAP, not an unbounded one
+    cap = np.concatenate([1.0 / _STATE_CAP**2, np.zeros(4)])
+    cov = np.linalg.inv(J.T @ J + np.diag(cap) + 1e-12 * np.eye(8))
     # the covariance is in (state, u) coordinates: scale u's rows/columns to physical units
     scale = np.concatenate([np.ones(4), span])
     return StateFit(start, V[:4], _theta(V), cov * np.outer(scale, scale), float(sigma), n)
