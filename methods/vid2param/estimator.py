@@ -17,7 +17,7 @@ import torch
 from methods.vid2param.checkpoint import build_net, load_checkpoint
 from sysid_bench._validate import check_positive_int
 from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, Stream
-from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
+from sysid_bench.physics import BOX_WIDTH, DT, PARAMS, PRIOR
 
 __all__ = ["Vid2Param", "Vid2ParamStream", "SHIPPED_CHECKPOINT", "SHIPPED_CHECKPOINTS"]
 
@@ -393,9 +393,9 @@ class Vid2Param(Estimator):
     def forecast(self, obs: Observation, horizon: int) -> Forecast:
         """Positions of the ``horizon`` frames after ``obs`` (metres), as ``forecast`` says.
 
-        ``"latent"`` unrolls the network's prior (see :meth:`_forecast_latent`); ``"physics"``
-        simulates samples of the filtered posterior (see :meth:`_forecast_physics`). Positions
-        are ``x = 10 z_x``, ``y = floor + 10 z_y`` (floor 0 when unknown).
+        ``"latent"`` unrolls the network's prior in latent space, ``"physics"`` simulates
+        samples of the filtered posterior (see :meth:`_forecast_track`). Positions are
+        ``x = 10 z_x``, ``y = floor + 10 z_y`` (floor 0 when unknown).
 
         Returns
         -------
@@ -409,10 +409,12 @@ class Vid2Param(Estimator):
             raise NotImplementedError("this vid2param checkpoint carries no position dimensions.")
         shift = np.array([0.0, 0.0 if obs.floor is None else float(obs.floor)])
         t0 = time.perf_counter()
-        if self.forecast_kind == "physics":
-            mean, std, samples, extras = self._forecast_physics(frames, horizon, float(obs.dt))
+        net = self._ensure_net()
+        if self.forecast_kind == "latent" and net.phys_prior is None:
+            mean, std, samples, extras = self._forecast_learned_prior(frames, horizon)
         else:
-            mean, std, samples, extras = self._forecast_latent(frames, horizon, float(obs.dt))
+            mean, std, samples, extras = self._forecast_track(*self._track(frames)[:3], horizon,
+                                                              float(obs.dt))
         extras = {"wall_s": time.perf_counter() - t0, "n_simulations": 0,
                   "forecast": self.forecast_kind, **extras}
         return Forecast(mean=shift + mean, std=std, samples=shift + samples, extras=extras)
@@ -449,72 +451,62 @@ class Vid2Param(Estimator):
         theta_std = _SPAN * sd[-1, idx] * self.std_scale_
         return pos, theta_mean, theta_std, state
 
-    def _posterior_draws(self, frames, horizon: int, dt: float):
-        """Filter, fit the physical state (``rollout.fit_state``) and simulate ``n_samples``
-        joint draws of state and parameters from the window's start through ``horizon``
-        frames after the last. Returns the states (S, horizon + 1, 4) from the last observed
-        frame on, the draws' parameters (S, 4), the fit and the recurrent state."""
+    def _forecast_track(self, pos, th_mu, th_sd, horizon: int, dt: float):
+        """Forecast from the network's track (T, 2) and parameter posterior, as
+        ``forecast_kind`` says; returns floor-relative mean, std (horizon, 2), samples
+        (S, horizon, 2) and extras.
+
+        Both kinds start from ``n_samples`` joint draws of the state and parameters: the MAP of
+        the network's posterior (the prior) and its own positions of the last
+        ``rollout.WINDOW`` frames (the likelihood), with their Laplace covariance
+        (``methods.vid2param.rollout``). ``"physics"`` simulates each draw with
+        ``sysid_bench.physics``. ``"latent"`` unrolls the network's physics prior (one frame of
+        physics plus the learned process noise, ``methods.vid2param.prior``) in latent space:
+        its mean is that of the draws' noise-free paths (the prior's mean unrolled; with the
+        noise sampled, wall and floor contacts of noisy particles bias the average), std and
+        samples come from the sampled rollout.
+        """
         from methods.vid2param.rollout import fit_state, sample_trajectories
 
-        pos, th_mu, th_sd, state = self._track(frames)
         fit = fit_state(pos, th_mu, th_sd, dt=dt)
         S = max(2, int(self.n_samples))
-        states, theta = sample_trajectories(fit, len(pos), horizon, S, self._rng(11), dt)
-        return states, theta, fit, state
+        physics = self.forecast_kind == "physics"
+        states, theta = sample_trajectories(fit, len(pos), horizon if physics else 0, S,
+                                            self._rng(11), dt)
+        extras = {"state_fit_sigma_m": fit.sigma, "particles": S}
+        if physics:
+            samples = states[:, 1:, :2]
+            return samples.mean(0), samples.std(0), samples, {**extras, "n_simulations": S}
+        net = self._ensure_net()
+        with torch.inference_mode():
+            phys = torch.as_tensor(states[:, 0], dtype=torch.float32, device=self.device_)
+            th = torch.as_tensor(theta, dtype=torch.float32, device=self.device_)
+            path = net.rollout_physics(phys, th, horizon, dt=dt, sample=False)[0]
+            mu, sd, z = (a[..., :2].cpu().numpy().astype(np.float64) for a in net.rollout_physics(
+                phys, th, horizon, dt=dt, generator=self._generator(7)))
+        mean = path[..., :2].cpu().numpy().astype(np.float64).mean(0)
+        return mean, np.sqrt((sd**2).mean(0) + mu.var(0)), z, extras
 
-    def _forecast_physics(self, frames, horizon: int, dt: float):
-        """Simulate ``n_samples`` draws of the filtered posterior through the horizon.
-
-        The state and parameters are the MAP of the network's posterior (the prior) and its
-        own positions of the last ``rollout.WINDOW`` frames (the likelihood), with their
-        Laplace covariance (``methods.vid2param.rollout``); each draw is simulated by
-        ``sysid_bench.physics``.
-        """
-        states, _, fit, _ = self._posterior_draws(frames, horizon, dt)
-        samples = states[:, 1:, :2]
-        extras = {"n_simulations": len(samples), "state_fit_sigma_m": fit.sigma}
-        return samples.mean(0), samples.std(0), samples, extras
-
-    def _forecast_latent(self, frames, horizon: int, dt: float):
-        """Unroll the prior in latent space from ``n_samples`` particles; no frame is decoded.
-
-        With a physics prior (``V2PConfig.physics_prior``) the particles start from joint
-        draws of the filtered state and parameters (as ``"physics"`` does) and the prior --
-        one frame of physics plus the learned process noise -- is unrolled: the mean is that
-        of the particles' noise-free paths (the prior's mean unrolled; with the noise sampled,
-        wall and floor contacts of noisy particles bias the average), std and samples come
-        from the sampled rollout. Without one (older checkpoints) the learned prior is
-        unrolled from the filtered recurrent state; mean and std are then the exact moments
-        of the particles' Gaussian mixture.
-        """
+    def _forecast_learned_prior(self, frames, horizon: int):
+        """The latent rollout of a checkpoint without a physics prior (older ones): the learned
+        prior unrolled from ``n_samples`` filtered particles; mean and std are the exact
+        moments of the particles' Gaussian mixture."""
         net = self._ensure_net()
         S = max(2, int(self.n_samples))
         gen = self._generator(7)
+        names = self.config_.targets
+        xy = [names.index("x"), names.index("y")]
         with torch.inference_mode():
-            if net.phys_prior is not None:
-                states, theta, _, _ = self._posterior_draws(frames, 0, dt)
-                as_t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=self.device_)  # noqa: E731
-                phys, th = as_t(states[:, 0]), as_t(theta)
-                path = net.rollout_physics(phys, th, horizon, dt=dt, sample=False)[0]
-                mu, sd, z = (a.cpu().numpy().astype(np.float64) for a in net.rollout_physics(
-                    phys, th, horizon, dt=dt, generator=gen))
-                mean = path[..., :2].cpu().numpy().astype(np.float64).mean(0)
-                m, sd, samples = mu[..., :2], sd[..., :2], z[..., :2]
-                var = (sd**2).mean(0) + m.var(0)
-                return mean, np.sqrt(var), samples, {"particles": S}
-            else:
-                names = self.config_.targets
-                xy = [names.index("x"), names.index("y")]
-                fr = torch.as_tensor(frames[None], device=self.device_)
-                stochastic = bool(self.sample_state) and self.config_.recur_noise > 0
-                # a deterministic recurrence gives identical particles: filter once, then copy
-                _, _, state = net.filter(fr, particles=S if stochastic else 1, generator=gen,
-                                         sample=stochastic)
-                if not stochastic:
-                    state = [tuple(t.expand(S, -1).contiguous() for t in layer) for layer in state]
-                mu, sd, z = (a.cpu().numpy().astype(np.float64)
-                             for a in net.rollout(state, horizon, generator=gen))
-                m, sd, samples = (BOX_WIDTH * a[..., xy] for a in (mu, sd, z))
+            fr = torch.as_tensor(frames[None], device=self.device_)
+            stochastic = bool(self.sample_state) and self.config_.recur_noise > 0
+            # a deterministic recurrence gives identical particles: filter once, then copy
+            _, _, state = net.filter(fr, particles=S if stochastic else 1, generator=gen,
+                                     sample=stochastic)
+            if not stochastic:
+                state = [tuple(t.expand(S, -1).contiguous() for t in layer) for layer in state]
+            mu, sd, z = (a.cpu().numpy().astype(np.float64)
+                         for a in net.rollout(state, horizon, generator=gen))
+        m, sd, samples = (BOX_WIDTH * a[..., xy] for a in (mu, sd, z))
         var = (sd**2).mean(0) + m.var(0)
         return m.mean(0), np.sqrt(var), samples, {"particles": S}
 
@@ -536,6 +528,9 @@ class Vid2ParamStream(Stream):
         self.net = estimator._ensure_net()
         self.idx = torch.as_tensor(estimator._index())
         self.hw = tuple(self.net.config.frame_size)
+        names = self.net.config.targets
+        self.xy = torch.as_tensor([names.index("x"), names.index("y")]) \
+            if {"x", "y"} <= set(names) else None
         self.reset()
 
     def reset(self) -> None:
@@ -546,6 +541,39 @@ class Vid2ParamStream(Stream):
         # identify()'s posteriors on its prefixes
         self.gen = self.est._generator(0)
         self.rng = self.est._rng(0)
+        # the network's own track (floor-relative metres) and last posterior, for forecast()
+        self.track = np.full((256, 2), np.nan)
+        self.last = None
+
+    def forecast(self, horizon: int, floor: float | None = None) -> Forecast:
+        """Positions of the ``horizon`` frames after the last pushed one (metres).
+
+        The same forecast as ``Vid2Param.forecast`` on the pushed frames (``forecast_kind``;
+        checkpoints without a physics prior are not supported here), from the track and
+        posterior the stream already holds: no frame is filtered again.
+
+        Parameters
+        ----------
+        horizon : int
+            Frames to predict, at most ``MAX_HORIZON``.
+        floor : float, optional
+            Floor height added to the heights (0 when None, the camera's floor).
+        """
+        horizon = check_positive_int(horizon, "horizon")
+        if self.n == 0:
+            raise ValueError("forecast: push at least one frame first")
+        if self.xy is None or self.net.phys_prior is None and self.est.forecast_kind == "latent":
+            raise NotImplementedError("this checkpoint has no position dimensions or no physics "
+                                      "prior; use Vid2Param.forecast on the frames")
+        t0 = time.perf_counter()
+        mu_n, sd_n = self.last
+        th_mu = _LO + _SPAN * np.clip(mu_n, 0.0, 1.0)
+        mean, std, samples, extras = self.est._forecast_track(
+            self.track[: self.n], th_mu, _SPAN * sd_n, horizon, DT)
+        shift = np.array([0.0, 0.0 if floor is None else float(floor)])
+        extras = {"wall_s": time.perf_counter() - t0, "n_simulations": 0,
+                  "forecast": self.est.forecast_kind, "n_frames": self.n, **extras}
+        return Forecast(mean=shift + mean, std=std, samples=shift + samples, extras=extras)
 
     def push(self, frame) -> Posterior:
         """Add one (H, W) frame; returns the posterior given every frame since ``reset``."""
@@ -563,6 +591,11 @@ class Vid2ParamStream(Stream):
                 self.state = self.net.step_rnn(mu, self.state)
             mu_n = mu[0, self.idx].cpu().numpy().astype(np.float64)
             sd_n = sd[0, self.idx].cpu().numpy().astype(np.float64) * self.est.std_scale_
+            if self.xy is not None:
+                if self.n >= len(self.track):
+                    self.track = np.concatenate([self.track, np.full_like(self.track, np.nan)])
+                self.track[self.n] = BOX_WIDTH * mu[0, self.xy].cpu().numpy()
+        self.last = (mu_n, sd_n)
         self.n += 1
         wall = time.perf_counter() - t0
         return self.est._posterior(mu_n, sd_n, {"wall_s": wall, "n_frames": self.n}, self.rng)
