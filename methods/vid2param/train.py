@@ -412,6 +412,24 @@ def _jsonable(o):
     return o
 
 
+def export_card(path) -> Path:
+    """Write the JSON card of a shipped checkpoint next to it (``.json``), atomically."""
+    path = Path(path)
+    ck = load_checkpoint(path)
+    info = {k: ck.get(k) for k in ("format", "format_version", "config", "train", "git_commit",
+                                    "source_sha256", "torch_version", "val_metrics",
+                                    "init_checkpoint", "calibration", "prior_fit")}
+    info["file_bytes"] = path.stat().st_size
+    info["n_parameters"] = int(sum(v.numel() for v in ck["state_dict"].values()))
+    text = json.dumps(_jsonable(info), indent=1, sort_keys=True)
+    jp = path.with_suffix(".json")
+    fd, tmp = tempfile.mkstemp(prefix=jp.name + ".", suffix=".tmp", dir=jp.parent)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text + "\n")
+    os.replace(tmp, jp)
+    return jp
+
+
 def export(state_path, out_path, card: bool = True, calibrate_n: int = 0) -> Path:
     """Write a shipped checkpoint (no optimizer state) and a JSON card from a training state.
 
@@ -447,17 +465,7 @@ def export(state_path, out_path, card: bool = True, calibrate_n: int = 0) -> Pat
         ck["init_checkpoint"] = init_record(init)
     save_atomic(ck, out_path)
     if card:
-        info = {k: ck.get(k) for k in ("format", "format_version", "config", "train", "git_commit",
-                                        "source_sha256", "torch_version", "val_metrics",
-                                        "init_checkpoint", "calibration")}
-        info["file_bytes"] = out_path.stat().st_size
-        info["n_parameters"] = int(sum(v.numel() for v in ck["state_dict"].values()))
-        text = json.dumps(_jsonable(info), indent=1, sort_keys=True)
-        jp = out_path.with_suffix(".json")
-        fd, tmp = tempfile.mkstemp(prefix=jp.name + ".", suffix=".tmp", dir=jp.parent)
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text + "\n")
-        os.replace(tmp, jp)
+        export_card(out_path)
     return out_path
 
 
@@ -629,6 +637,22 @@ def train(
     return net.cpu(), {"step": step, "wall_s": wall(), "val_history": history, "done": done}
 
 
+def _export_with_prior(state_path, out_path, calibrate_n: int, prior_steps: int) -> Path:
+    """``export``, then (a config with ``physics_prior``) the last phase of the recipe: the
+    physics prior's noise trained on the exported network (``methods.vid2param.fit_prior``),
+    written over the export."""
+    out_path = Path(export(state_path, out_path, calibrate_n=calibrate_n))
+    cfg = load_checkpoint(out_path)["config"]
+    if cfg.get("physics_prior") and prior_steps > 0:
+        from methods.vid2param.fit_prior import PriorFitConfig, fit_prior
+
+        fit_prior(out_path, out_path, PriorFitConfig(steps=prior_steps))
+        export_card(out_path)
+    return out_path
+
+
+#: Steps of the physics prior's training at export (``fit_prior``'s default).
+PRIOR_STEPS = 150
 #: Camera nuisances the camera preset trains on (the shipped camera model's).
 PRESET_NUISANCE = {
     "camera": {"blur": 0.5, "occlusion": 0.05, "drop": 0.05, "noise": 8.0, "floor_offset": 1.0},
@@ -645,6 +669,8 @@ def _parse(argv=None):
                    help="only export <out>/state.pt to --export, no training")
     p.add_argument("--calibrate-n", type=int, default=0,
                    help="with --export: fit the stds' calibration on this many fresh train videos")
+    p.add_argument("--prior-steps", type=int, default=PRIOR_STEPS,
+                   help="with --export: steps of the physics prior's training (0: none)")
     p.add_argument("--no-resume", action="store_true", help="start afresh even if state.pt exists")
     p.add_argument("--device", default="auto")
     p.add_argument("--max-minutes", type=float, default=None)
@@ -684,7 +710,7 @@ def main(argv=None) -> int:
     if a.export_only:
         if not a.export:
             raise SystemExit("--export-only needs --export PATH")
-        print(export(out / "state.pt", a.export, calibrate_n=a.calibrate_n))
+        print(_export_with_prior(out / "state.pt", a.export, a.calibrate_n, a.prior_steps))
         return 0
     base = V2PConfig.preset(a.preset).to_dict()
     for name in base:
@@ -701,7 +727,7 @@ def main(argv=None) -> int:
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
                     max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
     if info["done"] and a.export:
-        print(export(out / "state.pt", a.export, calibrate_n=a.calibrate_n))
+        print(_export_with_prior(out / "state.pt", a.export, a.calibrate_n, a.prior_steps))
     return 0
 
 

@@ -1,0 +1,144 @@
+"""Vid2Param's forecasts: the state fit, the physics prior, both forecast kinds, the stream."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import methods  # noqa: E402
+from methods.vid2param import FORECASTS, SHIPPED_CHECKPOINTS, V2PConfig  # noqa: E402
+from methods.vid2param.rollout import fit_state, sample_trajectories  # noqa: E402
+from sysid_bench.datasets import make_dataset  # noqa: E402
+from sysid_bench.estimator import Observation  # noqa: E402
+from sysid_bench.metrics import position_mse  # noqa: E402
+from sysid_bench.physics import simulate  # noqa: E402
+
+needs_shipped = pytest.mark.skipif(not SHIPPED_CHECKPOINTS["28x28"].exists(),
+                                   reason="shipped checkpoint missing")
+THETA = np.array([0.8, -9.81, 0.02, 0.3])
+STD = np.array([0.01, 0.07, 0.003, 0.15])
+
+
+def _track(state0, n=60, noise=0.005, seed=0):
+    states = simulate(THETA[None], np.asarray(state0, float)[None], n)[0]
+    rng = np.random.default_rng(seed)
+    return states, states[:, :2] + noise * rng.standard_normal((n, 2))
+
+
+@pytest.mark.parametrize("state0", [[2.0, 6.0, 5.0, 3.5], [8.0, 1.0, -6.0, -4.0]])
+def test_fit_state_recovers_the_state_through_bounces_and_walls(state0):
+    states, pos = _track(state0)
+    fit = fit_state(pos, THETA, STD)
+    truth = states[fit.start]
+    assert np.abs(fit.state0[:2] - truth[:2]).max() < 0.02
+    assert np.abs(fit.state0[2:] - truth[2:]).max() < 0.2
+    # e, g, d stay near the (right) network posterior, r where the window says nothing
+    assert abs(fit.theta[3] - THETA[3]) < 0.05
+    sd = np.sqrt(np.diag(fit.cov))
+    assert (sd > 0).all() and sd[2] < 0.5
+
+
+def test_fit_state_caps_the_spread_the_window_leaves_open_and_handles_unseen_frames():
+    # a ball rolling on the floor: vy is not seen (a hop changes no position to first order)
+    states = simulate(THETA[None], np.array([[2.0, 0.0, 3.0, 0.0]]), 40)[0]
+    pos = states[:, :2].copy()
+    pos[5:12] = np.nan
+    fit = fit_state(pos, THETA, STD)
+    assert np.sqrt(fit.cov[3, 3]) <= 1.0 + 1e-9
+    none = fit_state(np.full((10, 2), np.nan), THETA, STD)  # nothing seen: wide, at rest
+    assert none.n_used == 0 and none.cov[2, 2] >= 16.0
+
+
+def test_sampled_trajectories_start_at_the_last_frame_and_are_seeded():
+    _, pos = _track([2.0, 6.0, 5.0, 3.5])
+    fit = fit_state(pos, THETA, STD)
+    a, th = sample_trajectories(fit, len(pos), 20, 16, np.random.default_rng(3))
+    b, _ = sample_trajectories(fit, len(pos), 20, 16, np.random.default_rng(3))
+    assert a.shape == (16, 21, 4) and th.shape == (16, 4)
+    np.testing.assert_array_equal(a, b)
+    assert np.abs(a[:, 0, :2].mean(0) - pos[-1]).max() < 0.05
+
+
+def test_physics_prior_without_noise_is_the_simulator():
+    from methods.vid2param.model import Vid2ParamNet
+
+    net = Vid2ParamNet(V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8)))
+    s0 = np.array([[2.0, 6.0, 5.0, 3.5], [8.0, 1.0, -6.0, -4.0]])
+    th = np.tile(THETA, (2, 1))
+    with torch.no_grad():
+        mean, std, states = net.rollout_physics(torch.tensor(s0, dtype=torch.float64),
+                                                torch.tensor(th, dtype=torch.float64), 30,
+                                                sample=False)
+    want = simulate(th, s0, 31)[:, 1:]
+    np.testing.assert_allclose(states.numpy(), want, atol=1e-9)
+    assert (std > 0).all()
+
+
+def test_unknown_forecast_kind_lists_the_known_ones():
+    with pytest.raises(ValueError, match="forecast: expected one of .*latent.*physics"):
+        methods.get("vid2param", forecast="rollout")
+    est = methods.get("vid2param", forecast="physics")
+    assert est.get_params()["forecast"] == "physics" and set(FORECASTS) == {"latent", "physics"}
+    with pytest.raises(ValueError, match="forecast"):
+        est.set_params(forecast="nope")
+
+
+def test_a_config_missing_fields_is_refused_naming_them():
+    d = V2PConfig().to_dict()
+    del d["read_cell"], d["physics_prior"]
+    with pytest.raises(ValueError, match=r"lacks fields \['read_cell'\]"):
+        V2PConfig.from_dict(d)
+    # a field added later takes the value that reproduces older checkpoints
+    d = V2PConfig().to_dict()
+    del d["physics_prior"]
+    assert V2PConfig.from_dict(d).physics_prior is False
+    with pytest.raises(ValueError, match="preset"):
+        V2PConfig.preset("huge")
+
+
+@needs_shipped
+def test_shipped_config_is_the_default():
+    est = methods.get("vid2param")
+    est._ensure_net()
+    assert est.config_ == V2PConfig()
+
+
+@pytest.fixture(scope="module")
+def test_videos():
+    return make_dataset("test", n=4, seed=11, n_frames=150)
+
+
+@needs_shipped
+@pytest.mark.parametrize("kind", ["physics", "latent"])
+def test_forecasts_beat_lsq_on_the_same_video(kind, test_videos):
+    ds = test_videos
+    v2p = methods.get("vid2param", forecast=kind, n_samples=50)
+    lsq = methods.get("lsq")
+    ours, theirs, inside = [], [], []
+    for i in range(len(ds.states)):
+        obs = Observation(frames=np.asarray(ds.frames[i, :50]), floor=float(ds.floor[i]))
+        truth = ds.states[i, 50:150, :2]
+        fc = v2p.forecast(obs, 100)
+        assert fc.mean.shape == (100, 2) and fc.samples.shape == (50, 100, 2)
+        ours.append(position_mse(truth, fc.mean))
+        theirs.append(position_mse(truth, lsq.forecast(obs, 100).mean))
+        inside.append(np.mean(np.abs(truth - fc.mean) <= 1.645 * fc.std + 1e-9))
+    assert np.mean(ours) < np.mean(theirs)
+    assert np.mean(inside) > 0.6
+
+
+@needs_shipped
+def test_stream_forecast_is_the_forecast_of_the_pushed_frames(test_videos):
+    frames = np.asarray(test_videos.frames[0, :60])
+    est = methods.get("vid2param", forecast="physics", n_samples=20)
+    s = est.stream()
+    with pytest.raises(ValueError, match="push"):
+        s.forecast(5)
+    for f in frames:
+        s.push(f)
+    a = s.forecast(30)
+    b = est.forecast(Observation(frames=frames), 30)
+    np.testing.assert_allclose(a.mean, b.mean, atol=1e-3)
+    np.testing.assert_allclose(a.std, b.std, atol=1e-3)
