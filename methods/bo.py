@@ -75,9 +75,19 @@ class BayesOpt(Estimator):
     """
 
     name = "bo"
+    input_kind = "positions"
     min_frames = 3
-    #: cheap budgets for the registry-wide contract test (same code path)
-    _contract_options = {"n_calls": 6, "n_initial_points": 3, "n_surrogate": 256}
+    forecasts = True
+    cost = 30
+    figure_order = 4
+    # 4-13 s per cell at the default budget: the first cases only (the same cases as everyone)
+    scale_cases = {
+        "smoke": 1,
+        "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4},
+    }
+    scale_options = {"smoke": {"n_calls": 12, "n_initial_points": 6}}
+    #: cheap budgets for check_estimator (same code path)
+    contract_options = {"n_calls": 6, "n_initial_points": 3, "n_surrogate": 256}
 
     def __init__(
         self,

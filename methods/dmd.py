@@ -52,7 +52,12 @@ class DMD(Estimator):
     """
 
     name = "dmd"
+    input_kind = "positions"
     min_frames = 3
+    identifies = False
+    forecasts = True
+    cost = 2
+    figure_order = 6
 
     def __init__(self, *, delays: int = 0, svd_rank: float = 0.99999, stabilize: bool = True, seed: int = 0):
         self.delays = delays

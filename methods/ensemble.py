@@ -155,9 +155,19 @@ class Emcee(Estimator):
     """
 
     name = "emcee"
+    input_kind = "positions"
     min_frames = 3
-    #: cheap budgets for the registry-wide contract test (same code path)
-    _contract_options = {"n_walkers": 18, "n_steps": 12, "n_burn": 4, "n_init": 100, "max_opt_evals": 10}
+    forecasts = True
+    cost = 20
+    figure_order = 2
+    # 9-25 s per cell at the default budget: the first cases only
+    scale_cases = {
+        "smoke": 1,
+        "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4},
+    }
+    scale_options = {"smoke": {"n_walkers": 20, "n_steps": 20, "n_burn": 10}}
+    #: cheap budgets for check_estimator (same code path)
+    contract_options = {"n_walkers": 18, "n_steps": 12, "n_burn": 4, "n_init": 100, "max_opt_evals": 10}
 
     def __init__(
         self,

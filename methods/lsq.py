@@ -62,9 +62,13 @@ class LSQ(Estimator):
     """
 
     name = "lsq"
+    input_kind = "positions"
     min_frames = 3
-    #: cheap budgets for the registry-wide contract test (same code path)
-    _contract_options = {"n_samples": 200}
+    forecasts = True
+    cost = 8
+    figure_order = 3
+    #: cheap budgets for check_estimator (same code path)
+    contract_options = {"n_samples": 200}
 
     def __init__(
         self,

@@ -395,8 +395,22 @@ class NUTS(Estimator):
     name = "nuts"
     input_kind = "positions"
     min_frames = 3  # fewer seen frames cannot fix a state and parameters (``_common.prepare``)
-    #: cheap budgets for the contract test (same code path; one frame bucket for every prefix)
-    _contract_options = {
+    forecasts = True
+    cost = 50
+    figure_order = 1
+    #: the posterior calibration compares every other method with
+    reference_posterior = True
+    # ~25 s per posterior (~100 under load): only in experiment 5, where it is the reference
+    scale_cases = {
+        "smoke": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 1},
+        "default": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 3},
+    }
+    scale_options = {
+        "smoke": {"num_warmup": 30, "num_samples": 30, "n_init": 200},
+        "default": {"num_warmup": 150, "num_samples": 150},
+    }
+    #: cheap budgets for check_estimator (same code path; one frame bucket for every prefix)
+    contract_options = {
         "num_warmup": 40,
         "num_samples": 40,
         "n_init": 100,

@@ -33,6 +33,11 @@ class PriorOnly(Estimator):
     """
 
     name = "prior"
+    input_kind = "positions"
+    forecasts = True
+    cost = 0
+    inline = True  # microseconds per cell: not worth a worker
+    figure_order = 7
 
     def __init__(self, *, n_samples: int = 256, seed: int = 0):
         self.n_samples = n_samples

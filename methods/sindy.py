@@ -87,7 +87,11 @@ class SINDy(Estimator):
     """
 
     name = "sindy"
+    input_kind = "positions"
     min_frames = 3
+    forecasts = True
+    cost = 4
+    figure_order = 5
 
     def __init__(
         self,

@@ -151,6 +151,35 @@ def summary_table(df):
     return pd.DataFrame(recs)
 
 
+def _scale_sentence(scale, names) -> str:
+    """Cases, per-method caps and options and the expensive tier of ``scale``, as the methods
+    in the store declare them (methods no longer importable are left out)."""
+    import methods
+
+    caps, opts, expensive = {}, {}, []
+    for m in names:
+        try:
+            spec = methods.spec(m)
+        except (ValueError, ImportError):
+            continue
+        if scale.name in spec.scale_cases:
+            c = spec.scale_cases[scale.name]
+            caps[m] = dict(c) if hasattr(c, "items") else c
+        o = spec.options(scale.name)
+        if o:
+            opts[m] = o
+        if scale.thinned(m):
+            expensive.append(m)
+    text = (f"Cases per experiment: {json.dumps(scale.n_cases)}; per-method caps: "
+            f"{json.dumps(caps) if caps else 'none'}; method options: {json.dumps(opts)}.")
+    if expensive:
+        text += (f" Expensive methods ({', '.join(expensive)}) are evaluated at "
+                 f"{list(scale.expensive_lengths)} frames in experiment 1, every "
+                 f"{scale.expensive_stride} frames in experiment 3 and at "
+                 f"{max(scale.calibration_lengths)} frames in experiment 5.")
+    return text
+
+
 def render(store_path, out_dir="reports", experiments=None, title: str | None = None) -> Path:
     """Write the report of the store at ``store_path`` into ``out_dir``.
 
@@ -184,15 +213,7 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
                "run resumes where it stopped; `python -m sysid_bench.report --from-store "
                f"runs/{sc_name}/results.sqlite` re-renders this file without computing.", ""]
         if scale is not None:
-            md += [f"Cases per experiment: {json.dumps(scale.n_cases)}; per-method caps: "
-                   f"{json.dumps(scale.method_cases) if scale.method_cases else 'none'}; "
-                   f"method options: {json.dumps(scale.method_options)}."
-                   + (f" Expensive methods ({', '.join(scale.expensive)}) are evaluated at "
-                      f"{list(scale.expensive_lengths)} frames in experiment 1, every "
-                      f"{scale.expensive_stride} frames in experiment 3 and at "
-                      f"{max(scale.calibration_lengths)} frames in experiment 5."
-                      if scale.expensive else ""),
-                   ""]
+            md += [_scale_sentence(scale, sorted(df.method.unique()) if len(df) else []), ""]
         # the whole long-format run, for anyone's analysis (Parquet only: compressed)
         _write_table(df, out / "results", csv=False)
         head = summary_table(df)

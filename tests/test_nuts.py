@@ -125,7 +125,7 @@ def test_accuracy_on_20_cases_with_defaults(ds):
 
 def test_known_state_is_used_and_forecast_continues_the_track(ds):
     """With the initial state given it is held fixed; the forecast follows the true future."""
-    est = N.NUTS(**N.NUTS._contract_options)
+    est = N.NUTS(**N.NUTS.contract_options)
     obs = _obs(ds, 1, known_state=True, n=100)
     post = est.identify(obs)
     assert not post.extras["state0_sampled"]
@@ -138,7 +138,7 @@ def test_known_state_is_used_and_forecast_continues_the_track(ds):
 
 
 def test_several_chains_are_pooled_and_compared(ds):
-    opts = dict(N.NUTS._contract_options, num_chains=2)
+    opts = dict(N.NUTS.contract_options, num_chains=2)
     post = N.NUTS(**opts).identify(_obs(ds, 1, known_state=True, n=100))
     assert post.samples.shape == (2 * opts["num_samples"], 4)
     assert all(np.isfinite(v) for v in post.extras["rhat"].values())
