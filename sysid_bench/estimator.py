@@ -501,6 +501,10 @@ class Estimator(abc.ABC):
         """Positions of the ``horizon`` frames after the observation (``horizon`` <= MAX_HORIZON)."""
         raise NotImplementedError(f"{self.name} does not forecast positions.")
 
+    def stream(self) -> Stream:
+        """Frame-by-frame identification; default re-identifies on every prefix."""
+        return LoopStream(self)
+
 
 def _check_obs(obs) -> None:
     if not isinstance(obs, Observation):
@@ -534,7 +538,3 @@ def _checking_forecast(forecast):
         return forecast(self, obs, horizon, *args, **kwargs)
 
     return wrapper
-
-    def stream(self) -> Stream:
-        """Frame-by-frame identification; default re-identifies on every prefix."""
-        return LoopStream(self)
