@@ -45,6 +45,8 @@ from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior
 __all__ = ["BayesOpt"]
 
 _MSE_FLOOR = 1e-12  # m^2; keeps log finite on an exact fit
+_DESIGNS = ("random", "sobol", "halton", "hammersly", "lhs", "grid")
+_ACQUISITIONS = ("EI", "PI", "LCB", "gp_hedge")
 
 
 class BayesOpt(Estimator):
@@ -111,6 +113,22 @@ class BayesOpt(Estimator):
         self.min_ess = min_ess
         self.n_forecast = n_forecast
         self.seed = seed
+
+    def _validate(self) -> None:
+        super()._validate()
+        n_calls = check_positive_int(self.n_calls, "n_calls")
+        n_init = check_positive_int(self.n_initial_points, "n_initial_points")
+        if n_init > n_calls:
+            raise ValueError(f"n_initial_points: expected at most n_calls={n_calls}, got {n_init}")
+        min_ess = check_positive_int(self.min_ess, "min_ess", minimum=2)
+        check_positive_int(self.n_surrogate, "n_surrogate", minimum=min_ess)
+        check_positive_int(self.n_forecast, "n_forecast")
+        check_sigma(self.sigma)
+        if self.initial_point_generator not in _DESIGNS:
+            raise ValueError(f"initial_point_generator: expected one of {', '.join(_DESIGNS)}, "
+                             f"got {self.initial_point_generator!r}")
+        if self.acq_func not in _ACQUISITIONS:
+            raise ValueError(f"acq_func: expected an skopt acquisition such as 'EI', got {self.acq_func!r}")
 
     def _optimise(self, obs: Observation):
         from skopt import gp_minimize

@@ -49,7 +49,7 @@ from methods._common import (
     prepare,
 )
 from sysid_bench import physics
-from sysid_bench._validate import check_positive_int
+from sysid_bench._validate import check_number, check_positive_int
 from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior
 
 __all__ = ["Emcee"]
@@ -193,6 +193,21 @@ class Emcee(Estimator):
         self.n_forecast = n_forecast
         self.progress = progress
         self.seed = seed
+
+    def _validate(self) -> None:
+        super()._validate()
+        check_sigma(self.sigma)
+        n_walkers = check_positive_int(self.n_walkers, "n_walkers", minimum=8)
+        if n_walkers % 2:
+            raise ValueError(f"n_walkers: expected an even number >= 8, got {n_walkers}")
+        n_steps = check_positive_int(self.n_steps, "n_steps")
+        n_burn = check_positive_int(self.n_burn, "n_burn", minimum=0)
+        if n_burn >= n_steps:
+            raise ValueError(f"n_burn: expected fewer than n_steps={n_steps}, got {n_burn}")
+        check_positive_int(self.n_init, "n_init")
+        check_positive_int(self.max_opt_evals, "max_opt_evals")
+        check_positive_int(self.n_forecast, "n_forecast")
+        check_number(self.state0_box, "state0_box", lo=1e-9)
 
     # -- pieces -----------------------------------------------------------------------------
     def _start(self, prob: _Problem, rng: np.random.Generator):

@@ -50,11 +50,13 @@ class LSQ(Estimator):
     Parameters
     ----------
     n_samples : int
-        Prior draws simulated in one batch (the paper: 2000; 5000 for its real videos).
+        Prior draws simulated in one batch (the paper: 2000; 5000 for its real videos); at
+        least ``min_ess``, so that the reported spread rests on that many effective draws.
     sigma : float
         Position noise standard deviation (m) of the likelihood that weights the draws.
     min_ess : int
-        Fewest effective draws the weights are tempered to (sets the reported spread's floor).
+        Fewest effective draws the weights are tempered to (sets the reported spread's floor);
+        at least 2.
     n_forecast : int
         Weighted draws resampled for a forecast.
     seed : int
@@ -84,6 +86,15 @@ class LSQ(Estimator):
         self.min_ess = min_ess
         self.n_forecast = n_forecast
         self.seed = seed
+
+    def _validate(self) -> None:
+        super()._validate()
+        check_sigma(self.sigma)
+        min_ess = check_positive_int(self.min_ess, "min_ess", minimum=2)
+        # fewer draws than min_ess cannot carry the tempered weights: the spread would be that
+        # of a handful of draws (0 from one), a confident answer the search has not earned
+        check_positive_int(self.n_samples, "n_samples", minimum=min_ess)
+        check_positive_int(self.n_forecast, "n_forecast")
 
     def _search(self, obs: Observation):
         """Simulate the draws; returns (posterior, theta (N, 4), state0 (N, 4), weights, track, sim)."""

@@ -451,6 +451,10 @@ class NUTS(Estimator):
         self.frame_bucket = frame_bucket
         self.seed = seed
 
+    def _validate(self) -> None:
+        super()._validate()
+        self._check()
+
     # --------------------------------------------------------------------------------------
     def _check(self):
         for k in (

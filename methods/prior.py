@@ -43,6 +43,10 @@ class PriorOnly(Estimator):
         self.n_samples = n_samples
         self.seed = seed
 
+    def _validate(self) -> None:
+        super()._validate()
+        check_positive_int(self.n_samples, "n_samples")
+
     def identify(self, obs: Observation) -> Posterior:
         t0 = time.perf_counter()
         if not isinstance(obs, Observation):

@@ -46,7 +46,7 @@ from methods._common import (
     prepare,
     segment_track,
 )
-from sysid_bench._validate import check_positive_int
+from sysid_bench._validate import check_number, check_positive_int
 from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior
 
 __all__ = ["SINDy"]
@@ -107,6 +107,16 @@ class SINDy(Estimator):
         self.min_segment = min_segment
         self.n_forecast = n_forecast
         self.seed = seed
+
+    def _validate(self) -> None:
+        super()._validate()
+        check_number(self.threshold, "threshold", lo=0.0)
+        w = self.smoothing_window
+        if w is not None and (isinstance(w, bool) or not isinstance(w, (int, np.integer)) or w < 0
+                              or (w and (w < 5 or w % 2 == 0))):
+            raise ValueError(f"smoothing_window: expected None, 0 or an odd integer >= 5, got {w!r}")
+        check_positive_int(self.min_segment, "min_segment", minimum=3)
+        check_positive_int(self.n_forecast, "n_forecast")
 
     def _differentiator(self, noise: float):
         import pysindy as ps

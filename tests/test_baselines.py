@@ -291,7 +291,7 @@ def test_not_an_observation(name, ds):
 
 def test_state0_outside_the_box(ds):
     with pytest.raises(ValueError, match="state0"):
-        LSQ(n_samples=10).identify(
+        LSQ(n_samples=20).identify(
             Observation(positions=ds.states[0, :, :2], floor=0.0, state0=[12.0, 5.0, 1.0, 1.0])
         )
 
@@ -308,19 +308,44 @@ def test_state0_outside_the_box(ds):
         (lambda: SINDy(smoothing_window=4), "smoothing_window"),
         (lambda: SINDy(threshold=-1.0), "threshold"),
         (lambda: DMD(delays=-2), "delays"),
+        # issue 14: accepted before
+        (lambda: LSQ(n_samples=-5), "n_samples"),
+        (lambda: LSQ(n_samples=1), "n_samples"),  # one draw: a std of 0, a dishonest spread
+        (lambda: LSQ(n_samples=10, min_ess=20), "n_samples"),
+        (lambda: DMD(svd_rank=-1), "svd_rank"),
+        (lambda: DMD(svd_rank=5.5), "svd_rank"),
+        (lambda: DMD(svd_rank=1.0), "svd_rank"),
+        (lambda: LSQ(seed="x"), "seed"),
+        (lambda: SINDy(n_forecast=0), "n_forecast"),
+        (lambda: BayesOpt(n_surrogate=5), "n_surrogate"),
     ],
 )
-def test_bad_hyperparameters_name_themselves(make, arg, ds):
-    obs = _obs(ds, 0, n=40)
-    est = make()
+def test_bad_hyperparameters_name_themselves(make, arg):
+    # validated where they are given: at construction
     with pytest.raises(ValueError, match=arg):
-        est.forecast(obs, 3) if isinstance(est, DMD) else est.identify(obs)
+        make()
 
 
 @pytest.mark.parametrize("est", [LSQ(n_samples=20), SINDy(), DMD()], ids=["lsq", "sindy", "dmd"])
-def test_bad_horizon(est, ds):
+@pytest.mark.parametrize("horizon", [0, -3, 2.5, "10", 10**6])
+def test_bad_horizon(est, horizon, ds):
+    from sysid_bench.estimator import MAX_HORIZON
+
     with pytest.raises(ValueError, match="horizon"):
-        est.forecast(_obs(ds, 0, n=40), 0)
+        est.forecast(_obs(ds, 0, n=40), horizon)
+    assert MAX_HORIZON < 10**6
+
+
+def test_set_params_validates_too():
+    est = LSQ(n_samples=20)
+    with pytest.raises(ValueError, match="n_samples"):
+        est.set_params(n_samples=-5)
+
+
+def test_lsq_with_an_absurd_dt_names_dt(ds):
+    # was: "std: expected non-negative values, got [nan ...]" from a Posterior, naming no input
+    with pytest.raises(ValueError, match="dt"):
+        LSQ(n_samples=20).identify(Observation(positions=ds.states[0, :40, :2], dt=1e6))
 
 
 def test_posteriors_are_in_physical_units(ds):

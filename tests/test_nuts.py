@@ -171,9 +171,8 @@ def test_misfit_is_reported_not_raised():
 )
 def test_bad_hyperparameters_name_themselves(options, name):
     obs = Observation(positions=np.column_stack([np.linspace(1, 3, 10), np.linspace(5, 4, 10)]), floor=0.0)
-    est = N.NUTS(**options)  # the constructor only stores
-    with pytest.raises(ValueError, match=name):
-        est.identify(obs)
+    with pytest.raises(ValueError, match=name):  # validated at construction
+        N.NUTS(**options).identify(obs)
 
 
 def test_too_few_seen_frames_is_a_value_error():
