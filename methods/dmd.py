@@ -23,7 +23,7 @@ import warnings
 
 import numpy as np
 
-from methods._common import check_horizon, one_blas_thread
+from methods._simulation import one_blas_thread
 from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, observed_positions
 
 __all__ = ["DMD"]
@@ -128,7 +128,6 @@ class DMD(Estimator):
         t0 = time.perf_counter()
         if not isinstance(obs, Observation):
             raise ValueError(f"obs: expected a sysid_bench.estimator.Observation, got {type(obs).__name__}")
-        horizon = check_horizon(horizon)
         pos = observed_positions(obs, min_seen=3)
         seen = np.flatnonzero(np.isfinite(pos).all(axis=1))
         first, last = int(seen[0]), int(seen[-1])

@@ -27,7 +27,8 @@ from sysid_bench._validate import (
     check_seed,
     check_seed_value,
 )
-from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
+from sysid_bench.metrics import central_z
+from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR_LO, PRIOR_MEAN, PRIOR_SPAN, PRIOR_STD
 from sysid_bench.spec import MethodSpec, spec_of
 
 __all__ = [
@@ -219,12 +220,6 @@ def observed_positions(obs: Observation, *, min_seen: int = 3) -> np.ndarray:
     return pos
 
 
-def _gauss_quantile(p: np.ndarray) -> np.ndarray:
-    from scipy.special import ndtri
-
-    return ndtri(p)
-
-
 @dataclass
 class Posterior:
     """A method's belief about the physical parameters, in physical units, ``PARAMS`` order.
@@ -272,7 +267,7 @@ class Posterior:
         if self.samples is not None and len(self.samples) >= 2:
             lo, hi = np.quantile(self.samples, [a, 1 - a], axis=0)
             return lo, hi
-        z = float(_gauss_quantile(np.array(1 - a)))
+        z = float(central_z(level))
         return self.mean - z * self.std, self.mean + z * self.std
 
     def as_dict(self) -> dict[str, float]:
@@ -334,15 +329,13 @@ def prior_posterior(n_samples: int = 0, seed=0, **extras) -> Posterior:
     **extras
         Put into ``Posterior.extras`` (``n_simulations`` defaults to 0, ``wall_s`` to 0.0).
     """
-    lo = np.array([PRIOR[p][0] for p in PARAMS])
-    hi = np.array([PRIOR[p][1] for p in PARAMS])
     samples = None
     if n_samples:
         rng = check_seed(seed)
-        samples = lo + rng.random((int(n_samples), len(PARAMS))) * (hi - lo)
+        samples = PRIOR_LO + rng.random((int(n_samples), len(PARAMS))) * PRIOR_SPAN
     info = {"n_simulations": 0, "wall_s": 0.0}
     info.update(extras)
-    return Posterior(mean=(lo + hi) / 2, std=(hi - lo) / np.sqrt(12.0), samples=samples, extras=info)
+    return Posterior(mean=PRIOR_MEAN.copy(), std=PRIOR_STD.copy(), samples=samples, extras=info)
 
 
 class Stream(abc.ABC):

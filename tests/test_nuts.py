@@ -18,7 +18,8 @@ pytest.importorskip("numpyro")
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from methods import _common as C  # noqa: E402
+from sysid_bench import simulator as C  # noqa: E402
+from sysid_bench.physics import PRIOR_HI, PRIOR_LO  # noqa: E402
 from methods import nuts as N  # noqa: E402
 from sysid_bench import physics  # noqa: E402
 from sysid_bench.datasets import make_dataset  # noqa: E402
@@ -111,7 +112,7 @@ def test_accuracy_on_test_split_state_unknown(ds):
         # the counting rule: search batches + potential evaluations + leapfrog steps + fit check
         assert ex["n_simulations"] >= 1000 * 4 + 200 + ex["n_potential_evals_init"] + 1
         # within the prior box, physical units
-        assert np.all((p.samples >= C.LO) & (p.samples <= C.HI))
+        assert np.all((p.samples >= PRIOR_LO) & (p.samples <= PRIOR_HI))
 
 
 @pytest.mark.slow

@@ -22,7 +22,7 @@ from sysid_bench.bench.cases import Scale, test_set
 from sysid_bench.bench.store import Row
 from sysid_bench.estimator import Estimator, Observation, Posterior
 from sysid_bench.metrics import bootstrap_ci
-from sysid_bench.physics import PARAMS, PRIOR
+from sysid_bench.physics import PRIOR_LO, PRIOR_SPAN
 
 __all__ = [
     "Cell",
@@ -39,8 +39,8 @@ __all__ = [
     "SPAN",
 ]
 
-LO = np.array([PRIOR[p][0] for p in PARAMS])
-SPAN = np.array([PRIOR[p][1] - PRIOR[p][0] for p in PARAMS])
+LO = PRIOR_LO
+SPAN = PRIOR_SPAN
 
 
 def normalise(theta: np.ndarray) -> np.ndarray:

@@ -43,8 +43,8 @@ __all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "prove
 
 STORE_NAME = "results.sqlite"
 #: sources (from the repository root) every simulation-based method is built on
-_SHARED_SOURCES = ("methods/_common.py", "sysid_bench/simulator.py", "sysid_bench/tracks.py",
-                   "sysid_bench/weights.py", "methods/_simulation.py")
+_SHARED_SOURCES = ("sysid_bench/simulator.py", "methods/_tracks.py", "methods/_weights.py",
+                   "methods/_simulation.py")
 _VERSIONED = ("numpy", "scipy", "pandas", "pyarrow", "torch", "jax", "numpyro", "emcee",
               "pysindy", "pydmd", "scikit-optimize", "scikit-learn", "dask", "distributed",
               "matplotlib")
