@@ -95,3 +95,11 @@ def test_register_validates():
         methods.register("x", "no_colon")
     with pytest.raises(ValueError, match="already registered"):
         methods.register("lsq", "methods.lsq:LSQ")
+
+
+def test_reading_a_declaration_imports_only_that_method():
+    # declarations live on the class, so reading one imports its module, and only that one
+    code = ("import sys, methods; s = methods.spec('lsq'); "
+            "print(s.cost, 'torch' in sys.modules, 'jax' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["8", "False", "False"]
