@@ -3,6 +3,14 @@
 Entries are ``"module:Class"`` strings resolved on first use, so importing ``methods`` pulls in
 neither torch nor JAX; only the method that needs them does.
 
+Adding a method is one file and one ``register("name", "methods.file:Class")`` line below;
+everything the harness needs is declared on the class (:mod:`sysid_bench.spec`) and read with
+:func:`spec`. Reading a declaration imports the method's module (its class holds them): the
+declarations live in the one file that defines the method, with their code, instead of in a
+second copy on the register line that could drift from it. Only the names (``available``) and
+an unknown-name error are answered without importing; the runner, the report and the figures
+import the modules they run or draw anyway.
+
 >>> import methods
 >>> methods.available()
 ['vid2param', 'nuts', 'emcee', 'lsq', 'bo', 'sindy', 'dmd']
@@ -11,35 +19,49 @@ neither torch nor JAX; only the method that needs them does.
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import importlib
 from dataclasses import dataclass
 
 from sysid_bench.estimator import Estimator
+from sysid_bench.spec import MethodSpec
 
-__all__ = ["available", "get", "get_class", "register", "MethodSpec"]
+__all__ = ["available", "references", "get", "get_class", "register", "unregister", "spec",
+           "Registration", "MethodSpec"]
 
 
 @dataclass(frozen=True)
-class MethodSpec:
-    """A registered method: its name, its ``module:Class`` entry point and what it needs."""
+class Registration:
+    """A registry entry: the name, the ``module:Class`` entry point, the packages it needs (for
+    the error message when they are missing) and whether it is a reference helper (run next to
+    the contenders, e.g. ``prior``, the score of guessing) rather than a contender."""
 
     name: str
     entry_point: str
     requires: tuple[str, ...] = ()
-    reference: bool = False  # test/reference helpers, not contenders
+    reference: bool = False
 
 
-_REGISTRY: dict[str, MethodSpec] = {}
+_REGISTRY: dict[str, Registration] = {}
 
 
 def register(name: str, entry_point: str, requires=(), reference: bool = False) -> None:
-    """Add a method. ``entry_point`` is ``"package.module:ClassName"``."""
-    if ":" not in entry_point:
+    """Add a method. ``entry_point`` is ``"package.module:ClassName"``; nothing is imported."""
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"name: expected a non-empty str, got {name!r}")
+    if not isinstance(entry_point, str) or entry_point.count(":") != 1:
         raise ValueError(f"entry_point: expected 'module:Class', got {entry_point!r}")
     if name in _REGISTRY:
         raise ValueError(f"name: {name!r} is already registered ({_REGISTRY[name].entry_point})")
-    _REGISTRY[name] = MethodSpec(name, entry_point, tuple(requires), reference)
+    _REGISTRY[name] = Registration(name, entry_point, tuple(requires), bool(reference))
+
+
+def unregister(name: str) -> None:
+    """Remove a method (tests and plugins that registered one temporarily)."""
+    if name not in _REGISTRY:
+        raise _unknown(name)
+    del _REGISTRY[name]
 
 
 register("vid2param", "methods.vid2param:Vid2Param", requires=("torch",))
@@ -55,6 +77,19 @@ register("prior", "methods.prior:PriorOnly", reference=True)
 def available(include_reference: bool = False) -> list[str]:
     """Names of the registered methods (contenders; add the reference helpers on request)."""
     return [n for n, s in _REGISTRY.items() if include_reference or not s.reference]
+
+
+def references() -> list[str]:
+    """Names of the reference helpers (run by default next to the contenders)."""
+    return [n for n, s in _REGISTRY.items() if s.reference]
+
+
+def spec(name: str) -> MethodSpec:
+    """The declarations of the method registered as ``name`` (imports its module)."""
+    reg = _REGISTRY.get(name)
+    if reg is None:
+        raise _unknown(name)
+    return dataclasses.replace(get_class(name).spec(), entry_point=reg.entry_point)
 
 
 def _unknown(name) -> ValueError:
@@ -77,9 +112,11 @@ def get_class(name: str) -> type[Estimator]:
         raise ImportError(
             f"method {name!r} needs {need}; install with `pip install -e .[all]` ({exc})"
         ) from exc
-    cls = getattr(module, cls_name)
+    cls = getattr(module, cls_name, None)
     if not (isinstance(cls, type) and issubclass(cls, Estimator)):
         raise TypeError(f"{spec.entry_point} is not an Estimator subclass")
+    if cls.name != name:
+        raise ValueError(f"name: {spec.entry_point} declares name {cls.name!r}, registered as {name!r}")
     return cls
 
 

@@ -21,33 +21,23 @@ import warnings
 
 import numpy as np
 
-from methods._common import (
-    DEFAULT_SIGMA,
-    PRIOR_MEAN,
-    PRIOR_STD,
-    CountingSimulator,
-    Stopwatch,
-    check_horizon,
-    check_sigma,
-    clip_state,
-    forecast_by_simulation,
-    make_rng,
-    mean_sq_error,
-    one_blas_thread,
-    prepare,
-    resample,
-    tempered_weights,
-)
+from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng, one_blas_thread
+from methods._tracks import clip_state, prepare
+from methods._weights import resample, tempered_weights
 from sysid_bench import physics
 from sysid_bench._validate import check_positive_int
-from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior
+from sysid_bench.estimator import Observation, Posterior
+from sysid_bench.physics import PRIOR_MEAN, PRIOR_STD
+from sysid_bench.simulator import DEFAULT_SIGMA, CountingSimulator, check_sigma, mean_sq_error
 
 __all__ = ["BayesOpt"]
 
 _MSE_FLOOR = 1e-12  # m^2; keeps log finite on an exact fit
+_DESIGNS = ("random", "sobol", "halton", "hammersly", "lhs", "grid")
+_ACQUISITIONS = ("EI", "PI", "LCB", "gp_hedge")
 
 
-class BayesOpt(Estimator):
+class BayesOpt(SimulationMethod):
     """Gaussian-process Bayesian optimisation (scikit-optimize) of the trajectory fit.
 
     Parameters
@@ -75,9 +65,19 @@ class BayesOpt(Estimator):
     """
 
     name = "bo"
+    input_kind = "positions"
     min_frames = 3
-    #: cheap budgets for the registry-wide contract test (same code path)
-    _contract_options = {"n_calls": 6, "n_initial_points": 3, "n_surrogate": 256}
+    forecasts = True
+    cost = 30
+    figure_order = 4
+    # 4-13 s per cell at the default budget: the first cases only (the same cases as everyone)
+    scale_cases = {
+        "smoke": 1,
+        "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4},
+    }
+    scale_options = {"smoke": {"n_calls": 12, "n_initial_points": 6}}
+    #: cheap budgets for check_estimator (same code path)
+    contract_options = {"n_calls": 6, "n_initial_points": 3, "n_surrogate": 256}
 
     def __init__(
         self,
@@ -102,7 +102,31 @@ class BayesOpt(Estimator):
         self.n_forecast = n_forecast
         self.seed = seed
 
-    def _optimise(self, obs: Observation):
+    def _validate(self) -> None:
+        super()._validate()
+        n_calls = check_positive_int(self.n_calls, "n_calls")
+        n_init = check_positive_int(self.n_initial_points, "n_initial_points")
+        if n_init > n_calls:
+            raise ValueError(f"n_initial_points: expected at most n_calls={n_calls}, got {n_init}")
+        min_ess = check_positive_int(self.min_ess, "min_ess", minimum=2)
+        check_positive_int(self.n_surrogate, "n_surrogate", minimum=min_ess)
+        check_positive_int(self.n_forecast, "n_forecast")
+        check_sigma(self.sigma)
+        if self.initial_point_generator not in _DESIGNS:
+            raise ValueError(f"initial_point_generator: expected one of {', '.join(_DESIGNS)}, "
+                             f"got {self.initial_point_generator!r}")
+        if self.acq_func not in _ACQUISITIONS:
+            raise ValueError(f"acq_func: expected an skopt acquisition such as 'EI', got {self.acq_func!r}")
+
+    def _fit(self, obs: Observation) -> Fit:
+        """Best evaluated parameters, spread from the GP surrogate.
+
+        The posterior's ``samples`` are resampled from the surrogate-weighted draws; ``extras``
+        adds ``best_rmse`` (m), ``ess``, ``beta``, ``ok``/``message`` and the input
+        description. A forecast simulates ``n_forecast`` surrogate-weighted draws from the
+        (estimated) start; an unknown initial state is drawn from its estimate's Gaussian
+        standard error (:meth:`_forecast_state0`).
+        """
         from skopt import gp_minimize
 
         clock = Stopwatch()
@@ -181,36 +205,11 @@ class BayesOpt(Estimator):
             **track.describe(),
         }
         post = Posterior(mean=mean, std=std, samples=samples[idx], extras=extras)
-        return post, samples, w, track, sim, clock
+        s0 = np.broadcast_to(track.state0, samples.shape)
+        return Fit(post, samples, s0, track.floor, track, sim, clock, weights=w)
 
-    def identify(self, obs: Observation) -> Posterior:
-        """Best evaluated parameters, spread from the GP surrogate.
-
-        Returns
-        -------
-        Posterior
-            ``samples`` resampled from the surrogate-weighted draws; ``extras`` adds
-            ``best_rmse`` (m), ``ess``, ``beta``, ``ok``/``message`` and the input description.
-        """
-        return self._optimise(obs)[0]
-
-    def forecast(self, obs: Observation, horizon: int) -> Forecast:
-        """Simulate ``n_forecast`` surrogate-weighted draws forward from the (estimated) start.
-
-        An unknown initial state is drawn from its estimate's Gaussian standard error.
-
-        Returns
-        -------
-        Forecast
-            mean/std (horizon, 2); samples (n_forecast, horizon, 2).
-        """
-        horizon = check_horizon(horizon)
-        m = check_positive_int(self.n_forecast, "n_forecast")
-        post, samples, w, track, sim, clock = self._optimise(obs)
-        rng = make_rng(self.seed, 1)
-        idx = resample(w, m, rng)
-        s0 = track.state0 + track.state0_std * rng.standard_normal((m, 4))
-        return forecast_by_simulation(
-            sim, samples[idx], clip_state(s0, track.floor), track.floor, track.dt, horizon,
-            skip=track.n_frames - 1, clock=clock, extras={"posterior_extras": post.extras},
-        )
+    def _forecast_state0(self, fit: Fit, idx, rng) -> np.ndarray:
+        """The (estimated) start, drawn from its standard error (0 when known)."""
+        track = fit.track
+        s0 = track.state0 + track.state0_std * rng.standard_normal((len(idx), 4))
+        return clip_state(s0, track.floor)

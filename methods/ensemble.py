@@ -1,10 +1,10 @@
 """``emcee``: affine-invariant ensemble MCMC on the NumPy simulator.
 
-The posterior is the Gaussian position likelihood of :func:`methods._common.gaussian_loglik`
+The posterior is the Gaussian position likelihood of :func:`sysid_bench.simulator.gaussian_loglik`
 (fixed noise ``sigma``, the same as ``nuts``) times the uniform prior of
 :data:`sysid_bench.physics.PRIOR`. When the initial state is not given it is sampled too, as a
 nuisance with a flat prior on a box of ``state0_box`` standard errors around the state estimated
-from the first tracked frames (see :mod:`methods._common`); so is an unknown floor, on a box of
+from the first tracked frames (see :mod:`methods._tracks`); so is an unknown floor, on a box of
 as many of its standard errors around its estimate. (With the floor fixed at its estimate from
 tracked 28x28 frames, a 1-2 cm error in it put the truth outside the 90% interval of g in 6 of 6
 test videos; sampled, the intervals hold it.)
@@ -33,24 +33,19 @@ import warnings
 
 import numpy as np
 
-from methods._common import (
-    DEFAULT_SIGMA,
-    SPAN,
-    CountingSimulator,
-    Stopwatch,
-    check_horizon,
-    check_sigma,
-    clip_state,
-    forecast_by_simulation,
-    gaussian_loglik,
-    make_rng,
-    mean_sq_error,
-    one_blas_thread,
-    prepare,
-)
+from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng, one_blas_thread
+from methods._tracks import clip_state, prepare
 from sysid_bench import physics
-from sysid_bench._validate import check_positive_int
-from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior
+from sysid_bench._validate import check_number, check_positive_int
+from sysid_bench.estimator import Observation, Posterior
+from sysid_bench.physics import PRIOR_SPAN as SPAN
+from sysid_bench.simulator import (
+    DEFAULT_SIGMA,
+    CountingSimulator,
+    check_sigma,
+    gaussian_loglik,
+    mean_sq_error,
+)
 
 __all__ = ["Emcee"]
 
@@ -126,7 +121,7 @@ class _Problem:
         return r.reshape(pos.shape[0], -1)
 
 
-class Emcee(Estimator):
+class Emcee(SimulationMethod):
     """Ensemble MCMC (``emcee``) of the physical parameters, started at the likelihood's peak.
 
     Parameters
@@ -155,9 +150,19 @@ class Emcee(Estimator):
     """
 
     name = "emcee"
+    input_kind = "positions"
     min_frames = 3
-    #: cheap budgets for the registry-wide contract test (same code path)
-    _contract_options = {"n_walkers": 18, "n_steps": 12, "n_burn": 4, "n_init": 100, "max_opt_evals": 10}
+    forecasts = True
+    cost = 20
+    figure_order = 2
+    # 9-25 s per cell at the default budget: the first cases only
+    scale_cases = {
+        "smoke": 1,
+        "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4},
+    }
+    scale_options = {"smoke": {"n_walkers": 20, "n_steps": 20, "n_burn": 10}}
+    #: cheap budgets for check_estimator (same code path)
+    contract_options = {"n_walkers": 18, "n_steps": 12, "n_burn": 4, "n_init": 100, "max_opt_evals": 10}
 
     def __init__(
         self,
@@ -183,6 +188,21 @@ class Emcee(Estimator):
         self.n_forecast = n_forecast
         self.progress = progress
         self.seed = seed
+
+    def _validate(self) -> None:
+        super()._validate()
+        check_sigma(self.sigma)
+        n_walkers = check_positive_int(self.n_walkers, "n_walkers", minimum=8)
+        if n_walkers % 2:
+            raise ValueError(f"n_walkers: expected an even number >= 8, got {n_walkers}")
+        n_steps = check_positive_int(self.n_steps, "n_steps")
+        n_burn = check_positive_int(self.n_burn, "n_burn", minimum=0)
+        if n_burn >= n_steps:
+            raise ValueError(f"n_burn: expected fewer than n_steps={n_steps}, got {n_burn}")
+        check_positive_int(self.n_init, "n_init")
+        check_positive_int(self.max_opt_evals, "max_opt_evals")
+        check_positive_int(self.n_forecast, "n_forecast")
+        check_number(self.state0_box, "state0_box", lo=1e-9)
 
     # -- pieces -----------------------------------------------------------------------------
     def _start(self, prob: _Problem, rng: np.random.Generator):
@@ -250,7 +270,14 @@ class Emcee(Estimator):
         out[need] = np.clip(z_opt + jitter, prob.lo, prob.hi)
         return out
 
-    def _run(self, obs: Observation):
+    def _fit(self, obs: Observation) -> Fit:
+        """Posterior samples of ``(e, g, d, r)`` from the ensemble after burn-in.
+
+        The posterior's mean/std are those of the kept samples (std widened to the Laplace one
+        when not converged), ``samples`` (n_walkers * (n_steps - n_burn), 4), diagnostics in
+        ``extras``. A forecast continues ``n_forecast`` samples (with their initial states and
+        floors) past the end.
+        """
         import emcee
 
         clock = Stopwatch()
@@ -320,33 +347,4 @@ class Emcee(Estimator):
             **track.describe(),
         }
         post = Posterior(mean=theta.mean(axis=0), std=std, samples=theta, extras=extras)
-        return post, theta, np.asarray(s0), floors, track, sim, clock
-
-    # -- interface --------------------------------------------------------------------------
-    def identify(self, obs: Observation) -> Posterior:
-        """Posterior samples of ``(e, g, d, r)`` from the ensemble after burn-in.
-
-        Returns
-        -------
-        Posterior
-            mean/std of the kept samples (std widened to the Laplace one when not converged),
-            ``samples`` (n_walkers * (n_steps - n_burn), 4), diagnostics in ``extras``.
-        """
-        return self._run(obs)[0]
-
-    def forecast(self, obs: Observation, horizon: int) -> Forecast:
-        """Simulate ``n_forecast`` posterior samples (with their initial states) past the end.
-
-        Returns
-        -------
-        Forecast
-            mean/std (horizon, 2); samples (n_forecast, horizon, 2).
-        """
-        horizon = check_horizon(horizon)
-        m = check_positive_int(self.n_forecast, "n_forecast")
-        post, theta, s0, floors, track, sim, clock = self._run(obs)
-        idx = make_rng(self.seed, 1).choice(len(theta), size=m, replace=len(theta) < m)
-        return forecast_by_simulation(
-            sim, theta[idx], s0[idx], floors[idx], track.dt, horizon,
-            skip=track.n_frames - 1, clock=clock, extras={"posterior_extras": post.extras},
-        )
+        return Fit(post, theta, np.asarray(s0), floors, track, sim, clock)

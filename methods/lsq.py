@@ -4,9 +4,9 @@ Draw ``n_samples`` parameter vectors from the uniform prior, simulate them in on
 each against the observed positions (unseen frames skipped) and report the best fit. When the
 initial state is not given, each draw also gets an initial state sampled uniformly in a small box
 around the state estimated from the first tracked frames (the paper's real-video variant); the
-floor, when unknown, is the track's estimate (see :mod:`methods._common`).
+floor, when unknown, is the track's estimate (see :mod:`methods._tracks`).
 
-Spread: the draws weighted by the Gaussian likelihood of :mod:`methods._common`, with the noise
+Spread: the draws weighted by the Gaussian likelihood of :mod:`sysid_bench.simulator`, with the noise
 scale raised to the best fit's RMS residual when that is larger than ``sigma`` (the draws cannot
 fit better than their resolution) and the weights tempered until ``min_ess`` draws carry them.
 The standard deviation is taken about the best fit, so it also covers the best fit's offset from
@@ -17,24 +17,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from methods._common import (
-    DEFAULT_SIGMA,
-    CountingSimulator,
-    Stopwatch,
-    check_horizon,
-    check_sigma,
-    clip_state,
-    forecast_by_simulation,
-    gaussian_loglik,
-    make_rng,
-    mean_sq_error,
-    prepare,
-    resample,
-    tempered_weights,
-)
+from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng
+from methods._tracks import clip_state, prepare
+from methods._weights import resample, tempered_weights
 from sysid_bench import physics
 from sysid_bench._validate import check_positive_int
-from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior
+from sysid_bench.estimator import Observation, Posterior
+from sysid_bench.simulator import (
+    DEFAULT_SIGMA,
+    CountingSimulator,
+    check_sigma,
+    gaussian_loglik,
+    mean_sq_error,
+)
 
 __all__ = ["LSQ"]
 
@@ -44,17 +39,19 @@ _STATE_BOX_SE = 3.0
 _STATE_BOX_MIN = np.array([0.01, 0.01, 0.05, 0.05])
 
 
-class LSQ(Estimator):
+class LSQ(SimulationMethod):
     """Best of a batch of prior draws by trajectory fit.
 
     Parameters
     ----------
     n_samples : int
-        Prior draws simulated in one batch (the paper: 2000; 5000 for its real videos).
+        Prior draws simulated in one batch (the paper: 2000; 5000 for its real videos); at
+        least ``min_ess``, so that the reported spread rests on that many effective draws.
     sigma : float
         Position noise standard deviation (m) of the likelihood that weights the draws.
     min_ess : int
-        Fewest effective draws the weights are tempered to (sets the reported spread's floor).
+        Fewest effective draws the weights are tempered to (sets the reported spread's floor);
+        at least 2.
     n_forecast : int
         Weighted draws resampled for a forecast.
     seed : int
@@ -62,9 +59,13 @@ class LSQ(Estimator):
     """
 
     name = "lsq"
+    input_kind = "positions"
     min_frames = 3
-    #: cheap budgets for the registry-wide contract test (same code path)
-    _contract_options = {"n_samples": 200}
+    forecasts = True
+    cost = 8
+    figure_order = 3
+    #: cheap budgets for check_estimator (same code path)
+    contract_options = {"n_samples": 200}
 
     def __init__(
         self,
@@ -81,8 +82,23 @@ class LSQ(Estimator):
         self.n_forecast = n_forecast
         self.seed = seed
 
-    def _search(self, obs: Observation):
-        """Simulate the draws; returns (posterior, theta (N, 4), state0 (N, 4), weights, track, sim)."""
+    def _validate(self) -> None:
+        super()._validate()
+        check_sigma(self.sigma)
+        min_ess = check_positive_int(self.min_ess, "min_ess", minimum=2)
+        # fewer draws than min_ess cannot carry the tempered weights: the spread would be that
+        # of a handful of draws (0 from one), a confident answer the search has not earned
+        check_positive_int(self.n_samples, "n_samples", minimum=min_ess)
+        check_positive_int(self.n_forecast, "n_forecast")
+
+    def _fit(self, obs: Observation) -> Fit:
+        """Best-fitting prior draw, spread from the likelihood-weighted draws.
+
+        The posterior's ``samples`` are the weighted draws resampled (``n_samples // 4`` of
+        them); ``extras`` adds ``best_rmse`` (m), ``sigma_eff``, ``ess``, ``beta`` (tempering),
+        ``state0`` (of the best draw) and the input description. A forecast continues
+        ``n_forecast`` resampled draws' own trajectories.
+        """
         clock = Stopwatch()
         n = check_positive_int(self.n_samples, "n_samples")
         sigma = check_sigma(self.sigma)
@@ -118,36 +134,4 @@ class LSQ(Estimator):
             **track.describe(),
         }
         post = Posterior(mean=mean, std=std, samples=theta[idx], extras=extras)
-        return post, theta, np.asarray(s0), w, track, sim
-
-    def identify(self, obs: Observation) -> Posterior:
-        """Best-fitting prior draw, spread from the likelihood-weighted draws.
-
-        Returns
-        -------
-        Posterior
-            ``samples`` are the weighted draws resampled (``n_samples // 4`` of them);
-            ``extras`` adds ``best_rmse`` (m), ``sigma_eff``, ``ess``, ``beta`` (tempering),
-            ``state0`` (of the best draw) and the input description.
-        """
-        return self._search(obs)[0]
-
-    def forecast(self, obs: Observation, horizon: int) -> Forecast:
-        """Continue ``n_forecast`` resampled draws' own trajectories for ``horizon`` frames.
-
-        Returns
-        -------
-        Forecast
-            mean/std (horizon, 2); samples (n_forecast, horizon, 2).
-        """
-        horizon = check_horizon(horizon)
-        m = check_positive_int(self.n_forecast, "n_forecast")
-        clock = Stopwatch()
-        post, theta, s0, w, track, sim = self._search(obs)
-        # a stream independent of the search's draws, still fixed by the seed
-        rng = make_rng(self.seed, 1)
-        idx = resample(w, m, rng)
-        return forecast_by_simulation(
-            sim, theta[idx], s0[idx], track.floor, track.dt, horizon,
-            skip=track.n_frames - 1, clock=clock, extras={"posterior_extras": post.extras},
-        )
+        return Fit(post, theta, np.asarray(s0), track.floor, track, sim, clock, weights=w)

@@ -2,20 +2,20 @@
 
 Model
 -----
-* **Likelihood** — exactly :func:`methods._common.gaussian_loglik`, written in JAX
+* **Likelihood** — exactly :func:`sysid_bench.simulator.gaussian_loglik`, written in JAX
   (:func:`loglik_jax`, tested equal): observed positions are the simulated ones plus independent
   N(0, ``sigma``^2) noise per coordinate, ``sigma`` **fixed** (hyperparameter, default
-  ``_common.DEFAULT_SIGMA`` = 0.02 m; see ``_common`` for why it is not inferred); unseen (NaN)
+  ``sysid_bench.simulator.DEFAULT_SIGMA`` = 0.02 m; see there for why it is not inferred); unseen (NaN)
   frames contribute nothing.
 * **Prior** — uniform on ``PRIOR`` for ``(e, g, d, r)``. Each parameter is sampled through the
   logit of its position in its range (an unconstrained space; the uniform prior there has
   density ``sigmoid(x) sigmoid(-x)``), so hard prior edges do not stop NUTS.
 * **Initial state** — ``Observation.state0`` when given (held fixed). Otherwise it is *sampled*
   as a nuisance parameter, uniform on the box (``x0`` in [0, 10], ``y0`` in [floor, floor + 10])
-  and on ``[-V0_MAX, V0_MAX]`` m/s for each velocity, starting from ``_common.prepare``'s
+  and on ``[-V0_MAX, V0_MAX]`` m/s for each velocity, starting from ``methods._tracks.prepare``'s
   estimate. Sampling it makes the intervals honest about how well the start is known; holding
   the polynomial estimate fixed would bias ``e`` and ``g`` with no spread to show for it.
-* **Floor** — ``Observation.floor``, else ``_common.prepare``'s point estimate (fixed).
+* **Floor** — ``Observation.floor``, else ``methods._tracks.prepare``'s point estimate (fixed).
 
 Gradients go through the JAX simulator including its contact times
 (:mod:`sysid_bench.physics_jax`). They are computed in **forward mode** (one ``jvp`` per
@@ -43,7 +43,7 @@ alone:
 
 Counting
 --------
-``extras["n_simulations"]`` counts trajectories as ``_common.CountingSimulator`` does (one
+``extras["n_simulations"]`` counts trajectories as ``sysid_bench.simulator.CountingSimulator`` does (one
 trajectory = one simulation): the search batches (``n_init`` per round), one per potential
 evaluation of the optimiser, Newton steps and Hessian, one per leapfrog step (``num_steps``,
 warm-up included) and one per chain for NumPyro's initial potential — each of these is one
@@ -74,25 +74,34 @@ from numpyro.infer.hmc import hmc
 from numpyro.infer.util import potential_energy
 from scipy.optimize import minimize
 
-from methods import _common as C
+from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng
+from methods._tracks import clip_state, prepare
 from sysid_bench import physics
 from sysid_bench import physics_jax as pj
 from sysid_bench._validate import check_positive_int
-from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior
+from sysid_bench.estimator import Observation, Posterior
+from sysid_bench.physics import PRIOR_LO, PRIOR_SPAN
+from sysid_bench.simulator import (
+    DEFAULT_SIGMA,
+    CountingSimulator,
+    check_sigma,
+    gaussian_loglik,
+    mean_sq_error,
+)
 
 __all__ = ["NUTS", "loglik_jax", "V0_MAX"]
 
 #: Bound (m/s) of the uniform prior on each initial velocity when the initial state is sampled.
 V0_MAX = 20.0
-_LO = jnp.asarray(C.LO)
-_SPAN = jnp.asarray(C.SPAN)
+_LO = jnp.asarray(PRIOR_LO)
+_SPAN = jnp.asarray(PRIOR_SPAN)
 _EPS = 1e-6  # keeps initial values off the unit interval's ends, where the logit is infinite
 
 
 # ------------------------------------------------------------------------------------------
-# likelihood (JAX mirror of _common.gaussian_loglik) with forward-mode gradients
+# likelihood (JAX mirror of sysid_bench.simulator.gaussian_loglik) with forward-mode gradients
 def loglik_jax(sim_pos, obs_pos, mask, sigma):
-    """``_common.gaussian_loglik`` in JAX.
+    """``sysid_bench.simulator.gaussian_loglik`` in JAX.
 
     Parameters
     ----------
@@ -333,10 +342,10 @@ def _search(sim, track, sigma, free, rng, n, rounds, n_starts):
     pool_v, pool_ll = np.empty((0, D)), np.empty(0)
     n_elite = max(10, n // 20)
     for r in range(rounds):
-        theta = C.LO + C.SPAN * v[:, :4]
+        theta = PRIOR_LO + PRIOR_SPAN * v[:, :4]
         state = lo_s + span_s * v[:, 4:] if free else np.repeat(track.state0[None], n, 0)
-        pos = sim.positions(theta, C.clip_state(state, floor), T, dt, floor)
-        ll = C.gaussian_loglik(pos, track.positions, track.mask, sigma)
+        pos = sim.positions(theta, clip_state(state, floor), T, dt, floor)
+        ll = gaussian_loglik(pos, track.positions, track.mask, sigma)
         pool_v, pool_ll = np.concatenate((pool_v, v)), np.concatenate((pool_ll, ll))
         if r == rounds - 1:
             break
@@ -356,7 +365,7 @@ def _search(sim, track, sigma, free, rng, n, rounds, n_starts):
     return [_logit(pool_v[i]) for i in starts], {"search_best_loglik": float(pool_ll[order[0]])}
 
 
-class NUTS(Estimator):
+class NUTS(SimulationMethod):
     """NumPyro's No-U-Turn sampler on the JAX simulator.
 
     Parameters
@@ -394,9 +403,23 @@ class NUTS(Estimator):
 
     name = "nuts"
     input_kind = "positions"
-    min_frames = 3  # fewer seen frames cannot fix a state and parameters (``_common.prepare``)
-    #: cheap budgets for the contract test (same code path; one frame bucket for every prefix)
-    _contract_options = {
+    min_frames = 3  # fewer seen frames cannot fix a state and parameters (``methods._tracks.prepare``)
+    forecasts = True
+    cost = 50
+    figure_order = 1
+    #: the posterior calibration compares every other method with
+    reference_posterior = True
+    # ~25 s per posterior (~100 under load): only in experiment 5, where it is the reference
+    scale_cases = {
+        "smoke": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 1},
+        "default": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 3},
+    }
+    scale_options = {
+        "smoke": {"num_warmup": 30, "num_samples": 30, "n_init": 200},
+        "default": {"num_warmup": 150, "num_samples": 150},
+    }
+    #: cheap budgets for check_estimator (same code path; one frame bucket for every prefix)
+    contract_options = {
         "num_warmup": 40,
         "num_samples": 40,
         "n_init": 100,
@@ -412,7 +435,7 @@ class NUTS(Estimator):
         num_warmup: int = 200,
         num_samples: int = 300,
         num_chains: int = 1,
-        sigma: float = C.DEFAULT_SIGMA,
+        sigma: float = DEFAULT_SIGMA,
         n_init: int = 1000,
         search_rounds: int = 4,
         n_starts: int = 3,
@@ -437,6 +460,10 @@ class NUTS(Estimator):
         self.frame_bucket = frame_bucket
         self.seed = seed
 
+    def _validate(self) -> None:
+        super()._validate()
+        self._check()
+
     # --------------------------------------------------------------------------------------
     def _check(self):
         for k in (
@@ -444,7 +471,7 @@ class NUTS(Estimator):
             "max_tree_depth", "n_forecast", "frame_bucket",
         ):
             check_positive_int(getattr(self, k), k)
-        sigma = C.check_sigma(self.sigma)
+        sigma = check_sigma(self.sigma)
         try:
             ta = float(self.target_accept)
         except (TypeError, ValueError):
@@ -455,20 +482,19 @@ class NUTS(Estimator):
             raise ValueError(f"seed: expected an int, got {self.seed!r}")
         return sigma
 
-    def identify(self, obs: Observation) -> Posterior:
-        """Posterior over ``(e, g, d, r)`` given all frames of ``obs``."""
-        return self._run(obs)[0]
-
-    def _run(self, obs):
-        sw = C.Stopwatch()
+    def _fit(self, obs: Observation) -> Fit:
+        """Posterior samples of ``(e, g, d, r)`` (see the module docstring); a forecast continues
+        ``n_forecast`` of them (their parameters and, when sampled, their initial states) past
+        the last frame. ``extras["n_simulations"]`` of a forecast counts the fit's too."""
+        sw = Stopwatch()
         sigma = self._check()
-        track = C.prepare(obs)
-        sim = C.CountingSimulator()
+        track = prepare(obs)
+        sim = CountingSimulator()
         T, dt, floor = track.n_frames, track.dt, track.floor
         Tb = _bucket(T, int(self.frame_bucket))
         free = not track.state0_known
         D = 8 if free else 4
-        rng = C.make_rng(self.seed, 0)
+        rng = make_rng(self.seed, 0)
 
         # data, padded to the bucket length (padded frames are unseen)
         obs_pos = np.zeros((Tb, 2))
@@ -533,7 +559,7 @@ class NUTS(Estimator):
         # how well the mode fits: a wrong basin or a misspecified model shows as RMS >> sigma
         th_map, s0_map = (np.asarray(a) for a in _physical(jnp.asarray(x_map), floor, jnp.asarray(s0_est), free))
         fit = sim.positions(th_map[None], s0_map[None], T, dt, floor)
-        rms = float(np.sqrt(C.mean_sq_error(fit, track.positions, track.mask)[0]))
+        rms = float(np.sqrt(mean_sq_error(fit, track.positions, track.mask)[0]))
         if rms > 3.0 * sigma:
             problems.append(f"the mode misses the track by {rms:.3g} m RMS (> 3 sigma = {3 * sigma:.3g} m)")
         extras = {
@@ -555,27 +581,7 @@ class NUTS(Estimator):
             **track.describe(),
         }
         post = Posterior(mean=flat.mean(0), std=flat.std(0, ddof=1), samples=flat, extras=extras)
-        return post, (flat, s0s.reshape(-1, 4), track, sim, sw)
-
-    def forecast(self, obs: Observation, horizon: int) -> Forecast:
-        """Positions of the ``horizon`` frames after ``obs``: ``n_forecast`` posterior samples'
-        trajectories (their parameters and, when sampled, their initial states) continued past
-        the last frame.
-
-        Returns
-        -------
-        Forecast
-            mean/std (horizon, 2); samples (n_forecast, horizon, 2); ``extras["n_simulations"]``
-            counts the identification's simulations too.
-        """
-        horizon = C.check_horizon(horizon)
-        m = check_positive_int(self.n_forecast, "n_forecast")
-        post, (theta, s0s, track, sim, clock) = self._run(obs)
-        idx = C.make_rng(self.seed, 1).choice(len(theta), size=m, replace=len(theta) < m)
-        return C.forecast_by_simulation(
-            sim, theta[idx], s0s[idx], track.floor, track.dt, horizon,
-            skip=track.n_frames - 1, clock=clock, extras={"posterior_extras": post.extras},
-        )
+        return Fit(post, flat, s0s.reshape(-1, 4), track.floor, track, sim, sw)
 
 
 def _logit(u):

@@ -33,10 +33,19 @@ class PriorOnly(Estimator):
     """
 
     name = "prior"
+    input_kind = "positions"
+    forecasts = True
+    cost = 0
+    inline = True  # microseconds per cell: not worth a worker
+    figure_order = 7
 
     def __init__(self, *, n_samples: int = 256, seed: int = 0):
         self.n_samples = n_samples
         self.seed = seed
+
+    def _validate(self) -> None:
+        super()._validate()
+        check_positive_int(self.n_samples, "n_samples")
 
     def identify(self, obs: Observation) -> Posterior:
         t0 = time.perf_counter()

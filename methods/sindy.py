@@ -1,7 +1,7 @@
 """``sindy``: sparse regression (pysindy) on the free-flight pieces of the track, plus contacts.
 
 One smooth ODE cannot pass through a bounce, so the track is first split where contacts are
-(:func:`methods._common.segment_track`: second-difference impulses mark floor and wall hits, a
+(:func:`methods._tracks.segment_track`: second-difference impulses mark floor and wall hits, a
 still, lowest stretch marks rolling). Then:
 
 * ``g`` and ``d``: pysindy fits the velocities ``(vx, vy)`` of all free-flight segments together
@@ -31,22 +31,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from methods._common import (
-    HI,
-    LO,
-    PRIOR_MEAN,
-    PRIOR_STD,
-    CountingSimulator,
-    Stopwatch,
-    check_horizon,
-    clip_state,
-    forecast_by_simulation,
-    make_rng,
-    one_blas_thread,
-    prepare,
-    segment_track,
-)
-from sysid_bench._validate import check_positive_int
+from methods._simulation import Stopwatch, forecast_by_simulation, make_rng, one_blas_thread
+from methods._tracks import clip_state, prepare, segment_track
+from sysid_bench.physics import PRIOR_HI as HI
+from sysid_bench.physics import PRIOR_LO as LO
+from sysid_bench.physics import PRIOR_MEAN, PRIOR_STD
+from sysid_bench.simulator import CountingSimulator
+from sysid_bench._validate import check_number, check_positive_int
 from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior
 
 __all__ = ["SINDy"]
@@ -87,7 +78,11 @@ class SINDy(Estimator):
     """
 
     name = "sindy"
+    input_kind = "positions"
     min_frames = 3
+    forecasts = True
+    cost = 4
+    figure_order = 5
 
     def __init__(
         self,
@@ -103,6 +98,16 @@ class SINDy(Estimator):
         self.min_segment = min_segment
         self.n_forecast = n_forecast
         self.seed = seed
+
+    def _validate(self) -> None:
+        super()._validate()
+        check_number(self.threshold, "threshold", lo=0.0)
+        w = self.smoothing_window
+        if w is not None and (isinstance(w, bool) or not isinstance(w, (int, np.integer)) or w < 0
+                              or (w and (w < 5 or w % 2 == 0))):
+            raise ValueError(f"smoothing_window: expected None, 0 or an odd integer >= 5, got {w!r}")
+        check_positive_int(self.min_segment, "min_segment", minimum=3)
+        check_positive_int(self.n_forecast, "n_forecast")
 
     def _differentiator(self, noise: float):
         import pysindy as ps
@@ -244,7 +249,6 @@ class SINDy(Estimator):
         Forecast
             mean/std (horizon, 2); samples (n_forecast, horizon, 2).
         """
-        horizon = check_horizon(horizon)
         m = check_positive_int(self.n_forecast, "n_forecast")
         post, track, clock = self._fit(obs)
         rng = make_rng(self.seed, 1)

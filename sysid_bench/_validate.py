@@ -91,3 +91,42 @@ def check_seed(seed) -> np.random.Generator:
     if seed is None or isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
         return np.random.default_rng(seed)
     raise ValueError(f"seed: expected an int, None or numpy.random.Generator, got {seed!r}")
+
+
+def check_number(value, name: str, *, lo: float | None = None, hi: float | None = None,
+                 unit: str = "") -> float:
+    """``value`` as a finite float within ``[lo, hi]``; strings and bools are refused.
+
+    A string such as ``"0.05"`` would be converted by ``float`` but is almost always a file or
+    command-line value nobody parsed, so it is named instead of silently accepted.
+    """
+    u = f" {unit}" if unit else ""
+    rng = ("" if lo is None and hi is None else
+           f" in [{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]{u}")
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name}: expected a real number{rng}, got {type(value).__name__} {value!r}")
+    v = float(value)
+    if not np.isfinite(v) or (lo is not None and v < lo) or (hi is not None and v > hi):
+        raise ValueError(f"{name}: expected a finite number{rng}, got {value!r}")
+    return v
+
+
+def check_horizon(horizon, maximum: int) -> int:
+    """``horizon`` as an int in ``[1, maximum]`` frames, else ``ValueError`` naming it."""
+    if isinstance(horizon, (bool, np.bool_)) or not isinstance(horizon, (int, np.integer)):
+        raise ValueError(f"horizon: expected an integer number of frames in [1, {maximum}], got {horizon!r}")
+    if not 1 <= horizon <= maximum:
+        raise ValueError(
+            f"horizon: expected an integer number of frames in [1, {maximum}] "
+            f"(sysid_bench.estimator.MAX_HORIZON), got {horizon}"
+        )
+    return int(horizon)
+
+
+def check_seed_value(seed, name: str = "seed"):
+    """A hyperparameter seed: an int >= 0, None or a ``numpy.random.Generator``; returned as is."""
+    if seed is None or isinstance(seed, np.random.Generator):
+        return seed
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"{name}: expected an int >= 0, None or numpy.random.Generator, got {seed!r}")
+    return seed

@@ -1,4 +1,4 @@
-"""``sysid-bench``: run the benchmark, render its report, list what there is.
+"""``sysid-bench``: one command line for everything a user runs.
 
 Examples
 --------
@@ -9,17 +9,93 @@ Examples
     sysid-bench run --scale default --scheduler tcp://10.0.0.5:8786
     sysid-bench report                          # run default scale, write reports/
     sysid-bench report --from-store runs/default/results.sqlite
+    sysid-bench train --help                    # Vid2Param training (methods.vid2param.train)
+    sysid-bench evaluate --help                 # Vid2Param evaluation (methods.vid2param.evaluate)
+
+``python -m sysid_bench`` is the same command; ``python -m sysid_bench.report`` is
+``sysid-bench report``.
+
+Adding a subcommand
+-------------------
+A subcommand is a module with two functions, ``add_arguments(parser)`` (its options; the shared
+groups below are :data:`options`) and ``run(args) -> int`` (the exit status), and one line in
+:data:`SUBCOMMANDS`::
+
+    "identify": ("sysid_bench.video", "identify a ball's physics in a video file"),
+
+Only the chosen subcommand's module is imported, so ``sysid-bench list`` never loads torch.
+A ``ValueError`` from ``run`` is printed as one ``error:`` line with exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
+from types import SimpleNamespace
 
-__all__ = ["main"]
+__all__ = ["main", "SUBCOMMANDS", "options"]
 
 
-def _cmd_list(args) -> int:
+# -- the shared option groups (defined once; every subcommand picks the ones it takes) ----------
+def _scale(p, default: str = "default") -> None:
+    p.add_argument("--scale", default=default, help=f"smoke, default or paper (default: {default})")
+
+
+def _methods(p, help: str = "default: every contender and the prior reference") -> None:
+    p.add_argument("--methods", nargs="+", default=None, metavar="NAME", help=help)
+
+
+def _experiments(p) -> None:
+    p.add_argument("--experiments", nargs="+", default=None, metavar="NAME",
+                   help="default: all five")
+
+
+def _run_dir(p) -> None:
+    p.add_argument("--run-dir", default=None, help="where the results store lives (default runs/<scale>)")
+
+
+def _out(p, default: str | None = None, help: str | None = None) -> None:
+    p.add_argument("--out", default=default,
+                   help=help or f"output directory (default {default or 'chosen by the command'})")
+
+
+def _seed(p, default: int = 0) -> None:
+    p.add_argument("--seed", type=int, default=default, help=f"random seed (default {default})")
+
+
+def _threads(p) -> None:
+    p.add_argument("--threads", type=int, default=1,
+                   help="threads per cell (default 1: one process per core is the parallelism)")
+
+
+def _scheduler(p) -> None:
+    p.add_argument("--workers", type=int, default=None, help="local processes (default: cores)")
+    p.add_argument("--scheduler", default=None, help="Dask scheduler address (instead of local processes)")
+
+
+def _execution(p) -> None:
+    """What a benchmark run takes: the run dir, workers/scheduler, threads, retries, progress."""
+    _run_dir(p)
+    _scheduler(p)
+    _threads(p)
+    p.add_argument("--retry-errors", action="store_true",
+                   help="compute the stored cells that failed again (e.g. after adding a checkpoint)")
+    p.add_argument("--no-progress", action="store_true")
+
+
+#: the shared option groups, for subcommand modules: ``options.scale(parser)`` and so on
+options = SimpleNamespace(scale=_scale, methods=_methods, experiments=_experiments,
+                          run_dir=_run_dir, out=_out, seed=_seed, threads=_threads,
+                          scheduler=_scheduler, execution=_execution)
+
+
+# -- built-in subcommands ----------------------------------------------------------------------
+def list_arguments(p) -> None:
+    pass
+
+
+def list_run(args) -> int:
     import methods
     from sysid_bench.bench import EXPERIMENTS
     from sysid_bench.bench.cases import SCALES
@@ -27,28 +103,36 @@ def _cmd_list(args) -> int:
     print("methods:")
     for name in methods.available(include_reference=True):
         try:
-            cls = methods.get_class(name)
-            state = f"input {getattr(cls, 'input_kind', '?')}"
+            spec = methods.spec(name)
+            state = f"input {spec.input_kind}; {', '.join(spec.capabilities)}; cost {spec.cost}"
         except ImportError as exc:
             state = f"unavailable ({str(exc)[:100]})"
-        ref = " [reference]" if name not in methods.available() else ""
+        ref = " [reference]" if name in methods.references() else ""
         print(f"  {name:10s} {state}{ref}")
     print("experiments:")
     for name, e in EXPERIMENTS.items():
         print(f"  {name:15s} {e.title}")
     print("scales:")
     for name, s in SCALES.items():
-        print(f"  {name:8s} cases {s.n_cases}, caps {s.method_cases or '-'}")
+        print(f"  {name:8s} cases {s.n_cases}")
     return 0
 
 
-def _cmd_run(args) -> int:
-    from sysid_bench.bench.runner import DEFAULT_INLINE, run
+def run_arguments(p) -> None:
+    _scale(p)
+    _methods(p)
+    _experiments(p)
+    _execution(p)
+    p.add_argument("--inline", nargs="*", default=None, metavar="NAME",
+                   help="methods run in a thread of this process (default: those declaring inline)")
+
+
+def run_run(args) -> int:
+    from sysid_bench.bench.runner import run
 
     s = run(scale=args.scale, methods=args.methods, experiments=args.experiments,
             run_dir=args.run_dir, workers=args.workers, scheduler=args.scheduler,
-            progress=not args.no_progress,
-            inline=DEFAULT_INLINE if args.inline is None else args.inline,
+            progress=not args.no_progress, inline=args.inline, threads=args.threads,
             retry_errors=args.retry_errors)
     print(f"store {s['store']}: {s['cells']} cells in the grid, {s['already']} already stored, "
           f"{s['ran']} computed ({s['ok']} ok, {s['errors']} errors, {s['na']} n/a) "
@@ -58,44 +142,66 @@ def _cmd_run(args) -> int:
     return 0
 
 
-def _cmd_report(args) -> int:
-    from sysid_bench.report import report_command
-
-    return report_command(args)
+def _delegate_arguments(p) -> None:
+    p.add_argument("argv", nargs=argparse.REMAINDER, help="the delegated command's own options")
 
 
-def _parser() -> argparse.ArgumentParser:
-    from sysid_bench.report import _parser as report_parser
+def train_run(args) -> int:
+    from methods.vid2param.train import main as train_main
 
-    p = argparse.ArgumentParser(prog="sysid-bench", description=__doc__.split("\n")[0])
-    sub = p.add_subparsers(dest="command", required=True)
-    sub.add_parser("list", help="methods, experiments and scales").set_defaults(fn=_cmd_list)
+    return int(train_main(args.argv) or 0)
 
-    r = sub.add_parser("run", help="run (or resume) a benchmark into a results store")
-    r.add_argument("--scale", default="default", help="smoke, default or paper")
-    r.add_argument("--run-dir", default=None, help="default runs/<scale>")
-    r.add_argument("--methods", nargs="+", default=None)
-    r.add_argument("--experiments", nargs="+", default=None)
-    r.add_argument("--workers", type=int, default=None, help="local processes (default: cores)")
-    r.add_argument("--scheduler", default=None, help="Dask scheduler address")
-    r.add_argument("--inline", nargs="*", default=None,
-                   help="methods run in a thread of this process (default: prior vid2param)")
-    r.add_argument("--retry-errors", action="store_true",
-                   help="compute the stored cells that failed again")
-    r.add_argument("--no-progress", action="store_true")
-    r.set_defaults(fn=_cmd_run)
 
-    rep = sub.add_parser("report", help="run the default scale and write reports/",
-                         parents=[report_parser()], add_help=False)
-    rep.set_defaults(fn=_cmd_report)
+def evaluate_run(args) -> int:
+    from methods.vid2param.evaluate import main as evaluate_main
+
+    return int(evaluate_main(args.argv) or 0)
+
+
+#: name -> (module, help). The module's ``<name>_arguments``/``<name>_run`` (built-ins, here)
+#: or ``add_arguments``/``run`` (a module of its own) define the subcommand.
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "list": ("sysid_bench.cli", "methods (with their declarations), experiments and scales"),
+    "run": ("sysid_bench.cli", "run (or resume) a benchmark into a results store"),
+    "report": ("sysid_bench.report", "run a scale (resuming its store) and write reports/"),
+    "train": ("sysid_bench.cli", "train a Vid2Param checkpoint (python -m methods.vid2param.train)"),
+    "evaluate": ("sysid_bench.cli", "evaluate Vid2Param checkpoints (python -m methods.vid2param.evaluate)"),
+}
+_DELEGATED = {"train", "evaluate"}
+
+
+def _functions(name: str):
+    module = importlib.import_module(SUBCOMMANDS[name][0])
+    if module.__name__ == __name__:
+        add = _delegate_arguments if name in _DELEGATED else getattr(module, f"{name}_arguments")
+        return add, getattr(module, f"{name}_run")
+    return module.add_arguments, module.run
+
+
+def _parser(chosen: str | None) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sysid-bench",
+                                description="One command line for everything a user runs.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (_, help) in SUBCOMMANDS.items():
+        sp = sub.add_parser(name, help=help, description=help)
+        if name == chosen:  # only the chosen one's module is imported
+            add, run = _functions(name)
+            add(sp)
+            sp.set_defaults(fn=run)
     return p
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    """Run ``sysid-bench`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    chosen = next((a for a in argv if not a.startswith("-")), None)
+    if chosen in _DELEGATED:  # its own parser handles the rest, --help included
+        rest = argv[argv.index(chosen) + 1:]
+        return _functions(chosen)[1](SimpleNamespace(argv=rest))
+    args = _parser(chosen if chosen in SUBCOMMANDS else None).parse_args(argv)
     try:
         return args.fn(args)
-    except ValueError as exc:  # unknown names, store format/config mismatch
+    except ValueError as exc:  # unknown names, store format/config mismatch: one clear line
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

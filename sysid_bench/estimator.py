@@ -11,19 +11,25 @@ work, no validation beyond storing); state learned by ``fit`` ends in ``_``.
 from __future__ import annotations
 
 import abc
+import functools
 import inspect
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
 from sysid_bench._validate import (
     as_float_array,
-    check_positive_float,
+    check_horizon,
+    check_number,
     check_positive_int,
     check_seed,
+    check_seed_value,
 )
-from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
+from sysid_bench.metrics import central_z
+from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR_LO, PRIOR_MEAN, PRIOR_SPAN, PRIOR_STD
+from sysid_bench.spec import MethodSpec, spec_of
 
 __all__ = [
     "Observation",
@@ -34,7 +40,26 @@ __all__ = [
     "LoopStream",
     "observed_positions",
     "prior_posterior",
+    "MethodSpec",
+    "MAX_HORIZON",
+    "DT_RANGE",
+    "BOX_MARGIN",
+    "MIN_FRAME_SIDE",
 ]
+
+#: Longest forecast any method makes (frames): 100 s at the paper's 20 frames/s, ten videos.
+#: A longer ``horizon`` raises ``ValueError`` naming it (checked for every method by the base).
+MAX_HORIZON = 2000
+#: Accepted seconds between frames: 10 kHz high-speed cameras to one frame a second. Outside it
+#: the simulator's event location and the trackers' finite differences lose their meaning.
+DT_RANGE = (1e-4, 1.0)
+#: How far (m) positions and ``state0`` may lie outside the box. Tracking puts a ball that touches
+#: a wall a few mm outside (RMS error 0.006-0.009 m on clean 28x28 video), and the noisy-position
+#: studies add noise of a few cm; 0.25 m is well beyond both and far below any real mistake (a
+#: wrong unit, a wrong axis). Positions within the margin are moved onto the box's edge.
+BOX_MARGIN = 0.25
+#: Smallest frame height and width (pixels) a video may have.
+MIN_FRAME_SIDE = 4
 
 
 @dataclass
@@ -79,6 +104,11 @@ class Observation:
                     )
             if fr.shape[0] < 1:
                 raise ValueError("frames: expected at least 1 frame, got 0")
+            if min(fr.shape[1:]) < MIN_FRAME_SIDE:
+                raise ValueError(
+                    f"frames: expected frames of at least {MIN_FRAME_SIDE}x{MIN_FRAME_SIDE} pixels, "
+                    f"got shape {fr.shape}"
+                )
             self.frames = fr
         if self.positions is not None:
             pos = as_float_array(self.positions, "positions", ndim=2, last=2, allow_nan=True)
@@ -91,14 +121,14 @@ class Observation:
                     "positions: expected as many rows as frames "
                     f"({self.frames.shape[0]}), got {self.positions.shape[0]}"
                 )
-        self.dt = check_positive_float(self.dt, "dt")
+        self.dt = check_number(self.dt, "dt", lo=DT_RANGE[0], hi=DT_RANGE[1], unit="s")
         if self.floor is not None:
-            f = float(self.floor)
-            if not np.isfinite(f):
-                raise ValueError(f"floor: expected a finite number or None, got {self.floor!r}")
-            self.floor = f
+            self.floor = check_number(self.floor, "floor", unit="m")
+        if self.positions is not None:
+            _check_in_box(self.positions, self.floor, "positions")
         if self.state0 is not None:
             self.state0 = as_float_array(self.state0, "state0", ndim=1, last=4)
+            _check_in_box(self.state0[None, :2], self.floor, "state0")
 
     @property
     def n_frames(self) -> int:
@@ -125,6 +155,31 @@ class Observation:
         )
 
 
+def _check_in_box(pos: np.ndarray, floor: float | None, name: str) -> None:
+    """Positions (N, 2) (NaN = unseen) within :data:`BOX_MARGIN` of the box; ``ValueError`` if not.
+
+    With an unknown floor only x and the height of the y extent can be checked.
+    """
+    seen = np.isfinite(pos).all(axis=1)
+    if not seen.any():
+        return
+    x, y = pos[seen, 0], pos[seen, 1]
+    m = BOX_MARGIN
+    what = f"{name}: expected positions within {m:g} m of the box"
+    if x.min() < -m or x.max() > BOX_WIDTH + m:
+        raise ValueError(f"{what}: x in [0, {BOX_WIDTH:g}] m, got x in [{x.min():.4g}, {x.max():.4g}]")
+    if floor is not None:
+        if y.min() < floor - m or y.max() > floor + BOX_WIDTH + m:
+            raise ValueError(
+                f"{what}: y in [{floor:g}, {floor + BOX_WIDTH:g}] m (floor {floor:g}), "
+                f"got y in [{y.min():.4g}, {y.max():.4g}]"
+            )
+    elif y.max() - y.min() > BOX_WIDTH + 2 * m:
+        raise ValueError(
+            f"{what}: y spanning at most {BOX_WIDTH:g} m, got y in [{y.min():.4g}, {y.max():.4g}]"
+        )
+
+
 def observed_positions(obs: Observation, *, min_seen: int = 3) -> np.ndarray:
     """Positions a position-based method should use, tracking the frames when needed.
 
@@ -142,46 +197,27 @@ def observed_positions(obs: Observation, *, min_seen: int = 3) -> np.ndarray:
     Raises
     ------
     ValueError
-        Fewer than ``min_seen`` seen frames, or positions outside the box.
+        Fewer than ``min_seen`` seen frames. (Positions more than ``BOX_MARGIN`` outside the box
+        are refused by ``Observation``; those within it are moved onto the box's edge here.)
     """
     if obs.positions is not None:
-        pos = obs.positions
+        pos = obs.positions.copy()
     else:
         from sysid_bench.tracking import track  # local: tracking is only needed for video input
 
         pos = track(obs.frames, floor=0.0 if obs.floor is None else obs.floor)
-        # a ball touching a wall or the floor can be tracked a few mm outside the box: that is
-        # tracking error, not bad input, so it is moved onto the edge instead of rejected
-        pos[:, 0] = np.clip(pos[:, 0], 0.0, BOX_WIDTH)
-        if obs.floor is not None:
-            pos[:, 1] = np.clip(pos[:, 1], obs.floor, obs.floor + BOX_WIDTH)
+    # a ball touching a wall or the floor can be seen a few mm outside the box: that is tracking
+    # error, not bad input (Observation rejects more than BOX_MARGIN), so it is moved onto the edge
+    pos[:, 0] = np.clip(pos[:, 0], 0.0, BOX_WIDTH)
+    if obs.floor is not None:
+        pos[:, 1] = np.clip(pos[:, 1], obs.floor, obs.floor + BOX_WIDTH)
     seen = np.isfinite(pos).all(axis=1)
     if seen.sum() < min_seen:
         raise ValueError(
             f"positions: expected the ball seen in at least {min_seen} frames, "
             f"got {int(seen.sum())} of {pos.shape[0]}"
         )
-    x = pos[seen, 0]
-    tol = 1e-6
-    if x.min() < -tol or x.max() > BOX_WIDTH + tol:
-        raise ValueError(
-            f"positions: expected x within the box [0, {BOX_WIDTH:g}] m, "
-            f"got x in [{x.min():.3g}, {x.max():.3g}]"
-        )
-    if obs.floor is not None:
-        y = pos[seen, 1]
-        if y.min() < obs.floor - 1e-3 or y.max() > obs.floor + BOX_WIDTH + 1e-3:
-            raise ValueError(
-                f"positions: expected y within the box [{obs.floor:g}, {obs.floor + BOX_WIDTH:g}] m, "
-                f"got y in [{y.min():.3g}, {y.max():.3g}]"
-            )
     return pos
-
-
-def _gauss_quantile(p: np.ndarray) -> np.ndarray:
-    from scipy.special import ndtri
-
-    return ndtri(p)
 
 
 @dataclass
@@ -231,7 +267,7 @@ class Posterior:
         if self.samples is not None and len(self.samples) >= 2:
             lo, hi = np.quantile(self.samples, [a, 1 - a], axis=0)
             return lo, hi
-        z = float(_gauss_quantile(np.array(1 - a)))
+        z = float(central_z(level))
         return self.mean - z * self.std, self.mean + z * self.std
 
     def as_dict(self) -> dict[str, float]:
@@ -293,15 +329,13 @@ def prior_posterior(n_samples: int = 0, seed=0, **extras) -> Posterior:
     **extras
         Put into ``Posterior.extras`` (``n_simulations`` defaults to 0, ``wall_s`` to 0.0).
     """
-    lo = np.array([PRIOR[p][0] for p in PARAMS])
-    hi = np.array([PRIOR[p][1] for p in PARAMS])
     samples = None
     if n_samples:
         rng = check_seed(seed)
-        samples = lo + rng.random((int(n_samples), len(PARAMS))) * (hi - lo)
+        samples = PRIOR_LO + rng.random((int(n_samples), len(PARAMS))) * PRIOR_SPAN
     info = {"n_simulations": 0, "wall_s": 0.0}
     info.update(extras)
-    return Posterior(mean=(lo + hi) / 2, std=(hi - lo) / np.sqrt(12.0), samples=samples, extras=info)
+    return Posterior(mean=PRIOR_MEAN.copy(), std=PRIOR_STD.copy(), samples=samples, extras=info)
 
 
 class Stream(abc.ABC):
@@ -346,20 +380,71 @@ class LoopStream(Stream):
         return self.estimator.identify(obs)
 
 
+_SPECS: dict[type, MethodSpec] = {}
+
+
 class Estimator(abc.ABC):
     """Base class of every method.
 
-    Subclasses set ``name``, take keyword-only hyperparameters in ``__init__`` that they store
-    under the same attribute names (no work there), and implement ``identify`` and, where they
-    can, ``forecast``. A method that cannot do something raises ``NotImplementedError`` with a
-    sentence saying why; benchmarks record that as "n/a".
+    Subclasses set ``name`` and ``input_kind``, take keyword-only hyperparameters in
+    ``__init__`` that they store under the same attribute names (no work there), and implement
+    ``identify`` and, where they can, ``forecast``. A method that cannot do something raises
+    ``NotImplementedError`` with a sentence saying why; benchmarks record that as "n/a".
+
+    What the harness needs to know about a method is declared here as class attributes, with
+    defaults (see :mod:`sysid_bench.spec`); :meth:`spec` returns them checked, as one frozen
+    record. The base also checks, for every method: the hyperparameters after ``__init__`` and
+    ``set_params`` (``seed``, and the subclass's own ``_validate``), that ``obs`` is an
+    Observation, and that ``horizon`` lies in ``[1, MAX_HORIZON]``.
     """
 
+    # -- declarations (sysid_bench.spec documents each) --------------------------------------
     name: str = "estimator"
     #: "positions" when the method works on tracked positions, "frames" when on pixels.
     input_kind: str = "positions"
     #: Fewest frames ``identify`` accepts; a default stream answers the prior before that.
     min_frames: int = 1
+    identifies: bool = True
+    forecasts: bool = False
+    streams: bool = False
+    trains: bool = False
+    cost: int = 10
+    scale_cases: dict = MappingProxyType({})
+    scale_options: dict = MappingProxyType({})
+    fit_options: dict = MappingProxyType({})
+    threads_param: str | None = None
+    inline: bool = False
+    color: str | None = None
+    figure_order: int | None = None
+    reference_posterior: bool = False
+    contract_options: dict = MappingProxyType({})
+
+    @classmethod
+    def spec(cls) -> MethodSpec:
+        """The class's declarations, checked once (``ValueError`` naming a bad one)."""
+        sp = _SPECS.get(cls)
+        if sp is None:
+            sp = _SPECS[cls] = spec_of(cls)
+        return sp
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        # every method gets the shared argument checks without calling them itself
+        if "__init__" in cls.__dict__:
+            cls.__init__ = _validating_init(cls.__dict__["__init__"])
+        if "identify" in cls.__dict__:
+            cls.identify = _checking_identify(cls.__dict__["identify"])
+        if "forecast" in cls.__dict__:
+            cls.forecast = _checking_forecast(cls.__dict__["forecast"])
+
+    def _validate(self) -> None:
+        """Check the stored hyperparameters; ``ValueError`` naming the first bad one.
+
+        Subclasses extend it (call ``super()._validate()``); it runs after ``__init__`` and
+        ``set_params``, so a bad value fails where it is given.
+        """
+        if "seed" in self._param_names():
+            check_seed_value(self.seed, "seed")
 
     # -- hyperparameters (scikit-learn style) -------------------------------------------------
     @classmethod
@@ -381,6 +466,7 @@ class Estimator(abc.ABC):
             if k not in names:
                 raise ValueError(f"{k}: not a hyperparameter of {self.name}; known: {names}")
             setattr(self, k, v)
+        self._validate()
         return self
 
     def __repr__(self) -> str:
@@ -405,9 +491,43 @@ class Estimator(abc.ABC):
         return [self.identify(obs.prefix(n)) for n in lengths]
 
     def forecast(self, obs: Observation, horizon: int) -> Forecast:
-        """Positions of the ``horizon`` frames after the observation."""
+        """Positions of the ``horizon`` frames after the observation (``horizon`` <= MAX_HORIZON)."""
         raise NotImplementedError(f"{self.name} does not forecast positions.")
 
     def stream(self) -> Stream:
         """Frame-by-frame identification; default re-identifies on every prefix."""
         return LoopStream(self)
+
+
+def _check_obs(obs) -> None:
+    if not isinstance(obs, Observation):
+        raise ValueError(f"obs: expected a sysid_bench.estimator.Observation, got {type(obs).__name__}")
+
+
+def _validating_init(init):
+    @functools.wraps(init)
+    def __init__(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        if type(self).__init__ is __init__:  # only once, after the most derived __init__
+            self._validate()
+
+    return __init__
+
+
+def _checking_identify(identify):
+    @functools.wraps(identify)
+    def wrapper(self, obs, *args, **kwargs):
+        _check_obs(obs)
+        return identify(self, obs, *args, **kwargs)
+
+    return wrapper
+
+
+def _checking_forecast(forecast):
+    @functools.wraps(forecast)
+    def wrapper(self, obs, horizon, *args, **kwargs):
+        _check_obs(obs)
+        horizon = check_horizon(horizon, MAX_HORIZON)
+        return forecast(self, obs, horizon, *args, **kwargs)
+
+    return wrapper

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from sysid_bench._validate import as_float_array, check_seed
-from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
+from sysid_bench.physics import BOX_WIDTH, PRIOR_LO, PRIOR_SPAN
 
 __all__ = [
     "normalised_param_se",
@@ -20,12 +20,21 @@ __all__ = [
     "gaussian_nll",
     "bootstrap_ci",
     "GUESS_MSE",
+    "central_z",
 ]
 
-_SPAN = np.array([PRIOR[p][1] - PRIOR[p][0] for p in PARAMS])
-_LO = np.array([PRIOR[p][0] for p in PARAMS])
+_SPAN = PRIOR_SPAN
+_LO = PRIOR_LO
 #: Normalised MSE of always answering the prior mean, for a uniform truth: 1/12.
 GUESS_MSE = 1.0 / 12.0
+
+
+def central_z(level):
+    """z such that N(0, 1) holds ``level`` of its mass in [-z, z] (the one definition of the
+    Gaussian intervals of posteriors and forecasts): 0.674 for 0.5, 1.645 for 0.9."""
+    from scipy.special import ndtri
+
+    return ndtri(1 - (1 - np.asarray(level, dtype=np.float64)) / 2)
 
 
 def _pair(truth, estimate, last: int, name_t: str, name_e: str):

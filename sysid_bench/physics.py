@@ -49,6 +49,11 @@ __all__ = [
     "denormalise_theta",
     "check_theta",
     "check_state0",
+    "PRIOR_LO",
+    "PRIOR_HI",
+    "PRIOR_SPAN",
+    "PRIOR_MEAN",
+    "PRIOR_STD",
 ]
 
 PARAMS: tuple[str, ...] = ("e", "g", "d", "r")
@@ -73,6 +78,15 @@ STATE0_RANGES = {"x": (0.0, 10.0), "y": (6.0, 8.0), "vx": (4.0, 8.0), "vy": (3.0
 
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
+#: ``PRIOR`` as arrays in ``PARAMS`` order, defined here once: bounds, width, and the mean and
+#: standard deviation of the uniform prior (what "no information" honestly reports).
+PRIOR_LO = _LO.copy()
+PRIOR_HI = _HI.copy()
+PRIOR_SPAN = PRIOR_HI - PRIOR_LO
+PRIOR_MEAN = (PRIOR_LO + PRIOR_HI) / 2
+PRIOR_STD = PRIOR_SPAN / np.sqrt(12.0)
+for _a in (PRIOR_LO, PRIOR_HI, PRIOR_SPAN, PRIOR_MEAN, PRIOR_STD):
+    _a.setflags(write=False)
 _NEWTON_ITERS = 1  # contact-time refinement from a parabolic guess (see _contact_time)
 _MAX_STEPS = 64  # loop passes for one frame: SUBSTEPS steps plus one per contact
 #: Compiled once per machine (numba's on-disk cache); error_model="numpy": 1/0 gives inf, not an

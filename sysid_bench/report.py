@@ -10,7 +10,8 @@ already there) and writes:
 * ``reports/results.parquet``: the long-format rows of the run (``reports/tables/summary.*``
   the headline numbers).
 
-``--from-store PATH`` re-renders from an existing store without computing anything.
+``--from-store PATH`` re-renders from an existing store without computing anything. This is
+``sysid-bench report`` (:mod:`sysid_bench.cli`), kept under the name users know.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["render", "markdown_table", "main"]
+__all__ = ["render", "markdown_table", "main", "add_arguments", "run"]
 
 
 def markdown_table(df, index: bool = False, floatfmt: str = ".4g") -> str:
@@ -151,6 +152,35 @@ def summary_table(df):
     return pd.DataFrame(recs)
 
 
+def _scale_sentence(scale, names) -> str:
+    """Cases, per-method caps and options and the expensive tier of ``scale``, as the methods
+    in the store declare them (methods no longer importable are left out)."""
+    import methods
+
+    caps, opts, expensive = {}, {}, []
+    for m in names:
+        try:
+            spec = methods.spec(m)
+        except (ValueError, ImportError):
+            continue
+        if scale.name in spec.scale_cases:
+            c = spec.scale_cases[scale.name]
+            caps[m] = dict(c) if hasattr(c, "items") else c
+        o = spec.options(scale.name)
+        if o:
+            opts[m] = o
+        if scale.thinned(m):
+            expensive.append(m)
+    text = (f"Cases per experiment: {json.dumps(scale.n_cases)}; per-method caps: "
+            f"{json.dumps(caps) if caps else 'none'}; method options: {json.dumps(opts)}.")
+    if expensive:
+        text += (f" Expensive methods ({', '.join(expensive)}) are evaluated at "
+                 f"{list(scale.expensive_lengths)} frames in experiment 1, every "
+                 f"{scale.expensive_stride} frames in experiment 3 and at "
+                 f"{max(scale.calibration_lengths)} frames in experiment 5.")
+    return text
+
+
 def render(store_path, out_dir="reports", experiments=None, title: str | None = None) -> Path:
     """Write the report of the store at ``store_path`` into ``out_dir``.
 
@@ -184,15 +214,7 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
                "run resumes where it stopped; `python -m sysid_bench.report --from-store "
                f"runs/{sc_name}/results.sqlite` re-renders this file without computing.", ""]
         if scale is not None:
-            md += [f"Cases per experiment: {json.dumps(scale.n_cases)}; per-method caps: "
-                   f"{json.dumps(scale.method_cases) if scale.method_cases else 'none'}; "
-                   f"method options: {json.dumps(scale.method_options)}."
-                   + (f" Expensive methods ({', '.join(scale.expensive)}) are evaluated at "
-                      f"{list(scale.expensive_lengths)} frames in experiment 1, every "
-                      f"{scale.expensive_stride} frames in experiment 3 and at "
-                      f"{max(scale.calibration_lengths)} frames in experiment 5."
-                      if scale.expensive else ""),
-                   ""]
+            md += [_scale_sentence(scale, sorted(df.method.unique()) if len(df) else []), ""]
         # the whole long-format run, for anyone's analysis (Parquet only: compressed)
         _write_table(df, out / "results", csv=False)
         head = summary_table(df)
@@ -241,24 +263,17 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
         store.close()
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m sysid_bench.report",
-        description="Run the benchmark at a scale (resuming its store) and write reports/.",
-    )
-    p.add_argument("--scale", default="default", help="smoke, default or paper (default: default)")
-    p.add_argument("--run-dir", default=None, help="where the store lives (default runs/<scale>)")
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``sysid-bench report`` (the shared groups of :mod:`sysid_bench.cli`)."""
+    from sysid_bench.cli import options
+
+    options.scale(p)
     p.add_argument("--from-store", default=None, metavar="PATH",
                    help="re-render the report of this results store; computes nothing")
-    p.add_argument("--out", default="reports", help="output directory (default reports/)")
-    p.add_argument("--methods", nargs="+", default=None, help="default: every contender")
-    p.add_argument("--experiments", nargs="+", default=None, help="default: all five")
-    p.add_argument("--workers", type=int, default=None, help="local processes (default: cores)")
-    p.add_argument("--scheduler", default=None, help="Dask scheduler address")
-    p.add_argument("--retry-errors", action="store_true",
-                   help="compute the stored cells that failed again (e.g. after adding a checkpoint)")
-    p.add_argument("--no-progress", action="store_true")
-    return p
+    options.out(p, "reports")
+    options.methods(p)
+    options.experiments(p)
+    options.execution(p)
 
 
 def report_command(args) -> int:
@@ -275,7 +290,8 @@ def report_command(args) -> int:
     else:
         summary = run_grid(scale=args.scale, methods=args.methods, experiments=args.experiments,
                            run_dir=args.run_dir, workers=args.workers, scheduler=args.scheduler,
-                           progress=not args.no_progress, retry_errors=args.retry_errors)
+                           progress=not args.no_progress, retry_errors=args.retry_errors,
+                           threads=getattr(args, "threads", 1))
         print(f"{summary['ran']} cells computed ({summary['errors']} errors, {summary['na']} n/a), "
               f"{summary['already']} already stored, {summary['wall_s']:.0f} s", file=sys.stderr)
         store = summary["store"]
@@ -284,13 +300,15 @@ def report_command(args) -> int:
     return 0
 
 
+#: ``sysid-bench report`` runs this
+run = report_command
+
+
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
-    try:
-        return report_command(args)
-    except ValueError as exc:  # unknown names, store format/config mismatch: a clear message
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    """``python -m sysid_bench.report ARGS``: the same as ``sysid-bench report ARGS``."""
+    from sysid_bench.cli import main as cli_main
+
+    return cli_main(["report", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

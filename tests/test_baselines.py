@@ -21,7 +21,8 @@ sets, with g the weak parameter; it is below guessing, not far below it.
 import numpy as np
 import pytest
 
-from methods import _common as C
+from methods import _simulation, _tracks, _weights
+from sysid_bench import simulator
 from methods.bo import BayesOpt
 from methods.dmd import DMD
 from methods.ensemble import Emcee
@@ -58,7 +59,7 @@ def _nmse_egd(est, ds, known=True, cases=range(N_CASES)):
 
 
 # ------------------------------------------------------------------------------------------
-# _common
+# the shared machinery: harness simulator, tracks, weights, the simulation skeleton
 def test_loglik_is_gaussian_over_seen_frames():
     from scipy.stats import norm
 
@@ -67,25 +68,46 @@ def test_loglik_is_gaussian_over_seen_frames():
     obs[[3, 7]] = np.nan
     mask = np.isfinite(obs).all(axis=1)
     sim = rng.normal(size=(5, 30, 2))
-    got = C.gaussian_loglik(sim, obs, mask, 0.3)
+    got = simulator.gaussian_loglik(sim, obs, mask, 0.3)
     want = norm.logpdf(obs[mask][None], sim[:, mask], 0.3).sum(axis=(1, 2))
     np.testing.assert_allclose(got, want, rtol=1e-12)
-    mse = C.mean_sq_error(sim, obs, mask)
+    mse = simulator.mean_sq_error(sim, obs, mask)
     np.testing.assert_allclose(mse, ((sim[:, mask] - obs[mask]) ** 2).mean(axis=(1, 2)))
     assert got.shape == (5,) and np.isfinite(got).all()
 
 
 def test_counting_simulator_counts_trajectories():
-    sim = C.CountingSimulator()
+    sim = simulator.CountingSimulator()
     rng = np.random.default_rng(1)
     sim(physics.sample_theta(3, rng), physics.sample_state0(3, rng), 10, 0.05, 0.0)
     sim.positions(physics.sample_theta(5, rng), physics.sample_state0(5, rng), 10, 0.05, 0.0)
     assert sim.n_simulations == 8
 
 
+def test_counting_simulator_enforces_its_budget():
+    sim = simulator.CountingSimulator(max_simulations=5)
+    rng = np.random.default_rng(1)
+    sim(physics.sample_theta(3, rng), physics.sample_state0(3, rng), 10, 0.05, 0.0)
+    with pytest.raises(simulator.SimulationBudgetExceeded, match="budget of 5"):
+        sim(physics.sample_theta(3, rng), physics.sample_state0(3, rng), 10, 0.05, 0.0)
+    assert sim.n_simulations == 3  # the refused batch was not simulated
+    with pytest.raises(ValueError, match="max_simulations"):
+        simulator.CountingSimulator(max_simulations=-1)
+
+
+def test_simulation_methods_share_one_skeleton():
+    from methods.bo import BayesOpt
+    from methods.ensemble import Emcee
+    from methods.lsq import LSQ
+
+    for cls in (LSQ, BayesOpt, Emcee):
+        assert issubclass(cls, _simulation.SimulationMethod)
+        assert "identify" not in vars(cls) and "forecast" not in vars(cls)
+
+
 def test_segmentation_finds_bounces_floor_and_start(ds):
     for i in range(N_CASES):
-        track = C.prepare(_obs(ds, i, known=False))
+        track = _tracks.prepare(_obs(ds, i, known=False))
         seg = track.segments
         e = ds.theta[i, 0, 0]
         assert len(seg.contacts) >= 1
@@ -104,16 +126,16 @@ def test_segmentation_finds_bounces_floor_and_start(ds):
 
 def test_tempered_weights_reach_the_target_ess():
     ll = np.array([0.0, -1e4, -2e4, -3e4] + [-1e5] * 96)
-    w, beta, ess = C.tempered_weights(ll, 20)
+    w, beta, ess = _weights.tempered_weights(ll, 20)
     assert 0 < beta < 1 and ess >= 20 - 1e-6 and abs(w.sum() - 1) < 1e-12
-    w, beta, ess = C.tempered_weights(np.zeros(50), 20)
+    w, beta, ess = _weights.tempered_weights(np.zeros(50), 20)
     assert beta == 1.0 and ess == pytest.approx(50)
 
 
 def test_forecast_by_simulation_continues_the_true_trajectory(ds):
-    sim = C.CountingSimulator()
+    sim = simulator.CountingSimulator()
     theta = ds.theta[0, :1]
-    fc = C.forecast_by_simulation(sim, theta, ds.states[0, :1], 0.0, 0.05, 50, skip=99)
+    fc = _simulation.forecast_by_simulation(sim, theta, ds.states[0, :1], 0.0, 0.05, 50, skip=99)
     np.testing.assert_allclose(fc.mean, ds.states[0, 100:150, :2], atol=1e-9)
     assert fc.samples.shape == (1, 50, 2) and fc.extras["n_simulations"] == 1
 
@@ -147,7 +169,7 @@ def test_frames_only_input(ds):
 def test_emcee_small_budget_is_accurate_and_reports_diagnostics(ds):
     est = Emcee(n_steps=40, n_burn=10)
     post = est.identify(_obs(ds, 0))
-    se = ((post.mean - ds.theta[0, 0]) / C.SPAN) ** 2
+    se = ((post.mean - ds.theta[0, 0]) / physics.PRIOR_SPAN) ** 2
     assert se[:3].max() < 1e-3
     for key in ("acceptance", "tau", "tau_reliable", "ess", "converged", "opt_status"):
         assert key in post.extras
@@ -158,7 +180,7 @@ def test_emcee_small_budget_is_accurate_and_reports_diagnostics(ds):
 def test_bo_runs_20_evaluations(ds):
     post = BayesOpt().identify(_obs(ds, 1))
     assert post.extras["n_simulations"] == 20 and post.extras["ok"]
-    se = ((post.mean - ds.theta[1, 0]) / C.SPAN) ** 2
+    se = ((post.mean - ds.theta[1, 0]) / physics.PRIOR_SPAN) ** 2
     assert se[:3].mean() < GUESS
     assert (post.std > 0).all()
 
@@ -190,14 +212,14 @@ def test_bo_optimiser_failure_falls_back_to_the_prior(ds, monkeypatch):
     monkeypatch.setattr(skopt, "gp_minimize", broken)
     post = BayesOpt().identify(_obs(ds, 0))
     assert post.extras["ok"] is False and "synthetic failure" in post.extras["message"]
-    np.testing.assert_allclose(post.std, C.PRIOR_STD)
+    np.testing.assert_allclose(post.std, physics.PRIOR_STD)
 
 
 def test_sindy_reports_uninformed_parameters_with_the_prior(ds):
     # 30 frames: in flight and bouncing, never rolling -> r is the prior
     post = SINDy().identify(_obs(ds, 0, n=30))
     assert not post.extras["informed"][3]
-    assert post.std[3] == pytest.approx(C.PRIOR_STD[3])
+    assert post.std[3] == pytest.approx(physics.PRIOR_STD[3])
 
 
 # ------------------------------------------------------------------------------------------
@@ -291,7 +313,7 @@ def test_not_an_observation(name, ds):
 
 def test_state0_outside_the_box(ds):
     with pytest.raises(ValueError, match="state0"):
-        LSQ(n_samples=10).identify(
+        LSQ(n_samples=20).identify(
             Observation(positions=ds.states[0, :, :2], floor=0.0, state0=[12.0, 5.0, 1.0, 1.0])
         )
 
@@ -308,23 +330,48 @@ def test_state0_outside_the_box(ds):
         (lambda: SINDy(smoothing_window=4), "smoothing_window"),
         (lambda: SINDy(threshold=-1.0), "threshold"),
         (lambda: DMD(delays=-2), "delays"),
+        # issue 14: accepted before
+        (lambda: LSQ(n_samples=-5), "n_samples"),
+        (lambda: LSQ(n_samples=1), "n_samples"),  # one draw: a std of 0, a dishonest spread
+        (lambda: LSQ(n_samples=10, min_ess=20), "n_samples"),
+        (lambda: DMD(svd_rank=-1), "svd_rank"),
+        (lambda: DMD(svd_rank=5.5), "svd_rank"),
+        (lambda: DMD(svd_rank=1.0), "svd_rank"),
+        (lambda: LSQ(seed="x"), "seed"),
+        (lambda: SINDy(n_forecast=0), "n_forecast"),
+        (lambda: BayesOpt(n_surrogate=5), "n_surrogate"),
     ],
 )
-def test_bad_hyperparameters_name_themselves(make, arg, ds):
-    obs = _obs(ds, 0, n=40)
-    est = make()
+def test_bad_hyperparameters_name_themselves(make, arg):
+    # validated where they are given: at construction
     with pytest.raises(ValueError, match=arg):
-        est.forecast(obs, 3) if isinstance(est, DMD) else est.identify(obs)
+        make()
 
 
 @pytest.mark.parametrize("est", [LSQ(n_samples=20), SINDy(), DMD()], ids=["lsq", "sindy", "dmd"])
-def test_bad_horizon(est, ds):
+@pytest.mark.parametrize("horizon", [0, -3, 2.5, "10", 10**6])
+def test_bad_horizon(est, horizon, ds):
+    from sysid_bench.estimator import MAX_HORIZON
+
     with pytest.raises(ValueError, match="horizon"):
-        est.forecast(_obs(ds, 0, n=40), 0)
+        est.forecast(_obs(ds, 0, n=40), horizon)
+    assert MAX_HORIZON < 10**6
+
+
+def test_set_params_validates_too():
+    est = LSQ(n_samples=20)
+    with pytest.raises(ValueError, match="n_samples"):
+        est.set_params(n_samples=-5)
+
+
+def test_lsq_with_an_absurd_dt_names_dt(ds):
+    # was: "std: expected non-negative values, got [nan ...]" from a Posterior, naming no input
+    with pytest.raises(ValueError, match="dt"):
+        LSQ(n_samples=20).identify(Observation(positions=ds.states[0, :40, :2], dt=1e6))
 
 
 def test_posteriors_are_in_physical_units(ds):
     post = LSQ(n_samples=100).identify(_obs(ds, 0))
     assert isinstance(post, Posterior)
-    assert (post.mean >= C.LO).all() and (post.mean <= C.HI).all()
+    assert (post.mean >= physics.PRIOR_LO).all() and (post.mean <= physics.PRIOR_HI).all()
     assert isinstance(post.extras["n_simulations"], int) and post.extras["wall_s"] >= 0

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import methods
-from methods import MethodSpec
+from methods import Registration
 from sysid_bench.bench import EXPERIMENTS
 from sysid_bench.bench.cases import SCALES, Scale
 from sysid_bench.bench.experiment import Cell, Context
@@ -59,9 +59,9 @@ class NoParams(Estimator):
 
 @pytest.fixture
 def doubles(monkeypatch):
-    monkeypatch.setitem(methods._REGISTRY, "boom", MethodSpec("boom", f"{__name__}:Boom", (), True))
+    monkeypatch.setitem(methods._REGISTRY, "boom", Registration("boom", f"{__name__}:Boom", (), True))
     monkeypatch.setitem(methods._REGISTRY, "noparams",
-                        MethodSpec("noparams", f"{__name__}:NoParams", (), True))
+                        Registration("noparams", f"{__name__}:NoParams", (), True))
 
 
 def _values(store_path):

@@ -18,7 +18,8 @@ pytest.importorskip("numpyro")
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from methods import _common as C  # noqa: E402
+from sysid_bench import simulator as C  # noqa: E402
+from sysid_bench.physics import PRIOR_HI, PRIOR_LO  # noqa: E402
 from methods import nuts as N  # noqa: E402
 from sysid_bench import physics  # noqa: E402
 from sysid_bench.datasets import make_dataset  # noqa: E402
@@ -111,7 +112,7 @@ def test_accuracy_on_test_split_state_unknown(ds):
         # the counting rule: search batches + potential evaluations + leapfrog steps + fit check
         assert ex["n_simulations"] >= 1000 * 4 + 200 + ex["n_potential_evals_init"] + 1
         # within the prior box, physical units
-        assert np.all((p.samples >= C.LO) & (p.samples <= C.HI))
+        assert np.all((p.samples >= PRIOR_LO) & (p.samples <= PRIOR_HI))
 
 
 @pytest.mark.slow
@@ -125,7 +126,7 @@ def test_accuracy_on_20_cases_with_defaults(ds):
 
 def test_known_state_is_used_and_forecast_continues_the_track(ds):
     """With the initial state given it is held fixed; the forecast follows the true future."""
-    est = N.NUTS(**N.NUTS._contract_options)
+    est = N.NUTS(**N.NUTS.contract_options)
     obs = _obs(ds, 1, known_state=True, n=100)
     post = est.identify(obs)
     assert not post.extras["state0_sampled"]
@@ -138,7 +139,7 @@ def test_known_state_is_used_and_forecast_continues_the_track(ds):
 
 
 def test_several_chains_are_pooled_and_compared(ds):
-    opts = dict(N.NUTS._contract_options, num_chains=2)
+    opts = dict(N.NUTS.contract_options, num_chains=2)
     post = N.NUTS(**opts).identify(_obs(ds, 1, known_state=True, n=100))
     assert post.samples.shape == (2 * opts["num_samples"], 4)
     assert all(np.isfinite(v) for v in post.extras["rhat"].values())
@@ -171,9 +172,8 @@ def test_misfit_is_reported_not_raised():
 )
 def test_bad_hyperparameters_name_themselves(options, name):
     obs = Observation(positions=np.column_stack([np.linspace(1, 3, 10), np.linspace(5, 4, 10)]), floor=0.0)
-    est = N.NUTS(**options)  # the constructor only stores
-    with pytest.raises(ValueError, match=name):
-        est.identify(obs)
+    with pytest.raises(ValueError, match=name):  # validated at construction
+        N.NUTS(**options).identify(obs)
 
 
 def test_too_few_seen_frames_is_a_value_error():

@@ -125,8 +125,25 @@ class Vid2Param(Estimator):
 
     name = "vid2param"
     input_kind = "frames"
-    #: cheap settings for the registry's contract test (same code path)
-    _contract_options = {"n_samples": 20}
+    forecasts = True
+    streams = True  # identify_prefixes: one pass of the LSTM for every prefix
+    trains = True
+    cost = 1
+    # milliseconds of LSTM per cell: run in the runner's process, so workers never import torch
+    inline = True
+    #: workers = cores, so the benchmark gives the checkpoint one thread (the run's --threads)
+    threads_param = "threads"
+    figure_order = 0
+    # sensitivity: a fresh model per condition, one budget for all. Default scale: ~0.2 s per
+    # step on 50-frame videos on one loaded core, 4 conditions x 200 steps ~ 3-4 core-minutes;
+    # at 120-400 steps the model is still at the guessing level (the report says so).
+    fit_options = {
+        "smoke": {"fit_steps": 2, "fit_lr": 1e-3, "warm_start": False},
+        "default": {"fit_steps": 200, "fit_lr": 1e-3, "warm_start": False},
+        "paper": {"fit_steps": 5000, "fit_lr": 1e-3, "warm_start": False},
+    }
+    #: cheap settings for check_estimator (same code path)
+    contract_options = {"n_samples": 20}
 
     def __init__(
         self,

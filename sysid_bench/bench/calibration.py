@@ -48,7 +48,22 @@ def _verdict(c50: float, c90: float, tol: float = 0.05) -> str:
 
 
 QUANTILES = tuple(np.round(np.arange(0.05, 1.0, 0.1), 2))  # 0.05, 0.15, ..., 0.95
-REFERENCE = "nuts"
+
+
+def reference_method(names) -> str | None:
+    """The method among ``names`` that declares ``reference_posterior`` (None if none does).
+
+    Methods that are no longer registered or importable are skipped (a store may outlive them).
+    """
+    import methods
+
+    for m in sorted(set(names)):
+        try:
+            if methods.spec(m).reference_posterior:
+                return m
+        except (ValueError, ImportError):
+            continue
+    return None
 
 
 def posterior_quantiles(post) -> np.ndarray:
@@ -113,21 +128,22 @@ class Calibration(Experiment):
         """Per (method, input, case, n_frames, param): W1 and mean shift vs the reference."""
         import pandas as pd
 
-        if REFERENCE not in set(df.method):
+        ref_name = reference_method(df.method.unique())
+        if ref_name is None:
             return pd.DataFrame()
         q = df[df.metric.str.match(r"q\d\d_")].copy()
         q["param"] = q.metric.str.split("_").str[1]
         q["level"] = q.metric.str.split("_").str[0]
         key = ["input", "case", "n_frames", "param"]
         wide = q.pivot_table(index=["method", *key], columns="level", values="value")
-        ref = wide.xs(REFERENCE, level="method")
+        ref = wide.xs(ref_name, level="method")
         ms = df[df.metric.str.match(r"(mean|std)_")].copy()
         ms["param"] = ms.metric.str.split("_").str[1]
         ms["kind"] = ms.metric.str.split("_").str[0]
         msw = ms.pivot_table(index=["method", *key], columns="kind", values="value")
-        msref = msw.xs(REFERENCE, level="method")
+        msref = msw.xs(ref_name, level="method")
         recs = []
-        for m in sorted(set(df.method) - {REFERENCE}):
+        for m in sorted(set(df.method) - {ref_name}):
             if m not in wide.index.get_level_values("method"):
                 continue
             mine = wide.xs(m, level="method")
@@ -164,14 +180,15 @@ class Calibration(Experiment):
         out = {"calibration": pd.DataFrame(recs)}
         ag = self.agreement(df)
         if len(ag):
+            ref = reference_method(df.method.unique())
             rows = []
             for (m, inp), g in ag.groupby(["method", "input"]):
                 per_case = g.groupby("case")[["w1", "shift"]].mean().reset_index().assign(k=0)
                 s = ci_summary(per_case, ["k"], value="w1").iloc[0]
                 rows.append({"method": m, "input": inp, "cases": g.case.nunique(),
-                             "W1 to nuts": fmt_ci(s["mean"], s["lo"], s["hi"]),
-                             "median |mean shift| / nuts std": f"{g['shift'].median():.3g}"})
-            out["agreement_with_nuts"] = pd.DataFrame(rows)
+                             f"W1 to {ref}": fmt_ci(s["mean"], s["lo"], s["hi"]),
+                             f"median |mean shift| / {ref} std": f"{g['shift'].median():.3g}"})
+            out[f"agreement_with_{ref}"] = pd.DataFrame(rows)
         return out
 
     def figures(self, df, store, outdir: Path):
@@ -203,11 +220,12 @@ class Calibration(Experiment):
             lab = [f"{m}\n({i})" for m, i in zip(s.method, s.input)]
             ax.bar(lab, s["mean"], yerr=[s["mean"] - s.lo, s.hi - s["mean"]], capsize=3,
                    color=[method_color(m) for m in s.method])
-            ax.set(ylabel="W1 to the nuts posterior (normalised)", title="Agreement with NUTS")
+            ref = reference_method(df.method.unique())
+            ax.set(ylabel=f"W1 to the {ref} posterior (normalised)", title=f"Agreement with {ref.upper()}")
             ax.tick_params(axis="x", labelsize=7)
         else:
             ax.set_axis_off()
-            ax.text(0.5, 0.5, "no nuts results in this run", ha="center")
+            ax.text(0.5, 0.5, "no reference-posterior (nuts) results in this run", ha="center")
         return {"Calibration and agreement with NUTS": _save(fig, outdir / "calibration.png")}
 
     def reading(self, df):
@@ -226,6 +244,7 @@ class Calibration(Experiment):
         ag = self.agreement(df)
         if len(ag):
             s = ag.groupby(["method", "input"]).w1.mean()
-            out.append("Mean W1 distance to the NUTS posterior (normalised units): "
+            ref = reference_method(df.method.unique())
+            out.append(f"Mean W1 distance to the {ref.upper()} posterior (normalised units): "
                        + ", ".join(f"{m} ({i}) {v:.3g}" for (m, i), v in s.items()) + ".")
         return out

@@ -33,7 +33,8 @@ __all__ = ["INPUTS", "Scale", "SCALES", "get_scale", "test_set", "train_set", "o
 INPUTS = ("video", "privileged")
 #: Bump when what a cell computes changes meaning (inputs, metrics): part of the grid config, so
 #: a store computed under an older protocol is refused instead of mixed with new cells.
-PROTOCOL = 2
+#: 3: per-method caps, options and tiers moved from the scale to the methods' declarations.
+PROTOCOL = 3
 
 
 def unknown_name(kind: str, name, known) -> ValueError:
@@ -56,11 +57,6 @@ class Scale:
     n_cases : dict
         Test videos per experiment (``identification``, ``forecasting``, ``changing``,
         ``sensitivity``, ``calibration``).
-    method_cases : dict
-        Per method, the most test videos it gets (an int for every experiment or a dict per
-        experiment): expensive samplers get fewer; they see the first ``k`` of the same cases.
-    method_options : dict
-        Per method, hyperparameters passed to ``methods.get``.
     lengths : tuple of int
         Observed frames of experiment 1.
     forecast_after, horizon : tuple of int, int
@@ -71,25 +67,26 @@ class Scale:
         (streaming ones every frame).
     calibration_lengths : tuple of int
     calibration_inputs : tuple of str
-    expensive : tuple of str
-        Methods that take seconds per identification (samplers, Bayesian optimisation): in
-        experiment 1 they are evaluated at ``expensive_lengths`` only, in experiment 3 every
-        ``expensive_stride`` frames and in experiment 5 at the longest of
-        ``calibration_lengths``, so a default run fits its time budget.
+    thin_expensive : bool
+        Methods of the expensive tier (their class declares ``cost >= EXPENSIVE_COST``:
+        samplers, Bayesian optimisation) are evaluated in experiment 1 at
+        ``expensive_lengths`` only, in experiment 3 every ``expensive_stride`` frames and in
+        experiment 5 at the longest of ``calibration_lengths``, so a run fits its time budget.
     expensive_lengths : tuple of int
     expensive_stride : int
     sensitivity : dict
         Experiment 4 (its test videos: ``n_cases["sensitivity"]``): ``n_train`` training
-        videos of ``n_frames`` frames per condition, ``fit_options`` for the
-        method's ``fit`` budget, ``extrapolation`` parameters, ``label_noise`` levels,
-        ``simplified`` (bool), ``lengths``.
+        videos of ``n_frames`` frames per condition, ``extrapolation`` parameters,
+        ``label_noise`` levels, ``simplified`` (bool), ``lengths``. The training budget is the
+        method's own declaration (``fit_options`` per scale).
+
+    What differs per method (case caps, hyperparameters, threads, cost tier) is declared on the
+    method's class and read through :func:`methods.spec`; a scale holds no table of methods.
     """
 
     name: str
     seed: int = 2024
     n_cases: dict = field(default_factory=dict)
-    method_cases: dict = field(default_factory=dict)
-    method_options: dict = field(default_factory=dict)
     lengths: tuple = tuple(range(10, 201, 10))
     forecast_after: tuple = (20, 50, 100)
     horizon: int = 100
@@ -97,43 +94,61 @@ class Scale:
     changing_stride: int = 10
     calibration_lengths: tuple = (50, 100, 200)
     calibration_inputs: tuple = ("video",)
-    expensive: tuple = ()
+    thin_expensive: bool = True
     expensive_lengths: tuple = (20, 50, 100, 150, 200)
     expensive_stride: int = 25
     sensitivity: dict = field(default_factory=dict)
 
+    def thinned(self, method: str) -> bool:
+        """True when ``method`` is of the expensive tier and this scale thins those."""
+        import methods
+
+        return self.thin_expensive and methods.spec(method).expensive
+
     def lengths_for(self, method: str) -> tuple:
         """Observed-frame counts of experiment 1 for ``method``."""
-        return self.expensive_lengths if method in self.expensive else self.lengths
+        return self.expensive_lengths if self.thinned(method) else self.lengths
 
     def calibration_lengths_for(self, method: str) -> tuple:
         """Frame counts of experiment 5 for ``method``: expensive ones only the longest."""
-        if method in self.expensive:
+        if self.thinned(method):
             return (max(self.calibration_lengths),)
         return self.calibration_lengths
 
     def stride_for(self, method: str) -> int:
         """Frames between estimates in experiment 3 for a non-streaming ``method``."""
-        return self.expensive_stride if method in self.expensive else self.changing_stride
+        return self.expensive_stride if self.thinned(method) else self.changing_stride
 
     def cases(self, experiment: str, method: str) -> int:
-        """Number of test videos ``method`` gets in ``experiment``.
+        """Number of test videos ``method`` gets in ``experiment`` (its ``scale_cases`` cap)."""
+        import methods
 
-        ``method_cases[method]`` is a cap for every experiment, or a dict of caps per experiment.
-        """
         n = int(self.n_cases[experiment])
-        cap = self.method_cases.get(method)
-        if isinstance(cap, dict):
-            cap = cap.get(experiment)
-        return n if cap is None else min(n, int(cap))
+        cap = methods.spec(method).cases_cap(self.name, experiment)
+        return n if cap is None else min(n, cap)
+
+    def method_options(self, method: str, threads: int | None = 1) -> dict:
+        """Hyperparameters ``method`` gets at this scale (its ``scale_options``, and ``threads``
+        for the one it declares as ``threads_param``)."""
+        import methods
+
+        return methods.spec(method).options(self.name, threads)
+
+    def fit_options(self, method: str) -> dict:
+        """Training hyperparameters of ``method`` in the sensitivity experiment at this scale."""
+        import methods
+
+        return methods.spec(method).training_options(self.name)
 
     def grid_config(self) -> dict:
         """What decides the cases and the numbers of a cell (case counts excluded: prefixes).
 
-        A store refuses to mix cells computed under another grid config.
+        A store refuses to mix cells computed under another grid config. What a method declares
+        (options, caps, tier) is part of that method's fingerprint instead
+        (:func:`sysid_bench.bench.runner.method_fingerprint`).
         """
         d = asdict(self)
-        for k in ("n_cases", "method_cases", "name"):
+        for k in ("n_cases", "name"):
             d.pop(k)
         d["protocol"] = PROTOCOL
         # tuples -> lists so a JSON round trip compares equal
@@ -148,18 +163,11 @@ def _jsonable(x):
     return x
 
 
-# The shipped checkpoint and every method run single-threaded: workers = cores, so threads
-# inside a worker only oversubscribe the machine (and distort the timings).
-_ONE_THREAD = {"vid2param": {"threads": 1}}
-
-# Default-scale sensitivity: a fresh Vid2Param trains at ~0.2 s per step on 50-frame videos on
-# one core under load, so 4 conditions x 200 steps ~ 3-4 core-minutes. Measured: at 120-400
-# steps the model is still at the guessing level (normalised MSE ~0.08), so at this scale the
-# experiment exercises the machinery; the report says so when the control does not beat guessing.
+# Default-scale sensitivity: small training sets and (declared by the method) a small budget;
+# the report says so when the control does not beat guessing.
 _SENS_SMALL = {
     "n_train": 400,
     "n_frames": 50,
-    "fit_options": {"fit_steps": 200, "fit_lr": 1e-3, "warm_start": False},
     "extrapolation": ("e",),
     "label_noise": (0.0, 0.5),
     "simplified": True,
@@ -173,27 +181,17 @@ SCALES: dict[str, Scale] = {
         seed=7,
         n_cases={"identification": 2, "forecasting": 2, "changing": 1, "sensitivity": 2,
                  "calibration": 2},
-        # expensive methods: one case, a small budget (smoke numbers mean nothing)
-        method_cases={"bo": 1, "emcee": 1, "nuts": {"identification": 0, "forecasting": 0,
-                                                   "changing": 0, "calibration": 1}},
-        method_options={
-            **_ONE_THREAD,
-            "nuts": {"num_warmup": 30, "num_samples": 30, "n_init": 200},
-            "emcee": {"n_walkers": 20, "n_steps": 20, "n_burn": 10},
-            "bo": {"n_calls": 12, "n_initial_points": 6},
-        },
+        # expensive methods declare one case and a small budget here (smoke numbers mean nothing)
         lengths=(20, 60, 100),
         forecast_after=(20, 50),
         horizon=30,
         changing_stride=25,
         calibration_lengths=(50, 100),
-        expensive=("bo", "emcee", "nuts"),
         expensive_lengths=(50, 100),
         expensive_stride=50,
         sensitivity={
             "n_train": 16,
             "n_frames": 50,
-            "fit_options": {"fit_steps": 2, "fit_lr": 1e-3, "warm_start": False},
             "extrapolation": ("e",),
             "label_noise": (0.0, 0.5),
             "simplified": True,
@@ -207,16 +205,9 @@ SCALES: dict[str, Scale] = {
                  "calibration": 20},
         # Measured seconds per cell, one worker at low load (a full default grid without
         # vid2param summed to 690 core-seconds): lsq 0.5-3.4, sindy 0.3-1.4, bo 4-13,
-        # emcee 9-25, nuts ~25 per posterior (~100 under a load of 5). The expensive ones see
-        # the first cases only (the same cases as everyone); nuts, the reference posterior,
-        # only in experiment 5. `--scale paper` runs every method on every case.
-        method_cases={
-            "bo": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4},
-            "emcee": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4},
-            "nuts": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 3},
-        },
-        method_options={**_ONE_THREAD, "nuts": {"num_warmup": 150, "num_samples": 150}},
-        expensive=("bo", "emcee", "nuts"),
+        # emcee 9-25, nuts ~25 per posterior (~100 under a load of 5). The expensive ones declare
+        # caps (the first cases only, the same cases as everyone); nuts, the reference
+        # posterior, only in experiment 5. `--scale paper` runs every method on every case.
         expensive_lengths=(20, 50, 100, 200),
         expensive_stride=50,
         calibration_lengths=(50, 200),
@@ -227,14 +218,12 @@ SCALES: dict[str, Scale] = {
         name="paper",
         n_cases={"identification": 100, "forecasting": 100, "changing": 100, "sensitivity": 100,
                  "calibration": 100},
-        method_cases={},
-        method_options=_ONE_THREAD,
+        thin_expensive=False,
         changing_stride=1,
         calibration_inputs=("video", "privileged"),
         sensitivity={
             "n_train": 10_000,
             "n_frames": 200,
-            "fit_options": {"fit_steps": 5000, "fit_lr": 1e-3, "warm_start": False},
             "extrapolation": ("e", "g", "d", "r"),
             "label_noise": (0.0, 0.1, 0.2, 0.3, 0.4, 0.5),
             "simplified": True,

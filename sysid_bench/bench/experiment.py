@@ -22,7 +22,7 @@ from sysid_bench.bench.cases import Scale, test_set
 from sysid_bench.bench.store import Row
 from sysid_bench.estimator import Estimator, Observation, Posterior
 from sysid_bench.metrics import bootstrap_ci
-from sysid_bench.physics import PARAMS, PRIOR
+from sysid_bench.physics import PRIOR_LO, PRIOR_SPAN
 
 __all__ = [
     "Cell",
@@ -39,8 +39,8 @@ __all__ = [
     "SPAN",
 ]
 
-LO = np.array([PRIOR[p][0] for p in PARAMS])
-SPAN = np.array([PRIOR[p][1] - PRIOR[p][0] for p in PARAMS])
+LO = PRIOR_LO
+SPAN = PRIOR_SPAN
 
 
 def normalise(theta: np.ndarray) -> np.ndarray:
@@ -97,9 +97,10 @@ _PROTOTYPES: dict[tuple[str, str, bool], Estimator] = {}
 class Context:
     """What a running cell may use: its scale, the run directory, estimators and test sets."""
 
-    def __init__(self, scale: Scale, run_dir):
+    def __init__(self, scale: Scale, run_dir, threads: int = 1):
         self.scale = scale
         self.run_dir = Path(run_dir)
+        self.threads = threads
 
     def estimator(self, method: str, warm: bool = True, **extra) -> Estimator:
         """A fresh copy of ``method`` with the scale's options (loaded once per process).
@@ -111,12 +112,12 @@ class Context:
         """
         import methods
 
-        opts = {**self.scale.method_options.get(method, {}), **extra}
+        opts = {**self.scale.method_options(method, self.threads), **extra}
         key = (method, json.dumps(opts, sort_keys=True, default=str), warm)
         proto = _PROTOTYPES.get(key)
         if proto is None:
             proto = methods.get(method, **opts)
-            if warm and type(proto).fit is not Estimator.fit:
+            if warm and proto.spec().trains:
                 proto.fit(None)  # loads the shipped checkpoint once per process
             _PROTOTYPES[key] = proto
         return copy.deepcopy(proto)
@@ -153,7 +154,7 @@ class Experiment:
         return []
 
 
-def execute(cell: Cell, scale: Scale, run_dir: str) -> dict:
+def execute(cell: Cell, scale: Scale, run_dir: str, threads: int = 1) -> dict:
     """Run one cell, catching everything: the worker-side entry point of the runner.
 
     Returns
@@ -167,7 +168,7 @@ def execute(cell: Cell, scale: Scale, run_dir: str) -> dict:
     t0 = time.perf_counter()
     status, error, out = "ok", None, CellOutput()
     try:
-        out = EXPERIMENTS[cell.experiment].run(cell, Context(scale, run_dir))
+        out = EXPERIMENTS[cell.experiment].run(cell, Context(scale, run_dir, threads))
     except NotImplementedError as exc:
         status, error = "n/a", str(exc) or f"{cell.method} does not implement this"
     except Exception as exc:  # a method failing on a case is a result, not a crash of the run
@@ -182,8 +183,8 @@ def execute(cell: Cell, scale: Scale, run_dir: str) -> dict:
 
 
 def streams(est: Estimator) -> bool:
-    """True when ``est`` overrides ``identify_prefixes`` (one pass for all prefixes)."""
-    return type(est).identify_prefixes is not Estimator.identify_prefixes
+    """True when ``est`` declares ``streams`` (its ``identify_prefixes`` is one pass)."""
+    return est.spec().streams
 
 
 def timed_prefixes(est: Estimator, obs: Observation, lengths, out: CellOutput | None = None,

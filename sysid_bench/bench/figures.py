@@ -30,13 +30,20 @@ def save_figure(fig, path) -> Path:
     return path
 
 
-_ORDER = ("vid2param", "nuts", "emcee", "lsq", "bo", "sindy", "dmd", "prior")
-
-
 def method_color(method: str) -> str:
-    """The same colour for a method in every figure (tab10; unknown names hash into it)."""
+    """The same colour for a method in every figure: its declared ``color``, else the slot
+    ``figure_order`` of tab10, else one of the two slots no shipped method takes (by name)."""
     import matplotlib
 
-    cmap = matplotlib.colormaps["tab10"]
-    k = _ORDER.index(method) if method in _ORDER else 8 + sum(map(ord, method)) % 2
-    return matplotlib.colors.to_hex(cmap(k % 10))
+    try:
+        import methods
+
+        spec = methods.spec(method)
+        color, k = spec.color, spec.figure_order
+    except (ValueError, ImportError):  # a store's method that is no longer registered/installed
+        color, k = None, None
+    if color is not None:
+        return matplotlib.colors.to_hex(color)
+    if k is None:
+        k = 8 + sum(map(ord, method)) % 2
+    return matplotlib.colors.to_hex(matplotlib.colormaps["tab10"](k % 10))

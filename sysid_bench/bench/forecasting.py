@@ -15,7 +15,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.special import ndtri
 
 from sysid_bench.bench.cases import observation
 from sysid_bench.bench.experiment import (
@@ -27,7 +26,7 @@ from sysid_bench.bench.experiment import (
     fmt_ci,
 )
 from sysid_bench.bench.identification import _save, case_cells
-from sysid_bench.metrics import position_mse
+from sysid_bench.metrics import central_z, position_mse
 from sysid_bench.physics import BOX_WIDTH
 
 N_EXAMPLES = 2
@@ -39,7 +38,7 @@ def forecast_interval(fc, level: float) -> tuple[np.ndarray, np.ndarray]:
     if fc.samples is not None and len(fc.samples) >= 2:
         lo, hi = np.quantile(fc.samples, [a, 1 - a], axis=0)
         return lo, hi
-    z = float(ndtri(1 - a))
+    z = float(central_z(level))
     return fc.mean - z * fc.std, fc.mean + z * fc.std
 
 

@@ -28,10 +28,10 @@ from sysid_bench.physics import PARAMS
 
 
 def method_inputs(method: str, wanted) -> list[str]:
-    """Input kinds ``method`` runs on, from its class's ``input_kind`` (no instantiation)."""
+    """Input kinds ``method`` runs on, from its declared ``input_kind`` (no instantiation)."""
     import methods
 
-    return inputs_for(getattr(methods.get_class(method), "input_kind", "positions"), wanted)
+    return inputs_for(methods.spec(method).input_kind, wanted)
 
 
 def case_cells(experiment: str, scale, methods: list[str], wanted) -> list[Cell]:

@@ -4,8 +4,12 @@ Execution
 ---------
 * Local (default): a ``ProcessPoolExecutor`` (spawn, one single-threaded worker per core) for
   most cells, plus one thread in this process for the methods listed in ``inline`` (by default
-  ``prior`` and ``vid2param``: a Vid2Param cell is milliseconds of LSTM, so shipping it to a
-  worker would only make every worker import torch and load the checkpoint).
+  those that declare ``inline``: ``prior`` and ``vid2param``; a Vid2Param cell is milliseconds
+  of LSTM, so shipping it to a worker would only make every worker import torch and load the
+  checkpoint).
+
+Everything per method (cost for the order of cells, inline or not, caps, options, threads) is
+read from the method's declarations (:func:`methods.spec`), never from a table here.
 * ``scheduler``: the same cells as tasks on a Dask distributed cluster (an address or a
   ``distributed.Client``); workers keep their loaded estimators and test sets between tasks.
 
@@ -32,22 +36,25 @@ from pathlib import Path
 from sysid_bench.bench.cases import Scale, get_scale, unknown_name
 from sysid_bench.bench.experiment import Cell, execute
 from sysid_bench.bench.store import Store
+from sysid_bench._validate import check_positive_int
 
 __all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "provenance",
-           "method_fingerprint",
-           "DEFAULT_INLINE", "default_run_dir", "STORE_NAME"]
+           "method_fingerprint", "default_inline", "default_run_dir", "STORE_NAME"]
 
 STORE_NAME = "results.sqlite"
-DEFAULT_INLINE = ("prior", "vid2param")
-#: reference helpers run by default next to the contenders: "prior" is the score of guessing
-DEFAULT_REFERENCE = ("prior",)
-#: rough relative cost of one cell, to start the longest first (less idle tail at the end)
-_COST = {"nuts": 50, "bo": 30, "emcee": 20, "lsq": 8, "sindy": 4, "dmd": 2, "vid2param": 1, "prior": 0}
+#: sources (from the repository root) every simulation-based method is built on
+_SHARED_SOURCES = ("sysid_bench/simulator.py", "methods/_tracks.py", "methods/_weights.py",
+                   "methods/_simulation.py")
 _VERSIONED = ("numpy", "scipy", "pandas", "pyarrow", "torch", "jax", "numpyro", "emcee",
               "pysindy", "pydmd", "scikit-optimize", "scikit-learn", "dask", "distributed",
               "matplotlib")
-_THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-               "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
+
+
+def _thread_env(threads: int) -> dict[str, str]:
+    n = str(int(threads))
+    xla = ("--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" if n == "1"
+           else f"intra_op_parallelism_threads={n}")
+    return {"OMP_NUM_THREADS": n, "MKL_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n, "XLA_FLAGS": xla}
 
 
 def default_run_dir(scale: str) -> Path:
@@ -72,7 +79,7 @@ def resolve_methods(names=None) -> tuple[list[str], dict[str, str]]:
     """Validated method names and the ones skipped because they cannot be imported.
 
     Unknown names raise ``ValueError`` listing the known ones. Without ``names``, every
-    registered contender plus :data:`DEFAULT_REFERENCE`.
+    registered contender plus the reference helpers (``prior``: the score of guessing).
 
     Returns
     -------
@@ -82,7 +89,7 @@ def resolve_methods(names=None) -> tuple[list[str], dict[str, str]]:
     import methods
 
     known = methods.available(include_reference=True)
-    wanted = [*methods.available(), *DEFAULT_REFERENCE] if names is None else list(names)
+    wanted = [*methods.available(), *methods.references()] if names is None else list(names)
     usable, skipped = [], {}
     for n in wanted:
         if n not in known:
@@ -108,7 +115,8 @@ def build_grid(scale: Scale, methods: list[str], experiments: list[str]) -> list
 
 def method_fingerprint(name: str) -> str:
     """Hash of what decides a method's numbers: its module (or package, with its checkpoint
-    files) and the baselines' shared ``methods/_common.py``.
+    files), the shared harness modules the baselines are built on, and its declarations
+    (options and caps per scale, tier).
 
     A store's cells of a method whose fingerprint changed are computed again by the next run,
     so a retrained checkpoint or a fixed method never mixes with its old results.
@@ -118,7 +126,7 @@ def method_fingerprint(name: str) -> str:
 
     import methods
 
-    spec = methods._REGISTRY[name]
+    spec = methods.spec(name)
     mod = spec.entry_point.split(":")[0]
     found = importlib.util.find_spec(mod)
     files: list[Path] = []
@@ -131,14 +139,23 @@ def method_fingerprint(name: str) -> str:
                            and "__pycache__" not in p.parts and not p.name.endswith("_test.json"))
         else:
             files = [origin]
-    common = Path(methods.__file__).parent / "_common.py"
-    if common.is_file():
-        files.append(common)
+    for shared in _SHARED_SOURCES:
+        f = Path(__file__).resolve().parents[2] / shared
+        if f.is_file():
+            files.append(f)
     h = hashlib.sha256()
     for f in files:
         h.update(f.name.encode())
         h.update(f.read_bytes())
+    h.update(spec.to_json().encode())
     return h.hexdigest()[:16]
+
+
+def default_inline(meths) -> list[str]:
+    """The methods among ``meths`` that declare ``inline`` (run in a thread of this process)."""
+    import methods
+
+    return [m for m in meths if methods.spec(m).inline]
 
 
 def provenance() -> dict:
@@ -168,10 +185,12 @@ def provenance() -> dict:
 
 
 @contextlib.contextmanager
-def _single_threaded_children():
-    """Spawned workers inherit these: one BLAS/OpenMP/XLA thread each (workers = cores)."""
-    old = {k: os.environ.get(k) for k in _THREAD_ENV}
-    for k, v in _THREAD_ENV.items():
+def _single_threaded_children(threads: int = 1):
+    """Spawned workers inherit these: ``threads`` BLAS/OpenMP/XLA threads each (default one:
+    workers = cores). Variables the user set already are kept."""
+    env = _thread_env(threads)
+    old = {k: os.environ.get(k) for k in env}
+    for k, v in env.items():
         os.environ.setdefault(k, v)
     try:
         yield
@@ -188,8 +207,12 @@ def _order(cells: list[Cell]) -> list[Cell]:
 
     def cost(c: Cell):
         heavy = getattr(EXPERIMENTS[c.experiment], "heavy", False)
-        return (-(1000 if heavy else _COST.get(c.method, 10)), c.experiment, c.method, c.input,
+        return (-(1000 if heavy else costs[c.method]), c.experiment, c.method, c.input,
                 c.condition, str(c.case))
+
+    import methods
+
+    costs = {m: methods.spec(m).cost for m in {c.method for c in cells}}
 
     return sorted(cells, key=cost)
 
@@ -202,8 +225,9 @@ def run(
     run_dir=None,
     workers: int | None = None,
     scheduler=None,
-    inline=DEFAULT_INLINE,
+    inline=None,
     progress: bool = True,
+    threads: int = 1,
     argv=None,
     max_cells: int | None = None,
     retry_errors: bool = False,
@@ -222,12 +246,17 @@ def run(
         Local worker processes; default the number of cores. 0 runs every cell in this process.
     scheduler : str or distributed.Client, optional
         Run on a Dask cluster instead of the local pool.
-    inline : iterable of str
-        Methods whose (non-heavy) cells run in a thread of this process.
+    inline : iterable of str, optional
+        Methods whose (non-heavy) cells run in a thread of this process; default those that
+        declare ``inline``.
     progress : bool
         tqdm progress bar over the cells.
     max_cells : int, optional
         Stop after this many new cells (for tests; the rest stays for a resume).
+    threads : int
+        Threads per cell: worker processes get this many BLAS/OpenMP/XLA threads, and a method
+        that declares ``threads_param`` gets it as that hyperparameter (default 1: workers =
+        cores, so more only oversubscribes the machine and distorts the timings).
     retry_errors : bool
         First drop the stored cells whose status is "error" (a missing checkpoint, a bug since
         fixed), so they are computed again; otherwise a resumed run keeps them as they are.
@@ -244,6 +273,8 @@ def run(
     sc = get_scale(scale)
     exps = resolve_experiments(experiments)
     meths, skipped = resolve_methods(methods)
+    threads = check_positive_int(threads, "threads")
+    inline = default_inline(meths) if inline is None else list(inline)
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(sc.name)
     run_dir.mkdir(parents=True, exist_ok=True)
     store = Store(run_dir / STORE_NAME, grid_config=sc.grid_config())
@@ -282,10 +313,10 @@ def run(
 
         try:
             if scheduler is not None:
-                _run_dask(todo, sc, run_dir, scheduler, write)
+                _run_dask(todo, sc, run_dir, scheduler, write, threads)
             else:
                 with _sigterm_as_exit():
-                    _run_local(todo, sc, run_dir, workers, set(inline), write)
+                    _run_local(todo, sc, run_dir, workers, set(inline), write, threads)
         finally:
             bar.close()
         return {"store": store.path, "cells": len(grid), "already": len(grid) - len(todo),
@@ -297,7 +328,7 @@ def run(
         store.close()
 
 
-def _run_local(todo, sc, run_dir, workers, inline, write) -> None:
+def _run_local(todo, sc, run_dir, workers, inline, write, threads=1) -> None:
     import multiprocessing as mp
 
     from sysid_bench.bench import EXPERIMENTS
@@ -307,7 +338,7 @@ def _run_local(todo, sc, run_dir, workers, inline, write) -> None:
         raise ValueError(f"workers: expected a number >= 0, got {workers!r}")
     if n_workers == 0:
         for c in todo:
-            write(execute(c, sc, str(run_dir)))
+            write(execute(c, sc, str(run_dir), threads))
         return
     here = [c for c in todo
             if c.method in inline and not getattr(EXPERIMENTS[c.experiment], "heavy", False)]
@@ -318,17 +349,18 @@ def _run_local(todo, sc, run_dir, workers, inline, write) -> None:
     futs: dict = {}
     th = ThreadPoolExecutor(1, thread_name_prefix="inline")
     try:
-        futs = {th.submit(execute, c, sc, str(run_dir)): (c, None) for c in here}
+        futs = {th.submit(execute, c, sc, str(run_dir), threads): (c, None) for c in here}
         while pooled or futs:
             if pooled:
                 if pool is None or broken:
                     if pool is not None:
                         pool.shutdown(wait=False, cancel_futures=True)
-                    with _single_threaded_children():
+                    with _single_threaded_children(threads):
                         pool = ProcessPoolExecutor(min(n_workers, len(pooled)),
                                                    mp_context=mp.get_context("spawn"))
                     broken = False
-                futs.update({pool.submit(execute, c, sc, str(run_dir)): (c, pool) for c in pooled})
+                futs.update({pool.submit(execute, c, sc, str(run_dir), threads): (c, pool)
+                             for c in pooled})
                 pooled = []
             finished, _ = wait(futs, return_when=FIRST_COMPLETED)
             for f in finished:
@@ -391,7 +423,7 @@ def _sigterm_as_exit():
         signal.signal(signal.SIGTERM, old)
 
 
-def _run_dask(todo, sc, run_dir, scheduler, write) -> None:
+def _run_dask(todo, sc, run_dir, scheduler, write, threads=1) -> None:
     try:
         from distributed import Client, as_completed
     except ImportError as exc:  # pragma: no cover - dask is an optional extra
@@ -399,7 +431,7 @@ def _run_dask(todo, sc, run_dir, scheduler, write) -> None:
     own = not isinstance(scheduler, Client)
     client = Client(scheduler) if own else scheduler
     try:
-        futs = {client.submit(execute, c, sc, str(run_dir), pure=False): c for c in todo}
+        futs = {client.submit(execute, c, sc, str(run_dir), threads, pure=False): c for c in todo}
         for f in as_completed(list(futs)):
             c = futs[f]
             try:

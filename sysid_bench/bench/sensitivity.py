@@ -9,7 +9,8 @@ For each method whose class implements ``fit`` (Vid2Param), one cell per trainin
                        ``noise:0.0`` is also the full-physics control of the next condition.
 ``simplified``         drag and rolling fixed in training, the full model in test.
 
-Each cell trains a **fresh** model with the scale's small budget (``sensitivity.fit_options``:
+Each cell trains a **fresh** model with the method's declared budget for the scale
+(its ``fit_options``:
 not the shipped checkpoint, which saw every training sub-range and would hide extrapolation
 failures) on ``n_train`` videos of ``n_frames`` frames, pickles it into
 ``<run_dir>/models/`` (atomically; a resumed run loads it instead of retraining), then
@@ -39,16 +40,15 @@ from sysid_bench.bench.experiment import (
     timed_prefixes,
 )
 from sysid_bench.bench.identification import _save
-from sysid_bench.estimator import Estimator
 from sysid_bench.metrics import GUESS_MSE, normalised_param_se
 from sysid_bench.physics import PARAMS
 
 
 def trains(method: str) -> bool:
-    """True when ``method``'s class implements ``fit`` (learns from a training set)."""
+    """True when ``method`` declares ``trains`` (its ``fit`` learns from a training set)."""
     import methods
 
-    return methods.get_class(method).fit is not Estimator.fit
+    return methods.spec(method).trains
 
 
 def conditions(scale) -> list[str]:
@@ -103,7 +103,8 @@ def trained_model(ctx: Context, method: str, condition: str):
     variant, opts = _train_spec(condition)
     train = train_set(variant, sens["n_train"], ctx.scale.seed,
                       n_frames=sens.get("n_frames", 200), **opts)
-    est = ctx.estimator(method, warm=False, **sens.get("fit_options", {}))
+    fit_options = ctx.scale.fit_options(method)
+    est = ctx.estimator(method, warm=False, **fit_options)
     t0 = time.perf_counter()
     est.fit(train)
     wall = time.perf_counter() - t0
@@ -112,7 +113,7 @@ def trained_model(ctx: Context, method: str, condition: str):
     tmp.write_text(json.dumps({"train_wall_s": wall, "fingerprint": fp, "condition": condition,
                                "variant": variant,
                                "options": opts, "n_train": sens["n_train"],
-                               "fit_options": sens.get("fit_options", {})}))
+                               "fit_options": fit_options}))
     os.replace(tmp, info)
     return est, wall
 
@@ -122,8 +123,9 @@ class Sensitivity(Experiment):
     title = "4. Sensitivity (methods that train)"
     heavy = True  # trains models: always on a worker, started first
     description = (
-        "Small models trained from scratch with one fixed budget per condition (see the scale: "
-        "`sensitivity.fit_options`, `n_train`, `n_frames`), so conditions compare fairly but "
+        "Small models trained from scratch with one fixed budget per condition (the method's "
+        "declared `fit_options` for the scale; the scale's `n_train`, `n_frames`), so conditions "
+        "compare fairly but "
         "absolute errors are those of a small model, not of the shipped checkpoint. "
         "Extrapolation: trained on the lower half of one parameter's range, tested above it; "
         "label noise: Gaussian noise of a fraction of the range on training labels; simplified: "

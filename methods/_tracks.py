@@ -1,25 +1,10 @@
-"""Shared machinery of the classical baselines (lsq, bo, emcee, nuts, sindy).
+"""Track segmentation and state estimation for the position-based methods.
 
-One place for what must be identical across methods so that their numbers are comparable:
-
-* :class:`CountingSimulator` wraps :func:`sysid_bench.physics.simulate` and counts simulations the
-  way sbibm does: **one trajectory = one simulation**, whatever the batch size;
-* :func:`gaussian_loglik` and :func:`mean_sq_error` score simulated positions against observed
-  ones, skipping unseen (NaN) frames; the likelihood of emcee and nuts, the objective of lsq and bo;
-* :func:`prepare` turns an :class:`~sysid_bench.estimator.Observation` into a :class:`Track`:
-  validated positions, the floor (given, or estimated) and the initial state (given, or
-  estimated by a local polynomial fit, with its standard error);
-* :func:`segment_track` finds floor and wall contacts and the rolling phase from positions alone
-  (SINDy fits between them; the state and floor estimates use them);
-* :func:`forecast_by_simulation` turns posterior samples into a :class:`Forecast`.
-
-Noise model (decided here, mirrored by ``methods.nuts`` in JAX): observed positions are the
-simulated ones plus independent Gaussian noise of a **fixed** standard deviation ``sigma`` per
-coordinate, a hyperparameter of every method (default :data:`DEFAULT_SIGMA` = 0.02 m). Not
-inferred because clean positions (the paper's setting) have zero noise, where an inferred scale
-collapses to 0 and the posterior to a spike no sampler can explore; 0.02 m is about 2.5 times the
-RMS error of :func:`sysid_bench.tracking.track` on clean 28x28 renders (0.006-0.009 m), so tracked
-input is not treated as more precise than it is. Pass a larger ``sigma`` for noisy video.
+:func:`prepare` turns an :class:`~sysid_bench.estimator.Observation` into a :class:`Track`:
+validated positions, the floor (given, or estimated) and the initial state (given, or estimated
+by a local polynomial fit, with its standard error). :func:`segment_track` finds floor and wall
+contacts and the rolling phase from positions alone (SINDy fits between them; the state and
+floor estimates use them).
 
 Unknown floor (``Observation.floor is None``): estimated from the floor contacts seen (the height
 where the polynomial fits just before and just after a bounce meet), else from the rolling phase
@@ -38,51 +23,15 @@ real-video variant), emcee samples it as a nuisance parameter, bo keeps it fixed
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from sysid_bench import physics
-from sysid_bench.estimator import Forecast, Observation, observed_positions
+from sysid_bench.estimator import BOX_MARGIN, Observation, observed_positions
 
-__all__ = [
-    "DEFAULT_SIGMA",
-    "LO",
-    "HI",
-    "SPAN",
-    "PRIOR_MEAN",
-    "PRIOR_STD",
-    "CountingSimulator",
-    "gaussian_loglik",
-    "mean_sq_error",
-    "Track",
-    "Segments",
-    "Contact",
-    "prepare",
-    "segment_track",
-    "floor_contacts",
-    "local_state",
-    "clip_state",
-    "check_sigma",
-    "tempered_weights",
-    "resample",
-    "forecast_by_simulation",
-    "check_horizon",
-    "make_rng",
-    "Stopwatch",
-    "one_blas_thread",
-]
-
-#: Default standard deviation (m) of the Gaussian position noise in the likelihood.
-DEFAULT_SIGMA = 0.02
-
-LO = np.array([physics.PRIOR[p][0] for p in physics.PARAMS])
-HI = np.array([physics.PRIOR[p][1] for p in physics.PARAMS])
-SPAN = HI - LO
-PRIOR_MEAN = 0.5 * (LO + HI)
-#: Standard deviation of the uniform prior: what "no information" honestly reports.
-PRIOR_STD = SPAN / np.sqrt(12.0)
+__all__ = ["Track", "Segments", "Contact", "prepare", "segment_track", "floor_contacts",
+           "local_state", "clip_state"]
 
 # Free-flight accelerations stay below these (m/s^2) over the whole prior: a_y = g - d|v|vy <= 0
 # unless the ball falls faster than terminal speed, |a_x| = d|v||vx| <= 0.05 * 15 * 8 = 6.
@@ -94,130 +43,6 @@ _WALL_ACC = 8.0
 _MIN_STATE_STD = np.array([1e-3, 1e-3, 5e-3, 5e-3])
 _FLOOR_SE_ONE = 0.02  # m, floor from a single bounce: a few times a cubic fit's typical error
 _FLOOR_SE_UNSEEN = 0.1  # m, no contact seen
-
-
-def one_blas_thread():
-    """Context limiting BLAS to one thread (``threadpoolctl``).
-
-    The baselines' matrices are tiny (GP kernels of 20 points, a 120 x 140 Hankel matrix, 4-8
-    column Jacobians); on the shared 2-core machine OpenBLAS threads contending for the cores
-    made them 6-20x slower (bo 19 s -> 3 s, dmd 1.3 s -> 0.06 s per call).
-    """
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(limits=1, user_api="blas")
-
-
-class Stopwatch:
-    """Wall-clock seconds since construction (``perf_counter``)."""
-
-    def __init__(self) -> None:
-        self._t0 = time.perf_counter()
-
-    def __call__(self) -> float:
-        return time.perf_counter() - self._t0
-
-
-def check_sigma(sigma) -> float:
-    """``sigma`` as a float > 0, else ``ValueError`` naming it."""
-    try:
-        s = float(sigma)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"sigma: expected a positive number of metres, got {sigma!r}") from exc
-    if not np.isfinite(s) or s <= 0:
-        raise ValueError(f"sigma: expected a finite number of metres > 0, got {sigma!r}")
-    return s
-
-
-def make_rng(seed, stream: int = 0) -> np.random.Generator:
-    """Generator for one purpose (``stream``) of a method, fixed by its ``seed``.
-
-    An int (or None) seed gives ``default_rng([seed, stream])`` so that, e.g., a forecast's
-    resampling does not reuse the identification's draws; a Generator is used as it is.
-    """
-    if isinstance(seed, np.random.Generator):
-        return seed
-    if isinstance(seed, bool) or not (seed is None or isinstance(seed, (int, np.integer))):
-        raise ValueError(f"seed: expected an int, None or numpy.random.Generator, got {seed!r}")
-    return np.random.default_rng(None if seed is None else [int(seed), stream])
-
-
-def check_horizon(horizon) -> int:
-    """``horizon`` as an int >= 1, else ``ValueError`` naming it."""
-    if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
-        raise ValueError(f"horizon: expected an integer >= 1 (frames), got {horizon!r}")
-    return int(horizon)
-
-
-# ------------------------------------------------------------------------------------------
-# simulation and likelihood
-class CountingSimulator:
-    """:func:`sysid_bench.physics.simulate` that counts trajectories (sbibm-style budget).
-
-    Attributes
-    ----------
-    n_simulations : int
-        Trajectories simulated so far; a batch of B counts B.
-    """
-
-    def __init__(self) -> None:
-        self.n_simulations = 0
-
-    def __call__(self, theta, state0, n_frames: int, dt: float, floor) -> np.ndarray:
-        """Simulate; same arguments and result as ``physics.simulate``: (B, n_frames, 4)."""
-        out = physics.simulate(theta, state0, n_frames=n_frames, dt=dt, floor=floor)
-        self.n_simulations += int(out.shape[0])
-        return out
-
-    def positions(self, theta, state0, n_frames: int, dt: float, floor) -> np.ndarray:
-        """Simulated positions only, shape (B, n_frames, 2)."""
-        return self(theta, state0, n_frames, dt, floor)[..., :2]
-
-
-def mean_sq_error(sim_pos: np.ndarray, obs_pos: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Mean squared position error over seen frames and both coordinates.
-
-    Parameters
-    ----------
-    sim_pos : ndarray, shape (..., T, 2)
-    obs_pos : ndarray, shape (T, 2)
-        NaN where unseen (those rows must be False in ``mask``).
-    mask : ndarray of bool, shape (T,)
-
-    Returns
-    -------
-    ndarray, shape (...)
-        m^2.
-    """
-    diff = np.where(mask[:, None], sim_pos - np.where(mask[:, None], obs_pos, 0.0), 0.0)
-    return np.sum(diff * diff, axis=(-2, -1)) / (2.0 * np.count_nonzero(mask))
-
-
-def gaussian_loglik(sim_pos: np.ndarray, obs_pos: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
-    """Log-likelihood of observed positions: independent N(sim, sigma^2) per seen coordinate.
-
-    The one likelihood of emcee and nuts (nuts mirrors this in JAX). Frames with
-    ``mask == False`` (unseen) contribute nothing.
-
-    Parameters
-    ----------
-    sim_pos : ndarray, shape (..., T, 2)
-        Simulated positions (m).
-    obs_pos : ndarray, shape (T, 2)
-        Observed positions (m), NaN allowed where ``mask`` is False.
-    mask : ndarray of bool, shape (T,)
-    sigma : float
-        Noise standard deviation (m).
-
-    Returns
-    -------
-    ndarray, shape (...)
-    """
-    n = 2.0 * np.count_nonzero(mask)
-    diff = np.where(mask[:, None], sim_pos - np.where(mask[:, None], obs_pos, 0.0), 0.0)
-    sse = np.sum(diff * diff, axis=(-2, -1))
-    return -0.5 * sse / sigma**2 - n * np.log(sigma) - 0.5 * n * np.log(2.0 * np.pi)
-
 
 # ------------------------------------------------------------------------------------------
 # segmentation of a track into free flight, contacts and rolling
@@ -608,9 +433,10 @@ def prepare(obs: Observation) -> Track:
             seg = segment_track(pos, dt, floor=floor)
     if obs.state0 is not None:
         s0 = obs.state0
-        if not (0.0 <= s0[0] <= physics.BOX_WIDTH and floor - 1e-9 <= s0[1] <= floor + physics.BOX_WIDTH):
+        m = BOX_MARGIN  # within it: tracking-sized error, moved onto the edge by clip_state
+        if not (-m <= s0[0] <= physics.BOX_WIDTH + m and floor - m <= s0[1] <= floor + physics.BOX_WIDTH + m):
             raise ValueError(
-                f"state0: expected a position inside the box x in [0, {physics.BOX_WIDTH:g}], "
+                f"state0: expected a position within {m:g} m of the box x in [0, {physics.BOX_WIDTH:g}], "
                 f"y in [{floor:g}, {floor + physics.BOX_WIDTH:g}], got ({s0[0]:g}, {s0[1]:g})"
             )
         s0 = clip_state(s0, floor)
@@ -632,105 +458,3 @@ def prepare(obs: Observation) -> Track:
         input_kind="positions" if obs.positions is not None else "frames",
         noise=noise,
     )
-
-
-# ------------------------------------------------------------------------------------------
-# weights, resampling, forecasting
-def tempered_weights(loglik: np.ndarray, min_ess: float) -> tuple[np.ndarray, float, float]:
-    """Normalised importance weights ``exp(beta * loglik)`` with the largest ``beta`` in (0, 1]
-    whose effective sample size is at least ``min_ess``.
-
-    A batch of prior draws rarely holds more than one draw inside a sharp likelihood peak; the
-    untempered weights then put all mass on one draw and the spread collapses to 0. Tempering
-    widens the weights to the resolution the draws actually have, so the reported spread is
-    honest about the search rather than about the (unexplored) peak.
-
-    Parameters
-    ----------
-    loglik : ndarray, shape (N,)
-    min_ess : float
-
-    Returns
-    -------
-    weights : ndarray, shape (N,)
-    beta : float
-    ess : float
-    """
-    ll = np.asarray(loglik, dtype=np.float64)
-    ll = np.where(np.isfinite(ll), ll, -np.inf)
-    target = min(float(min_ess), float(np.isfinite(ll).sum()))
-
-    def weights(beta):
-        z = beta * (ll - ll.max())
-        w = np.exp(z)
-        w /= w.sum()
-        return w, 1.0 / np.sum(w * w)
-
-    w, ess = weights(1.0)
-    if ess >= target:
-        return w, 1.0, float(ess)
-    lo, hi = 0.0, 1.0  # ESS(beta) falls as beta grows
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        _, e = weights(mid)
-        if e >= target:
-            lo = mid
-        else:
-            hi = mid
-    w, ess = weights(lo)
-    return w, lo, float(ess)
-
-
-def resample(weights: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Indices of ``n`` draws by systematic resampling of ``weights`` (N,)."""
-    c = np.cumsum(weights)
-    c[-1] = 1.0
-    u = (rng.random() + np.arange(n)) / n
-    return np.searchsorted(c, u)
-
-
-def forecast_by_simulation(
-    sim: CountingSimulator,
-    theta: np.ndarray,
-    state: np.ndarray,
-    floor: float,
-    dt: float,
-    horizon: int,
-    skip: int = 0,
-    clock: Stopwatch | None = None,
-    extras: dict | None = None,
-) -> Forecast:
-    """Forecast positions by simulating posterior samples.
-
-    Simulates ``skip + horizon + 1`` frames from ``state`` and returns the last ``horizon``:
-    with ``state`` the initial states and ``skip = T - 1`` this continues each sample's own
-    trajectory past the last observed frame; with ``state`` the estimated state at the last
-    observed frame and ``skip = 0`` it continues from there.
-
-    Parameters
-    ----------
-    sim : CountingSimulator
-    theta : ndarray, shape (S, 4)
-    state : ndarray, shape (S, 4)
-    floor : float or ndarray, shape (S,)
-    dt : float
-    horizon : int
-    skip : int
-    clock : Stopwatch, optional
-        Started when the forecast's work began; ``extras["wall_s"]`` reads it at the end.
-    extras : dict, optional
-        More entries for ``Forecast.extras``.
-
-    Returns
-    -------
-    Forecast
-        mean/std (horizon, 2), samples (S, horizon, 2); ``extras`` holds ``n_simulations`` (all
-        of ``sim``'s, the identification's included) and ``wall_s``.
-    """
-    traj = sim.positions(theta, clip_state(state, floor), skip + horizon + 1, dt, floor)
-    samples = traj[:, skip + 1 :]
-    ex = dict(extras or {})
-    ex["n_simulations"] = sim.n_simulations
-    if clock is not None:
-        ex["wall_s"] = clock()
-    return Forecast(mean=samples.mean(axis=0), std=samples.std(axis=0), samples=samples, extras=ex)

@@ -1,0 +1,7 @@
+"""``python -m sysid_bench``: the ``sysid-bench`` command line."""
+
+import sys
+
+from sysid_bench.cli import main
+
+sys.exit(main())

@@ -1,0 +1,208 @@
+"""What a method declares about itself, read by the harness instead of tables keyed by name.
+
+A method's class sets plain class attributes (defaults on :class:`~sysid_bench.estimator.Estimator`,
+so a minimal class sets only ``name`` and ``input_kind``); :meth:`Estimator.spec` collects them,
+checks them once and returns a frozen :class:`MethodSpec`, the one record the runner, the scales,
+the figures, calibration, sensitivity, the report and :func:`sysid_bench.testing.check_estimator`
+read. The idea is Gymnasium's ``EnvSpec`` (a small frozen record of how to make and run a thing),
+kept on the class so that the one file of a method holds everything about it.
+
+Declarations
+------------
+=====================  ==========  =====================================================================
+attribute              default     meaning
+=====================  ==========  =====================================================================
+``name``               (required)  registry name
+``input_kind``         positions   ``"positions"`` (tracked or given) or ``"frames"`` (pixels)
+``min_frames``         1           fewest frames ``identify`` accepts
+``identifies``         True        ``identify`` returns a Posterior (else raises NotImplementedError)
+``forecasts``          False       ``forecast`` returns a Forecast (else raises NotImplementedError)
+``streams``            False       ``identify_prefixes`` does one pass over all prefixes
+``trains``             False       ``fit`` learns from a training set (sensitivity experiment)
+``cost``               10          relative cost of one cell: the runner starts costly cells first;
+                                   ``>= EXPENSIVE_COST`` is the expensive tier (fewer frame counts)
+``scale_cases``        {}          per scale: most test videos (an int, or a dict per experiment)
+``scale_options``      {}          per scale: hyperparameters the benchmark passes to ``methods.get``
+``fit_options``        {}          per scale: hyperparameters of the sensitivity experiment's training
+``threads_param``      None        the hyperparameter setting the method's own thread count, if any
+``inline``             False       cells run in a thread of the runner's process (cheap, heavy import)
+``color``              None        matplotlib colour in every figure (None: from ``figure_order``)
+``figure_order``       None        place in figures: slot in the tab10 palette (None: by name)
+``reference_posterior`` False      the posterior calibration compares every other method with
+``contract_options``   {}          cheap hyperparameters for ``check_estimator`` (same code path)
+=====================  ==========  =====================================================================
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields
+from types import MappingProxyType
+
+__all__ = ["MethodSpec", "EXPENSIVE_COST", "INPUT_KINDS", "CAPABILITIES", "spec_of"]
+
+#: Cells of a method with at least this ``cost`` are the expensive tier: in scales that thin
+#: them (smoke, default) they are evaluated at fewer frame counts (see ``Scale``).
+EXPENSIVE_COST = 20
+INPUT_KINDS = ("positions", "frames")
+CAPABILITIES = ("identifies", "forecasts", "streams", "trains")
+#: class attributes collected into a MethodSpec, in its field order
+DECLARED = (
+    "name", "input_kind", "min_frames", *CAPABILITIES, "cost", "scale_cases", "scale_options",
+    "fit_options", "threads_param", "inline", "color", "figure_order", "reference_posterior",
+    "contract_options",
+)
+
+
+def _frozen(d) -> Mapping:
+    return MappingProxyType({k: _frozen(v) if isinstance(v, Mapping) else v for k, v in d.items()})
+
+
+def _plain(x):
+    if isinstance(x, Mapping):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    return x
+
+
+@dataclass(frozen=True, eq=False)
+class MethodSpec:
+    """A method's declarations, checked (see the module docstring for each field).
+
+    Built by :func:`spec_of` from the class; ``entry_point`` is filled in by the registry.
+    """
+
+    name: str
+    input_kind: str = "positions"
+    min_frames: int = 1
+    identifies: bool = True
+    forecasts: bool = False
+    streams: bool = False
+    trains: bool = False
+    cost: int = 10
+    scale_cases: Mapping = field(default_factory=dict)
+    scale_options: Mapping = field(default_factory=dict)
+    fit_options: Mapping = field(default_factory=dict)
+    threads_param: str | None = None
+    inline: bool = False
+    color: str | None = None
+    figure_order: int | None = None
+    reference_posterior: bool = False
+    contract_options: Mapping = field(default_factory=dict)
+    entry_point: str | None = None
+
+    @property
+    def expensive(self) -> bool:
+        """The expensive tier (``cost >= EXPENSIVE_COST``)."""
+        return self.cost >= EXPENSIVE_COST
+
+    @property
+    def capabilities(self) -> tuple[str, ...]:
+        """The declared capabilities, e.g. ``("identifies", "forecasts")``."""
+        return tuple(c for c in CAPABILITIES if getattr(self, c))
+
+    def cases_cap(self, scale: str, experiment: str) -> int | None:
+        """Most test videos of ``experiment`` at ``scale`` (None: no cap)."""
+        cap = self.scale_cases.get(scale)
+        if isinstance(cap, Mapping):
+            cap = cap.get(experiment)
+        return None if cap is None else int(cap)
+
+    def options(self, scale: str, threads: int | None = 1) -> dict:
+        """Hyperparameters the benchmark passes at ``scale`` (``threads`` into ``threads_param``)."""
+        out = {}
+        if self.threads_param is not None and threads is not None:
+            out[self.threads_param] = int(threads)
+        out.update(_plain(self.scale_options.get(scale, {})))
+        return out
+
+    def training_options(self, scale: str) -> dict:
+        """Hyperparameters of the sensitivity experiment's training at ``scale``."""
+        return _plain(self.fit_options.get(scale, {}))
+
+    def as_dict(self) -> dict:
+        """Plain, JSON-ready copy (part of the method's fingerprint in a results store)."""
+        return _plain({f.name: getattr(self, f.name) for f in fields(self)})
+
+    def to_json(self) -> str:
+        return json.dumps(self.as_dict(), sort_keys=True, default=str)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, MethodSpec) and self.as_dict() == other.as_dict()
+
+    __hash__ = None  # holds mappings
+
+    def __repr__(self) -> str:
+        d = self.as_dict()
+        default = asdict(MethodSpec(name=self.name))
+        diff = {k: v for k, v in d.items() if k == "name" or _plain(default.get(k)) != v}
+        return "MethodSpec(" + ", ".join(f"{k}={v!r}" for k, v in diff.items()) + ")"
+
+
+def _bad(cls, attr: str, expected: str, got) -> ValueError:
+    return ValueError(f"{cls.__name__}.{attr}: expected {expected}, got {got!r}")
+
+
+def _check_per_scale(cls, attr: str, value, params, *, cases: bool = False) -> Mapping:
+    if not isinstance(value, Mapping):
+        raise _bad(cls, attr, "a dict keyed by scale name", value)
+    for scale, v in value.items():
+        if not isinstance(scale, str):
+            raise _bad(cls, attr, "scale names (str) as keys", scale)
+        if cases:
+            vals = v.values() if isinstance(v, Mapping) else [v]
+            for n in vals:
+                if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+                    raise _bad(cls, f"{attr}[{scale!r}]", "an int >= 0 or a dict of them", v)
+        else:
+            if not isinstance(v, Mapping):
+                raise _bad(cls, f"{attr}[{scale!r}]", "a dict of hyperparameters", v)
+            unknown = sorted(set(v) - set(params)) if params is not None else []
+            if unknown:
+                raise _bad(cls, f"{attr}[{scale!r}]", f"hyperparameters among {params}", unknown)
+    return _frozen(value)
+
+
+def spec_of(cls, entry_point: str | None = None) -> MethodSpec:
+    """Collect and check the declarations of an Estimator subclass.
+
+    Raises
+    ------
+    ValueError
+        A declaration of the wrong type, an unknown input kind, or options naming
+        hyperparameters the constructor does not take; the message names ``Class.attribute``.
+    """
+    params = cls._param_names()
+    vals = {a: getattr(cls, a) for a in DECLARED}
+    name = vals["name"]
+    if not isinstance(name, str) or not name or name == "estimator":
+        raise _bad(cls, "name", "the method's registry name (a non-empty str)", name)
+    if vals["input_kind"] not in INPUT_KINDS:
+        raise _bad(cls, "input_kind", f"one of {INPUT_KINDS}", vals["input_kind"])
+    for a in (*CAPABILITIES, "inline", "reference_posterior"):
+        if not isinstance(vals[a], bool):
+            raise _bad(cls, a, "True or False", vals[a])
+    for a in ("min_frames", "cost"):
+        v = vals[a]
+        if isinstance(v, bool) or not isinstance(v, int) or v < (1 if a == "min_frames" else 0):
+            raise _bad(cls, a, "an int >= " + ("1" if a == "min_frames" else "0"), v)
+    if vals["figure_order"] is not None and (
+        isinstance(vals["figure_order"], bool) or not isinstance(vals["figure_order"], int)
+        or vals["figure_order"] < 0
+    ):
+        raise _bad(cls, "figure_order", "None or an int >= 0", vals["figure_order"])
+    if vals["color"] is not None and not isinstance(vals["color"], str):
+        raise _bad(cls, "color", "None or a matplotlib colour string", vals["color"])
+    tp = vals["threads_param"]
+    if tp is not None and tp not in params:
+        raise _bad(cls, "threads_param", f"None or one of the hyperparameters {params}", tp)
+    vals["scale_cases"] = _check_per_scale(cls, "scale_cases", vals["scale_cases"], None, cases=True)
+    vals["scale_options"] = _check_per_scale(cls, "scale_options", vals["scale_options"], params)
+    vals["fit_options"] = _check_per_scale(cls, "fit_options", vals["fit_options"], params)
+    co = vals["contract_options"]
+    if not isinstance(co, Mapping) or set(co) - set(params):
+        raise _bad(cls, "contract_options", f"a dict of hyperparameters among {params}", co)
+    vals["contract_options"] = _frozen(co)
+    return MethodSpec(**vals, entry_point=entry_point)

@@ -1,0 +1,385 @@
+"""``check_estimator``: the public contract every method must meet (like scikit-learn's).
+
+>>> import methods
+>>> from sysid_bench.testing import check_estimator
+>>> check_estimator(methods.get("prior"))          # raises on the first failure
+
+The checks are chosen by what the method declares (:meth:`Estimator.spec`): a method that
+declares ``identifies = False`` must raise ``NotImplementedError`` with a reason from
+``identify``; one that declares ``forecasts = True`` must return a valid ``Forecast``; and so on.
+Each check has a name (``check_<what>``); a failure raises :class:`EstimatorCheckError` whose
+message starts with it. :func:`estimator_checks` yields the checks one by one, for a test suite
+that wants one test per check.
+
+The checks run the method on one seeded simulated ball (60 frames of 28x28 video with its true
+positions, floor and initial state), so they take what a few identifications of the method take:
+pass cheap hyperparameters (the class's ``contract_options``) for a quick run.
+"""
+
+from __future__ import annotations
+
+import copy
+import inspect
+import pickle
+from collections.abc import Callable, Iterator
+from functools import lru_cache
+
+import numpy as np
+
+from sysid_bench.estimator import (
+    MAX_HORIZON,
+    Estimator,
+    Forecast,
+    Observation,
+    Posterior,
+    Stream,
+)
+from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
+
+__all__ = ["check_estimator", "estimator_checks", "EstimatorCheckError", "contract_observation"]
+
+#: frames of the observation the checks use
+N_OBS = 60
+#: forecast horizon the checks ask for
+HORIZON = 10
+
+
+class EstimatorCheckError(AssertionError):
+    """A method broke the contract; the message starts with the failing check's name."""
+
+
+@lru_cache(maxsize=1)
+def _ball():
+    from sysid_bench.physics import simulate
+    from sysid_bench.render import render
+
+    # one fixed, ordinary throw: bounces within the first 60 frames, stays inside the box
+    theta = np.array([[0.85, -9.81, 0.01, 0.3]])
+    state0 = np.array([[3.0, 7.0, 5.0, 3.5]])
+    states = simulate(theta, state0, n_frames=N_OBS)
+    frames = render(states)[0]
+    return states[0], frames, state0[0]
+
+
+def contract_observation(kind: str = "both") -> Observation:
+    """The observation the checks use: ``"both"`` (frames, positions, floor and initial state),
+    ``"frames"`` (video only) or ``"positions"`` (positions and floor)."""
+    states, frames, s0 = _ball()
+    if kind == "frames":
+        return Observation(frames=frames.copy())
+    if kind == "positions":
+        return Observation(positions=states[:, :2].copy(), floor=0.0)
+    return Observation(frames=frames.copy(), positions=states[:, :2].copy(), floor=0.0,
+                       state0=s0.copy())
+
+
+def _fail(msg: str):
+    raise AssertionError(msg)
+
+
+def _clone(est: Estimator) -> Estimator:
+    return type(est)(**est.get_params())
+
+
+def _reason(exc: NotImplementedError) -> str:
+    msg = str(exc)
+    if len(msg.split()) < 4:
+        _fail(f"NotImplementedError without a sentence saying why: {msg!r}")
+    return msg
+
+
+def _expect_value_error(fn, arg: str, what: str) -> None:
+    try:
+        fn()
+    except ValueError as exc:
+        if arg not in str(exc):
+            _fail(f"{what}: ValueError does not name {arg!r}: {exc}")
+        return
+    except Exception as exc:  # noqa: BLE001 - anything else is the failure we report
+        _fail(f"{what}: expected a ValueError naming {arg!r}, got {type(exc).__name__}: {exc}")
+    _fail(f"{what}: expected a ValueError naming {arg!r}, nothing was raised")
+
+
+def _check_posterior(post, where: str) -> None:
+    if not isinstance(post, Posterior):
+        _fail(f"{where}: expected a Posterior, got {type(post).__name__}")
+    if post.mean.shape != (4,) or post.std.shape != (4,):
+        _fail(f"{where}: mean/std of shape (4,) expected, got {post.mean.shape}, {post.std.shape}")
+    if not np.isfinite(post.mean).all():
+        _fail(f"{where}: non-finite mean {post.mean}")
+    for i, p in enumerate(PARAMS):  # physical units, PARAMS order
+        lo, hi = PRIOR[p]
+        span = hi - lo
+        if not lo - span <= post.mean[i] <= hi + span:
+            _fail(f"{where}: {p} = {post.mean[i]:.4g} is far outside its prior [{lo}, {hi}]: "
+                  "not physical units, or not PARAMS order")
+    if post.samples is not None and (post.samples.ndim != 2 or post.samples.shape[1] != 4):
+        _fail(f"{where}: samples of shape (S, 4) expected, got {post.samples.shape}")
+    n = post.extras.get("n_simulations")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+        _fail(f"{where}: extras['n_simulations'] must be an int >= 0, got {n!r}")
+    w = post.extras.get("wall_s", None)
+    if w is not None and not float(w) >= 0:
+        _fail(f"{where}: extras['wall_s'] must be >= 0 seconds, got {w!r}")
+
+
+def _check_forecast(fc, horizon: int, obs: Observation, where: str) -> None:
+    if not isinstance(fc, Forecast):
+        _fail(f"{where}: expected a Forecast, got {type(fc).__name__}")
+    if fc.mean.shape != (horizon, 2) or fc.std.shape != (horizon, 2):
+        _fail(f"{where}: mean/std of shape ({horizon}, 2) expected, got {fc.mean.shape}, {fc.std.shape}")
+    if not np.isfinite(fc.mean).all():
+        _fail(f"{where}: non-finite forecast mean")
+    if fc.samples is not None and fc.samples.shape[1:] != (horizon, 2):
+        _fail(f"{where}: samples of shape (S, {horizon}, 2) expected, got {fc.samples.shape}")
+    # metres in the world frame: a ball moves < 1 m per frame, so the first forecast position
+    # lies near the last one seen (pixels or normalised coordinates would not)
+    pos = obs.positions
+    last = pos[np.isfinite(pos).all(axis=1)][-1]
+    gap = float(np.abs(fc.mean[0] - last).max())
+    if gap > 0.2 * BOX_WIDTH:
+        _fail(f"{where}: the first forecast position {fc.mean[0]} is {gap:.3g} m from the last seen "
+              f"{last}: not metres in the world frame?")
+
+
+def _equal(a, b, what: str) -> None:
+    for field in ("mean", "std"):
+        x, y = getattr(a, field), getattr(b, field)
+        if not np.array_equal(x, y):
+            _fail(f"{what}: {field} differs ({x} vs {y})")
+
+
+# -- the checks ---------------------------------------------------------------------------------
+def check_declarations(est: Estimator, ctx: dict) -> None:
+    """The class's declarations are valid (``spec()``) and its name is a registry name."""
+    try:
+        spec = type(est).spec()
+    except ValueError as exc:
+        _fail(str(exc))
+    if est.name != spec.name:
+        _fail(f"instance name {est.name!r} differs from the class's {spec.name!r}")
+    ctx["spec"] = spec
+
+
+def check_constructor_stores_arguments(est: Estimator, ctx: dict) -> None:
+    """Keyword-only hyperparameters with defaults, stored unchanged, a ``seed``, no work done."""
+    cls = type(est)
+    sig = inspect.signature(cls.__init__)
+    for p in list(sig.parameters.values())[1:]:
+        if p.kind is not p.KEYWORD_ONLY:
+            _fail(f"hyperparameter {p.name!r} must be keyword-only")
+        if p.default is p.empty:
+            _fail(f"hyperparameter {p.name!r} needs a default")
+    params = est.get_params()
+    if "seed" not in params:
+        _fail("every method takes a seed")
+    fresh = cls()
+    for k, p in list(sig.parameters.items())[1:]:
+        v = getattr(fresh, k)
+        if not (v is p.default or _same(v, p.default)):
+            _fail(f"{k}: the constructor stored {v!r}, not the default {p.default!r} unchanged")
+    again = cls(**params)
+    for k, v in params.items():
+        if not (getattr(again, k) is v or _same(getattr(again, k), v)):
+            _fail(f"{k}: the constructor stored {getattr(again, k)!r}, given {v!r}")
+    learned = [a for a in vars(fresh) if a.endswith("_") and not a.startswith("_")]
+    if learned:
+        _fail(f"the constructor set learned state {learned}: leave it to fit/identify")
+
+
+def _same(a, b) -> bool:
+    try:
+        r = a == b
+        return bool(np.all(r))
+    except Exception:  # noqa: BLE001 - incomparable values are not the same
+        return False
+
+
+def check_fit_returns_self(est: Estimator, ctx: dict) -> None:
+    """``fit(None)`` returns the estimator itself (learned methods load their weights)."""
+    if est.fit(None) is not est:
+        _fail("fit(None) must return self")
+
+
+def check_bad_input_raises_value_error(est: Estimator, ctx: dict) -> None:
+    """A wrong ``obs``, ``horizon`` or ``seed`` raises ValueError naming the argument."""
+    obs = ctx["obs"]
+    _expect_value_error(lambda: est.identify(obs.positions), "obs", "identify(array)")
+    if ctx["spec"].forecasts:
+        _expect_value_error(lambda: est.forecast(obs, 0), "horizon", "forecast(obs, 0)")
+        _expect_value_error(lambda: est.forecast(obs, MAX_HORIZON + 1), "horizon",
+                            f"forecast(obs, MAX_HORIZON + 1 = {MAX_HORIZON + 1})")
+    _expect_value_error(lambda: copy.deepcopy(est).set_params(seed="x"), "seed", "set_params(seed='x')")
+    _expect_value_error(lambda: type(est)(**{**est.get_params(), "seed": "x"}), "seed",
+                        "constructor with seed='x'")
+
+
+def check_not_implemented_has_reason(est: Estimator, ctx: dict) -> None:
+    """What the method declares it cannot do raises NotImplementedError with a reason."""
+    spec, obs = ctx["spec"], ctx["obs"]
+    if not spec.identifies:
+        try:
+            est.identify(obs)
+        except NotImplementedError as exc:
+            _reason(exc)
+        else:
+            _fail("declares identifies = False but identify returned")
+    if not spec.forecasts:
+        try:
+            est.forecast(obs, HORIZON)
+        except NotImplementedError as exc:
+            _reason(exc)
+        else:
+            _fail("declares forecasts = False but forecast returned")
+
+
+def check_identify(est: Estimator, ctx: dict) -> None:
+    """A Posterior of shape (4,) in physical units, PARAMS order, with the required extras."""
+    post = est.identify(ctx["obs"])
+    _check_posterior(post, "identify")
+    ctx["post"] = post
+
+
+def check_same_seed_same_answer(est: Estimator, ctx: dict) -> None:
+    """A clone with the same hyperparameters gives the same posterior and forecast."""
+    obs = ctx["obs"]
+    if ctx["spec"].identifies:
+        _equal(ctx["post"], _clone(est).fit(None).identify(obs), "identify of a clone")
+    if ctx["spec"].forecasts:
+        _equal(ctx["forecast"], _clone(est).fit(None).forecast(obs, HORIZON), "forecast of a clone")
+
+
+def check_pickle_round_trip(est: Estimator, ctx: dict) -> None:
+    """A pickled and loaded estimator keeps its hyperparameters and gives the same answer."""
+    other = pickle.loads(pickle.dumps(est))
+    if type(other) is not type(est):
+        _fail(f"unpickled a {type(other).__name__}")
+    for k, v in est.get_params().items():
+        if not _same(getattr(other, k), v):
+            _fail(f"{k}: {v!r} came back as {getattr(other, k)!r}")
+    if ctx["spec"].identifies:
+        _equal(ctx["post"], other.identify(ctx["obs"]), "identify after a pickle round trip")
+    elif ctx["spec"].forecasts:
+        _equal(ctx["forecast"], other.forecast(ctx["obs"], HORIZON), "forecast after a pickle round trip")
+
+
+def check_clone(est: Estimator, ctx: dict) -> None:
+    """``type(est)(**est.get_params())`` and ``copy.deepcopy`` keep every hyperparameter."""
+    for how, other in (("clone", _clone(est)), ("deepcopy", copy.deepcopy(est))):
+        for k, v in est.get_params().items():
+            if not _same(getattr(other, k), v):
+                _fail(f"{how}: {k} = {v!r} became {getattr(other, k)!r}")
+
+
+def check_forecast(est: Estimator, ctx: dict) -> None:
+    """A Forecast of shape (horizon, 2) in metres, continuing the track."""
+    fc = est.forecast(ctx["obs"], HORIZON)
+    _check_forecast(fc, HORIZON, ctx["obs"], f"forecast(obs, {HORIZON})")
+    ctx["forecast"] = fc
+
+
+def check_min_frames(est: Estimator, ctx: dict) -> None:
+    """``min_frames`` frames are enough; fewer give a ValueError (not a crash) or work too."""
+    spec, obs = ctx["spec"], ctx["obs"]
+    n = spec.min_frames
+    if n > obs.n_frames:
+        _fail(f"min_frames = {n} is more than a {obs.n_frames}-frame video")
+    short = obs.prefix(n)
+    if spec.identifies:
+        _check_posterior(est.identify(short), f"identify on min_frames = {n} frames")
+    else:
+        _check_forecast(est.forecast(short, HORIZON), HORIZON, short, f"forecast on {n} frames")
+    if n > 1:
+        try:
+            (est.identify if spec.identifies else lambda o: est.forecast(o, HORIZON))(obs.prefix(n - 1))
+        except ValueError:
+            pass
+        except Exception as exc:  # noqa: BLE001
+            _fail(f"{n - 1} frames (< min_frames): expected a ValueError or an answer, got "
+                  f"{type(exc).__name__}: {exc}")
+
+
+def check_prefixes_and_stream(est: Estimator, ctx: dict) -> None:
+    """``identify_prefixes`` gives one posterior per length; a stream answers after each frame."""
+    obs = ctx["obs"]
+    lengths = [20, obs.n_frames]
+    posts = est.identify_prefixes(obs, lengths)
+    if len(posts) != len(lengths):
+        _fail(f"identify_prefixes(obs, {lengths}) gave {len(posts)} posteriors")
+    for n, p in zip(lengths, posts):
+        _check_posterior(p, f"identify_prefixes at {n} frames")
+    stream = est.stream()
+    if not isinstance(stream, Stream):
+        _fail(f"stream() returned a {type(stream).__name__}, not a Stream")
+    stream.reset()
+    for k, frame in enumerate(obs.frames[:5]):
+        _check_posterior(stream.push(frame), f"stream.push of frame {k}")
+
+
+def check_frames_only_input(est: Estimator, ctx: dict) -> None:
+    """Video alone is enough: position methods track the ball themselves."""
+    obs = contract_observation("frames")
+    if ctx["spec"].identifies:
+        _check_posterior(est.identify(obs), "identify on frames only")
+    else:
+        fc = est.forecast(obs, HORIZON)
+        if not isinstance(fc, Forecast) or fc.mean.shape != (HORIZON, 2):
+            _fail("forecast on frames only: expected a Forecast of shape (horizon, 2)")
+
+
+def estimator_checks(estimator: Estimator) -> Iterator[tuple[str, Callable[[], None]]]:
+    """The checks that apply to ``estimator``, in order, as ``(name, run)`` pairs.
+
+    Later checks use what earlier ones computed (the posterior, the forecast), so run them in
+    the order given.
+    """
+    if not isinstance(estimator, Estimator):
+        raise ValueError(f"estimator: expected an Estimator instance, got {type(estimator).__name__}")
+    ctx: dict = {"obs": contract_observation("both")}
+    check_declarations(estimator, ctx)
+    spec = ctx["spec"]
+    chosen = [check_declarations, check_constructor_stores_arguments, check_clone,
+              check_fit_returns_self, check_bad_input_raises_value_error,
+              check_not_implemented_has_reason]
+    if spec.identifies:
+        chosen.append(check_identify)
+    if spec.forecasts:
+        chosen.append(check_forecast)
+    chosen += [check_same_seed_same_answer, check_pickle_round_trip, check_min_frames]
+    if spec.identifies:
+        chosen.append(check_prefixes_and_stream)
+    chosen.append(check_frames_only_input)
+    for fn in chosen:
+        def run(fn=fn):
+            try:
+                fn(estimator, ctx)
+            except EstimatorCheckError:
+                raise
+            except AssertionError as exc:
+                raise EstimatorCheckError(f"{fn.__name__} ({estimator.name}): {exc}") from None
+            except Exception as exc:
+                raise EstimatorCheckError(
+                    f"{fn.__name__} ({estimator.name}): raised {type(exc).__name__}: {exc}"
+                ) from exc
+
+        yield fn.__name__, run
+
+
+def check_estimator(estimator: Estimator) -> None:
+    """Run every check that applies to ``estimator``; raise on the first failure.
+
+    Parameters
+    ----------
+    estimator : Estimator
+        An instance, with the hyperparameters to check (cheap ones keep it fast: the class's
+        ``contract_options``).
+
+    Raises
+    ------
+    EstimatorCheckError
+        An ``AssertionError`` whose message starts with the failing check's name.
+    ValueError
+        ``estimator`` is not an Estimator instance.
+    """
+    for _, run in estimator_checks(estimator):
+        run()
