@@ -15,8 +15,8 @@ import numpy as np
 import torch
 
 from methods.vid2param.checkpoint import build_net, load_checkpoint
-from sysid_bench._validate import check_positive_int
-from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, Stream
+from sysid_bench._validate import check_horizon, check_positive_float, check_positive_int
+from sysid_bench.estimator import MAX_HORIZON, Estimator, Forecast, Observation, Posterior, Stream
 from sysid_bench.physics import BOX_WIDTH, DT, PARAMS, PRIOR
 
 __all__ = ["Vid2Param", "Vid2ParamStream", "SHIPPED_CHECKPOINT", "SHIPPED_CHECKPOINTS"]
@@ -116,8 +116,9 @@ class Vid2Param(Estimator):
     sample_state : bool
         Feed a sampled z_t to the LSTM at each frame, as in training (True), or the encoder
         mean (False: deterministic filtering).
-    forecast : {"latent", "physics"}
-        How ``forecast`` predicts (see ``FORECASTS``): ``"latent"`` unrolls the network's
+    forecast : {"latent", "physics"}, optional
+        How ``forecast`` predicts (see ``FORECASTS``; None: ``default_forecast``, "latent"
+        here, "physics" for ``vid2param-physics``): ``"latent"`` unrolls the network's
         prior in latent space (the paper's forecast; no frame is decoded), ``"physics"`` draws
         states and parameters from the filtered posterior and simulates them with
         ``sysid_bench.physics``.
@@ -144,6 +145,8 @@ class Vid2Param(Estimator):
     }
     #: cheap settings for check_estimator (same code path)
     contract_options = {"n_samples": 20}
+    #: the ``forecast`` kind when none is given
+    default_forecast = "latent"
 
     def __init__(
         self,
@@ -159,7 +162,7 @@ class Vid2Param(Estimator):
         fit_lr: float = 1e-4,
         warm_start: bool = True,
         sample_state: bool = True,
-        forecast: str = "latent",
+        forecast: str | None = None,
     ):
         self.checkpoint = checkpoint
         self.device = device
@@ -172,10 +175,6 @@ class Vid2Param(Estimator):
         self.fit_lr = fit_lr
         self.warm_start = warm_start
         self.sample_state = sample_state
-        if forecast not in FORECASTS:
-            raise ValueError(
-                f"forecast: expected one of {sorted(FORECASTS)}, got {forecast!r}"
-            )
         self.forecast_kind = forecast
 
     # ``forecast`` names a method too: the hyperparameter is stored as ``forecast_kind``
@@ -185,11 +184,32 @@ class Vid2Param(Estimator):
 
     def set_params(self, **params) -> Vid2Param:
         if "forecast" in params:
-            kind = params.pop("forecast")
-            if kind not in FORECASTS:
-                raise ValueError(f"forecast: expected one of {sorted(FORECASTS)}, got {kind!r}")
-            self.forecast_kind = kind
+            self.forecast_kind = params.pop("forecast")
         return super().set_params(**params)
+
+    @property
+    def forecast_mode(self) -> str:
+        """The forecast kind in use: ``forecast``, or ``default_forecast`` when it is None."""
+        return self.default_forecast if self.forecast_kind is None else self.forecast_kind
+
+    def _validate(self) -> None:
+        super()._validate()
+        if self.forecast_kind is not None and self.forecast_kind not in FORECASTS:
+            raise ValueError(
+                f"forecast: expected one of {sorted(FORECASTS)}, got {self.forecast_kind!r}")
+        # 0: Gaussian posteriors without samples (fast identification); otherwise two at least,
+        # since a band from one sample claims a spread it cannot have
+        n = check_positive_int(self.n_samples, "n_samples", minimum=0)
+        if n == 1:
+            raise ValueError("n_samples: expected 0 (no samples) or at least 2, got 1")
+        check_positive_int(self.batch, "batch")
+        check_positive_int(self.fit_steps, "fit_steps")
+        check_positive_float(self.fit_lr, "fit_lr")
+        if self.threads is not None:
+            check_positive_int(self.threads, "threads")
+        if not isinstance(self.device, str):
+            raise ValueError(f"device: expected a string such as 'auto', 'cpu' or 'cuda', "
+                             f"got {self.device!r}")
 
     # -- loading --------------------------------------------------------------------------------
     def _checkpoint_path(self) -> Path:
@@ -424,16 +444,18 @@ class Vid2Param(Estimator):
         self._ensure_net()
         if "x" not in self.config_.targets or "y" not in self.config_.targets:
             raise NotImplementedError("this vid2param checkpoint carries no position dimensions.")
+        if int(self.n_samples) < 2:
+            raise ValueError(f"n_samples: a forecast needs at least 2 particles, got {self.n_samples}")
         shift = np.array([0.0, 0.0 if obs.floor is None else float(obs.floor)])
         t0 = time.perf_counter()
         net = self._ensure_net()
-        if self.forecast_kind == "latent" and net.phys_prior is None:
+        if self.forecast_mode == "latent" and net.phys_prior is None:
             mean, std, samples, extras = self._forecast_learned_prior(frames, horizon)
         else:
             mean, std, samples, extras = self._forecast_track(*self._track(frames)[:3], horizon,
                                                               float(obs.dt))
         extras = {"wall_s": time.perf_counter() - t0, "n_simulations": 0,
-                  "forecast": self.forecast_kind, **extras}
+                  "forecast": self.forecast_mode, **extras}
         return Forecast(mean=shift + mean, std=std, samples=shift + samples, extras=extras)
 
     def filtered_track(self, frames) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -486,8 +508,8 @@ class Vid2Param(Estimator):
         from methods.vid2param.rollout import fit_state, sample_trajectories
 
         fit = fit_state(pos, th_mu, th_sd, dt=dt)
-        S = max(2, int(self.n_samples))
-        physics = self.forecast_kind == "physics"
+        S = int(self.n_samples)
+        physics = self.forecast_mode == "physics"
         states, theta = sample_trajectories(fit, len(pos), horizon if physics else 0, S,
                                             self._rng(11), dt)
         extras = {"state_fit_sigma_m": fit.sigma, "particles": S}
@@ -533,6 +555,31 @@ class Vid2Param(Estimator):
         return Vid2ParamStream(self)
 
 
+class Vid2ParamPhysics(Vid2Param):
+    """Vid2Param forecasting by simulation: its filtered posterior's draws through
+    ``sysid_bench.physics`` (``forecast="physics"``), registered beside ``vid2param`` so that
+    the forecast experiment shows whether learning the dynamics beats simulating them.
+
+    It identifies exactly as ``vid2param`` does, so it answers no identification of its own
+    (``NotImplementedError``: the benchmark records "n/a" there instead of repeating rows).
+    """
+
+    name = "vid2param-physics"
+    default_forecast = "physics"
+    identifies = False
+    streams = False
+    trains = False
+    figure_order = 8
+    fit_options = {}
+
+    def identify(self, obs: Observation) -> Posterior:
+        raise NotImplementedError("vid2param-physics identifies exactly as vid2param (same "
+                                  "network); see vid2param's rows")
+
+    def identify_prefixes(self, obs: Observation, lengths) -> list[Posterior]:
+        return self.identify(obs)
+
+
 class Vid2ParamStream(Stream):
     """Online identification with Vid2Param: the LSTM state is kept between pushes.
 
@@ -576,10 +623,13 @@ class Vid2ParamStream(Stream):
         floor : float, optional
             Floor height added to the heights (0 when None, the camera's floor).
         """
-        horizon = check_positive_int(horizon, "horizon")
+        horizon = check_horizon(horizon, MAX_HORIZON)
         if self.n == 0:
             raise ValueError("forecast: push at least one frame first")
-        if self.xy is None or self.net.phys_prior is None and self.est.forecast_kind == "latent":
+        if int(self.est.n_samples) < 2:
+            raise ValueError(f"n_samples: a forecast needs at least 2 particles, got "
+                             f"{self.est.n_samples}")
+        if self.xy is None or self.net.phys_prior is None and self.est.forecast_mode == "latent":
             raise NotImplementedError("this checkpoint has no position dimensions or no physics "
                                       "prior; use Vid2Param.forecast on the frames")
         t0 = time.perf_counter()
@@ -589,7 +639,7 @@ class Vid2ParamStream(Stream):
             self.track[: self.n], th_mu, _SPAN * sd_n, horizon, DT)
         shift = np.array([0.0, 0.0 if floor is None else float(floor)])
         extras = {"wall_s": time.perf_counter() - t0, "n_simulations": 0,
-                  "forecast": self.est.forecast_kind, "n_frames": self.n, **extras}
+                  "forecast": self.est.forecast_mode, "n_frames": self.n, **extras}
         return Forecast(mean=shift + mean, std=std, samples=shift + samples, extras=extras)
 
     def push(self, frame) -> Posterior:

@@ -271,7 +271,7 @@ def main(argv=None) -> int:
     p.add_argument("--name", default=None, help="figure file prefix; default: checkpoint stem")
     a = p.parse_args(argv)
 
-    est = Vid2Param(checkpoint=a.checkpoint, device="cpu", threads=a.threads, n_samples=0)
+    est = Vid2Param(checkpoint=a.checkpoint, device="cpu", threads=a.threads, n_samples=0)  # no samples: faster
     size = est.frame_size
     if a.nuisance is None:
         a.nuisance = (est.checkpoint_info_.get("train") or {}).get("nuisance")
