@@ -426,6 +426,7 @@ def export_card(path) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=jp.name + ".", suffix=".tmp", dir=jp.parent)
     with os.fdopen(fd, "w") as fh:
         fh.write(text + "\n")
+    os.chmod(tmp, 0o644)  # mkstemp makes it private; a card is for everyone to read
     os.replace(tmp, jp)
     return jp
 
