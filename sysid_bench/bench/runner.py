@@ -11,7 +11,8 @@ Execution
 
 Only this process writes the store, one transaction per finished cell, so a run killed at any
 moment keeps every cell it finished and a restart computes only the rest (SIGTERM and Ctrl-C
-also stop the workers). Local workers are spawned, so a script calling :func:`run` needs the
+also stop the workers; a worker whose run died, even by SIGKILL, ends itself within a second:
+:func:`_end_with_parent`). Local workers are spawned, so a script calling :func:`run` needs the
 usual ``if __name__ == "__main__":`` guard. A worker process that
 dies takes its cell with it: the cell is retried once on a fresh pool, then stored as an error.
 """
@@ -326,7 +327,9 @@ def _run_local(todo, sc, run_dir, workers, inline, write) -> None:
                         pool.shutdown(wait=False, cancel_futures=True)
                     with _single_threaded_children():
                         pool = ProcessPoolExecutor(min(n_workers, len(pooled)),
-                                                   mp_context=mp.get_context("spawn"))
+                                                   mp_context=mp.get_context("spawn"),
+                                                   initializer=_end_with_parent,
+                                                   initargs=(os.getpid(),))
                     broken = False
                 futs.update({pool.submit(execute, c, sc, str(run_dir)): (c, pool) for c in pooled})
                 pooled = []
@@ -357,6 +360,41 @@ def _run_local(todo, sc, run_dir, workers, inline, write) -> None:
     if pool is not None:
         pool.shutdown(wait=True)
     th.shutdown(wait=True)
+
+
+#: Seconds between a worker's checks that the run that started it is still alive.
+_PARENT_POLL_S = 0.5
+
+
+def _end_with_parent(parent_pid: int) -> None:
+    """Pool initializer: end this worker when the run that spawned it dies.
+
+    A run killed with SIGKILL cannot stop its workers, and a worker busy in a cell never reads
+    the queue that would tell it, so it computed on, orphaned (issue 14). Two guards: on Linux
+    the kernel sends SIGKILL when the parent dies (``PR_SET_PDEATHSIG``; instant, even inside C
+    code holding the GIL); everywhere a daemon thread sees the parent pid change (the orphan is
+    re-parented) and exits the process.
+    """
+    import threading
+
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+        except (OSError, AttributeError):  # no prctl (musl builds, sandboxes): the thread stays
+            pass
+    if os.getppid() != parent_pid:  # the parent died before the guards were set
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(_PARENT_POLL_S)
+        os._exit(1)  # no cleanup to wait for: the store is written only by the parent
+
+    threading.Thread(target=watch, name="end-with-parent", daemon=True).start()
 
 
 def _terminate(pool: ProcessPoolExecutor) -> None:
