@@ -32,7 +32,7 @@ from pathlib import Path
 
 from sysid_bench.bench.cases import Scale, get_scale, unknown_name
 from sysid_bench.bench.experiment import Cell, execute
-from sysid_bench.bench.store import Store
+from sysid_bench.bench.store import Store, lock_run_dir
 
 __all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "provenance",
            "method_fingerprint",
@@ -233,6 +233,11 @@ def run(
         First drop the stored cells whose status is "error" (a missing checkpoint, a bug since
         fixed), so they are computed again; otherwise a resumed run keeps them as they are.
 
+    Raises
+    ------
+    RunDirBusyError
+        Another run is writing to ``run_dir`` (its lock file ``run.lock`` is held).
+
     Returns
     -------
     dict
@@ -240,13 +245,20 @@ def run(
         ``errors``, ``na``, ``skipped_methods``, ``retried`` (error cells dropped), ``stale``
         (cells dropped because their method's fingerprint changed), ``wall_s``.
     """
-    from tqdm.auto import tqdm
-
     sc = get_scale(scale)
     exps = resolve_experiments(experiments)
     meths, skipped = resolve_methods(methods)
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(sc.name)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    with lock_run_dir(run_dir):  # one writing run per run dir; RunDirBusyError otherwise
+        return _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline,
+                           progress, argv, max_cells, retry_errors)
+
+
+def _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline, progress, argv,
+                max_cells, retry_errors) -> dict:
+    """:func:`run`'s body, under the run dir's lock."""
+    from tqdm.auto import tqdm
+
     store = Store(run_dir / STORE_NAME, grid_config=sc.grid_config())
     t0 = time.perf_counter()
     try:
