@@ -387,7 +387,8 @@ class Store:
 
     # -- reading ----------------------------------------------------------------------------
     def results(self, experiment: str | None = None):
-        """The long-format results as a pandas DataFrame (columns :data:`RESULT_COLUMNS`)."""
+        """The long-format results as a pandas DataFrame (columns :data:`RESULT_COLUMNS`), sorted
+        by their key (experiment, method, input, condition, case, n_frames, metric)."""
         import pandas as pd
 
         q = "SELECT * FROM results"
@@ -395,6 +396,8 @@ class Store:
         if experiment is not None:
             q += " WHERE experiment=?"
             args = (experiment,)
+        # the table's unique key: rows in the same order however the cells finished (issue 14)
+        q += ' ORDER BY experiment, method, input, condition, "case", n_frames, metric'
         df = pd.read_sql_query(q, self._con, params=args)
         return df
 
@@ -402,7 +405,7 @@ class Store:
         """One row per stored cell (pandas DataFrame)."""
         import pandas as pd
 
-        return pd.read_sql_query("SELECT * FROM cells", self._con)
+        return pd.read_sql_query("SELECT * FROM cells ORDER BY cell_id", self._con)
 
     def artifact(self, cell_id: str, name: str) -> np.ndarray | None:
         r = self._con.execute(
@@ -413,7 +416,8 @@ class Store:
     def artifacts(self, like: str = "%") -> dict[tuple[str, str], np.ndarray]:
         """All artifacts whose cell id matches the SQL LIKE pattern ``like``."""
         rows = self._con.execute(
-            "SELECT cell_id, name, data FROM artifacts WHERE cell_id LIKE ?", (like,)
+            "SELECT cell_id, name, data FROM artifacts WHERE cell_id LIKE ? ORDER BY cell_id, name",
+            (like,)
         ).fetchall()
         return {(c, n): np.load(io.BytesIO(d), allow_pickle=False) for c, n, d in rows}
 
