@@ -46,6 +46,7 @@ __all__ = [
     "DT_MAX",
     "FLOOR_MAX",
     "DRAG_STEP",
+    "CONTACTS_MAX",
     "simulate",
     "simulate_perturbed",
     "sample_theta",
@@ -55,7 +56,7 @@ __all__ = [
     "check_theta",
     "check_state0",
     "check_dt",
-    "check_drag_step",
+    "check_step",
 ]
 
 PARAMS: tuple[str, ...] = ("e", "g", "d", "r")
@@ -94,9 +95,14 @@ ENVELOPE: dict[str, tuple[float, float]] = {
 }
 #: Largest initial velocity component, m/s (the authors' largest is 8).
 V_MAX = 100.0
-#: Longest frame interval, s (twice DT): a bounce cascade at |g| = 100 then stays well inside the
-#: kernel's per-frame pass budget.
-DT_MAX = 0.1
+#: Longest frame interval, s (1 frame/s); within it, ``CONTACTS_MAX`` bounds dt with g and speed.
+DT_MAX = 1.0
+#: Most contacts one frame may hold: the kernel allows ``_MAX_STEPS`` (64) passes per frame, a
+#: contact costs at most two, ``SUBSTEPS`` plain steps the rest. Estimated per ball as
+#: ``1.25 dt |g| / (2 ROLL_SPEED)`` floor bounces (a rebound at ``ROLL_SPEED`` is the shortest
+#: hop; 1.25 for drag shortening it) plus ``v_bound dt / BOX_WIDTH + 1`` wall hits. The design's
+#: physics has ~3; |g| = 100 allows dt up to ~0.1 s, the prior's |g| up to ~0.8 s.
+CONTACTS_MAX = 24
 #: Largest floor height magnitude, m: keeps ~1e-13 m resolution inside the box.
 FLOOR_MAX = 1000.0
 #: Largest drag per RK4 step, ``d * v_bound * dt / SUBSTEPS``, where
@@ -479,7 +485,8 @@ def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0)
         Naming the argument, for inputs outside what the model is meant for: parameters outside
         ``ENVELOPE`` (or ``g >= 0``), an initial velocity component above ``V_MAX``, ``dt``
         above ``DT_MAX``, ``|floor|`` above ``FLOOR_MAX``, drag per integration step above
-        ``DRAG_STEP``; and, as a last guard, for any non-finite result.
+        ``DRAG_STEP``, more than ``CONTACTS_MAX`` possible contacts per frame; and, as a last
+        guard, for any non-finite result.
     """
     th, s0, fl, n_frames, dt = _check_inputs(theta, state0, n_frames, dt, floor)
     out = _run(th, s0, fl, np.zeros((2, s0.shape[0])), n_frames, dt)
@@ -495,24 +502,35 @@ def check_dt(dt) -> float:
     return dt
 
 
-def check_drag_step(th, s0, fl, dt) -> None:
-    """Raise unless every ball's drag per RK4 step is at most ``DRAG_STEP`` (see there).
+def check_step(th, s0, fl, dt) -> None:
+    """Raise unless every ball's frame is one the integrator resolves: drag per RK4 step at
+    most ``DRAG_STEP`` and at most ``CONTACTS_MAX`` contacts per frame (see both).
 
     ``th`` (B, 4) or (B, T, 4), ``s0`` (B, 4), ``fl`` (B,), all validated.
     """
+    if not len(s0):
+        return
     if th.ndim == 3:
         d, g = th[..., 2].max(axis=1), th[..., 1].min(axis=1)
     else:
         d, g = th[:, 2], th[:, 1]
     v = np.sqrt(s0[:, 2] ** 2 + s0[:, 3] ** 2 + 2.0 * np.abs(g) * (s0[:, 1] - fl))
     step = d * v * (dt / SUBSTEPS)
-    worst = int(np.argmax(step)) if step.size else 0
-    if step.size and step[worst] > DRAG_STEP:
+    worst = int(np.argmax(step))
+    if step[worst] > DRAG_STEP:
         raise ValueError(
             f"theta, state0, dt: drag per integration step d * speed * dt / {SUBSTEPS} must be "
             f"<= {DRAG_STEP:g} (physics.DRAG_STEP) for the integrator to be stable; ball {worst} "
             f"has d = {d[worst]:g}, speed up to {v[worst]:g} m/s, dt = {dt:g}: {step[worst]:.3g}. "
             f"Use a smaller dt or d"
+        )
+    hits = 1.25 * dt * np.abs(g) / (2.0 * ROLL_SPEED) + v * dt / BOX_WIDTH + 1.0
+    worst = int(np.argmax(hits))
+    if hits[worst] > CONTACTS_MAX:
+        raise ValueError(
+            f"theta, state0, dt: contacts per frame must stay <= {CONTACTS_MAX} "
+            f"(physics.CONTACTS_MAX); ball {worst} with g = {g[worst]:g}, speed up to "
+            f"{v[worst]:g} m/s and dt = {dt:g} may have {hits[worst]:.0f}. Use a smaller dt"
         )
 
 
@@ -544,7 +562,7 @@ def _check_inputs(theta, state0, n_frames, dt, floor):
         )
     fl = _check_floor(floor, B)
     s0 = check_state0(s0, fl)
-    check_drag_step(th, s0, fl, dt)
+    check_step(th, s0, fl, dt)
     return th, s0, fl, n_frames, dt
 
 

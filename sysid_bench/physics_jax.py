@@ -357,7 +357,7 @@ def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0)
     Notes
     -----
     On concrete arrays the arguments are validated like ``physics.simulate`` (``ValueError``,
-    the same envelope: ``physics.ENVELOPE``, ``V_MAX``, ``DT_MAX``, ``FLOOR_MAX``, ``DRAG_STEP``) and
+    the same envelope: ``physics.ENVELOPE``, ``V_MAX``, ``DT_MAX``, ``FLOOR_MAX``, ``DRAG_STEP``, ``CONTACTS_MAX``) and
     a ball needing more than ``MAX_PASSES`` passes in one frame raises ``RuntimeError``. Inside
     ``jit``/``grad``/``vmap`` values cannot be inspected: arguments are only shape-checked and
     such a ball's states are NaN from that frame on.
@@ -373,7 +373,7 @@ def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0)
             )
         fl = physics._check_floor(np.asarray(floor), s0.shape[0])
         s0 = physics.check_state0(s0, fl)
-        physics.check_drag_step(th, s0, fl, dt)
+        physics.check_step(th, s0, fl, dt)
         states, bad = simulate_core(th, s0, fl, n_frames=n_frames, dt=dt, max_passes=MAX_PASSES)
         if bool(jnp.any(bad)):
             raise RuntimeError(
