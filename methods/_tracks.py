@@ -281,11 +281,13 @@ def local_state(positions, dt, frames, t_eval, sigma, *, rolling=False, floor=0.
 
 
 def clip_state(state: np.ndarray, floor) -> np.ndarray:
-    """Move states (..., 4) inside the box so the simulator accepts them."""
+    """Move states (..., 4) inside the box, speeds within ``physics.V_MAX``, so the simulator
+    accepts them (a track's outlier can make a finite-difference velocity absurd)."""
     s = np.array(state, dtype=np.float64, copy=True)
     fl = np.asarray(floor, dtype=np.float64)
     s[..., 0] = np.clip(s[..., 0], 0.0, physics.BOX_WIDTH)
     s[..., 1] = np.clip(s[..., 1], fl, fl + physics.BOX_WIDTH)
+    s[..., 2:] = np.clip(s[..., 2:], -physics.V_MAX, physics.V_MAX)
     return s
 
 

@@ -19,8 +19,17 @@ still, lowest stretch marks rolling). Then:
 Standard errors: ``g``/``d`` from the regression (residual variance times ``(Theta^T Theta)^-1``
 on the identified support, inflated by ``sqrt(3)`` because finite-difference accelerations of
 neighbouring frames share positions and are not independent); ``e`` from the spread over bounces;
-``r`` from the fit. Estimates are clipped into the prior box (so they can be simulated); a
-parameter the track does not inform reports the prior mean and std.
+``r`` from the fit. Estimates are clipped into the prior box (so they can be simulated); a clipped
+estimate's std grows by the distance it was moved (up to the prior's std), so an estimate the
+data pushed out of the box is not reported as a confident one at the edge. A parameter the track
+does not inform reports the prior mean and std.
+
+Outliers: before anything else, a seen position further from the running median of its
+neighbours (5 seen frames) than any real ball could be -- the largest speed times the frames
+between them, plus 0.1 m -- is marked unseen (``extras["n_outliers"]``). The largest speed is
+the larger of the prior's bound (|v0| <= 8.9 m/s falling 10 m at |g| = 12.81: 18.3 m/s) and
+twice the track's upper-quartile frame-to-frame speed. One 1000 m outlier used to move the
+floor estimate to -1000 m and give a confident, wrong posterior (issue 14).
 
 Forecast: the identified hybrid model is :func:`sysid_bench.physics.simulate` run from the state
 estimated at the last seen frame, for ``n_forecast`` draws of parameters and state from their
@@ -29,22 +38,68 @@ standard errors.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from methods._simulation import Stopwatch, forecast_by_simulation, make_rng, one_blas_thread
 from methods._tracks import clip_state, prepare, segment_track
+from sysid_bench._validate import check_number, check_positive_int
+from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, observed_positions
 from sysid_bench.physics import PRIOR_HI as HI
 from sysid_bench.physics import PRIOR_LO as LO
 from sysid_bench.physics import PRIOR_MEAN, PRIOR_STD
 from sysid_bench.simulator import CountingSimulator
-from sysid_bench._validate import check_number, check_positive_int
-from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior
 
-__all__ = ["SINDy"]
+__all__ = ["SINDy", "reject_outliers"]
 
 _FEATURES = ("1", "|v|vx", "|v|vy")
 _CLEAN_NOISE = 1e-3  # m; below this a track is "clean" and needs no smoothing
 _CORR_INFLATION = np.sqrt(3.0)  # FD accelerations of adjacent frames share positions
+
+
+#: Speed no ball from the prior can exceed, m/s: |v0| <= sqrt(8^2 + 4^2), then a 10 m fall at
+#: the prior's largest |g| (energy never grows).
+_PRIOR_SPEED = float(np.sqrt(8.0**2 + 4.0**2 + 2.0 * 12.81 * 10.0))
+_OUTLIER_SLACK = 0.1  # m: tracking noise and the ball's radius of error on top of the motion
+
+
+def reject_outliers(positions: np.ndarray, dt: float) -> np.ndarray:
+    """Boolean mask (T,) of seen positions no real ball could be at: outliers.
+
+    Each seen position is compared with the per-coordinate median of the window of 5 seen
+    frames around it (fewer at the ends). The median is one of the window's positions, so on a
+    real track it is within ``v_max * dt * k`` of the centre, ``k`` the most frames between the
+    centre and the window's members; a larger distance (plus ``_OUTLIER_SLACK``) marks an outlier.
+    Two neighbouring outliers in a window of 5 still leave the median on the track.
+
+    Parameters
+    ----------
+    positions : ndarray, shape (T, 2)
+        Metres, NaN = unseen.
+    dt : float
+
+    Returns
+    -------
+    ndarray, shape (T,), bool
+    """
+    out = np.zeros(len(positions), bool)
+    idx = np.flatnonzero(np.isfinite(positions).all(axis=1))
+    n = idx.size
+    if n < 3:
+        return out
+    p = positions[idx]
+    step = np.linalg.norm(np.diff(p, axis=0), axis=1) / (np.diff(idx) * dt)
+    v_max = max(_PRIOR_SPEED, 2.0 * float(np.quantile(step, 0.75)))
+    j = np.arange(n)
+    lo = np.clip(j - 2, 0, max(n - 5, 0))  # windows of 5 (3 or 4 at short tracks), shifted at ends
+    hi = np.minimum(lo + 5, n)
+    for a in range(n):
+        w = slice(lo[a], hi[a])
+        med = np.median(p[w], axis=0)
+        reach = v_max * dt * float(np.abs(idx[w] - idx[a]).max()) + _OUTLIER_SLACK
+        out[idx[a]] = float(np.linalg.norm(p[a] - med)) > reach
+    return out
 
 
 def _drag_x(a, b):
@@ -131,7 +186,14 @@ class SINDy(Estimator):
         if not np.isfinite(thr) or thr < 0:
             raise ValueError(f"threshold: expected a number >= 0, got {self.threshold!r}")
         min_seg = check_positive_int(self.min_segment, "min_segment", minimum=3)
-        track = prepare(obs)
+        if not isinstance(obs, Observation):
+            raise ValueError(f"obs: expected a sysid_bench.estimator.Observation, got {type(obs).__name__}")
+        kind = "positions" if obs.positions is not None else "frames"
+        pos = np.array(observed_positions(obs, min_seen=3), dtype=np.float64)  # tracks frames once
+        bad = reject_outliers(pos, float(obs.dt))
+        pos[bad] = np.nan
+        track = prepare(dataclasses.replace(obs, frames=None, positions=pos))
+        track.input_kind = kind
         diff, stencil = self._differentiator(track.noise)
         dt = track.dt
         seg = segment_track(track.positions, dt, min_len=max(min_seg, stencil), floor=track.floor)
@@ -216,14 +278,17 @@ class SINDy(Estimator):
             informed[3] = True
 
         clipped = (mean < LO) | (mean > HI)
+        moved = np.abs(np.clip(mean, LO, HI) - mean)
         mean = np.clip(mean, LO, HI)
-        std = np.where(informed, std, PRIOR_STD)
+        # a clip is evidence against the fit: at least as unsure as the distance moved
+        std = np.where(informed, np.maximum(std, np.minimum(moved, PRIOR_STD)), PRIOR_STD)
         extras.update(
             {
                 "n_simulations": 0,
                 "wall_s": clock(),
                 "informed": informed.tolist(),
                 "clipped": clipped.tolist(),
+                "n_outliers": int(bad.sum()),
                 **track.describe(),
             }
         )

@@ -135,12 +135,24 @@ def gaussian_nll(truth, mean, std, normalise: bool = True) -> np.ndarray:
 def bootstrap_ci(values, level: float = 0.95, n_boot: int = 2000, seed=0) -> tuple[float, float, float]:
     """Mean of ``values`` with a percentile-bootstrap confidence interval.
 
+    The result depends on the values, not their order: they are sorted first (a table's rows
+    arrive in the order its cells finished; issue 14), so the same cases and ``seed`` give the
+    same bytes.
+
+    Parameters
+    ----------
+    values : array_like, shape (N,)
+        NaN entries are left out.
+    level : float
+    n_boot : int
+    seed : int, None or numpy.random.Generator
+
     Returns
     -------
     (mean, lo, hi)
     """
     v = as_float_array(values, "values", ndim=1, allow_nan=True)
-    v = v[np.isfinite(v)]
+    v = np.sort(v[np.isfinite(v)])
     if v.size == 0:
         return (np.nan, np.nan, np.nan)
     rng = check_seed(seed)

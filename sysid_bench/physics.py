@@ -41,6 +41,12 @@ __all__ = [
     "ROLL_SPEED",
     "SUBSTEPS",
     "STATE0_RANGES",
+    "ENVELOPE",
+    "V_MAX",
+    "DT_MAX",
+    "FLOOR_MAX",
+    "DRAG_STEP",
+    "CONTACTS_MAX",
     "simulate",
     "simulate_perturbed",
     "sample_theta",
@@ -54,6 +60,8 @@ __all__ = [
     "PRIOR_SPAN",
     "PRIOR_MEAN",
     "PRIOR_STD",
+    "check_dt",
+    "check_step",
 ]
 
 PARAMS: tuple[str, ...] = ("e", "g", "d", "r")
@@ -75,6 +83,38 @@ ROLL_SPEED = 0.25
 SUBSTEPS = 3
 #: The authors' ranges for initial states; velocities are drawn with a random sign.
 STATE0_RANGES = {"x": (0.0, 10.0), "y": (6.0, 8.0), "vx": (4.0, 8.0), "vy": (3.0, 4.0)}
+
+#: The inputs the model is meant for (and tested at every corner, tests/test_physics.py). Outside
+#: them the integrator is not stable or the box is not resolved: RK4 at ``d = 1e6`` or
+#: ``vx0 = 1e6`` overflows to NaN, ``g = -1e9`` or ``dt = 100`` packs hundreds of contacts into
+#: one frame, a floor at 1e300 m leaves no bits for the 10 m box. ``simulate`` raises
+#: ``ValueError`` naming the input instead. Parameters, closed ranges (``g`` must also be < 0):
+#: ``e`` in [0, 1] (no energy gain at the floor); ``g`` down to -100 m/s^2 (~10 Earth g; PRIOR's
+#: span is [-12.81, -6.81]); ``d`` up to 2 /m (40x PRIOR's top; a ping-pong ball is ~0.15);
+#: ``r`` up to 100 m/s^2.
+ENVELOPE: dict[str, tuple[float, float]] = {
+    "e": (0.0, 1.0),
+    "g": (-100.0, 0.0),
+    "d": (0.0, 2.0),
+    "r": (0.0, 100.0),
+}
+#: Largest initial velocity component, m/s (the authors' largest is 8).
+V_MAX = 100.0
+#: Longest frame interval, s (1 frame/s); within it, ``CONTACTS_MAX`` bounds dt with g and speed.
+DT_MAX = 1.0
+#: Most contacts one frame may hold: the kernel allows ``_MAX_STEPS`` (64) passes per frame, a
+#: contact costs at most two, ``SUBSTEPS`` plain steps the rest. Estimated per ball as
+#: ``1.25 dt |g| / (2 ROLL_SPEED)`` floor bounces (a rebound at ``ROLL_SPEED`` is the shortest
+#: hop; 1.25 for drag shortening it) plus ``v_bound dt / BOX_WIDTH + 1`` wall hits. The design's
+#: physics has ~3; |g| = 100 allows dt up to ~0.1 s, the prior's |g| up to ~0.8 s.
+CONTACTS_MAX = 24
+#: Largest floor height magnitude, m: keeps ~1e-13 m resolution inside the box.
+FLOOR_MAX = 1000.0
+#: Largest drag per RK4 step, ``d * v_bound * dt / SUBSTEPS``, where
+#: ``v_bound = sqrt(vx0^2 + vy0^2 + 2 |g| (y0 - floor))`` bounds the speed (energy never grows).
+#: RK4 is stable for drag up to ~1.39 per step (eigenvalue 2 d |v|); 0.5 keeps a margin. The
+#: design's physics is at ~0.015.
+DRAG_STEP = 0.5
 
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
@@ -99,30 +139,39 @@ _njit = numba.njit(cache=True, nogil=True, error_model="numpy")
 def check_theta(theta, n_frames: int | None = None, name: str = "theta") -> np.ndarray:
     """Validate parameters; returns float64 (B, 4) or (B, n_frames, 4).
 
-    Raises ``ValueError`` for a wrong shape, NaN/inf, ``e`` outside [0, 1], ``g >= 0``,
-    negative ``d`` or ``r``.
+    Raises ``ValueError`` for a wrong shape, NaN/inf, ``g >= 0`` or any parameter outside
+    ``ENVELOPE``.
     """
     th = as_float_array(theta, name, ndim=(2, 3), last=len(PARAMS))
     if th.ndim == 3 and n_frames is not None and th.shape[1] != n_frames:
         raise ValueError(
             f"{name}: expected (B, n_frames={n_frames}, 4) for time-varying parameters, got shape {th.shape}"
         )
-    e, g, d, r = (th[..., i] for i in range(4))
-    if (e < 0).any() or (e > 1).any():
-        raise ValueError(f"{name}: expected e in [0, 1], got values in [{e.min():g}, {e.max():g}]")
-    if (g >= 0).any():
-        raise ValueError(f"{name}: expected g < 0 (down), got max g = {g.max():g}")
-    if (d < 0).any():
-        raise ValueError(f"{name}: expected d >= 0, got min d = {d.min():g}")
-    if (r < 0).any():
-        raise ValueError(f"{name}: expected r >= 0, got min r = {r.min():g}")
+    # one min and one max per parameter: cheap next to any simulation
+    flat = th.reshape(-1, len(PARAMS))
+    lo, hi = flat.min(axis=0), flat.max(axis=0)
+    if hi[1] >= 0:
+        raise ValueError(f"{name}: expected g < 0 (down), got max g = {hi[1]:g}")
+    for i, p in enumerate(PARAMS):
+        a, b = ENVELOPE[p]
+        if lo[i] < a or hi[i] > b:
+            what = {"d": "d >= 0 and ", "r": "r >= 0 and "}.get(p, "")
+            raise ValueError(
+                f"{name}: expected {what}{p} in [{a:g}, {b:g}] (physics.ENVELOPE), "
+                f"got values in [{lo[i]:g}, {hi[i]:g}]"
+            )
     return th
 
 
 def check_state0(state0, floor, name: str = "state0") -> np.ndarray:
-    """Validate initial states (B, 4) against the box above ``floor`` (B,)."""
+    """Validate initial states (B, 4): inside the box above ``floor`` (B,), speeds up to ``V_MAX``."""
     s0 = as_float_array(state0, name, ndim=2, last=4)
     x, y = s0[:, 0], s0[:, 1]
+    vmax = float(np.abs(s0[:, 2:]).max(initial=0.0))
+    if vmax > V_MAX:
+        raise ValueError(
+            f"{name}: expected |vx|, |vy| <= {V_MAX:g} m/s (physics.V_MAX), got {vmax:g}"
+        )
     if (x < 0).any() or (x > BOX_WIDTH).any():
         raise ValueError(
             f"{name}: expected x in [0, {BOX_WIDTH:g}] (inside the box), got x in [{x.min():g}, {x.max():g}]"
@@ -140,6 +189,9 @@ def _check_floor(floor, batch: int) -> np.ndarray:
     fl = as_float_array(floor, "floor", ndim=(0, 1))
     if fl.ndim == 1 and fl.shape[0] != batch:
         raise ValueError(f"floor: expected a scalar or shape ({batch},), got shape {fl.shape}")
+    big = float(np.abs(fl).max(initial=0.0))
+    if big > FLOOR_MAX:
+        raise ValueError(f"floor: expected |floor| <= {FLOOR_MAX:g} m (physics.FLOOR_MAX), got {big:g}")
     return np.broadcast_to(fl, (batch,)).astype(np.float64)
 
 
@@ -440,15 +492,81 @@ def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0)
     -------
     ndarray, shape (B, n_frames, 4)
         States at ``t = 0, dt, ..., (n_frames - 1) dt``; frame 0 equals ``state0``.
+
+    Raises
+    ------
+    ValueError
+        Naming the argument, for inputs outside what the model is meant for: parameters outside
+        ``ENVELOPE`` (or ``g >= 0``), an initial velocity component above ``V_MAX``, ``dt``
+        above ``DT_MAX``, ``|floor|`` above ``FLOOR_MAX``, drag per integration step above
+        ``DRAG_STEP``, more than ``CONTACTS_MAX`` possible contacts per frame; and, as a last
+        guard, for any non-finite result.
     """
     th, s0, fl, n_frames, dt = _check_inputs(theta, state0, n_frames, dt, floor)
-    return _run(th, s0, fl, np.zeros((2, s0.shape[0])), n_frames, dt)
+    out = _run(th, s0, fl, np.zeros((2, s0.shape[0])), n_frames, dt)
+    _check_finite(out, th, s0, fl, dt)
+    return out
+
+
+def check_dt(dt) -> float:
+    """Validate a frame interval: a number in (0, ``DT_MAX``]."""
+    dt = check_positive_float(dt, "dt")
+    if dt > DT_MAX:
+        raise ValueError(f"dt: expected at most {DT_MAX:g} s between frames (physics.DT_MAX), got {dt:g}")
+    return dt
+
+
+def check_step(th, s0, fl, dt) -> None:
+    """Raise unless every ball's frame is one the integrator resolves: drag per RK4 step at
+    most ``DRAG_STEP`` and at most ``CONTACTS_MAX`` contacts per frame (see both).
+
+    ``th`` (B, 4) or (B, T, 4), ``s0`` (B, 4), ``fl`` (B,), all validated.
+    """
+    if not len(s0):
+        return
+    if th.ndim == 3:
+        d, g = th[..., 2].max(axis=1), th[..., 1].min(axis=1)
+    else:
+        d, g = th[:, 2], th[:, 1]
+    v = np.sqrt(s0[:, 2] ** 2 + s0[:, 3] ** 2 + 2.0 * np.abs(g) * (s0[:, 1] - fl))
+    step = d * v * (dt / SUBSTEPS)
+    worst = int(np.argmax(step))
+    if step[worst] > DRAG_STEP:
+        raise ValueError(
+            f"theta, state0, dt: drag per integration step d * speed * dt / {SUBSTEPS} must be "
+            f"<= {DRAG_STEP:g} (physics.DRAG_STEP) for the integrator to be stable; ball {worst} "
+            f"has d = {d[worst]:g}, speed up to {v[worst]:g} m/s, dt = {dt:g}: {step[worst]:.3g}. "
+            f"Use a smaller dt or d"
+        )
+    hits = 1.25 * dt * np.abs(g) / (2.0 * ROLL_SPEED) + v * dt / BOX_WIDTH + 1.0
+    worst = int(np.argmax(hits))
+    if hits[worst] > CONTACTS_MAX:
+        raise ValueError(
+            f"theta, state0, dt: contacts per frame must stay <= {CONTACTS_MAX} "
+            f"(physics.CONTACTS_MAX); ball {worst} with g = {g[worst]:g}, speed up to "
+            f"{v[worst]:g} m/s and dt = {dt:g} may have {hits[worst]:.0f}. Use a smaller dt"
+        )
+
+
+def _check_finite(out, th, s0, fl, dt) -> None:
+    """Raise naming the inputs of balls whose states are not finite (NaN stays NaN and inf
+    turns NaN in later frames, so the last frame shows them: (B, 4) values to check, not all)."""
+    last = out[:, -1]
+    if np.isfinite(last).all():
+        return
+    bad = np.flatnonzero(~np.isfinite(last).all(axis=1))
+    i = int(bad[0])
+    raise ValueError(
+        f"simulate: non-finite states for {bad.size} ball(s) {bad[:10].tolist()}; the first has "
+        f"theta = {np.asarray(th[i]).reshape(-1, 4)[0].tolist()}, state0 = {s0[i].tolist()}, "
+        f"floor = {float(fl[i]):g}, dt = {dt:g} (inputs outside what the model was tested for)"
+    )
 
 
 def _check_inputs(theta, state0, n_frames, dt, floor):
     """Validate ``simulate``'s arguments; returns (theta, state0, floor (B,), n_frames, dt)."""
     n_frames = check_positive_int(n_frames, "n_frames")
-    dt = check_positive_float(dt, "dt")
+    dt = check_dt(dt)
     th = check_theta(theta, n_frames)
     s0 = as_float_array(state0, "state0", ndim=2, last=4)
     B = s0.shape[0]
@@ -457,7 +575,9 @@ def _check_inputs(theta, state0, n_frames, dt, floor):
             f"theta: expected {B} rows to match state0 (B={B}), got shape {th.shape}"
         )
     fl = _check_floor(floor, B)
-    return th, check_state0(s0, fl), fl, n_frames, dt
+    s0 = check_state0(s0, fl)
+    check_step(th, s0, fl, dt)
+    return th, s0, fl, n_frames, dt
 
 
 def _run(th, s0, fl, pert, n_frames, dt):
@@ -507,4 +627,6 @@ def simulate_perturbed(theta, state0, spin=0.0, dwell=0.0, n_frames: int = N_FRA
         if (v < 0).any() or (v >= hi).any():
             raise ValueError(f"{name}: expected values in [0, {hi:g}), got [{v.min():g}, {v.max():g}]")
         pert[j] = v
-    return _run(th, s0, fl, pert, n_frames, dt)
+    out = _run(th, s0, fl, pert, n_frames, dt)
+    _check_finite(out, th, s0, fl, dt)
+    return out

@@ -49,7 +49,7 @@ import numpy as np  # noqa: E402
 from jax import lax  # noqa: E402
 
 from sysid_bench import physics  # noqa: E402
-from sysid_bench._validate import as_float_array, check_positive_float, check_positive_int  # noqa: E402
+from sysid_bench._validate import as_float_array, check_positive_int  # noqa: E402
 from sysid_bench.physics import (  # noqa: E402
     _NEWTON_ITERS,
     BOX_WIDTH,
@@ -356,13 +356,14 @@ def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0)
 
     Notes
     -----
-    On concrete arrays the arguments are validated like ``physics.simulate`` (``ValueError``) and
+    On concrete arrays the arguments are validated like ``physics.simulate`` (``ValueError``,
+    the same envelope: ``physics.ENVELOPE``, ``V_MAX``, ``DT_MAX``, ``FLOOR_MAX``, ``DRAG_STEP``, ``CONTACTS_MAX``) and
     a ball needing more than ``MAX_PASSES`` passes in one frame raises ``RuntimeError``. Inside
     ``jit``/``grad``/``vmap`` values cannot be inspected: arguments are only shape-checked and
     such a ball's states are NaN from that frame on.
     """
     n_frames = check_positive_int(n_frames, "n_frames")
-    dt = check_positive_float(dt, "dt")
+    dt = physics.check_dt(dt)  # static even under jit: bounded as in physics.simulate
     if not _is_traced(theta, state0, floor):
         th = physics.check_theta(np.asarray(theta), n_frames)
         s0 = as_float_array(np.asarray(state0), "state0", ndim=2, last=4)
@@ -372,12 +373,14 @@ def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0)
             )
         fl = physics._check_floor(np.asarray(floor), s0.shape[0])
         s0 = physics.check_state0(s0, fl)
+        physics.check_step(th, s0, fl, dt)
         states, bad = simulate_core(th, s0, fl, n_frames=n_frames, dt=dt, max_passes=MAX_PASSES)
         if bool(jnp.any(bad)):
             raise RuntimeError(
                 f"simulate: more than {MAX_CONTACTS} contacts in one frame for balls "
                 f"{np.flatnonzero(np.asarray(bad)).tolist()}"
             )
+        physics._check_finite(np.asarray(states[:, -1:]), th, s0, fl, dt)
         return states
     theta, state0 = jnp.asarray(theta), jnp.asarray(state0)
     if theta.ndim not in (2, 3) or theta.shape[-1] != len(PARAMS) or state0.shape[-1] != 4:

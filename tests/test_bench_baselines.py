@@ -2,7 +2,10 @@
 
 Targets on the 2-core machine (issue 3): lsq <= 0.1 s, sindy <= 1 s, dmd <= 0.5 s, bo <= 5 s,
 emcee and nuts <= 15 s. Each is timed after one warm-up round (imports, caches) on the same test-split
-case: clean positions, known initial state and floor (the paper's baseline setting).
+case: clean positions, known initial state and floor (the paper's baseline setting). Absolute
+times depend on the machine and its load: the target is reported (``extra_info``: median, target,
+``meets_target``, seconds per simulation; printed), not asserted (issue 14); the README's measured
+tables hold the figures.
 
 Run with ``pytest tests/test_bench_baselines.py --benchmark-only``.
 """
@@ -50,8 +53,10 @@ def test_bench_identify_200_frames(benchmark, obs, name):
         out = benchmark.pedantic(est.identify, args=(obs,), rounds=rounds, iterations=1, warmup_rounds=1)
         assert np.isfinite(out.mean).all()
     median = benchmark.stats.stats.median
+    n_sim = int(out.extras["n_simulations"])
     benchmark.extra_info.update(
-        {"target_s": target, "median_s": median, "n_simulations": out.extras["n_simulations"]}
+        {"target_s": target, "median_s": median, "meets_target": bool(median <= target),
+         "n_simulations": n_sim, "s_per_simulation": median / n_sim if n_sim else None}
     )
-    print(f"\n{name}: median {median:.3f} s (target {target:g} s), {out.extras['n_simulations']} simulations")
-    assert median <= target, f"{name}: {median:.3f} s per identification, target {target:g} s"
+    print(f"\n{name}: median {median:.3f} s (target {target:g} s: "
+          f"{'met' if median <= target else 'MISSED'}), {n_sim} simulations")

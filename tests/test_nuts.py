@@ -199,6 +199,8 @@ def test_bench_nuts_identify_200_frames(benchmark, ds, known_state):
     post = benchmark.pedantic(est.identify, args=(obs,), rounds=3, iterations=1, warmup_rounds=1)
     assert np.isfinite(post.mean).all()
     median = benchmark.stats.stats.median
-    benchmark.extra_info.update({"median_s": median, "n_simulations": post.extras["n_simulations"]})
-    print(f"\nnuts ({'given' if known_state else 'sampled'} state0): {median:.2f} s per identification")
-    assert median <= 15.0
+    # the 15 s target is reported, not asserted: absolute times depend on the machine (issue 14)
+    benchmark.extra_info.update({"median_s": median, "n_simulations": post.extras["n_simulations"],
+                                 "target_s": 15.0, "meets_target": bool(median <= 15.0)})
+    print(f"\nnuts ({'given' if known_state else 'sampled'} state0): {median:.2f} s per identification "
+          f"(target 15 s: {'met' if median <= 15.0 else 'MISSED'})")

@@ -234,3 +234,62 @@ def test_simulate_perturbed_zero_equals_simulate_and_deviations_act_at_bounces()
         simulate_perturbed(th1, s1, spin=1.0)
     with pytest.raises(ValueError, match="dwell"):
         simulate_perturbed(th1, s1, dwell=-0.01)
+
+
+@pytest.mark.parametrize(
+    "theta, state0, kwargs, names",
+    [
+        ([[0.8, -9.8, 0.01, 0.1]], [[5.0, 5.0, 1e6, 1.0]], {}, "state0"),
+        ([[0.8, -9.8, 1e6, 0.1]], [[5.0, 5.0, 1.0, 1.0]], {}, "theta"),
+        ([[0.8, -1e9, 0.01, 0.1]], [[5.0, 5.0, 1.0, 1.0]], {}, "theta"),
+        ([[0.8, -9.8, 0.01, 1e9]], [[5.0, 5.0, 1.0, 1.0]], {}, "theta"),
+        ([[0.8, -9.8, 0.01, 0.1]], [[5.0, 5.0, 1.0, 1.0]], {"dt": 100.0}, "dt"),
+        ([[0.8, -9.8, 0.01, 0.1]], [[5.0, 1e300 + 5.0, 1.0, 1.0]], {"floor": 1e300}, "floor"),
+    ],
+)
+def test_extreme_inputs_raise_naming_the_input_instead_of_nan(theta, state0, kwargs, names):
+    """Issue 14: these returned NaN states (or were accepted) without a word."""
+    from sysid_bench.physics import simulate_perturbed
+
+    for fn in (simulate, simulate_perturbed):
+        with pytest.raises(ValueError, match=names):
+            out = fn(np.array(theta), np.array(state0), n_frames=50, **kwargs)
+            assert np.isfinite(out).all()  # only reached if no error: shows what came back
+
+
+def test_envelope_corners_simulate_finite_and_inside_the_box():
+    """Every corner of the documented envelope, at short to the longest dt, gives finite states
+    in the box, or (beyond the per-frame limits on drag and contacts) a ValueError naming
+    theta, state0 and dt."""
+    from sysid_bench.physics import DT_MAX, ENVELOPE, FLOOR_MAX, PRIOR, V_MAX, check_step
+
+    grid = {"e": (0.0, 0.97, 1.0), "g": (ENVELOPE["g"][0], -12.81, -1e-6), "d": ENVELOPE["d"],
+            "r": ENVELOPE["r"]}
+    th = np.array(np.meshgrid(*grid.values())).reshape(4, -1).T
+    th = np.repeat(th, 3, axis=0)
+    B = len(th)
+    rng = np.random.default_rng(0)
+    speed = np.tile([0.0, 8.0, V_MAX], B // 3)
+    s0 = np.column_stack([rng.uniform(0, 10, B), np.full(B, 10.0),
+                          speed * rng.choice([-1, 1], B), speed * rng.choice([-1, 1], B)])
+    for dt in (1e-3, 0.05, 0.1, 0.5, DT_MAX):
+        for fl in (-FLOOR_MAX, 0.0, FLOOR_MAX):
+            s, f = s0 + [0, fl, 0, 0], np.full(B, fl)
+            ok = np.ones(B, bool)
+            for b in range(B):  # the step check alone: cheap, says which balls are refused
+                try:
+                    check_step(th[b : b + 1], s[b : b + 1], f[b : b + 1], dt)
+                except ValueError as exc:
+                    assert str(exc).startswith("theta, state0, dt: "), str(exc)
+                    ok[b] = False
+                    with pytest.raises(ValueError, match="theta, state0, dt: "):
+                        simulate(th[b : b + 1], s[b : b + 1], n_frames=12, dt=dt, floor=fl)
+            out = simulate(th[ok], s[ok], n_frames=12, dt=dt, floor=fl)
+            assert np.isfinite(out).all()
+            assert (out[..., 0] >= -1e-9).all() and (out[..., 0] <= BOX_WIDTH + 1e-9).all()
+            assert (out[..., 1] >= fl - 1e-6).all()
+    # the limits refuse extremes, not the design's physics: the prior at its corners, the
+    # authors' speeds, a 2 frames/s video
+    prior = np.array(np.meshgrid(*[PRIOR[p] for p in ("e", "g", "d", "r")])).reshape(4, -1).T
+    s1 = np.tile([5.0, 10.0, 8.0, 4.0], (len(prior), 1))
+    assert np.isfinite(simulate(prior, s1, n_frames=30, dt=0.5)).all()

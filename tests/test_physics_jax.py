@@ -322,3 +322,21 @@ def test_bench_jax_simulate_2000x200(benchmark, bench_cases):
     np_s, jax_s = float(np.median(t)), benchmark.stats.stats.median
     benchmark.extra_info.update({"numpy_median_s": np_s, "jax_median_s": jax_s, "numpy_over_jax": np_s / jax_s})
     print(f"\nJAX {jax_s * 1e3:.0f} ms, NumPy {np_s * 1e3:.0f} ms (NumPy/JAX = {np_s / jax_s:.2f})")
+
+
+@pytest.mark.parametrize(
+    "theta, state0, kwargs, name",
+    [
+        ([[0.8, -9.8, 0.01, 0.1]], [[5.0, 5.0, 1e6, 1.0]], {}, "state0"),
+        ([[0.8, -9.8, 1e6, 0.1]], [[5.0, 5.0, 1.0, 1.0]], {}, "theta"),
+        ([[0.8, -1e9, 0.01, 0.1]], [[5.0, 5.0, 1.0, 1.0]], {}, "theta"),
+        ([[0.8, -9.8, 0.01, 0.1]], [[5.0, 5.0, 1.0, 1.0]], {"dt": 100.0}, "dt"),
+        ([[0.8, -9.8, 0.01, 0.1]], [[5.0, 1e300, 1.0, 1.0]], {"floor": 1e300}, "floor"),
+        ([[0.8, -9.8, 1.5, 0.1]], [[5.0, 5.0, 90.0, 90.0]], {}, "drag per integration step"),
+    ],
+)
+def test_jax_twin_has_the_same_envelope(theta, state0, kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        P.simulate(np.array(theta), np.array(state0), n_frames=5, **kwargs)
+    with pytest.raises(ValueError, match=name):
+        PJ.simulate(np.array(theta), np.array(state0), n_frames=5, **kwargs)

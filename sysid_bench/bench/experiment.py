@@ -227,8 +227,23 @@ def timed_prefixes(est: Estimator, obs: Observation, lengths, out: CellOutput | 
 
 
 # -- report helpers ---------------------------------------------------------------------------
+def _group_seed(seed: int, value: str, by, keys) -> int:
+    """A bootstrap seed from a table group's identity (its columns and keys), not from a shared
+    stream: a group's interval is the same whatever else the table holds or in which order."""
+    import hashlib
+    import json
+
+    ident = [int(seed), value, list(by), [k.item() if hasattr(k, "item") else k for k in keys]]
+    digest = hashlib.sha256(json.dumps(ident, default=str).encode()).digest()
+    return int.from_bytes(digest[:8], "little")
+
+
 def ci_summary(df, by: list[str], value: str = "value", seed: int = 0):
     """Mean with a 95% bootstrap CI of ``value`` per group (cases are the resampled unit).
+
+    Independent of the order of ``df``'s rows (each group's values are sorted, see
+    :func:`~sysid_bench.metrics.bootstrap_ci`); each group's bootstrap is seeded from ``seed``
+    and the group's identity.
 
     Returns
     -------
@@ -241,7 +256,8 @@ def ci_summary(df, by: list[str], value: str = "value", seed: int = 0):
     for keys, g in df.groupby(by, sort=True, dropna=False):
         keys = keys if isinstance(keys, tuple) else (keys,)
         v = g[value].to_numpy(dtype=float)
-        m, lo, hi = bootstrap_ci(v, seed=seed, n_boot=1000) if len(v) else (np.nan,) * 3
+        m, lo, hi = (bootstrap_ci(v, seed=_group_seed(seed, value, by, keys), n_boot=1000)
+                     if len(v) else (np.nan,) * 3)
         recs.append({**dict(zip(by, keys)), "mean": m, "lo": lo, "hi": hi,
                      "n": int(np.isfinite(v).sum())})
     return pd.DataFrame.from_records(recs, columns=[*by, "mean", "lo", "hi", "n"])

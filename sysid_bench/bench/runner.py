@@ -15,7 +15,8 @@ read from the method's declarations (:func:`methods.spec`), never from a table h
 
 Only this process writes the store, one transaction per finished cell, so a run killed at any
 moment keeps every cell it finished and a restart computes only the rest (SIGTERM and Ctrl-C
-also stop the workers). Local workers are spawned, so a script calling :func:`run` needs the
+also stop the workers; a worker whose run died, even by SIGKILL, ends itself within a second:
+:func:`_end_with_parent`). Local workers are spawned, so a script calling :func:`run` needs the
 usual ``if __name__ == "__main__":`` guard. A worker process that
 dies takes its cell with it: the cell is retried once on a fresh pool, then stored as an error.
 """
@@ -35,7 +36,7 @@ from pathlib import Path
 
 from sysid_bench.bench.cases import Scale, get_scale, unknown_name
 from sysid_bench.bench.experiment import Cell, execute
-from sysid_bench.bench.store import Store
+from sysid_bench.bench.store import Store, lock_run_dir
 from sysid_bench._validate import check_positive_int
 
 __all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "provenance",
@@ -261,6 +262,11 @@ def run(
         First drop the stored cells whose status is "error" (a missing checkpoint, a bug since
         fixed), so they are computed again; otherwise a resumed run keeps them as they are.
 
+    Raises
+    ------
+    RunDirBusyError
+        Another run is writing to ``run_dir`` (its lock file ``run.lock`` is held).
+
     Returns
     -------
     dict
@@ -268,15 +274,22 @@ def run(
         ``errors``, ``na``, ``skipped_methods``, ``retried`` (error cells dropped), ``stale``
         (cells dropped because their method's fingerprint changed), ``wall_s``.
     """
-    from tqdm.auto import tqdm
-
     sc = get_scale(scale)
     exps = resolve_experiments(experiments)
     meths, skipped = resolve_methods(methods)
     threads = check_positive_int(threads, "threads")
     inline = default_inline(meths) if inline is None else list(inline)
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(sc.name)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    with lock_run_dir(run_dir):  # one writing run per run dir; RunDirBusyError otherwise
+        return _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline,
+                           progress, argv, max_cells, retry_errors, threads)
+
+
+def _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline, progress, argv,
+                max_cells, retry_errors, threads) -> dict:
+    """:func:`run`'s body, under the run dir's lock."""
+    from tqdm.auto import tqdm
+
     store = Store(run_dir / STORE_NAME, grid_config=sc.grid_config())
     t0 = time.perf_counter()
     try:
@@ -357,7 +370,9 @@ def _run_local(todo, sc, run_dir, workers, inline, write, threads=1) -> None:
                         pool.shutdown(wait=False, cancel_futures=True)
                     with _single_threaded_children(threads):
                         pool = ProcessPoolExecutor(min(n_workers, len(pooled)),
-                                                   mp_context=mp.get_context("spawn"))
+                                                   mp_context=mp.get_context("spawn"),
+                                                   initializer=_end_with_parent,
+                                                   initargs=(os.getpid(),))
                     broken = False
                 futs.update({pool.submit(execute, c, sc, str(run_dir), threads): (c, pool)
                              for c in pooled})
@@ -389,6 +404,41 @@ def _run_local(todo, sc, run_dir, workers, inline, write, threads=1) -> None:
     if pool is not None:
         pool.shutdown(wait=True)
     th.shutdown(wait=True)
+
+
+#: Seconds between a worker's checks that the run that started it is still alive.
+_PARENT_POLL_S = 0.5
+
+
+def _end_with_parent(parent_pid: int) -> None:
+    """Pool initializer: end this worker when the run that spawned it dies.
+
+    A run killed with SIGKILL cannot stop its workers, and a worker busy in a cell never reads
+    the queue that would tell it, so it computed on, orphaned (issue 14). Two guards: on Linux
+    the kernel sends SIGKILL when the parent dies (``PR_SET_PDEATHSIG``; instant, even inside C
+    code holding the GIL); everywhere a daemon thread sees the parent pid change (the orphan is
+    re-parented) and exits the process.
+    """
+    import threading
+
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+        except (OSError, AttributeError):  # no prctl (musl builds, sandboxes): the thread stays
+            pass
+    if os.getppid() != parent_pid:  # the parent died before the guards were set
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(_PARENT_POLL_S)
+        os._exit(1)  # no cleanup to wait for: the store is written only by the parent
+
+    threading.Thread(target=watch, name="end-with-parent", daemon=True).start()
 
 
 def _terminate(pool: ProcessPoolExecutor) -> None:

@@ -26,6 +26,7 @@ Layout
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
@@ -42,6 +43,9 @@ __all__ = [
     "STORE_FORMAT",
     "StoreFormatError",
     "StoreConfigError",
+    "RunDirBusyError",
+    "lock_run_dir",
+    "LOCK_NAME",
     "Store",
     "Row",
     "RESULT_COLUMNS",
@@ -89,6 +93,64 @@ class StoreFormatError(ValueError):
 
 class StoreConfigError(ValueError):
     """The store holds a run whose cases were generated differently."""
+
+
+class RunDirBusyError(ValueError):
+    """Another run holds the run directory's lock."""
+
+
+#: The lock file a run holds in its run directory (``fcntl.flock``, exclusive) while it runs.
+LOCK_NAME = "run.lock"
+
+
+@contextlib.contextmanager
+def lock_run_dir(run_dir):
+    """Hold ``run_dir``'s run lock for the ``with`` block: one writing run per run directory.
+
+    Two runs on one store would both compute the missing cells and interleave their
+    invocations (issue 14). The lock is ``fcntl.flock`` on ``run_dir/run.lock``: the kernel drops
+    it with the process's files however the process ends, so a run killed with SIGKILL leaves
+    a file but no lock, and the next run goes ahead. The file says who holds it (pid, host,
+    start time) for the error message; it is informational, rewritten in place by each holder
+    (it must stay the same file to be locked). Where ``fcntl`` is missing (Windows) nothing is
+    locked. Readers (``report --from-store``) take no lock.
+
+    Raises
+    ------
+    RunDirBusyError
+        Another process (or another open of the file in this one) holds the lock.
+    """
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    path = run_dir / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                holder = json.loads(os.pread(fd, 4096, 0).decode() or "{}")
+            except (ValueError, OSError):
+                holder = {}
+            who = (f"pid {holder.get('pid', '?')} on {holder.get('host', '?')}, started "
+                   f"{time.strftime('%Y-%m-%d %H:%M:%S', time.localtime(holder['started']))}"
+                   if "started" in holder else "pid unknown")
+            raise RunDirBusyError(
+                f"run_dir: {str(run_dir)!r} is in use by another run ({who}); wait for it to "
+                "finish or use another --run-dir. Two runs on one store would mix their cells"
+            ) from None
+        info = json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                           "started": time.time()}).encode()
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, info, 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 @dataclass(frozen=True)
@@ -325,7 +387,8 @@ class Store:
 
     # -- reading ----------------------------------------------------------------------------
     def results(self, experiment: str | None = None):
-        """The long-format results as a pandas DataFrame (columns :data:`RESULT_COLUMNS`)."""
+        """The long-format results as a pandas DataFrame (columns :data:`RESULT_COLUMNS`), sorted
+        by their key (experiment, method, input, condition, case, n_frames, metric)."""
         import pandas as pd
 
         q = "SELECT * FROM results"
@@ -333,6 +396,8 @@ class Store:
         if experiment is not None:
             q += " WHERE experiment=?"
             args = (experiment,)
+        # the table's unique key: rows in the same order however the cells finished (issue 14)
+        q += ' ORDER BY experiment, method, input, condition, "case", n_frames, metric'
         df = pd.read_sql_query(q, self._con, params=args)
         return df
 
@@ -340,7 +405,7 @@ class Store:
         """One row per stored cell (pandas DataFrame)."""
         import pandas as pd
 
-        return pd.read_sql_query("SELECT * FROM cells", self._con)
+        return pd.read_sql_query("SELECT * FROM cells ORDER BY cell_id", self._con)
 
     def artifact(self, cell_id: str, name: str) -> np.ndarray | None:
         r = self._con.execute(
@@ -351,7 +416,8 @@ class Store:
     def artifacts(self, like: str = "%") -> dict[tuple[str, str], np.ndarray]:
         """All artifacts whose cell id matches the SQL LIKE pattern ``like``."""
         rows = self._con.execute(
-            "SELECT cell_id, name, data FROM artifacts WHERE cell_id LIKE ?", (like,)
+            "SELECT cell_id, name, data FROM artifacts WHERE cell_id LIKE ? ORDER BY cell_id, name",
+            (like,)
         ).fetchall()
         return {(c, n): np.load(io.BytesIO(d), allow_pickle=False) for c, n, d in rows}
 
