@@ -88,6 +88,9 @@ def _parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("report", help="run the default scale and write reports/",
                          parents=[report_parser()], add_help=False)
     rep.set_defaults(fn=_cmd_report)
+    from sysid_bench.video import add_identify_parser  # sets fn=run_identify
+
+    add_identify_parser(sub)
     return p
 
 
