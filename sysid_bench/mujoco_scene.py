@@ -133,6 +133,9 @@ def _choose_gl() -> None:
         os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 
+_choose_gl()  # at import: before anything here imports mujoco
+
+
 def _spring(contact_s: float, e: float) -> tuple[float, float]:
     """Stiffness and damping (per unit mass) of a linear contact lasting ``contact_s`` with
     restitution ``e`` (a damped half-oscillation): MuJoCo's ``solref = (-k, -b)``."""
@@ -449,6 +452,7 @@ def render_frames(ep: Episode, size: int = 256) -> tuple[np.ndarray, str]:
             for t, s in enumerate(ep.states):
                 dd.qpos[:] = (s[0], s[1], angle[t])
                 mujoco.mj_kinematics(m, dd)
+                mujoco.mj_camlight(m, dd)  # the camera pose is not part of kinematics
                 rd.update_scene(dd, camera="side")
                 rgb = rd.render()
                 out[t] = np.clip(rgb @ np.array([0.299, 0.587, 0.114]), 0, 255).astype(np.uint8)
