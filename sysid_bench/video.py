@@ -55,6 +55,7 @@ __all__ = [
     "find_ball",
     "BallTrack",
     "model_frames",
+    "observe",
     "identify_video",
     "IdentifyResult",
     "write_outputs",
@@ -612,6 +613,54 @@ def _estimator(method: str, checkpoint: str | None, seed: int):
     return methods.get(method)
 
 
+def observe(frames, model_size=None, geometry: dict | None = None, dt: float = 0.05,
+            progress: bool = False):
+    """A video's frames as the Observation a method takes, via the ball's track.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, H, W)
+        Grey source frames at the model's rate.
+    model_size : (int, int), optional
+        ``(H, W)`` of a video model's view: the Observation holds frames re-drawn there
+        (:func:`model_frames`). None: it holds the tracked positions (clipped onto the box:
+        a ball at a wall or on the floor is tracked a few mm outside it).
+    geometry : dict, optional
+        Options of :func:`geometry_from_options`; with any of them, the ball's radius is the
+        measured one unless given.
+    dt : float
+
+    Returns
+    -------
+    obs : Observation
+        ``floor = 0`` (the geometry puts the floor there).
+    positions : ndarray, shape (T, 2)
+        Tracked positions in metres (NaN where not found), not clipped.
+    track : BallTrack
+    geometry : Geometry
+    """
+    from sysid_bench.estimator import Observation
+
+    fr = np.asarray(frames)
+    t_n, h, w = fr.shape
+    geo_opts = dict(geometry or {})
+    trk = find_ball(fr, progress=progress)
+    if (geo_opts.get("ball_radius_px") is None and trk.n_found
+            and any(geo_opts.get(k) is not None for k in ("px_per_m", "floor_row", "wall_col",
+                                                         "corners"))):
+        geo_opts["ball_radius_px"] = trk.radius  # real footage: the ball's own size
+    geo = geometry_from_options((h, w), **geo_opts)
+    pos = geo.to_metres(trk.pixels)
+    if model_size is not None:
+        obs = Observation(frames=model_frames(pos, model_size), dt=dt, floor=0.0)
+    else:
+        clipped = pos.copy()
+        clipped[:, 0] = np.clip(clipped[:, 0], 0.0, BOX_WIDTH)
+        clipped[:, 1] = np.clip(clipped[:, 1], 0.0, BOX_WIDTH)
+        obs = Observation(positions=clipped, dt=dt, floor=0.0)
+    return obs, pos, trk, geo
+
+
 def identify_video(path, *, method: str = "vid2param", checkpoint: str | None = None,
                    geometry: dict | None = None, every: int | None = None, horizon: int = 20,
                    seed: int = 0, progress: bool | None = None) -> IdentifyResult:
@@ -649,7 +698,6 @@ def identify_video(path, *, method: str = "vid2param", checkpoint: str | None = 
     """
     import methods
     from sysid_bench.bench.experiment import streams
-    from sysid_bench.estimator import Observation
 
     if method not in methods.available(include_reference=True):
         raise ValueError(f"method: expected one of {', '.join(methods.available())}, got "
@@ -657,33 +705,18 @@ def identify_video(path, *, method: str = "vid2param", checkpoint: str | None = 
     est = _estimator(method, checkpoint, seed)  # bad options fail before the file is read
     clip = read_video(path, progress=progress)
     t_n, h, w = clip.frames.shape
-    geo_opts = dict(geometry or {})
-    trk = find_ball(clip.frames, progress=bool(progress) and t_n > _PROGRESS_FRAMES)
-    if (geo_opts.get("ball_radius_px") is None and trk.n_found
-            and any(geo_opts.get(k) is not None for k in ("px_per_m", "floor_row", "wall_col",
-                                                         "corners"))):
-        geo_opts["ball_radius_px"] = trk.radius  # real footage: the ball's own size
-    geo = geometry_from_options((h, w), **geo_opts)
-    pos = geo.to_metres(trk.pixels)
+    is_video = getattr(type(est), "input_kind", "positions") == "frames"
+    size = tuple(est.frame_size) if is_video else None
+    obs, pos, trk, geo = observe(clip.frames, size, geometry, dt=1.0 / clip.fps,
+                                 progress=bool(progress) and t_n > _PROGRESS_FRAMES)
     notes = list(clip.notes)
     found = trk.n_found > 0
-    is_video = getattr(type(est), "input_kind", "positions") == "frames"
-    if is_video:
-        size = tuple(est.frame_size)
-        obs = Observation(frames=model_frames(pos, size), dt=1.0 / clip.fps, floor=0.0)
-        if not found:
-            notes.append("the ball was never found: the model saw black frames only and "
-                         "answers its prior")
-    else:
-        if trk.n_found < 3:
-            raise VideoError(f"{path}: the ball was found in {trk.n_found} of {t_n} frames; "
-                             f"{method} needs a track (at least 3 frames)")
-        # a ball at a wall or on the floor is tracked a few px outside the box: tracking error
-        pos = pos.copy()
-        pos[:, 0] = np.clip(pos[:, 0], 0.0, BOX_WIDTH)
-        pos[:, 1] = np.clip(pos[:, 1], 0.0, BOX_WIDTH)
-        obs = Observation(positions=pos, dt=1.0 / clip.fps, floor=0.0)
-        size = None
+    if is_video and not found:
+        notes.append("the ball was never found: the model saw black frames only and "
+                     "answers its prior")
+    if not is_video and trk.n_found < 3:
+        raise VideoError(f"{path}: the ball was found in {trk.n_found} of {t_n} frames; "
+                         f"{method} needs a track (at least 3 frames)")
     mean = np.full((t_n, 4), np.nan)
     std = np.full((t_n, 4), np.nan)
     estimated = np.zeros(t_n, dtype=bool)
