@@ -148,6 +148,8 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None) ->
         raise _fail(path, "empty file (0 bytes)")
     try:
         container = av.open(str(p), mode="r")
+    except av.error.EOFError:
+        raise _fail(path, "the video has zero frames (the file ends before its first frame)") from None
     except av.error.FFmpegError as exc:
         raise _fail(path, f"not a readable video ({_av_reason(exc)})") from None
     except OSError as exc:
@@ -173,6 +175,8 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None) ->
                     frames.append(fr.to_ndarray(format="gray"))
                     times.append(np.nan if fr.time is None else float(fr.time))
                     bar.update(1)
+            except av.error.EOFError:
+                pass  # a stream declared but holding no frames: "zero frames" below
             except av.error.FFmpegError as exc:
                 if not frames:
                     raise _fail(path, f"not a readable video ({_av_reason(exc)})") from None
