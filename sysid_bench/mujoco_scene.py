@@ -507,6 +507,7 @@ def make_video(cache_dir, case: int, seed: int = 0, n_frames: int = 200, size: i
             "state0": s0.tolist(), "states": ep.states.tolist(), "renderer": renderer,
             "info": ep.info, "sim_s": t_sim, "wall_s": time.perf_counter() - t0,
             "ball_type": asdict(BALL_TYPES[ball])}
+    meta = json.loads(json.dumps(meta))  # the same types as when read back from the cache
     tmp = jpath.with_name(f".{jpath.name}.{os.getpid()}.tmp")
     tmp.write_text(json.dumps(meta))
     os.replace(tmp, jpath)
