@@ -709,10 +709,11 @@ def identify_video(path, *, method: str = "vid2param", checkpoint: str | None = 
     est = _estimator(method, checkpoint, seed)  # bad options fail before the file is read
     clip = read_video(path, progress=progress)
     t_n, h, w = clip.frames.shape
+    # progress bars on long files, on a terminal (or when asked)
+    show = (sys.stderr.isatty() if progress is None else bool(progress)) and t_n > _PROGRESS_FRAMES
     is_video = getattr(type(est), "input_kind", "positions") == "frames"
     size = tuple(est.frame_size) if is_video else None
-    obs, pos, trk, geo = observe(clip.frames, size, geometry, dt=1.0 / clip.fps,
-                                 progress=bool(progress) and t_n > _PROGRESS_FRAMES)
+    obs, pos, trk, geo = observe(clip.frames, size, geometry, dt=1.0 / clip.fps, progress=show)
     notes = list(clip.notes)
     found = trk.n_found > 0
     if is_video and not found:
@@ -734,7 +735,7 @@ def identify_video(path, *, method: str = "vid2param", checkpoint: str | None = 
         from tqdm.auto import tqdm
 
         for n in tqdm(lengths, desc=f"{method}", unit="estimate", leave=False,
-                      disable=not progress):
+                      disable=not show):
             try:
                 posts.append(est.identify(obs.prefix(n)))
             except NotImplementedError:
@@ -943,6 +944,9 @@ def run_identify(args) -> int:
     except ValueError as exc:
         print(f"sysid-bench identify: {args.video}: {exc}", file=sys.stderr)
         return 2
+    except ImportError as exc:  # a method's optional dependency
+        print(f"sysid-bench identify: {args.video}: {exc}", file=sys.stderr)
+        return 3
     for n in res.info["notes"]:
         print(f"note: {n}", file=sys.stderr)
     last = res.mean[-1]
