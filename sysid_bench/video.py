@@ -469,9 +469,6 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
     -------
     BallTrack
     """
-    from scipy import ndimage
-    from tqdm.auto import tqdm
-
     fr = np.asarray(frames, dtype=np.float32)
     if fr.ndim != 3 or fr.shape[0] < 1:
         raise ValueError(f"frames: expected a (T, H, W) array, got shape {fr.shape}")
@@ -480,6 +477,33 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
     sample = np.abs(fr[:: max(1, t_n // 20)] - bg).ravel()
     sigma = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
     thr = max(float(min_contrast), noise_k * sigma)
+    pix, radii = _follow(fr, bg, thr, max_gap, progress)
+    # A ball that sits or rolls slowly over the same pixels for more than half the clip is in
+    # the median, and then invisible there. When the ball is consistently brighter (darker)
+    # than the scene, a low (high) quantile over time is the scene wherever the ball covered a
+    # pixel in less than 90% of the frames; where that background differs from the median
+    # over a twentieth of a ball or more, the ball is followed again against it.
+    found = np.isfinite(pix).all(axis=1)
+    if found.sum() >= 3:
+        c = np.clip(pix[found].astype(int), 0, [w - 1, h - 1])
+        sign = np.sign(fr[np.flatnonzero(found), c[:, 1], c[:, 0]] - bg[c[:, 1], c[:, 0]])
+        if abs(sign.mean()) > 0.8:
+            idx = np.unique(np.linspace(0, t_n - 1, min(t_n, 150)).astype(int))
+            q = np.percentile(fr[idx], 10 if sign.mean() > 0 else 90, axis=0).astype(np.float32)
+            r = float(np.nanmedian(radii))
+            if (np.abs(q - bg) > thr).sum() >= 0.05 * np.pi * r * r:
+                pix, radii = _follow(fr, q, thr, max_gap, progress)
+    found = np.isfinite(pix).all(axis=1)
+    radius = float(np.nanmedian(radii)) if found.any() else float("nan")
+    return BallTrack(pixels=pix, radius=radius, found=found)
+
+
+def _follow(fr, bg, thr, max_gap, progress):
+    """One tracking pass over ``fr`` against background ``bg``: centres (T, 2), radii (T,)."""
+    from scipy import ndimage
+    from tqdm.auto import tqdm
+
+    t_n, h, w = fr.shape
     pix = np.full((t_n, 2), np.nan)
     radii = np.full(t_n, np.nan)
     areas: list[float] = []
@@ -543,15 +567,13 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
         if m > 0:
             c0 = float((wgt.sum(0) * jj[b0:b1]).sum() / m)
             r0 = float((wgt.sum(1) * ii[a0:a1]).sum() / m)
-        # radius from the pixels brighter than half the blob's peak contrast
-        peak = float(sub.max())
-        radii[t] = math.sqrt(float((wgt > 0.5 * peak).sum()) / math.pi)
+        # radius of the disc with the blob's area (every pixel that differs from the scene:
+        # a shaded ball's dim rim counts, as it does in the picture)
+        radii[t] = r_blob
         pix[t] = (c0, r0)
         areas.append(float(area[k]))
         last = (last + [(t, np.array([c0, r0]))])[-2:]
-    found = np.isfinite(pix).all(axis=1)
-    radius = float(np.nanmedian(radii)) if found.any() else float("nan")
-    return BallTrack(pixels=pix, radius=radius, found=found)
+    return pix, radii
 
 
 def model_frames(positions, size) -> np.ndarray:
