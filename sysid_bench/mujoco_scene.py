@@ -57,7 +57,8 @@ from sysid_bench.physics import BOX_WIDTH, PRIOR, sample_state0
 from sysid_bench.render import RADIUS_FRACTION
 
 __all__ = ["BallType", "BALL_TYPES", "mujoco_available", "scene_xml", "simulate_ball",
-           "measure", "render_frames", "make_video", "generate_set", "Episode", "RADIUS"]
+           "measure", "render_frames", "renderer_status", "draw_target", "make_video", "generate_set",
+           "Episode", "RADIUS"]
 
 #: the renderer's ball radius in metres for a square view: 30 px of 256, whose box is 196 px
 RADIUS = RADIUS_FRACTION * 256 / ((256 - 2 * 30) / BOX_WIDTH)

@@ -242,8 +242,9 @@ def write_video(path, frames, fps: float = MODEL_FPS, *, codec: str = "libx264",
     -------
     Path
     """
-    import av
     from fractions import Fraction
+
+    import av
 
     fr = np.asarray(frames)
     if fr.dtype != np.uint8 or fr.ndim not in (3, 4) or (fr.ndim == 4 and fr.shape[-1] != 3):
