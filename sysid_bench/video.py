@@ -967,6 +967,10 @@ def run_identify(args) -> int:
     except ValueError as exc:
         print(f"sysid-bench identify: {args.video}: {exc}", file=sys.stderr)
         return 2
+    except NotImplementedError as exc:  # dmd: no parameters to identify
+        print(f"sysid-bench identify: {args.video}: {args.method} cannot identify: {exc}",
+              file=sys.stderr)
+        return 2
     except ImportError as exc:  # a method's optional dependency
         print(f"sysid-bench identify: {args.video}: {exc}", file=sys.stderr)
         return 3
