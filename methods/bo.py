@@ -73,7 +73,8 @@ class BayesOpt(SimulationMethod):
     # 4-13 s per cell at the default budget: the first cases only (the same cases as everyone)
     scale_cases = {
         "smoke": 1,
-        "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4},
+        "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4,
+                    "foreign": 2},
     }
     scale_options = {"smoke": {"n_calls": 12, "n_initial_points": 6}}
     #: cheap budgets for check_estimator (same code path)

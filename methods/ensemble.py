@@ -158,7 +158,8 @@ class Emcee(SimulationMethod):
     # 9-25 s per cell at the default budget: the first cases only
     scale_cases = {
         "smoke": 1,
-        "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4},
+        "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4,
+                    "foreign": 2},
     }
     scale_options = {"smoke": {"n_walkers": 20, "n_steps": 20, "n_burn": 10}}
     #: cheap budgets for check_estimator (same code path)

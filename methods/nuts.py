@@ -411,8 +411,10 @@ class NUTS(SimulationMethod):
     reference_posterior = True
     # ~25 s per posterior (~100 under load): only in experiment 5, where it is the reference
     scale_cases = {
-        "smoke": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 1},
-        "default": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 3},
+        "smoke": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 1,
+                  "foreign": 0},
+        "default": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 3,
+                    "foreign": 0},
     }
     scale_options = {
         "smoke": {"num_warmup": 30, "num_samples": 30, "n_init": 200},

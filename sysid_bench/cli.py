@@ -166,6 +166,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "report": ("sysid_bench.report", "run a scale (resuming its store) and write reports/"),
     "train": ("sysid_bench.cli", "train a Vid2Param checkpoint (python -m methods.vid2param.train)"),
     "evaluate": ("sysid_bench.cli", "evaluate Vid2Param checkpoints (python -m methods.vid2param.evaluate)"),
+    "identify": ("sysid_bench.video", "identify a ball's e, g, d, r frame by frame from a video file"),
 }
 _DELEGATED = {"train", "evaluate"}
 

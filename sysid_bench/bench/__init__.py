@@ -10,6 +10,7 @@ forecasting     2. forward prediction
 changing        3. parameters that change every 50 frames
 sensitivity     4. extrapolation, label noise, simplified physics (methods that train)
 calibration     5. coverage / NLL of posteriors and agreement with the nuts reference
+foreign         6. MuJoCo videos: physics that is not ours (the paper's real videos)
 runner          builds the grid and runs it on a process pool or a Dask cluster
 """
 
@@ -18,12 +19,14 @@ from __future__ import annotations
 from sysid_bench.bench.calibration import Calibration
 from sysid_bench.bench.changing import Changing
 from sysid_bench.bench.forecasting import Forecasting
+from sysid_bench.bench.foreign import Foreign
 from sysid_bench.bench.identification import Identification
 from sysid_bench.bench.sensitivity import Sensitivity
 
 #: name -> experiment, in report order
 EXPERIMENTS = {
-    e.name: e for e in (Identification(), Forecasting(), Changing(), Sensitivity(), Calibration())
+    e.name: e for e in (Identification(), Forecasting(), Changing(), Sensitivity(), Calibration(),
+                     Foreign())
 }
 
 __all__ = ["EXPERIMENTS"]
