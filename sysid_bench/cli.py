@@ -88,6 +88,9 @@ def _parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("report", help="run the default scale and write reports/",
                          parents=[report_parser()], add_help=False)
     rep.set_defaults(fn=_cmd_report)
+    from sysid_bench.intercept import add_intercept_parser
+
+    add_intercept_parser(sub)
     return p
 
 
