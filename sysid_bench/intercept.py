@@ -344,6 +344,7 @@ class Policy:
         self.predicted = None
         self.forecasts = []
         self.record = False
+        self.n_skipped = 0  # steps where the model declined to forecast (target kept)
 
     def act(self, frame: np.ndarray, k: int) -> float:
         """Frame ``k`` (H, W) seen at ``t = k dt``; returns the effector's target height, m."""
@@ -469,6 +470,7 @@ class Kalman(_ForecastTarget):
         self.floor = (0.5 * float(scene.nuisance.get("floor_offset", 0.0))
                       if self.floor0 is None else float(self.floor0))
         self.floor_seen = False
+        self.n_floor = 0
         self.e_est = []
         self.bounce = None  # (t_contact, v_before, frames since) awaiting an e estimate
         self.t_last = None
@@ -508,9 +510,9 @@ class Kalman(_ForecastTarget):
                 self.s[i] = self.F @ self.s[i]
                 self.P[i] = self.F @ self.P[i] @ self.F.T + self.Q
             # walls: elastic and at known places (the camera is framed on the box)
-            for wall in (0.0, physics.BOX_WIDTH):
-                if (self.s[0, 0] - wall) * (prev[0, 0] - wall) < 0 or \
-                        (wall == 0.0 and self.s[0, 0] < 0) or (wall > 0 and self.s[0, 0] > wall):
+            for wall, out in ((0.0, self.s[0, 0] < 0.0),
+                              (physics.BOX_WIDTH, self.s[0, 0] > physics.BOX_WIDTH)):
+                if out:
                     self.s[0, 0] = 2 * wall - self.s[0, 0]
                     self.s[0, 1] = -self.s[0, 1]
             bounced = False
@@ -559,9 +561,9 @@ class Kalman(_ForecastTarget):
             return False
         if zy is not None:
             # floor estimates: running mean over bounces (the first replaces the guess)
-            n = getattr(self, "_n_floor", 0) if self.floor_seen else 0
+            n = self.n_floor
             self.floor = (self.floor * n + fl[j]) / (n + 1)
-            self._n_floor = n + 1
+            self.n_floor = n + 1
             self.floor_seen = True
         self.s[1, 0] = y1[j]
         self.s[1, 1] = -e * vc[j] + a * rest[j]
@@ -580,8 +582,11 @@ class Kalman(_ForecastTarget):
         theta = np.array([[self.e, ay, 0.0, 0.0]])
         st = physics.simulate(theta, np.array([[x, y, vx, vy]]), n_frames=h + 1, dt=sc.dt,
                               floor=floor)[0, 1:, :2]
-        std = np.zeros_like(st)
-        std[:, 1] = np.sqrt(self.P[1][0, 0]) + 0.0
+        # the band: the filter's covariance carried forward by the constant-acceleration model
+        # (bounces and walls ignored), J_k = [1, k dt, (k dt)^2 / 2]
+        tk = sc.dt * np.arange(1, h + 1)
+        J = np.stack([np.ones_like(tk), tk, tk**2 / 2], axis=1)
+        std = np.sqrt(np.stack([np.einsum("hi,ij,hj->h", J, self.P[i], J) for i in range(2)], 1))
         return self._aim(t, (x, y), st, std)
 
 
@@ -611,6 +616,7 @@ class Identify(_ForecastTarget):
     def reset(self, scene, rng, throw=None):
         super().reset(scene, rng, throw)
         self.frames = []
+        self.last_skip = ""
 
     def act(self, frame, k):
         from sysid_bench.estimator import Observation
@@ -622,8 +628,15 @@ class Identify(_ForecastTarget):
         if n < first or (n - first) % self.every:
             return self.target
         t = k * self.scene.dt
-        fc = self.est.forecast(Observation(frames=np.stack(self.frames), dt=self.scene.dt),
-                               self._horizon(k))
+        try:
+            fc = self.est.forecast(Observation(frames=np.stack(self.frames), dt=self.scene.dt),
+                                   self._horizon(k))
+        except ValueError as exc:
+            # the method refused this prefix (e.g. the ball seen in too few frames yet): keep
+            # the target and try again at the next replan; counted in the row (skipped_steps)
+            self.n_skipped += 1
+            self.last_skip = f"{type(exc).__name__}: {exc}"
+            return self.target
         return self._aim(t, track(frame[None])[0], fc.mean, fc.std)
 
 
@@ -787,6 +800,8 @@ def _run_throw(policy: Policy, scene: Scene, throw: Throw, rng, record: bool):
         "miss_m": miss,
         "decision_s": decision,
         "step_ms": 1e3 * float(np.median(steps)) if steps else float("nan"),
+        "step_mean_ms": 1e3 * float(np.mean(steps)) if steps else float("nan"),
+        "skipped_steps": int(getattr(policy, "n_skipped", 0)),
         "t_cross_s": throw.t_cross,
         "y_cross_m": throw.y_cross,
         "effector_m": p if not err else float("nan"),
@@ -836,6 +851,9 @@ def evaluate(policy, n_throws: int = 200, seed: int = 0, **options):
         One row per throw: ``throw``, ``success`` (bool), ``miss_m`` (|effector - ball| at the
         crossing, m; NaN when the policy raised), ``decision_s`` (time of the last target change
         of more than 1 cm), ``step_ms`` (the policy's median control-step time over the throw),
+        ``step_mean_ms`` (its mean: replanning every few frames puts the cost in the mean),
+        ``skipped_steps`` (replans where the model declined this prefix, e.g. too few frames
+        with the ball seen; the target was kept),
         ``t_cross_s``, ``y_cross_m`` (the true crossing), ``effector_m``, ``pred_t_cross_s``,
         ``pred_y_cross_m`` (the policy's last predicted crossing, NaN if none), ``reachable``
         (an effector knowing the crossing at launch could make it), ``n_bounces``, ``n_frames``
@@ -894,6 +912,7 @@ def summarise(df) -> dict:
         "median_miss_m": float(ok.miss_m.median()) if len(ok) else float("nan"),
         "median_lead_s": float((ok.t_cross_s - ok.decision_s).median()) if len(ok) else float("nan"),
         "median_step_ms": float(df.step_ms.median()),
+        "mean_step_ms": float(df.step_mean_ms.mean()),
         "errors": int((df.error != "").sum()),
         "seed": df.attrs.get("seed"),
         "note": df.attrs.get("note", ""),
@@ -1061,7 +1080,8 @@ def report_section(out_dir) -> list[str]:
                      "95% CI %": f"{100 * s['ci95_lo']:.1f}-{100 * s['ci95_hi']:.1f}",
                      "median miss m": s["median_miss_m"],
                      "median lead s": s["median_lead_s"],
-                     "median step ms": s["median_step_ms"], "errors": s["errors"],
+                     "median step ms": s["median_step_ms"],
+                     "mean step ms": s.get("mean_step_ms", float("nan")), "errors": s["errors"],
                      "seed": s["seed"], "note": s.get("note", "")})
     t = pd.DataFrame(rows)
     _atomic_write(out / "tables" / "intercept_summary.csv", t.to_csv(index=False))
@@ -1134,8 +1154,8 @@ def run_intercept(args) -> int:
     s = summarise(df)
     print(f"{s['policy']}: caught {s['caught']}/{s['throws']} = {100 * s['rate']:.1f}% "
           f"(95% CI {100 * s['ci95_lo']:.1f}-{100 * s['ci95_hi']:.1f}%), median miss "
-          f"{s['median_miss_m']:.3f} m, median control step {s['median_step_ms']:.2f} ms, "
-          f"{s['errors']} errors")
+          f"{s['median_miss_m']:.3f} m, control step median {s['median_step_ms']:.2f} ms "
+          f"(mean {s['mean_step_ms']:.2f} ms), {s['errors']} errors")
     if s["note"]:
         print(f"note: {s['note']}")
     print(f"table: {csv}")

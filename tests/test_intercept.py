@@ -189,6 +189,25 @@ def test_registered_method_as_policy():
     df = ic.evaluate("lsq", n_throws=1, seed=0, n_samples=300, every=15)
     assert (df.error == "").all(), df.error[0]
     assert np.isfinite(df.pred_t_cross_s[0])
+    assert df.skipped_steps[0] >= 0 and df.step_mean_ms[0] >= df.step_ms[0]
+
+
+def test_a_method_declining_a_prefix_keeps_the_target():
+    class Picky(ic.Identify):
+        def __init__(self):
+            super().__init__("lsq", n_samples=200, every=10)
+            real = self.est.forecast
+
+            def forecast(obs, horizon):
+                if obs.n_frames < 30:
+                    raise ValueError("positions: too few frames")
+                return real(obs, horizon)
+
+            self.est.forecast = forecast
+
+    df = ic.evaluate(Picky(), n_throws=1, seed=0)
+    assert df.error[0] == "" and df.skipped_steps[0] == 3  # prefixes 4, 14, 24
+    assert np.isfinite(df.pred_y_cross_m[0])
 
 
 @pytest.mark.slow
