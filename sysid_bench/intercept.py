@@ -792,6 +792,11 @@ def _run_throw(policy: Policy, scene: Scene, throw: Throw, rng, record: bool):
         path_t.append(t_next)
         path_y.append(p)
     miss = abs(p - throw.y_cross) if not err else float("nan")
+    # the earliest frame from which every target stayed within the catch radius of the truth
+    ok = np.abs(np.asarray(targets) - throw.y_cross) <= scene.catch_radius
+    settled = float("nan")
+    if not err and len(ok) and ok[-1]:
+        settled = float(len(ok) - np.argmin(ok[::-1]) if not ok.all() else 0) * scene.dt
     pred = policy.predicted or (float("nan"), float("nan"))
     th = throw.theta
     row = {
@@ -799,6 +804,7 @@ def _run_throw(policy: Policy, scene: Scene, throw: Throw, rng, record: bool):
         "success": bool(not err and miss <= scene.catch_radius),
         "miss_m": miss,
         "decision_s": decision,
+        "settled_s": settled,
         "step_ms": 1e3 * float(np.median(steps)) if steps else float("nan"),
         "step_mean_ms": 1e3 * float(np.mean(steps)) if steps else float("nan"),
         "skipped_steps": int(getattr(policy, "n_skipped", 0)),
@@ -851,6 +857,8 @@ def evaluate(policy, n_throws: int = 200, seed: int = 0, **options):
         One row per throw: ``throw``, ``success`` (bool), ``miss_m`` (|effector - ball| at the
         crossing, m; NaN when the policy raised), ``decision_s`` (time of the last target change
         of more than 1 cm), ``step_ms`` (the policy's median control-step time over the throw),
+        ``settled_s`` (the earliest frame time from which every target stayed within the catch
+        radius of the true crossing height; NaN if the last one did not),
         ``step_mean_ms`` (its mean: replanning every few frames puts the cost in the mean),
         ``skipped_steps`` (replans where the model declined this prefix, e.g. too few frames
         with the ball seen; the target was kept),
@@ -911,6 +919,9 @@ def summarise(df) -> dict:
         "ci95_hi": hi,
         "median_miss_m": float(ok.miss_m.median()) if len(ok) else float("nan"),
         "median_lead_s": float((ok.t_cross_s - ok.decision_s).median()) if len(ok) else float("nan"),
+        # how long before the crossing the aim was right for good (0 where it never was)
+        "median_settled_lead_s": float((ok.t_cross_s - ok.settled_s).fillna(0.0).median())
+        if len(ok) else float("nan"),
         "median_step_ms": float(df.step_ms.median()),
         "mean_step_ms": float(df.step_mean_ms.mean()),
         "errors": int((df.error != "").sum()),
@@ -1080,6 +1091,7 @@ def report_section(out_dir) -> list[str]:
                      "95% CI %": f"{100 * s['ci95_lo']:.1f}-{100 * s['ci95_hi']:.1f}",
                      "median miss m": s["median_miss_m"],
                      "median lead s": s["median_lead_s"],
+                     "median settled lead s": s.get("median_settled_lead_s", float("nan")),
                      "median step ms": s["median_step_ms"],
                      "mean step ms": s.get("mean_step_ms", float("nan")), "errors": s["errors"],
                      "seed": s["seed"], "note": s.get("note", "")})
