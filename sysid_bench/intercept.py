@@ -243,8 +243,14 @@ def _first_crossing(times, x, x_catch, t_min):
 def make_throw(scene: Scene, seed: int, index: int, max_attempts: int = 100) -> Throw:
     """Throw ``index`` of the evaluation seeded by ``seed`` (independent of the other throws).
 
-    Draw ``j`` uses ``SeedSequence(seed, spawn_key=(index, j))``; draws are repeated until the
-    ball crosses ``x_catch`` in ``(t_min, t_max]``.
+    Draw ``j`` uses ``SeedSequence(seed, spawn_key=(index, j))`` (parameters, launch, floor,
+    then the camera's nuisances); draws are repeated until the ball crosses ``x_catch`` in
+    ``(t_min, t_max]`` having moved at least ``min_swing`` up and down in the second before.
+
+    Raises
+    ------
+    RuntimeError
+        No acceptable draw in ``max_attempts`` (a scene whose rules almost no throw meets).
     """
     from sysid_bench.datasets import SUBRANGES_TEST
     from sysid_bench.render import render
@@ -279,7 +285,7 @@ def make_throw(scene: Scene, seed: int, index: int, max_attempts: int = 100) -> 
                      states=st, frames=frames, t_cross=t_cross, y_cross=y_cross,
                      n_bounces=n_bounces, attempts=j + 1)
     raise RuntimeError(f"throw {index}: no crossing of x_catch in ({scene.t_min}, {scene.t_max}] s "
-                       f"in {max_attempts} draws; widen t_max")
+                       f"in {max_attempts} draws (min_swing {scene.min_swing} m); widen t_max or lower min_swing")
 
 
 # ---------------------------------------------------------------------------------------------
