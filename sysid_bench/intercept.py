@@ -76,6 +76,9 @@ __all__ = [
     "wilson_interval",
     "crossing_from_forecast",
     "report_section",
+    "write_results",
+    "intercept_figure",
+    "CAMERA_NUISANCE",
     "add_intercept_parser",
     "run_intercept",
 ]
@@ -680,8 +683,9 @@ class Vid2ParamPolicy(_ForecastTarget):
             if "forecast" not in str(exc):
                 raise
             self.est = methods.get("vid2param", **base)
-            self.note = (f"methods.vid2param takes no forecast= option on this version; "
-                         f"the {forecast!r} policy used its default (latent) forecast")
+            if forecast != "latent":  # the default forecast is the latent rollout
+                self.note = (f"methods.vid2param takes no forecast= option on this version; "
+                             f"the {forecast!r} policy used its default (latent) forecast")
         self.stream = self.est.stream()
 
     def reset(self, scene, rng, throw=None):
