@@ -1034,8 +1034,8 @@ def intercept_figure(results: dict, path, draw: str | None = None) -> Path | Non
     ax.invert_yaxis()
     ax.set_xlim(0, 100)
     ax.set_xlabel("throws caught, % (95% Wilson CI)")
-    ax.axvline(77, color="grey", ls=":", lw=1)
-    ax.text(77, len(pols) - 0.5, " paper's PR2", color="grey", fontsize=7, va="bottom")
+    ax.axvline(77, color="grey", ls=":", lw=1, label="paper's PR2 (27/35)")
+    ax.legend(fontsize=7, loc="lower right")
     if trace:
         sc = results[draw].get("scene") or {}
         bt, bx, by = (np.asarray(trace[k]) for k in ("ball_t", "ball_x", "ball_y"))
