@@ -958,6 +958,27 @@ def _slug(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
 
 
+def thin_trace(trace: dict, n_forecasts: int = 12) -> dict:
+    """A throw's trace made small for disk: at most ``n_forecasts`` forecasts, evenly spread
+    (first and last kept), numbers rounded to 1 mm / 1 ms."""
+
+    def rnd(v):
+        if isinstance(v, float):
+            return round(v, 3)
+        if isinstance(v, list):
+            return [rnd(x) for x in v]
+        if isinstance(v, dict):
+            return {k: rnd(x) for k, x in v.items()}
+        return v
+
+    out = dict(trace)
+    fcs = trace.get("forecasts", [])
+    if len(fcs) > n_forecasts:
+        keep = np.unique(np.linspace(0, len(fcs) - 1, n_forecasts).round().astype(int))
+        out["forecasts"] = [fcs[i] for i in keep]
+    return rnd(out)
+
+
 def write_results(df, out_dir, command: str = "") -> tuple[Path, Path]:
     """Write an :func:`evaluate` table and its summary (with the scene and traces).
 
@@ -970,7 +991,7 @@ def write_results(df, out_dir, command: str = "") -> tuple[Path, Path]:
     csv, js = base.with_suffix(".csv"), base.with_suffix(".json")
     _atomic_write(csv, df.to_csv(index=False))
     meta = {"summary": summarise(df), "scene": df.attrs.get("scene"), "command": command,
-            "traces": {str(k): v for k, v in df.attrs.get("traces", {}).items()}}
+            "traces": {str(k): thin_trace(v) for k, v in df.attrs.get("traces", {}).items()}}
     _atomic_write(js, json.dumps(meta, default=float))
     return csv, js
 
