@@ -167,6 +167,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "train": ("sysid_bench.cli", "train a Vid2Param checkpoint (python -m methods.vid2param.train)"),
     "evaluate": ("sysid_bench.cli", "evaluate Vid2Param checkpoints (python -m methods.vid2param.evaluate)"),
     "identify": ("sysid_bench.video", "identify a ball's e, g, d, r frame by frame from a video file"),
+    "intercept": ("sysid_bench.intercept", "the interception task: a policy's success rate over seeded throws"),
 }
 _DELEGATED = {"train", "evaluate"}
 

@@ -253,6 +253,9 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
                 md += ["Cells that failed, failed at some frame counts (`partly failed`: the "
                        "other frame counts are in the tables) or do not apply (`n/a`: the method "
                        "raised NotImplementedError):", "", markdown_table(g), ""]
+        from sysid_bench.intercept import report_section
+
+        md += report_section(out)  # reads the tables `sysid-bench intercept` wrote into out
         md += ["## Where our figures differ from the paper (and where they agree)", ""]
         md += [f"- {s}" for s in readings] or ["_Nothing to compare yet._"]
         md.append("")

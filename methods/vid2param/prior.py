@@ -17,6 +17,8 @@ from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR, simulate
 
 __all__ = ["PhysicsPrior", "NOISE0", "BOUNCE_NOISE0", "physics_step"]
 
+#: Fastest speed component (m/s) the rollout keeps (a noisy particle is held to a real ball's).
+V_CLIP = 25.0
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
 #: Starting per-frame process noise of x, y (m) and vx, vy (m/s); ``PhysicsPrior.log_noise``
@@ -44,6 +46,7 @@ def physics_step(state: np.ndarray, theta: np.ndarray, dt: float) -> np.ndarray:
     s = np.array(state, dtype=np.float64)
     s[:, 0] = np.clip(s[:, 0], 0.0, BOX_WIDTH)
     s[:, 1] = np.clip(s[:, 1], 1e-9, BOX_WIDTH)
+    s[:, 2:] = np.clip(s[:, 2:], -V_CLIP, V_CLIP)
     return simulate(np.clip(theta, _LO, _HI), s, 2, dt)[:, 1]
 
 

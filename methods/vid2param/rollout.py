@@ -29,6 +29,9 @@ _EPS = np.array([1e-4, 1e-4, 1e-4, 1e-4])
 #: window would otherwise claim a certainty the keypoints (~5 mm on 28x28) do not have.
 _MIN_SIGMA = 0.004
 _Y_MIN = 1e-9  # the simulator wants the ball on or above the floor
+#: Fastest speed component (m/s) a state may have: a ball launched at the prior's fastest and
+#: falling the whole box moves at ~19 m/s; a fit of a few noisy frames can claim far more.
+_V_MAX = 25.0
 #: Largest std of the fitted state (m, m, m/s, m/s) in a direction the window leaves open.
 _STATE_CAP = np.array([0.5, 0.5, 1.0, 1.0])
 #: Frames fitted: 1.5 s holds a bounce or a stretch of rolling at any launch speed.
@@ -68,6 +71,7 @@ def _clamp(v: np.ndarray) -> np.ndarray:
     v = v.copy()
     v[..., 0] = np.clip(v[..., 0], 0.0, BOX_WIDTH)
     v[..., 1] = np.clip(v[..., 1], _Y_MIN, BOX_WIDTH)
+    v[..., 2:4] = np.clip(v[..., 2:4], -_V_MAX, _V_MAX)
     v[..., 4:] = np.clip(v[..., 4:], 0.0, 1.0)
     return v
 
@@ -239,6 +243,7 @@ def sample_posterior(fit: StateFit, n_samples: int,
     s0 = v[:, :4].copy()
     s0[:, 0] = np.clip(s0[:, 0], 0.0, BOX_WIDTH)
     s0[:, 1] = np.clip(s0[:, 1], _Y_MIN, BOX_WIDTH)
+    s0[:, 2:] = np.clip(s0[:, 2:], -_V_MAX, _V_MAX)
     return s0, np.clip(v[:, 4:], _LO, _HI)
 
 
