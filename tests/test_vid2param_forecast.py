@@ -40,6 +40,14 @@ def test_fit_state_recovers_the_state_through_bounces_and_walls(state0):
     assert (sd > 0).all() and sd[2] < 0.5
 
 
+def test_fit_state_finds_a_raised_floor_from_a_bounce():
+    states, pos = _track([3.0, 1.5, 4.0, -3.0])
+    raised = pos - [0.0, 0.6]  # heights read above a floor 0.6 m higher than the truth's
+    fit = fit_state(raised, THETA, STD, floor=(0.0, 0.3))
+    assert abs(fit.floor + 0.6) < 0.03
+    assert abs(fit.state0[1] - states[fit.start, 1]) < 0.03
+
+
 def test_fit_state_caps_the_spread_the_window_leaves_open_and_handles_unseen_frames():
     # a ball rolling on the floor: vy is not seen (a hop changes no position to first order)
     states = simulate(THETA[None], np.array([[2.0, 0.0, 3.0, 0.0]]), 40)[0]
@@ -54,8 +62,9 @@ def test_fit_state_caps_the_spread_the_window_leaves_open_and_handles_unseen_fra
 def test_sampled_trajectories_start_at_the_last_frame_and_are_seeded():
     _, pos = _track([2.0, 6.0, 5.0, 3.5])
     fit = fit_state(pos, THETA, STD)
-    a, th = sample_trajectories(fit, len(pos), 20, 16, np.random.default_rng(3))
-    b, _ = sample_trajectories(fit, len(pos), 20, 16, np.random.default_rng(3))
+    a, th, fl = sample_trajectories(fit, len(pos), 20, 16, np.random.default_rng(3))
+    b, _, _ = sample_trajectories(fit, len(pos), 20, 16, np.random.default_rng(3))
+    assert np.abs(fl).max() < 0.05  # the floor's prior is 0 +- 5 mm
     assert a.shape == (16, 21, 4) and th.shape == (16, 4)
     np.testing.assert_array_equal(a, b)
     assert np.abs(a[:, 0, :2].mean(0) - pos[-1]).max() < 0.05

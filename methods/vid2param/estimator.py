@@ -507,14 +507,15 @@ class Vid2Param(Estimator):
         """
         from methods.vid2param.rollout import fit_state, sample_trajectories
 
-        fit = fit_state(pos, th_mu, th_sd, dt=dt)
+        fit = fit_state(pos, th_mu, th_sd, dt=dt, floor=self.floor_prior())
         S = int(self.n_samples)
         physics = self.forecast_mode == "physics"
-        states, theta = sample_trajectories(fit, len(pos), horizon if physics else 0, S,
-                                            self._rng(11), dt)
-        extras = {"state_fit_sigma_m": fit.sigma, "particles": S}
+        states, theta, floor = sample_trajectories(fit, len(pos), horizon if physics else 0, S,
+                                                   self._rng(11), dt)
+        lift = np.stack([np.zeros(S), floor], 1)[:, None, :]  # (S, 1, 2): back to the track's frame
+        extras = {"state_fit_sigma_m": fit.sigma, "particles": S, "floor_m": fit.floor}
         if physics:
-            samples = states[:, 1:, :2]
+            samples = states[:, 1:, :2] + lift
             return samples.mean(0), samples.std(0), samples, {**extras, "n_simulations": S}
         net = self._ensure_net()
         with torch.inference_mode():
@@ -523,8 +524,22 @@ class Vid2Param(Estimator):
             path = net.rollout_physics(phys, th, horizon, dt=dt, sample=False)[0]
             mu, sd, z = (a[..., :2].cpu().numpy().astype(np.float64) for a in net.rollout_physics(
                 phys, th, horizon, dt=dt, generator=self._generator(7)))
-        mean = path[..., :2].cpu().numpy().astype(np.float64).mean(0)
+        mean = (path[..., :2].cpu().numpy().astype(np.float64) + lift).mean(0)
+        mu, z = mu + lift, z + lift
         return mean, np.sqrt((sd**2).mean(0) + mu.var(0)), z, extras
+
+    def floor_prior(self) -> tuple[float, float]:
+        """Prior mean and std (m) of the floor in the network's height frame.
+
+        A network trained with the floor raised by ``U(0, floor_offset)`` (the camera model)
+        cannot see the floor in one frame and reads heights above the floor it expects; the
+        state fit then fits the floor too, from this uniform's spread. Otherwise the floor is
+        the track's zero (5 mm).
+        """
+        self._ensure_net()
+        nuis = (self.checkpoint_info_.get("train") or {}).get("nuisance") or {}
+        spread = float(nuis.get("floor_offset", 0.0)) / np.sqrt(12.0)
+        return 0.0, max(spread, 0.005)
 
     def _forecast_learned_prior(self, frames, horizon: int):
         """The latent rollout of a checkpoint without a physics prior (older ones): the learned

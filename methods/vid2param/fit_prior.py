@@ -103,8 +103,9 @@ def _pool(est, n: int, seed: int, cfg: PriorFitConfig, desc: str) -> dict:
         t0 = int(rng.integers(lo, hi + 1))
         frames = np.asarray(ds.frames[i, :t0])
         pos, th_mu, th_sd, _ = est._track(frames)
-        fit = fit_state(pos, th_mu, th_sd)
-        states, theta = sample_trajectories(fit, t0, 0, cfg.particles, rng)
+        fit = fit_state(pos, th_mu, th_sd, floor=est.floor_prior())
+        # the rollout runs above each draw's floor, as the truths (floor-relative) are
+        states, theta, _ = sample_trajectories(fit, t0, 0, cfg.particles, rng)
         out["phys"].append(states[:, 0])
         out["theta"].append(theta)
         truth = np.asarray(ds.states[i, t0:t0 + cfg.horizon, :2]) - [0.0, fl[i]]

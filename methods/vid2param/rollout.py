@@ -32,6 +32,8 @@ _Y_MIN = 1e-9  # the simulator wants the ball on or above the floor
 #: Fastest speed component (m/s) a state may have: a ball launched at the prior's fastest and
 #: falling the whole box moves at ~19 m/s; a fit of a few noisy frames can claim far more.
 _V_MAX = 25.0
+#: Largest floor offset (m) a fit may find, either way.
+_FLOOR_MAX = 2.0
 #: Largest std of the fitted state (m, m, m/s, m/s) in a direction the window leaves open.
 _STATE_CAP = np.array([0.5, 0.5, 1.0, 1.0])
 #: Frames fitted: 1.5 s holds a bounce or a stretch of rolling at any launch speed.
@@ -50,12 +52,14 @@ class StateFit:
         ``[x, y, vx, vy]`` at frame ``start`` (floor-relative metres, m/s).
     theta : ndarray, shape (4,)
         ``(e, g, d, r)`` at the fit (physical units).
-    cov : ndarray, shape (8, 8)
-        Covariance of ``[state0, theta]`` (Laplace approximation at the fit).
+    cov : ndarray, shape (9, 9)
+        Covariance of ``[state0, theta, floor]`` (Laplace approximation at the fit).
     sigma : float
         RMS residual of the fit (m), at least ``_MIN_SIGMA``.
     n_used : int
         Positions fitted (visible frames of the window).
+    floor : float
+        The floor's height in the positions' frame; ``state0``'s y is above it.
     """
 
     start: int
@@ -64,26 +68,28 @@ class StateFit:
     cov: np.ndarray
     sigma: float
     n_used: int
+    floor: float = 0.0
 
 
 def _clamp(v: np.ndarray) -> np.ndarray:
-    """State and normalised parameters (..., 8) kept where the simulator accepts them."""
+    """State, normalised parameters and floor (..., 9) kept where the simulator accepts them."""
     v = v.copy()
     v[..., 0] = np.clip(v[..., 0], 0.0, BOX_WIDTH)
     v[..., 1] = np.clip(v[..., 1], _Y_MIN, BOX_WIDTH)
     v[..., 2:4] = np.clip(v[..., 2:4], -_V_MAX, _V_MAX)
-    v[..., 4:] = np.clip(v[..., 4:], 0.0, 1.0)
+    v[..., 4:8] = np.clip(v[..., 4:8], 0.0, 1.0)
+    v[..., 8] = np.clip(v[..., 8], -_FLOOR_MAX, _FLOOR_MAX)
     return v
 
 
 def _theta(v: np.ndarray) -> np.ndarray:
-    return _LO + (_HI - _LO) * v[..., 4:]
+    return _LO + (_HI - _LO) * v[..., 4:8]
 
 
-def _starts(p: np.ndarray, valid: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-    """Initial guesses (K, 8): positions and velocities from the first visible frames with the
-    network's parameters, and the same with vx or vy reversed or vy zero (a bounce, a wall or
-    rolling in those frames breaks a difference)."""
+def _starts(p: np.ndarray, valid: np.ndarray, u: np.ndarray, f0: float, dt: float) -> np.ndarray:
+    """Initial guesses (K, 9): positions and velocities from the first visible frames with the
+    network's parameters and the floor's prior mean, and the same with vx or vy reversed or vy
+    zero (a bounce, a wall or rolling in those frames breaks a difference)."""
     idx = np.flatnonzero(valid)
     first = idx[: min(5, len(idx))]
     t = (first - first[0]) * dt
@@ -96,8 +102,8 @@ def _starts(p: np.ndarray, valid: np.ndarray, u: np.ndarray, dt: float) -> np.nd
         vy = float(t @ yy / (t @ t))
     else:
         vx = vy = 0.0
-    base = np.concatenate([[x0, y0, vx, vy], u])
-    flips = np.ones((4, 8))
+    base = np.concatenate([[x0, y0 - f0, vx, vy], u, [f0]])
+    flips = np.ones((4, 9))
     flips[1, 3] = -1.0
     flips[2, 2] = -1.0
     flips[3, 3] = 0.0
@@ -126,7 +132,8 @@ def _window_start(p: np.ndarray, window: int) -> int:
 
 
 def fit_state(positions, theta_mean, theta_std, dt: float = DT, window: int = WINDOW,
-              sigma: float | None = None, iters: int = 10) -> StateFit:
+              sigma: float | None = None, iters: int = 10,
+              floor: tuple[float, float] = (0.0, 0.005)) -> StateFit:
     """MAP state and parameters given the last ``window`` positions and the network's posterior.
 
     Minimises ``sum |sim - pos|^2 / sigma^2 + sum ((u - u_net) / sd_net)^2`` over the state at
@@ -148,6 +155,10 @@ def fit_state(positions, theta_mean, theta_std, dt: float = DT, window: int = WI
     sigma : float, optional
         Position noise (m); default: the RMS residual of a fit with the parameters held,
         at least ``_MIN_SIGMA``.
+    floor : (float, float)
+        Prior mean and std (m) of the floor's height in the positions' frame. A network
+        trained on videos whose floor was raised by an unknown amount reads heights above
+        the floor it expects, so the floor is fitted too (a bounce in the window pins it).
     iters : int
         Levenberg-Marquardt iterations from each of four starting guesses.
 
@@ -166,45 +177,52 @@ def fit_state(positions, theta_mean, theta_std, dt: float = DT, window: int = WI
     w = p[start:]
     valid = np.isfinite(w).all(1)
     n = int(valid.sum())
+    f0, sd_f = float(floor[0]), max(float(floor[1]), 1e-6)
     if n < 3:
         last = w[valid][-1] if n else np.array([BOX_WIDTH / 2, BOX_WIDTH / 2])
-        v = _clamp(np.concatenate([[last[0], last[1], 0.0, 0.0], u_net]))
-        cov = np.diag(np.concatenate([[1.0, 1.0, 16.0, 16.0], sd_net**2]))
-        return StateFit(T - 1, v[:4], _theta(v), cov, 1.0, n)
+        v = _clamp(np.concatenate([[last[0], last[1] - f0, 0.0, 0.0], u_net, [f0]]))
+        cov = np.diag(np.concatenate([[1.0, 1.0, 16.0, 16.0], (sd_net * span) ** 2, [sd_f**2]]))
+        return StateFit(T - 1, v[:4], _theta(v), cov, 1.0, n, float(v[8]))
     W = T - start
     obs = w[valid]  # (n, 2)
     # first the state alone, parameters held at the network's (a bounce early in the window
     # trades the incoming speed against e: fitted jointly from a poor start, e ran to its bound)
-    starts = _starts(w, valid, u_net, dt)
-    held, held_cost, _ = _lm(starts, obs, valid, W, dt, 1.0, u_net, np.full(4, 1e-9), iters)
+    starts = _starts(w, valid, u_net, f0, dt)
+    held, held_cost, _ = _lm(starts, obs, valid, W, dt, 1.0, np.append(u_net, f0),
+                             np.full(5, 1e-9), iters)
     if sigma is None:
         sigma = max(_MIN_SIGMA, float(np.sqrt(held_cost / max(1, 2 * n - 4))))
-    V, cost, J = _lm(np.vstack([held, starts]), obs, valid, W, dt, sigma, u_net, sd_net, iters)
+    V, cost, J = _lm(np.vstack([held, starts]), obs, valid, W, dt, sigma, np.append(u_net, f0),
+                     np.append(sd_net, sd_f), iters)
     # a direction the window does not see (vy of a rolling ball: a small hop changes no
     # position to first order) keeps at most the spread of _STATE_CAP, not an unbounded one
-    cap = np.concatenate([1.0 / _STATE_CAP**2, np.zeros(4)])
-    cov = np.linalg.inv(J.T @ J + np.diag(cap) + 1e-12 * np.eye(8))
-    # the covariance is in (state, u) coordinates: scale u's rows/columns to physical units
-    scale = np.concatenate([np.ones(4), span])
-    return StateFit(start, V[:4], _theta(V), cov * np.outer(scale, scale), float(sigma), n)
+    cap = np.concatenate([1.0 / _STATE_CAP**2, np.zeros(5)])
+    cov = np.linalg.inv(J.T @ J + np.diag(cap) + 1e-12 * np.eye(9))
+    # the covariance is in (state, u, floor) coordinates: u's rows/columns to physical units
+    scale = np.concatenate([np.ones(4), span, [1.0]])
+    return StateFit(start, V[:4], _theta(V), cov * np.outer(scale, scale), float(sigma), n,
+                    float(V[8]))
 
 
-def _lm(V, obs, valid, W, dt, sigma, u_net, sd_net, iters):
-    """Levenberg-Marquardt from each row of ``V`` (K, 8); returns the best (8,), its cost and
-    its whitened Jacobian (n * 2 + 4, 8)."""
+def _lm(V, obs, valid, W, dt, sigma, prior_mean, prior_sd, iters):
+    """Levenberg-Marquardt from each row of ``V`` (K, 9: state, normalised parameters, floor)
+    with the Gaussian prior ``prior_mean``, ``prior_sd`` (5,) on the last five; returns the
+    best (9,), its cost and its whitened Jacobian (n * 2 + 5, 9)."""
     K = len(V)
     lam = np.full(K, 1e-3)
-    eps = np.concatenate([_EPS, np.full(4, 1e-4)])
+    eps = np.concatenate([_EPS, np.full(5, 1e-4)])
+    D = 9
 
-    def residuals(v):  # (M, 8) -> (M, n * 2 + 4), whitened
+    def residuals(v):  # (M, 9) -> (M, n * 2 + 5), whitened
         v = _clamp(v)
-        sim = simulate(_theta(v), v[:, :4], W, dt)
-        pos = (sim[:, valid, :2] - obs).reshape(len(v), -1) / sigma
-        return np.concatenate([pos, (v[:, 4:] - u_net) / sd_net], 1)
+        sim = simulate(_theta(v), v[:, :4], W, dt)[:, valid, :2]
+        sim[..., 1] += v[:, 8:9]  # the simulation's floor is 0; the positions' is v[8]
+        pos = (sim - obs).reshape(len(v), -1) / sigma
+        return np.concatenate([pos, (v[:, 4:] - prior_mean) / prior_sd], 1)
 
-    def jacobian(v, r0):  # (M, n*2+4, 8) by forward differences, one batched simulation
-        pert = (v[:, None, :] + np.diag(eps)[None]).reshape(-1, 8)
-        rp = residuals(pert).reshape(len(v), 8, -1)
+    def jacobian(v, r0):  # (M, n*2+5, 9) by forward differences, one batched simulation
+        pert = (v[:, None, :] + np.diag(eps)[None]).reshape(-1, D)
+        rp = residuals(pert).reshape(len(v), D, -1)
         return np.transpose((rp - r0[:, None, :]) / eps[None, :, None], (0, 2, 1))
 
     r = residuals(V)
@@ -214,7 +232,7 @@ def _lm(V, obs, valid, W, dt, sigma, u_net, sd_net, iters):
         JtJ = np.einsum("kni,knj->kij", J, J)
         g = np.einsum("kni,kn->ki", J, r)
         diag = np.diagonal(JtJ, axis1=1, axis2=2)
-        step = -np.linalg.solve(JtJ + lam[:, None, None] * (np.eye(8) * (diag[:, None, :] + 1e-9)),
+        step = -np.linalg.solve(JtJ + lam[:, None, None] * (np.eye(D) * (diag[:, None, :] + 1e-9)),
                                 g[..., None])[..., 0]
         cand = _clamp(V + step)
         rc = residuals(cand)
@@ -229,26 +247,30 @@ def _lm(V, obs, valid, W, dt, sigma, u_net, sd_net, iters):
 
 
 def sample_posterior(fit: StateFit, n_samples: int,
-                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Joint draws of the window's start state and the parameters from ``N([state0, theta],
-    cov)``; the state is kept in the box and the parameters in the prior.
+                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Joint draws of the window's start state, the parameters and the floor from
+    ``N([state0, theta, floor], cov)``; the state is kept in the box and the parameters in the
+    prior.
 
     Returns
     -------
     state0 : ndarray, shape (n_samples, 4)
+        Heights above each draw's floor.
     theta : ndarray, shape (n_samples, 4)
+    floor : ndarray, shape (n_samples,)
     """
-    L = np.linalg.cholesky(fit.cov + 1e-12 * np.eye(8))
-    v = np.concatenate([fit.state0, fit.theta]) + rng.standard_normal((int(n_samples), 8)) @ L.T
+    L = np.linalg.cholesky(fit.cov + 1e-12 * np.eye(9))
+    mean = np.concatenate([fit.state0, fit.theta, [fit.floor]])
+    v = mean + rng.standard_normal((int(n_samples), 9)) @ L.T
     s0 = v[:, :4].copy()
     s0[:, 0] = np.clip(s0[:, 0], 0.0, BOX_WIDTH)
     s0[:, 1] = np.clip(s0[:, 1], _Y_MIN, BOX_WIDTH)
     s0[:, 2:] = np.clip(s0[:, 2:], -_V_MAX, _V_MAX)
-    return s0, np.clip(v[:, 4:], _LO, _HI)
+    return s0, np.clip(v[:, 4:8], _LO, _HI), v[:, 8]
 
 
 def sample_trajectories(fit: StateFit, n_last: int, horizon: int, n_samples: int,
-                        rng: np.random.Generator, dt: float = DT) -> np.ndarray:
+                        rng: np.random.Generator, dt: float = DT):
     """States of frames ``n_last - 1`` to ``n_last + horizon - 1`` for posterior draws.
 
     Each draw (``sample_posterior``) is simulated from the window's start: frame 0 of the
@@ -256,10 +278,13 @@ def sample_trajectories(fit: StateFit, n_last: int, horizon: int, n_samples: int
 
     Returns
     -------
-    ndarray, shape (n_samples, horizon + 1, 4)
-        Floor-relative metres and m/s.
+    states : ndarray, shape (n_samples, horizon + 1, 4)
+        Metres and m/s, heights above each draw's floor.
+    theta : ndarray, shape (n_samples, 4)
+    floor : ndarray, shape (n_samples,)
+        Each draw's floor in the positions' frame (add it to the heights).
     """
-    s0, th = sample_posterior(fit, n_samples, rng)
+    s0, th, fl = sample_posterior(fit, n_samples, rng)
     lead = n_last - fit.start  # frames from the window's start to the first forecast frame
     sim = simulate(th, s0, lead + int(horizon), dt)
-    return sim[:, lead - 1:], th
+    return sim[:, lead - 1:], th, fl
