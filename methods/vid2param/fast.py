@@ -1,0 +1,496 @@
+"""Fast inference paths of the Vid2Param network (same numbers as ``model.py``, fewer calls).
+
+Two paths, both read-only users of a loaded :class:`~methods.vid2param.model.Vid2ParamNet`:
+
+``FrameFilter``
+    One frame at a time in plain NumPy (float32, as the network): what
+    :meth:`Vid2ParamStream.push <methods.vid2param.estimator.Vid2ParamStream.push>` runs when the
+    network is on the CPU. The weights are copied once into contiguous arrays, the two stride-2
+    convolutions and the keypoint convolution are one index gather and one matrix product each,
+    the LSTM's two products are one, and the recurrent state stays NumPy arrays between frames.
+    Why: a push through the torch modules is ~60 small torch calls (module dispatch, tensor
+    allocation, ``inference_mode`` bookkeeping), each a few microseconds; the arithmetic of one
+    frame is ~0.4 M multiply-adds, tens of microseconds.
+
+``encode_frames_batch``
+    The frame encoder over many frames at once in torch, used by
+    :meth:`Vid2ParamNet.filter <methods.vid2param.model.Vid2ParamNet.filter>` without gradients
+    (see :func:`filter_batch`). The keypoint centres become one matrix product of the heat maps with
+    a ``[1, column, row]`` grid instead of a normalise-then-product over a copy of every map.
+
+Agreement with the torch modules is tested over whole videos (``tests/test_vid2param_fast.py``):
+the float32 rounding differs (sums in another order), nothing else.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from methods.vid2param import model as _model
+
+__all__ = ["FrameFilter", "Unsupported", "fast_support", "encode_frames_batch", "filter_batch"]
+
+_F32 = np.float32
+#: smallest horizontal step (normalised units per frame) of a rolling frame, as in
+#: ``Vid2ParamNet._roll_stats``
+_ROLL_STEP = 0.002
+
+
+class Unsupported(ValueError):
+    """The network has a part the fast path does not implement (the torch path is used)."""
+
+
+def _np(t: torch.Tensor, dtype=np.float32) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy().astype(dtype))
+
+
+def _conv_index(c: int, h: int, w: int, k: int, s: int, p: int) -> tuple[np.ndarray, int, int]:
+    """Gather index for im2col of a (c, h, w) input zero-padded by ``p`` on each side.
+
+    Returns
+    -------
+    idx : ndarray of intp, shape (c * k * k, ho * wo)
+        Flat indices into the padded (c, h + 2p, w + 2p) buffer; rows in torch's unfold order
+        (channel, kernel row, kernel column).
+    ho, wo : int
+        Output size.
+    """
+    hp, wp = h + 2 * p, w + 2 * p
+    ho, wo = (hp - k) // s + 1, (wp - k) // s + 1
+    ch, ki, kj = np.meshgrid(np.arange(c), np.arange(k), np.arange(k), indexing="ij")
+    oi, oj = np.meshgrid(np.arange(ho), np.arange(wo), indexing="ij")
+    rows = (ch * hp * wp + ki * wp + kj).reshape(-1, 1)
+    cols = (oi * s * wp + oj * s).reshape(1, -1)
+    return (rows + cols).astype(np.intp), ho, wo
+
+
+class _Conv:
+    """One Conv2d (+ optional ReLU) on a single (C, H, W) image as gather + matrix product."""
+
+    def __init__(self, conv: nn.Conv2d, c: int, h: int, w: int, relu: bool, dtype):
+        k, s, p = conv.kernel_size[0], conv.stride[0], conv.padding[0]
+        if (conv.kernel_size[0] != conv.kernel_size[1] or conv.stride[0] != conv.stride[1]
+                or conv.padding[0] != conv.padding[1] or conv.groups != 1
+                or conv.dilation != (1, 1) or conv.bias is None or conv.padding_mode != "zeros"):
+            raise Unsupported(f"conv: only square, ungrouped, biased zero-padded convolutions, got {conv}")
+        self.p = p
+        self.idx, self.ho, self.wo = _conv_index(c, h, w, k, s, p)
+        self.w = _np(conv.weight, dtype).reshape(conv.out_channels, -1)
+        self.b = _np(conv.bias, dtype)[:, None]
+        self.relu = relu
+        self.out_c = conv.out_channels
+        self.buf = np.zeros((c, h + 2 * p, w + 2 * p), dtype)  # padding stays 0
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """(C, H, W) -> (out_c, ho * wo)."""
+        p = self.p
+        if p:
+            self.buf[:, p:-p, p:-p] = x
+            flat = self.buf.reshape(-1)
+        else:
+            flat = np.ascontiguousarray(x).reshape(-1)
+        y = self.w @ flat[self.idx]
+        y += self.b
+        if self.relu:
+            np.maximum(y, 0, out=y)
+        return y
+
+
+def _conv_stack(module: nn.Module, c: int, h: int, w: int, dtype) -> list[_Conv]:
+    """``_Conv``s for a Conv2d or a Sequential of Conv2d, each optionally followed by ReLU."""
+    mods = list(module) if isinstance(module, nn.Sequential) else [module]
+    out: list[_Conv] = []
+    i = 0
+    while i < len(mods):
+        m = mods[i]
+        if not isinstance(m, nn.Conv2d):
+            raise Unsupported(f"conv: expected Conv2d then ReLU, got {type(m).__name__}")
+        relu = i + 1 < len(mods) and isinstance(mods[i + 1], nn.ReLU)
+        layer = _Conv(m, c, h, w, relu, dtype)
+        out.append(layer)
+        c, h, w = layer.out_c, layer.ho, layer.wo
+        i += 2 if relu else 1
+    return out
+
+
+def _linear(m: nn.Module, dtype=np.float32) -> tuple[np.ndarray, np.ndarray]:
+    if not isinstance(m, nn.Linear) or m.bias is None:
+        raise Unsupported(f"linear: expected a biased nn.Linear, got {m}")
+    return _np(m.weight, dtype), _np(m.bias, dtype)
+
+
+def _mlp(seq: nn.Module, pattern: tuple[str, ...], dtype=np.float32):
+    """Weights of a Sequential whose layer types follow ``pattern`` ("L" Linear, "R" ReLU)."""
+    mods = list(seq) if isinstance(seq, nn.Sequential) else []
+    kinds = tuple("L" if isinstance(m, nn.Linear) else "R" if isinstance(m, nn.ReLU)
+                  else "F" if isinstance(m, nn.Flatten) else "?" for m in mods)
+    if kinds != pattern:
+        raise Unsupported(f"mlp: expected layers {pattern}, got {kinds}")
+    return [_linear(m, dtype) for m in mods if isinstance(m, nn.Linear)]
+
+
+def fast_support(net: nn.Module) -> str | None:
+    """Why ``net`` cannot run on the fast paths, or None when it can."""
+    try:
+        FrameFilter(net)
+    except Unsupported as exc:
+        return str(exc)
+    return None
+
+
+class FrameFilter:
+    """The network's filter for one video, one frame per call, in NumPy.
+
+    ``step(frame)`` is ``enc_step(encode_frames(frame), read(state))`` then
+    ``step_rnn(mu, state)`` of :class:`~methods.vid2param.model.Vid2ParamNet` for a batch of one,
+    with the state kept here. The weights are copied at construction: build a new one (or call
+    :meth:`reload`) after changing the network's weights.
+
+    How it saves time: every vector lives in a buffer allocated once, laid out so that each
+    layer's input is one contiguous slice ending in a constant 1 -- the bias is the weight
+    matrix's last column, so a layer is one matrix product and one in-place ReLU; the LSTM
+    state ``[h, c]`` sits inside the encoder head's input, where it is read.
+
+    Parameters
+    ----------
+    net : Vid2ParamNet
+        Any device; its weights are copied to host memory.
+    dtype : {numpy.float32, numpy.float64}
+        Working precision. float32 is the network's own (and the fast one); float64 evaluates
+        the same float32 weights without rounding in between, a reference for tests: the
+        network's second-difference feature multiplies position rounding by 400, so two float32
+        evaluations (torch's batched and single-frame ones included) drift apart by ~1e-4 over
+        a video.
+
+    Raises
+    ------
+    Unsupported
+        A part of ``net`` this path does not implement (checked at construction): it covers
+        one LSTM layer, ``read_cell``, ``diff_features``, keypoints with the x, y map and no
+        ``pixel_skip`` -- both shipped configurations.
+    """
+
+    def __init__(self, net: nn.Module, dtype=np.float32):
+        if np.dtype(dtype) not in (np.dtype(np.float32), np.dtype(np.float64)):
+            raise ValueError(f"dtype: expected numpy.float32 or numpy.float64, got {dtype!r}")
+        self.F = np.dtype(dtype).type
+        self.net = net
+        self.reload()
+        self.reset()
+
+    # -- weights --------------------------------------------------------------------------------
+    def reload(self) -> None:
+        """Copy the network's weights (again) and lay out the buffers."""
+        net, F = self.net, self.F
+        try:
+            c = net.config
+            need = {"layers == 1": c.layers == 1, "read_cell": c.read_cell,
+                    "diff_features": c.diff_features, "keypoints >= 1": c.keypoints >= 1,
+                    "no pixel_skip": not c.pixel_skip and net.skip is None,
+                    "x, y targets": net.kp_pos is not None}
+            missing = [k for k, ok in need.items() if not ok]
+            if missing:
+                raise Unsupported(f"config: the NumPy path needs {missing}")
+            self.c = c
+            H, W = c.frame_size
+            self.H, self.W, self.pool = H, W, c.pool
+            Hp, Wp = H // c.pool, W // c.pool
+            self.convs = _conv_stack(net.conv, 1, Hp, Wp, F)
+            if not all(cv.relu and cv.p >= 1 for cv in self.convs) or self.convs[0].p != 1:
+                raise Unsupported("conv: expected padding 1 first, padding >= 1 and a ReLU "
+                                  "after each layer")
+            for cv in self.convs:  # bias as the last weight column, read from a constant 1
+                cv.w = np.ascontiguousarray(np.concatenate([cv.w, cv.b], 1))
+                cv.idx = np.concatenate([cv.idx, np.full((1, cv.idx.shape[1]), cv.buf.size)])
+                cv.flat = np.zeros(cv.buf.size + 1, F)
+                cv.flat[-1] = 1
+                cv.buf = cv.flat[:-1].reshape(cv.buf.shape)  # padding stays 0
+            K = self.K = int(c.keypoints)
+            self.kp = _conv_stack(net.kp, 1, Hp, Wp, F)[0] if net.kp is not None else None
+            if self.kp is not None and (self.kp.relu or self.kp.p != 1):
+                raise Unsupported("kp: expected a bare Conv2d with padding 1")
+            # (H W, 2) and (Hp Wp, 2) pixel centres, float64 (see encode)
+            self.grid64 = net._grid.detach().cpu().double().numpy().T.copy()
+            self.grid_pool64 = net._grid_pool.detach().cpu().double().numpy().T.copy()
+            wx, bx = _mlp(net.phi_x, ("F", "L", "R"), F)[0]
+            self.phi_x = np.ascontiguousarray(np.concatenate([wx, bx[:, None]], 1))
+            n_conv = wx.shape[1]
+            self.conv_out = np.zeros(n_conv + 1, F)  # last conv's output, then 1
+            self.conv_out[-1] = 1
+            self.kp_pos = _linear(net.kp_pos, F)
+            self.kp_gate = F(net.kp_gate.item())
+            self.ix, self.iy = c.targets.index("x"), c.targets.index("y")
+            self.vis = bool(c.kp_visibility)
+            self.log_mref = F(net._log_mref) if self.vis else F(0)
+            Z, hid, feat = int(c.latent), int(c.hidden), int(c.feat)
+            self.Z, self.hidden = Z, hid
+            # encoder head input: [phi_x (feat), centres (2K), log masses (K), h, c, roll (0|2), 1]
+            self.roll = bool(c.roll_features)
+            n_fx = feat + 3 * K
+            self.sl_fx = slice(0, n_fx)
+            self.sl_kp = slice(feat, n_fx)
+            self.sl_h = slice(n_fx, n_fx + hid)
+            self.sl_c = slice(n_fx + hid, n_fx + 2 * hid)
+            self.i_roll = n_fx + 2 * hid  # roll features at i_roll, i_roll + 1
+            self.enc_in = np.zeros(n_fx + 2 * hid + (2 if self.roll else 0) + 1, F)
+            self.enc_in[-1] = 1
+            (w1, b1), (w2, b2) = _mlp(net.enc, ("L", "R", "L"), F)
+            if w1.shape[1] != self.enc_in.size - 1:
+                raise Unsupported(f"enc: expected {self.enc_in.size - 1} inputs, got {w1.shape[1]}")
+            self.enc1 = np.ascontiguousarray(np.concatenate([w1, b1[:, None]], 1))
+            self.enc2 = np.ascontiguousarray(np.concatenate([w2, b2[:, None]], 1))
+            self.enc_hid = np.zeros(w1.shape[0] + 1, F)
+            self.enc_hid[-1] = 1
+            wz, bz = _mlp(net.phi_z, ("L", "R"), F)[0]
+            self.phi_z = np.ascontiguousarray(np.concatenate([wz, bz[:, None]], 1))
+            self.z_in = np.zeros(Z + 1, F)
+            self.z_in[-1] = 1
+            cell = net.cells[0]
+            if not isinstance(cell, nn.LSTMCell) or cell.bias is False:
+                raise Unsupported(f"cells: expected a biased nn.LSTMCell, got {cell}")
+            # LSTM input: [phi_z (feat), velocity (2), acceleration (2), h, 1]; one product
+            # [W_ih | W_hh | b_ih + b_hh] instead of two. The i, f, o rows are halved (exact in
+            # binary) so that one tanh gives all four gates: sigmoid(x) = (1 + tanh(x / 2)) / 2.
+            wl = np.concatenate([_np(cell.weight_ih, F), _np(cell.weight_hh, F),
+                                 (_np(cell.bias_ih, F) + _np(cell.bias_hh, F))[:, None]], 1)
+            if wl.shape[1] != feat + 4 + hid + 1:
+                raise Unsupported(f"cells: expected {feat + 4} inputs, got {wl.shape[1] - hid - 1}")
+            wl[:2 * hid] *= F(0.5)
+            wl[3 * hid:] *= F(0.5)
+            self.lstm = np.ascontiguousarray(wl)
+            self.lstm_in = np.zeros(wl.shape[1], F)
+            self.lstm_in[-1] = 1
+            self.sl_feat = slice(0, feat)
+            self.sl_lh = slice(feat + 4, feat + 4 + hid)
+            self.gates = np.zeros(4 * hid, F)
+            self.tmp_h = np.zeros(hid, F)
+            self.pos_idx = [int(i) for i in net._pos_idx]
+            if self.roll:
+                self.r_idx = int(net._r_idx)
+                self.roll_scale = F(net.roll_scale.item())
+                self.roll_bias = F(net.roll_bias.item())
+                self.roll_half = np.exp(F(net.roll_log_half.item()))
+                self.roll_std = np.exp(F(net.roll_log_std.item()))
+        except AttributeError as exc:  # a network built differently from what this path knows
+            raise Unsupported(f"net: {exc}") from exc
+
+    # -- state ----------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Zero state (no frame seen)."""
+        F = self.F
+        self.enc_in[self.sl_h] = 0
+        self.enc_in[self.sl_c] = 0
+        self.pos = np.zeros(2, F)
+        self.vel = np.zeros(2, F)
+        self.n = F(0)
+        self.stats = np.zeros(3, F)  # low-frame run, rolling frames, summed deceleration
+        self._set_roll_features()
+
+    def torch_state(self, device=None) -> list[tuple[torch.Tensor, ...]]:
+        """The state in ``Vid2ParamNet``'s layout (batch of one, float32)."""
+        t = lambda a: torch.tensor(np.asarray(a, np.float32).reshape(1, -1), device=device)  # noqa: E731
+        last = (t(self.enc_in[self.sl_h]), t(self.enc_in[self.sl_c]), t(self.pos), t(self.vel),
+                t(self.n))
+        return [(*last, t(self.stats)) if self.roll else last]
+
+    def set_torch_state(self, state) -> None:
+        """Take the state from ``Vid2ParamNet``'s layout (batch of one)."""
+        F = self.F
+        a = lambda x: x.detach().to("cpu", torch.float64).numpy().reshape(-1).astype(F)  # noqa: E731
+        if len(state) != 1 or len(state[0]) != (6 if self.roll else 5):
+            raise ValueError("state: expected one layer's (h, c, pos, vel, n[, stats]) tuple, "
+                             f"got {len(state)} layers")
+        last = state[0]
+        self.enc_in[self.sl_h], self.enc_in[self.sl_c] = a(last[0]), a(last[1])
+        self.pos, self.vel, self.n = a(last[2]), a(last[3]), F(a(last[4])[0])
+        if self.roll:
+            self.stats = a(last[5])
+        self._set_roll_features()
+
+    def _set_roll_features(self) -> None:
+        """``Vid2ParamNet.read``'s rolling mean and count features from ``stats``."""
+        if not self.roll:
+            return
+        F, s = self.F, self.stats
+        g = F(_model.ROLL_GAIN)
+        mean = min(max(s[2] / max(s[1], F(1.0)) / F(_model._R_TOP), F(-2)), F(2))
+        self.enc_in[self.i_roll] = g * mean
+        self.enc_in[self.i_roll + 1] = g * (s[1] / (s[1] + F(10.0)))
+
+    # -- the network, one frame -----------------------------------------------------------------
+    def encode(self, frame: np.ndarray) -> np.ndarray:
+        """``encode_frames`` of one (H, W) frame (uint8 or float in [0, 255]), written into the
+        encoder head's input; returns that slice (n_fx,) (a view: copy to keep it)."""
+        F, ei = self.F, self.enc_in
+        full = np.divide(frame, F(255.0), dtype=F)
+        x = full
+        if self.pool > 1:
+            p = self.pool
+            x = full.reshape(self.H // p, p, self.W // p, p).sum((1, 3)) / F(p * p)
+        conv0 = self.convs[0]
+        conv0.buf[0, 1:-1, 1:-1] = x
+        for i, conv in enumerate(self.convs):
+            y = conv.w @ conv.flat[conv.idx]  # (out_c, ho wo), bias included
+            np.maximum(y, 0, out=y)
+            if i + 1 == len(self.convs):
+                self.conv_out[:-1] = y.reshape(-1)
+            else:
+                nxt = self.convs[i + 1]
+                p = nxt.p
+                nxt.buf[:, p:-p, p:-p] = y.reshape(conv.out_c, conv.ho, conv.wo)
+        np.matmul(self.phi_x, self.conv_out, out=ei[self.sl_feat])
+        np.maximum(ei[self.sl_feat], 0, out=ei[self.sl_feat])
+        # The centres are sums over thousands of pixels: float64 here, as float32 dot products
+        # put ~1e-5 into the fed-back position, which the second-difference feature multiplies
+        # by 400 (measured on the camera model: 5x torch's own deviation from a float64 run).
+        K, t = self.K, self.c.kp_threshold
+        heat0 = (np.maximum(full - F(t), 0) if t else full).reshape(-1) + F(1e-6)
+        m0 = heat0.sum()
+        kp = ei[self.sl_kp]
+        kp[:2] = heat0 @ self.grid64 / np.float64(m0)
+        kp[2 * K] = np.log(m0)
+        if self.kp is not None:
+            # the same zero-padded frame as the first conv's (both pad by 1)
+            heat = self.kp.w @ conv0.flat[self.kp.idx]  # (K - 1, Hp Wp)
+            heat += self.kp.b
+            np.maximum(heat, 0, out=heat)
+            heat += F(1e-6)
+            m = heat.sum(1)
+            kp[2:2 * K] = (heat @ self.grid_pool64 / m[:, None].astype(np.float64)).reshape(-1)
+            kp[2 * K + 1:] = np.log(m)
+        return ei[self.sl_fx]
+
+    def enc_step(self) -> tuple[np.ndarray, np.ndarray]:
+        """Encoder head on the buffer (frame features and state) -> mu, std, each (Z,)."""
+        F, Z, ei = self.F, self.Z, self.enc_in
+        hb = self.enc_hid
+        np.matmul(self.enc1, ei, out=hb[:-1])
+        np.maximum(hb[:-1], 0, out=hb[:-1])
+        raw = self.enc2 @ hb
+        mu = raw[:Z]
+        # torch's softplus (threshold 20) to within an ulp
+        std = np.logaddexp(F(0), raw[Z:])
+        std += F(_model._MIN_STD)
+        K = self.K
+        kp = self.kp_pos[0] @ ei[self.sl_kp] + self.kp_pos[1]
+        ix, iy, g = self.ix, self.iy, self.kp_gate
+        if self.vis:
+            v = F(1) / (F(1) + np.exp(-(F(4.0) * (ei[self.sl_kp][2 * K] - self.log_mref))))
+            mu[ix] = v * (kp[0] + g * mu[ix]) + (F(1) - v) * mu[ix]
+            mu[iy] = v * (kp[1] + g * mu[iy]) + (F(1) - v) * mu[iy]
+        else:
+            mu[ix] = mu[ix] * g + kp[0]
+            mu[iy] = mu[iy] * g + kp[1]
+        if self.roll:
+            gain = F(_model.ROLL_GAIN)
+            f0, c = ei[self.i_roll] / gain, ei[self.i_roll + 1] / gain
+            v = F(10.0) * c / (F(10.0) * c + self.roll_half * (F(1) - c))
+            i = self.r_idx
+            mu[i] = (F(1) - v) * mu[i] + v * (self.roll_scale * f0 + self.roll_bias)
+            std[i] = (F(1) - v) * std[i] + v * self.roll_std
+        return mu, std
+
+    def step_rnn(self, z: np.ndarray) -> None:
+        """Advance the state with the fed-back z (Z,)."""
+        F, li, hid, ei = self.F, self.lstm_in, self.hidden, self.enc_in
+        self.z_in[:-1] = z
+        np.matmul(self.phi_z, self.z_in, out=li[self.sl_feat])
+        np.maximum(li[self.sl_feat], 0, out=li[self.sl_feat])
+        n = self.n
+        pos = np.array([z[self.pos_idx[0]], z[self.pos_idx[1]]])
+        vel = (pos - self.pos) * F(10.0) if n >= 1 else np.zeros(2, F)
+        acc = (vel - self.vel) * F(40.0) if n >= 2 else np.zeros(2, F)
+        f = self.sl_feat.stop
+        li[f:f + 2] = np.minimum(np.maximum(vel, F(-5)), F(5))
+        li[f + 2:f + 4] = np.minimum(np.maximum(acc, F(-10)), F(10))
+        li[self.sl_lh] = ei[self.sl_h]
+        g = self.gates
+        np.matmul(self.lstm, li, out=g)
+        np.tanh(g, out=g)
+        sg = g[:2 * hid]  # tanh(x/2) of the input and forget gates -> sigmoid(x)
+        sg *= F(0.5)
+        sg += F(0.5)
+        so = g[3 * hid:]
+        so *= F(0.5)
+        so += F(0.5)
+        c = ei[self.sl_c]
+        c *= g[hid:2 * hid]
+        c += g[:hid] * g[2 * hid:3 * hid]
+        np.tanh(c, out=self.tmp_h)
+        np.multiply(so, self.tmp_h, out=ei[self.sl_h])
+        if self.roll:
+            self.stats = self._roll_stats(pos, vel, self.vel, n, self.stats)
+            self._set_roll_features()
+        self.pos, self.vel, self.n = pos, vel, min(n + F(1), F(2.0))
+
+    def _roll_stats(self, pos, vel, vel_prev, n, stats) -> np.ndarray:
+        """``Vid2ParamNet._roll_stats`` for one frame (scalars of the working precision)."""
+        M, F = _model, self.F
+        low = min(stats[0] + F(1) if pos[1] * F(M.BOX_WIDTH) < M.ROLL_HEIGHT else F(0), F(3.0))
+        vx, vxp = vel[0], vel_prev[0]
+        dec = -np.sign(vx) * (vx - vxp) / F(M.DT**2)
+        x = pos[0] * F(M.BOX_WIDTH)
+        ok = (low >= 3 and n >= 2 and abs(vx) > _ROLL_STEP and abs(vxp) > _ROLL_STEP
+              and vx * vxp > 0 and abs(dec) < M.ROLL_DEC_MAX
+              and x > M.ROLL_WALL and x < M.BOX_WIDTH - M.ROLL_WALL)
+        ok = F(1.0 if ok else 0.0)
+        return np.array([low, stats[1] + ok, stats[2] + ok * dec], F)
+
+    def step(self, frame: np.ndarray, eps: np.ndarray | None = None,
+             noise: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """One frame: the encoder's posterior given it and the frames before, then the state
+        update (``Vid2ParamNet.filter`` for a batch of one).
+
+        Parameters
+        ----------
+        frame : ndarray, shape (H, W)
+            uint8, or float in [0, 255].
+        eps : ndarray, shape (Z,), optional
+            Standard normal noise; with ``noise > 0`` the LSTM is fed ``mu + noise * std * eps``
+            (``Vid2ParamNet.filter`` with ``sample=True``), else ``mu``.
+        noise : float
+            ``config.recur_noise``.
+
+        Returns
+        -------
+        mu, std : ndarray, shape (Z,)
+            Normalised units, as ``enc_step``; fresh arrays.
+        """
+        self.encode(frame)
+        mu, std = self.enc_step()
+        if eps is not None and noise > 0:
+            self.step_rnn(mu + self.F(noise) * std * np.asarray(eps, self.F))
+        else:
+            self.step_rnn(mu)
+        return mu, std
+
+
+def _weights_version(net: nn.Module) -> tuple[int, ...]:
+    """Changes whenever a parameter or buffer is modified in place (optimiser steps,
+    ``load_state_dict``) or replaced."""
+    return tuple((id(t), t._version) for t in (*net.parameters(), *net.buffers()))
+
+
+def frame_filter_for(net: nn.Module, device, previous: FrameFilter | None = None):
+    """A reset :class:`FrameFilter` for ``net``, or None where the torch modules must run.
+
+    None when ``device`` is not the CPU (the weights stay on the accelerator) or when the
+    network has a part the NumPy path does not implement. ``previous`` (a filter of the same
+    network) is reused when no weight has changed since it copied them.
+    """
+    if torch.device(device).type != "cpu":
+        return None
+    version = _weights_version(net)
+    if previous is not None and previous.net is net and previous.version == version:
+        previous.reset()
+        return previous
+    try:
+        ff = FrameFilter(net)
+    except Unsupported:
+        return None
+    ff.version = version
+    return ff
