@@ -226,10 +226,25 @@ class Vid2Param(Estimator):
 
     # -- posterior assembly ---------------------------------------------------------------------
     def _posterior(self, mu_n: np.ndarray, sd_n: np.ndarray, extras: dict,
-                   rng: np.random.Generator) -> Posterior:
-        """Posterior from normalised mean/std (4,) of (e, g, d, r)."""
+                   rng: np.random.Generator | None = None, key=None) -> Posterior:
+        """Posterior from normalised mean/std (4,) of (e, g, d, r).
+
+        Samples come from ``rng``, or, with ``key`` (a tuple of ints), are drawn when first
+        read from their own stream ``default_rng([seed, *key])`` (``fast.LazyPosterior``).
+        """
         mean = _LO + _SPAN * mu_n
         std = _SPAN * sd_n
+        if key is not None:
+            from methods.vid2param.fast import LazyPosterior
+
+            extras = {"n_simulations": 0, "normalised_mean": mu_n.copy(),
+                      "normalised_std": sd_n.copy(), **extras}
+            clipped = np.minimum(np.maximum(mean, _LO), _HI) if self.clip else mean
+            if not self.n_samples:
+                return Posterior(mean=clipped, std=std, samples=None, extras=extras)
+            return LazyPosterior(clipped, std, extras, loc=mean, seed=(int(self.seed), *key),
+                                 n_samples=int(self.n_samples),
+                                 bounds=(_LO, _HI) if self.clip else None)
         samples = None
         if self.n_samples:
             samples = mean + std * rng.standard_normal((int(self.n_samples), len(PARAMS)))
@@ -328,10 +343,10 @@ class Vid2Param(Estimator):
             if n > T:
                 raise ValueError(f"lengths: expected values <= {T}, got {n}")
         mu, sd, wall = self._run(frames[None])
-        rng = self._rng()
+        # samples keyed by the prefix length: the same noise as a stream's after n frames
         return [
             self._posterior(mu[0, n - 1], sd[0, n - 1],
-                            {"wall_s": wall * n / T, "n_frames": n}, rng)
+                            {"wall_s": wall * n / T, "n_frames": n}, key=(0, n))
             for n in lengths
         ]
 
@@ -541,10 +556,9 @@ class Vid2ParamStream(Stream):
         self._fast = frame_filter_for(self.net, self.est.device_, self._fast)
         self._state = None if self._fast is not None else self.net.init_state(1, self.est.device_)
         self.n = 0
-        # same noise streams as identify(): pushing a video frame by frame gives exactly
-        # identify()'s posteriors on its prefixes
+        # same noise streams as identify(): the recurrence's noise from the same generator,
+        # each posterior's samples keyed by its frame count (drawn when read)
         self.gen = self.est._generator(0)
-        self.rng = self.est._rng(0)
 
     @property
     def state(self):
@@ -587,4 +601,5 @@ class Vid2ParamStream(Stream):
                 sd_n = sd[0, self.idx].cpu().numpy().astype(np.float64) * self.est.std_scale_
         self.n += 1
         wall = time.perf_counter() - t0
-        return self.est._posterior(mu_n, sd_n, {"wall_s": wall, "n_frames": self.n}, self.rng)
+        return self.est._posterior(mu_n, sd_n, {"wall_s": wall, "n_frames": self.n},
+                                   key=(0, self.n))

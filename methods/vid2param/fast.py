@@ -31,8 +31,10 @@ import torch
 from torch import nn
 
 from methods.vid2param import model as _model
+from sysid_bench.estimator import Posterior
 
-__all__ = ["FrameFilter", "Unsupported", "fast_support", "encode_frames_batch", "filter_batch"]
+__all__ = ["FrameFilter", "LazyPosterior", "Unsupported", "fast_support", "frame_filter_for",
+           "encode_frames_batch", "filter_batch"]
 
 _F32 = np.float32
 #: smallest horizontal step (normalised units per frame) of a rolling frame, as in
@@ -48,59 +50,53 @@ def _np(t: torch.Tensor, dtype=np.float32) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy().astype(dtype))
 
 
-def _conv_index(c: int, h: int, w: int, k: int, s: int, p: int) -> tuple[np.ndarray, int, int]:
-    """Gather index for im2col of a (c, h, w) input zero-padded by ``p`` on each side.
-
-    Returns
-    -------
-    idx : ndarray of intp, shape (c * k * k, ho * wo)
-        Flat indices into the padded (c, h + 2p, w + 2p) buffer; rows in torch's unfold order
-        (channel, kernel row, kernel column).
-    ho, wo : int
-        Output size.
-    """
-    hp, wp = h + 2 * p, w + 2 * p
-    ho, wo = (hp - k) // s + 1, (wp - k) // s + 1
-    ch, ki, kj = np.meshgrid(np.arange(c), np.arange(k), np.arange(k), indexing="ij")
-    oi, oj = np.meshgrid(np.arange(ho), np.arange(wo), indexing="ij")
-    rows = (ch * hp * wp + ki * wp + kj).reshape(-1, 1)
-    cols = (oi * s * wp + oj * s).reshape(1, -1)
-    return (rows + cols).astype(np.intp), ho, wo
-
-
 class _Conv:
-    """One Conv2d (+ optional ReLU) on a single (C, H, W) image as gather + matrix product."""
+    """One Conv2d (+ optional ReLU) on a single (C, H, W) image: im2col as one strided copy
+    into a buffer whose last row is ones, then one matrix product with ``[W | b]``.
 
-    def __init__(self, conv: nn.Conv2d, c: int, h: int, w: int, relu: bool, dtype):
+    The zero-padded input lives in ``buf`` (padding stays 0; write the interior, ``inner``);
+    ``buf`` may be shared with another convolution of the same input and padding.
+    """
+
+    def __init__(self, conv: nn.Conv2d, c: int, h: int, w: int, relu: bool, dtype,
+                 buf: np.ndarray | None = None):
         k, s, p = conv.kernel_size[0], conv.stride[0], conv.padding[0]
         if (conv.kernel_size[0] != conv.kernel_size[1] or conv.stride[0] != conv.stride[1]
                 or conv.padding[0] != conv.padding[1] or conv.groups != 1
-                or conv.dilation != (1, 1) or conv.bias is None or conv.padding_mode != "zeros"):
-            raise Unsupported(f"conv: only square, ungrouped, biased zero-padded convolutions, got {conv}")
-        self.p = p
-        self.idx, self.ho, self.wo = _conv_index(c, h, w, k, s, p)
-        self.w = _np(conv.weight, dtype).reshape(conv.out_channels, -1)
-        self.b = _np(conv.bias, dtype)[:, None]
-        self.relu = relu
-        self.out_c = conv.out_channels
-        self.buf = np.zeros((c, h + 2 * p, w + 2 * p), dtype)  # padding stays 0
+                or conv.dilation != (1, 1) or conv.bias is None or conv.padding_mode != "zeros"
+                or p < 1):
+            raise Unsupported("conv: only square, ungrouped, biased convolutions with zero "
+                              f"padding >= 1, got {conv}")
+        self.p, self.relu, self.out_c = p, relu, conv.out_channels
+        hp, wp = h + 2 * p, w + 2 * p
+        self.ho, self.wo = (hp - k) // s + 1, (wp - k) // s + 1
+        if buf is None:
+            buf = np.zeros((c, hp, wp), dtype)
+        elif buf.shape != (c, hp, wp):
+            raise Unsupported(f"conv: shared buffer {buf.shape}, expected {(c, hp, wp)}")
+        self.buf = buf
+        self.inner = buf[:, p:-p, p:-p]
+        st = buf.strides
+        # (c, k, k, ho, wo) patches in torch's unfold order, a view of the padded input
+        self.patches = np.lib.stride_tricks.as_strided(
+            buf, (c, k, k, self.ho, self.wo), (st[0], st[1], st[2], st[1] * s, st[2] * s),
+            writeable=False)
+        self.cols = np.ones((c * k * k + 1, self.ho * self.wo), dtype)  # last row: the bias's
+        self.cols_view = self.cols[:-1].reshape(c, k, k, self.ho, self.wo)
+        self.w = np.ascontiguousarray(np.concatenate(
+            [_np(conv.weight, dtype).reshape(conv.out_channels, -1),
+             _np(conv.bias, dtype)[:, None]], 1))
 
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        """(C, H, W) -> (out_c, ho * wo)."""
-        p = self.p
-        if p:
-            self.buf[:, p:-p, p:-p] = x
-            flat = self.buf.reshape(-1)
-        else:
-            flat = np.ascontiguousarray(x).reshape(-1)
-        y = self.w @ flat[self.idx]
-        y += self.b
+    def __call__(self) -> np.ndarray:
+        """The convolution of what is in ``inner`` -> (out_c, ho * wo)."""
+        np.copyto(self.cols_view, self.patches)
+        y = self.w @ self.cols
         if self.relu:
             np.maximum(y, 0, out=y)
         return y
 
 
-def _conv_stack(module: nn.Module, c: int, h: int, w: int, dtype) -> list[_Conv]:
+def _conv_stack(module: nn.Module, c: int, h: int, w: int, dtype, buf=None) -> list[_Conv]:
     """``_Conv``s for a Conv2d or a Sequential of Conv2d, each optionally followed by ReLU."""
     mods = list(module) if isinstance(module, nn.Sequential) else [module]
     out: list[_Conv] = []
@@ -110,7 +106,7 @@ def _conv_stack(module: nn.Module, c: int, h: int, w: int, dtype) -> list[_Conv]
         if not isinstance(m, nn.Conv2d):
             raise Unsupported(f"conv: expected Conv2d then ReLU, got {type(m).__name__}")
         relu = i + 1 < len(mods) and isinstance(mods[i + 1], nn.ReLU)
-        layer = _Conv(m, c, h, w, relu, dtype)
+        layer = _Conv(m, c, h, w, relu, dtype, buf if not out else None)
         out.append(layer)
         c, h, w = layer.out_c, layer.ho, layer.wo
         i += 2 if relu else 1
@@ -200,22 +196,17 @@ class FrameFilter:
             self.H, self.W, self.pool = H, W, c.pool
             Hp, Wp = H // c.pool, W // c.pool
             self.convs = _conv_stack(net.conv, 1, Hp, Wp, F)
-            if not all(cv.relu and cv.p >= 1 for cv in self.convs) or self.convs[0].p != 1:
-                raise Unsupported("conv: expected padding 1 first, padding >= 1 and a ReLU "
-                                  "after each layer")
-            for cv in self.convs:  # bias as the last weight column, read from a constant 1
-                cv.w = np.ascontiguousarray(np.concatenate([cv.w, cv.b], 1))
-                cv.idx = np.concatenate([cv.idx, np.full((1, cv.idx.shape[1]), cv.buf.size)])
-                cv.flat = np.zeros(cv.buf.size + 1, F)
-                cv.flat[-1] = 1
-                cv.buf = cv.flat[:-1].reshape(cv.buf.shape)  # padding stays 0
+            if not all(cv.relu for cv in self.convs):
+                raise Unsupported("conv: expected a ReLU after each layer")
             K = self.K = int(c.keypoints)
-            self.kp = _conv_stack(net.kp, 1, Hp, Wp, F)[0] if net.kp is not None else None
-            if self.kp is not None and (self.kp.relu or self.kp.p != 1):
-                raise Unsupported("kp: expected a bare Conv2d with padding 1")
-            # (H W, 2) and (Hp Wp, 2) pixel centres, float64 (see encode)
+            # the learned keypoint channels read the same zero-padded frame as the first conv
+            self.kp = (_conv_stack(net.kp, 1, Hp, Wp, F, buf=self.convs[0].buf)[0]
+                       if net.kp is not None else None)
+            if self.kp is not None and self.kp.relu:
+                raise Unsupported("kp: expected a bare Conv2d")
+            # (H W, 2) and (Hp Wp, 2) pixel centres; channel 0's in float64 (see encode)
             self.grid64 = net._grid.detach().cpu().double().numpy().T.copy()
-            self.grid_pool64 = net._grid_pool.detach().cpu().double().numpy().T.copy()
+            self.grid_pool = _np(net._grid_pool, F).T.copy()
             wx, bx = _mlp(net.phi_x, ("F", "L", "R"), F)[0]
             self.phi_x = np.ascontiguousarray(np.concatenate([wx, bx[:, None]], 1))
             n_conv = wx.shape[1]
@@ -331,17 +322,13 @@ class FrameFilter:
         if self.pool > 1:
             p = self.pool
             x = full.reshape(self.H // p, p, self.W // p, p).sum((1, 3)) / F(p * p)
-        conv0 = self.convs[0]
-        conv0.buf[0, 1:-1, 1:-1] = x
+        self.convs[0].inner[0] = x
         for i, conv in enumerate(self.convs):
-            y = conv.w @ conv.flat[conv.idx]  # (out_c, ho wo), bias included
-            np.maximum(y, 0, out=y)
+            y = conv()  # (out_c, ho wo)
             if i + 1 == len(self.convs):
                 self.conv_out[:-1] = y.reshape(-1)
             else:
-                nxt = self.convs[i + 1]
-                p = nxt.p
-                nxt.buf[:, p:-p, p:-p] = y.reshape(conv.out_c, conv.ho, conv.wo)
+                self.convs[i + 1].inner[...] = y.reshape(conv.out_c, conv.ho, conv.wo)
         np.matmul(self.phi_x, self.conv_out, out=ei[self.sl_feat])
         np.maximum(ei[self.sl_feat], 0, out=ei[self.sl_feat])
         # The centres are sums over thousands of pixels: float64 here, as float32 dot products
@@ -354,13 +341,13 @@ class FrameFilter:
         kp[:2] = heat0 @ self.grid64 / np.float64(m0)
         kp[2 * K] = np.log(m0)
         if self.kp is not None:
-            # the same zero-padded frame as the first conv's (both pad by 1)
-            heat = self.kp.w @ conv0.flat[self.kp.idx]  # (K - 1, Hp Wp)
-            heat += self.kp.b
+            heat = self.kp()  # (K - 1, Hp Wp); the frame is already in the first conv's buffer
             np.maximum(heat, 0, out=heat)
             heat += F(1e-6)
             m = heat.sum(1)
-            kp[2:2 * K] = (heat @ self.grid_pool64 / m[:, None].astype(np.float64)).reshape(-1)
+            # these centres feed the head's MLP only (kp_pos reads channel 0): float32 will do
+            heat /= m[:, None]
+            kp[2:2 * K] = (heat @ self.grid_pool).reshape(-1)
             kp[2 * K + 1:] = np.log(m)
         return ei[self.sl_fx]
 
@@ -494,3 +481,49 @@ def frame_filter_for(net: nn.Module, device, previous: FrameFilter | None = None
         return None
     ff.version = version
     return ff
+
+
+class LazyPosterior(Posterior):
+    """A :class:`~sysid_bench.estimator.Posterior` whose ``samples`` are drawn when first read.
+
+    The samples are ``clip(loc + std * eps, lo, hi)`` with ``eps`` the first ``(n_samples, 4)``
+    standard normals of ``numpy.random.default_rng(seed)``: each posterior has its own keyed
+    stream, so the bytes depend on the seed only, not on which posteriors were read before or
+    in what order, and a posterior nobody samples costs no draw. Why: drawing, clipping and
+    checking 200 x 4 samples was ~40% of a streamed frame's time, and an online consumer
+    (a controller reading the mean) never reads them.
+
+    Parameters
+    ----------
+    mean, std : ndarray, shape (4,)
+    extras : dict
+    loc : ndarray, shape (4,)
+        Centre of the samples (the mean before clipping).
+    seed : sequence of int
+        Key of the samples' stream.
+    n_samples : int
+    bounds : (ndarray, ndarray), optional
+        Clip the samples to ``[lo, hi]``.
+    """
+
+    def __init__(self, mean, std, extras, *, loc, seed, n_samples: int, bounds=None):
+        super().__init__(mean=mean, std=std, samples=None, extras=extras)
+        self._draw = (np.asarray(loc, np.float64), tuple(int(s) for s in seed), int(n_samples),
+                      bounds)
+
+    @property
+    def samples(self):
+        draw = self.__dict__.get("_draw")
+        if draw is not None:
+            loc, seed, n, bounds = draw
+            s = loc + self.std * np.random.default_rng(seed).standard_normal((n, loc.size))
+            if bounds is not None:
+                np.minimum(np.maximum(s, bounds[0], out=s), bounds[1], out=s)
+            self.__dict__["_samples"] = s
+            self.__dict__["_draw"] = None
+        return self.__dict__.get("_samples")
+
+    @samples.setter
+    def samples(self, value) -> None:
+        self.__dict__["_draw"] = None
+        self.__dict__["_samples"] = value
