@@ -213,10 +213,10 @@ class FrameFilter:
             self.conv_out = np.zeros(n_conv + 1, F)  # last conv's output, then 1
             self.conv_out[-1] = 1
             self.kp_pos = _linear(net.kp_pos, F)
-            self.kp_gate = F(net.kp_gate.item())
+            self.kp_gate = float(net.kp_gate.item())
             self.ix, self.iy = c.targets.index("x"), c.targets.index("y")
             self.vis = bool(c.kp_visibility)
-            self.log_mref = F(net._log_mref) if self.vis else F(0)
+            self.log_mref = float(net._log_mref) if self.vis else 0.0
             Z, hid, feat = int(c.latent), int(c.hidden), int(c.feat)
             self.Z, self.hidden = Z, hid
             # encoder head input: [phi_x (feat), centres (2K), log masses (K), h, c, roll (0|2), 1]
@@ -262,55 +262,54 @@ class FrameFilter:
             self.pos_idx = [int(i) for i in net._pos_idx]
             if self.roll:
                 self.r_idx = int(net._r_idx)
-                self.roll_scale = F(net.roll_scale.item())
-                self.roll_bias = F(net.roll_bias.item())
-                self.roll_half = np.exp(F(net.roll_log_half.item()))
-                self.roll_std = np.exp(F(net.roll_log_std.item()))
+                self.roll_scale = float(net.roll_scale.item())
+                self.roll_bias = float(net.roll_bias.item())
+                self.roll_half = math.exp(net.roll_log_half.item())
+                self.roll_std = math.exp(net.roll_log_std.item())
         except AttributeError as exc:  # a network built differently from what this path knows
             raise Unsupported(f"net: {exc}") from exc
 
     # -- state ----------------------------------------------------------------------------------
     def reset(self) -> None:
         """Zero state (no frame seen)."""
-        F = self.F
         self.enc_in[self.sl_h] = 0
         self.enc_in[self.sl_c] = 0
-        self.pos = np.zeros(2, F)
-        self.vel = np.zeros(2, F)
-        self.n = F(0)
-        self.stats = np.zeros(3, F)  # low-frame run, rolling frames, summed deceleration
+        # The few scalars of the state are Python floats (float64): numpy scalar arithmetic
+        # costs ~10x more per operation, and float64 rounds less than torch's float32 does.
+        self.pos = (0.0, 0.0)
+        self.vel = (0.0, 0.0)
+        self.n = 0.0
+        self.stats = (0.0, 0.0, 0.0)  # low-frame run, rolling frames, summed deceleration
         self._set_roll_features()
 
     def torch_state(self, device=None) -> list[tuple[torch.Tensor, ...]]:
         """The state in ``Vid2ParamNet``'s layout (batch of one, float32)."""
         t = lambda a: torch.tensor(np.asarray(a, np.float32).reshape(1, -1), device=device)  # noqa: E731
         last = (t(self.enc_in[self.sl_h]), t(self.enc_in[self.sl_c]), t(self.pos), t(self.vel),
-                t(self.n))
+                t([self.n]))
         return [(*last, t(self.stats)) if self.roll else last]
 
     def set_torch_state(self, state) -> None:
         """Take the state from ``Vid2ParamNet``'s layout (batch of one)."""
-        F = self.F
-        a = lambda x: x.detach().to("cpu", torch.float64).numpy().reshape(-1).astype(F)  # noqa: E731
+        a = lambda x: x.detach().to("cpu", torch.float64).numpy().reshape(-1)  # noqa: E731
         if len(state) != 1 or len(state[0]) != (6 if self.roll else 5):
             raise ValueError("state: expected one layer's (h, c, pos, vel, n[, stats]) tuple, "
                              f"got {len(state)} layers")
         last = state[0]
         self.enc_in[self.sl_h], self.enc_in[self.sl_c] = a(last[0]), a(last[1])
-        self.pos, self.vel, self.n = a(last[2]), a(last[3]), F(a(last[4])[0])
+        self.pos, self.vel = tuple(a(last[2]).tolist()), tuple(a(last[3]).tolist())
+        self.n = float(a(last[4])[0])
         if self.roll:
-            self.stats = a(last[5])
+            self.stats = tuple(a(last[5]).tolist())
         self._set_roll_features()
 
     def _set_roll_features(self) -> None:
         """``Vid2ParamNet.read``'s rolling mean and count features from ``stats``."""
         if not self.roll:
             return
-        F, s = self.F, self.stats
-        g = F(_model.ROLL_GAIN)
-        mean = min(max(s[2] / max(s[1], F(1.0)) / F(_model._R_TOP), F(-2)), F(2))
-        self.enc_in[self.i_roll] = g * mean
-        self.enc_in[self.i_roll + 1] = g * (s[1] / (s[1] + F(10.0)))
+        s, g = self.stats, _model.ROLL_GAIN
+        mean = min(max(s[2] / max(s[1], 1.0) / _model._R_TOP, -2.0), 2.0)
+        self.enc_in[self.i_roll:self.i_roll + 2] = (g * mean, g * (s[1] / (s[1] + 10.0)))
 
     # -- the network, one frame -----------------------------------------------------------------
     def encode(self, frame: np.ndarray) -> np.ndarray:
@@ -362,23 +361,24 @@ class FrameFilter:
         # torch's softplus (threshold 20) to within an ulp
         std = np.logaddexp(F(0), raw[Z:])
         std += F(_model._MIN_STD)
+        # the scalar blends in Python floats (see reset)
         K = self.K
-        kp = self.kp_pos[0] @ ei[self.sl_kp] + self.kp_pos[1]
+        kx, ky = (self.kp_pos[0] @ ei[self.sl_kp] + self.kp_pos[1]).tolist()
         ix, iy, g = self.ix, self.iy, self.kp_gate
+        mx, my = float(mu[ix]), float(mu[iy])
         if self.vis:
-            v = F(1) / (F(1) + np.exp(-(F(4.0) * (ei[self.sl_kp][2 * K] - self.log_mref))))
-            mu[ix] = v * (kp[0] + g * mu[ix]) + (F(1) - v) * mu[ix]
-            mu[iy] = v * (kp[1] + g * mu[iy]) + (F(1) - v) * mu[iy]
+            v = 1.0 / (1.0 + math.exp(-4.0 * (float(ei[self.sl_kp][2 * K]) - self.log_mref)))
+            mu[ix] = v * (kx + g * mx) + (1.0 - v) * mx
+            mu[iy] = v * (ky + g * my) + (1.0 - v) * my
         else:
-            mu[ix] = mu[ix] * g + kp[0]
-            mu[iy] = mu[iy] * g + kp[1]
+            mu[ix] = mx * g + kx
+            mu[iy] = my * g + ky
         if self.roll:
-            gain = F(_model.ROLL_GAIN)
-            f0, c = ei[self.i_roll] / gain, ei[self.i_roll + 1] / gain
-            v = F(10.0) * c / (F(10.0) * c + self.roll_half * (F(1) - c))
+            f0, c = (x / _model.ROLL_GAIN for x in ei[self.i_roll:self.i_roll + 2].tolist())
+            v = 10.0 * c / (10.0 * c + self.roll_half * (1.0 - c))
             i = self.r_idx
-            mu[i] = (F(1) - v) * mu[i] + v * (self.roll_scale * f0 + self.roll_bias)
-            std[i] = (F(1) - v) * std[i] + v * self.roll_std
+            mu[i] = (1.0 - v) * float(mu[i]) + v * (self.roll_scale * f0 + self.roll_bias)
+            std[i] = (1.0 - v) * float(std[i]) + v * self.roll_std
         return mu, std
 
     def step_rnn(self, z: np.ndarray) -> None:
@@ -388,12 +388,14 @@ class FrameFilter:
         np.matmul(self.phi_z, self.z_in, out=li[self.sl_feat])
         np.maximum(li[self.sl_feat], 0, out=li[self.sl_feat])
         n = self.n
-        pos = np.array([z[self.pos_idx[0]], z[self.pos_idx[1]]])
-        vel = (pos - self.pos) * F(10.0) if n >= 1 else np.zeros(2, F)
-        acc = (vel - self.vel) * F(40.0) if n >= 2 else np.zeros(2, F)
+        pos = (float(z[self.pos_idx[0]]), float(z[self.pos_idx[1]]))
+        vel = ((pos[0] - self.pos[0]) * 10.0, (pos[1] - self.pos[1]) * 10.0) if n >= 1 \
+            else (0.0, 0.0)
+        acc = ((vel[0] - self.vel[0]) * 40.0, (vel[1] - self.vel[1]) * 40.0) if n >= 2 \
+            else (0.0, 0.0)
         f = self.sl_feat.stop
-        li[f:f + 2] = np.minimum(np.maximum(vel, F(-5)), F(5))
-        li[f + 2:f + 4] = np.minimum(np.maximum(acc, F(-10)), F(10))
+        li[f:f + 4] = (min(max(vel[0], -5.0), 5.0), min(max(vel[1], -5.0), 5.0),
+                       min(max(acc[0], -10.0), 10.0), min(max(acc[1], -10.0), 10.0))
         li[self.sl_lh] = ei[self.sl_h]
         g = self.gates
         np.matmul(self.lstm, li, out=g)
@@ -412,20 +414,20 @@ class FrameFilter:
         if self.roll:
             self.stats = self._roll_stats(pos, vel, self.vel, n, self.stats)
             self._set_roll_features()
-        self.pos, self.vel, self.n = pos, vel, min(n + F(1), F(2.0))
+        self.pos, self.vel, self.n = pos, vel, min(n + 1.0, 2.0)
 
-    def _roll_stats(self, pos, vel, vel_prev, n, stats) -> np.ndarray:
-        """``Vid2ParamNet._roll_stats`` for one frame (scalars of the working precision)."""
-        M, F = _model, self.F
-        low = min(stats[0] + F(1) if pos[1] * F(M.BOX_WIDTH) < M.ROLL_HEIGHT else F(0), F(3.0))
+    @staticmethod
+    def _roll_stats(pos, vel, vel_prev, n, stats) -> tuple[float, float, float]:
+        """``Vid2ParamNet._roll_stats`` for one frame, on Python floats."""
+        M = _model
+        low = min(stats[0] + 1.0 if pos[1] * M.BOX_WIDTH < M.ROLL_HEIGHT else 0.0, 3.0)
         vx, vxp = vel[0], vel_prev[0]
-        dec = -np.sign(vx) * (vx - vxp) / F(M.DT**2)
-        x = pos[0] * F(M.BOX_WIDTH)
+        dec = -math.copysign(1.0, vx) * (vx - vxp) / M.DT**2 if vx else 0.0
+        x = pos[0] * M.BOX_WIDTH
         ok = (low >= 3 and n >= 2 and abs(vx) > _ROLL_STEP and abs(vxp) > _ROLL_STEP
               and vx * vxp > 0 and abs(dec) < M.ROLL_DEC_MAX
-              and x > M.ROLL_WALL and x < M.BOX_WIDTH - M.ROLL_WALL)
-        ok = F(1.0 if ok else 0.0)
-        return np.array([low, stats[1] + ok, stats[2] + ok * dec], F)
+              and M.ROLL_WALL < x < M.BOX_WIDTH - M.ROLL_WALL)
+        return (low, stats[1] + 1.0, stats[2] + dec) if ok else (low, stats[1], stats[2])
 
     def step(self, frame: np.ndarray, eps: np.ndarray | None = None,
              noise: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
