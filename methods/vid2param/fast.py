@@ -465,7 +465,7 @@ ENCODE_CHUNK = 1024
 
 
 def encode_frames_batch(net: nn.Module, frames: torch.Tensor,
-                        chunk: int = ENCODE_CHUNK) -> torch.Tensor:
+                        chunk: int | None = None) -> torch.Tensor:
     """``net.encode_frames(frames)`` in pieces of ``chunk`` frames (same numbers).
 
     Why: on all frames of a batch at once, the encoder's intermediate tensors (conv
@@ -477,11 +477,14 @@ def encode_frames_batch(net: nn.Module, frames: torch.Tensor,
     Parameters
     ----------
     frames : Tensor, shape (..., H, W)
+    chunk : int, optional
+        Frames per piece; default ``ENCODE_CHUNK``.
 
     Returns
     -------
     Tensor, shape (..., feat + 3 * keypoints)
     """
+    chunk = ENCODE_CHUNK if chunk is None else int(chunk)
     lead = frames.shape[:-2]
     n = int(np.prod(lead)) if lead else 1
     if torch.is_grad_enabled() or n <= chunk:
