@@ -1,25 +1,27 @@
-"""Fast inference paths of the Vid2Param network (same numbers as ``model.py``, fewer calls).
+"""Fast inference paths of the Vid2Param network (the same network, fewer and cheaper calls).
 
-Two paths, both read-only users of a loaded :class:`~methods.vid2param.model.Vid2ParamNet`:
+Read-only users of a loaded :class:`~methods.vid2param.model.Vid2ParamNet`; measured figures and
+profiles in ``docs/vid2param-speed.md``.
 
 ``FrameFilter``
     One frame at a time in plain NumPy (float32, as the network): what
     :meth:`Vid2ParamStream.push <methods.vid2param.estimator.Vid2ParamStream.push>` runs when the
-    network is on the CPU. The weights are copied once into contiguous arrays, the two stride-2
-    convolutions and the keypoint convolution are one index gather and one matrix product each,
-    the LSTM's two products are one, and the recurrent state stays NumPy arrays between frames.
-    Why: a push through the torch modules is ~60 small torch calls (module dispatch, tensor
-    allocation, ``inference_mode`` bookkeeping), each a few microseconds; the arithmetic of one
-    frame is ~0.4 M multiply-adds, tens of microseconds.
+    network is on the CPU. Weights copied once, preallocated buffers, one matrix product per
+    layer, strided im2col for the convolutions, one product and one ``tanh`` for the LSTM
+    gates, the state kept in NumPy between frames. Why: a push through the torch modules is
+    ~60 small torch calls, each a few microseconds of dispatch and allocation; the arithmetic
+    of one frame is ~0.4 M multiply-adds.
 
 ``encode_frames_batch``
-    The frame encoder over many frames at once in torch, used by
-    :meth:`Vid2ParamNet.filter <methods.vid2param.model.Vid2ParamNet.filter>` without gradients
-    (see :func:`filter_batch`). The keypoint centres become one matrix product of the heat maps with
-    a ``[1, column, row]`` grid instead of a normalise-then-product over a copy of every map.
+    ``encode_frames`` over many frames in cache-sized pieces, used by
+    :meth:`Vid2ParamNet.filter <methods.vid2param.model.Vid2ParamNet.filter>` (same numbers).
+
+``LazyPosterior``
+    A ``Posterior`` whose samples are drawn, from a stream keyed by the seed and the frame
+    count, only when read.
 
 Agreement with the torch modules is tested over whole videos (``tests/test_vid2param_fast.py``):
-the float32 rounding differs (sums in another order), nothing else.
+only the float32 rounding differs (sums in another order).
 """
 
 from __future__ import annotations
@@ -36,7 +38,6 @@ from sysid_bench.estimator import Posterior
 __all__ = ["FrameFilter", "LazyPosterior", "Unsupported", "fast_support", "frame_filter_for",
            "encode_frames_batch", "ENCODE_CHUNK"]
 
-_F32 = np.float32
 #: smallest horizontal step (normalised units per frame) of a rolling frame, as in
 #: ``Vid2ParamNet._roll_stats``
 _ROLL_STEP = 0.002
