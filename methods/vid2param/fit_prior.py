@@ -76,10 +76,13 @@ class PriorFitConfig:
 
 
 def with_physics_prior(ck: dict) -> Vid2ParamNet:
-    """The checkpoint's network with a (new or loaded) physics prior."""
+    """The checkpoint's network with a physics prior at its starting values (one the
+    checkpoint already has is replaced: the phase starts afresh, so its result does not
+    depend on what it is run on)."""
     cfg = V2PConfig.from_dict({**ck["config"], "physics_prior": True})
     net = Vid2ParamNet(cfg)
-    missing, unexpected = net.load_state_dict(ck["state_dict"], strict=False)
+    weights = {k: v for k, v in ck["state_dict"].items() if not k.startswith("phys_prior.")}
+    missing, unexpected = net.load_state_dict(weights, strict=False)
     if unexpected or any(not k.startswith("phys_prior.") for k in missing):
         raise ValueError(f"checkpoint: weights do not match its config (missing {missing}, "
                          f"unexpected {unexpected})")

@@ -761,8 +761,10 @@ class Vid2ParamNet(nn.Module):
         state : list of (h, c), each (B * P, hidden)
             State after the last frame, z sampled from q as in training.
         """
+        from methods.vid2param.fast import encode_frames_batch
+
         B, T = frames.shape[:2]
-        fx = self.encode_frames(frames)
+        fx = encode_frames_batch(self, frames)  # in cache-sized pieces (same numbers)
         if particles > 1:
             fx = fx.repeat_interleave(particles, dim=0)
         if state is None:

@@ -1,0 +1,571 @@
+"""Fast inference paths of the Vid2Param network (the same network, fewer and cheaper calls).
+
+Read-only users of a loaded :class:`~methods.vid2param.model.Vid2ParamNet`; measured figures and
+profiles in ``docs/vid2param-speed.md``.
+
+``FrameFilter``
+    One frame at a time in plain NumPy (float32, as the network): what
+    :meth:`Vid2ParamStream.push <methods.vid2param.estimator.Vid2ParamStream.push>` runs when the
+    network is on the CPU. Weights copied once, preallocated buffers, one matrix product per
+    layer, strided im2col for the convolutions, one product and one ``tanh`` for the LSTM
+    gates, the state kept in NumPy between frames. Why: a push through the torch modules is
+    ~60 small torch calls, each a few microseconds of dispatch and allocation; the arithmetic
+    of one frame is ~0.4 M multiply-adds.
+
+``encode_frames_batch``
+    ``encode_frames`` over many frames in cache-sized pieces, used by
+    :meth:`Vid2ParamNet.filter <methods.vid2param.model.Vid2ParamNet.filter>` (same numbers).
+
+``LazyPosterior``
+    A ``Posterior`` whose samples are drawn, from a stream keyed by the seed and the frame
+    count, only when read.
+
+Agreement with the torch modules is tested over whole videos (``tests/test_vid2param_fast.py``):
+only the float32 rounding differs (sums in another order).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from methods.vid2param import model as _model
+from sysid_bench.estimator import Posterior
+
+__all__ = ["FrameFilter", "LazyPosterior", "Unsupported", "fast_support", "frame_filter_for",
+           "encode_frames_batch", "ENCODE_CHUNK"]
+
+#: smallest horizontal step (normalised units per frame) of a rolling frame, as in
+#: ``Vid2ParamNet._roll_stats``
+_ROLL_STEP = 0.002
+
+
+class Unsupported(ValueError):
+    """The network has a part the fast path does not implement (the torch path is used)."""
+
+
+def _np(t: torch.Tensor, dtype=np.float32) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy().astype(dtype))
+
+
+class _Conv:
+    """One Conv2d (+ optional ReLU) on a single (C, H, W) image: im2col as one strided copy
+    into a buffer whose last row is ones, then one matrix product with ``[W | b]``.
+
+    The zero-padded input lives in ``buf`` (padding stays 0; write the interior, ``inner``);
+    ``buf`` may be shared with another convolution of the same input and padding.
+    """
+
+    def __init__(self, conv: nn.Conv2d, c: int, h: int, w: int, relu: bool, dtype,
+                 buf: np.ndarray | None = None):
+        k, s, p = conv.kernel_size[0], conv.stride[0], conv.padding[0]
+        if (conv.kernel_size[0] != conv.kernel_size[1] or conv.stride[0] != conv.stride[1]
+                or conv.padding[0] != conv.padding[1] or conv.groups != 1
+                or conv.dilation != (1, 1) or conv.bias is None or conv.padding_mode != "zeros"
+                or p < 1):
+            raise Unsupported("conv: only square, ungrouped, biased convolutions with zero "
+                              f"padding >= 1, got {conv}")
+        self.p, self.relu, self.out_c = p, relu, conv.out_channels
+        hp, wp = h + 2 * p, w + 2 * p
+        self.ho, self.wo = (hp - k) // s + 1, (wp - k) // s + 1
+        if buf is None:
+            buf = np.zeros((c, hp, wp), dtype)
+        elif buf.shape != (c, hp, wp):
+            raise Unsupported(f"conv: shared buffer {buf.shape}, expected {(c, hp, wp)}")
+        self.buf = buf
+        self.inner = buf[:, p:-p, p:-p]
+        st = buf.strides
+        # (c, k, k, ho, wo) patches in torch's unfold order, a view of the padded input
+        self.patches = np.lib.stride_tricks.as_strided(
+            buf, (c, k, k, self.ho, self.wo), (st[0], st[1], st[2], st[1] * s, st[2] * s),
+            writeable=False)
+        self.cols = np.ones((c * k * k + 1, self.ho * self.wo), dtype)  # last row: the bias's
+        self.cols_view = self.cols[:-1].reshape(c, k, k, self.ho, self.wo)
+        self.w = np.ascontiguousarray(np.concatenate(
+            [_np(conv.weight, dtype).reshape(conv.out_channels, -1),
+             _np(conv.bias, dtype)[:, None]], 1))
+
+    def __call__(self) -> np.ndarray:
+        """The convolution of what is in ``inner`` -> (out_c, ho * wo)."""
+        np.copyto(self.cols_view, self.patches)
+        y = self.w @ self.cols
+        if self.relu:
+            np.maximum(y, 0, out=y)
+        return y
+
+
+def _conv_stack(module: nn.Module, c: int, h: int, w: int, dtype, buf=None) -> list[_Conv]:
+    """``_Conv``s for a Conv2d or a Sequential of Conv2d, each optionally followed by ReLU."""
+    mods = list(module) if isinstance(module, nn.Sequential) else [module]
+    out: list[_Conv] = []
+    i = 0
+    while i < len(mods):
+        m = mods[i]
+        if not isinstance(m, nn.Conv2d):
+            raise Unsupported(f"conv: expected Conv2d then ReLU, got {type(m).__name__}")
+        relu = i + 1 < len(mods) and isinstance(mods[i + 1], nn.ReLU)
+        layer = _Conv(m, c, h, w, relu, dtype, buf if not out else None)
+        out.append(layer)
+        c, h, w = layer.out_c, layer.ho, layer.wo
+        i += 2 if relu else 1
+    return out
+
+
+def _linear(m: nn.Module, dtype=np.float32) -> tuple[np.ndarray, np.ndarray]:
+    if not isinstance(m, nn.Linear) or m.bias is None:
+        raise Unsupported(f"linear: expected a biased nn.Linear, got {m}")
+    return _np(m.weight, dtype), _np(m.bias, dtype)
+
+
+def _mlp(seq: nn.Module, pattern: tuple[str, ...], dtype=np.float32):
+    """Weights of a Sequential whose layer types follow ``pattern`` ("L" Linear, "R" ReLU)."""
+    mods = list(seq) if isinstance(seq, nn.Sequential) else []
+    kinds = tuple("L" if isinstance(m, nn.Linear) else "R" if isinstance(m, nn.ReLU)
+                  else "F" if isinstance(m, nn.Flatten) else "?" for m in mods)
+    if kinds != pattern:
+        raise Unsupported(f"mlp: expected layers {pattern}, got {kinds}")
+    return [_linear(m, dtype) for m in mods if isinstance(m, nn.Linear)]
+
+
+def fast_support(net: nn.Module) -> str | None:
+    """Why ``net`` cannot run on the fast paths, or None when it can."""
+    try:
+        FrameFilter(net)
+    except Unsupported as exc:
+        return str(exc)
+    return None
+
+
+class FrameFilter:
+    """The network's filter for one video, one frame per call, in NumPy.
+
+    ``step(frame)`` is ``enc_step(encode_frames(frame), read(state))`` then
+    ``step_rnn(mu, state)`` of :class:`~methods.vid2param.model.Vid2ParamNet` for a batch of one,
+    with the state kept here. The weights are copied at construction: build a new one (or call
+    :meth:`reload`) after changing the network's weights.
+
+    How it saves time: every vector lives in a buffer allocated once, laid out so that each
+    layer's input is one contiguous slice ending in a constant 1 -- the bias is the weight
+    matrix's last column, so a layer is one matrix product and one in-place ReLU; the LSTM
+    state ``[h, c]`` sits inside the encoder head's input, where it is read.
+
+    Parameters
+    ----------
+    net : Vid2ParamNet
+        Any device; its weights are copied to host memory.
+    dtype : {numpy.float32, numpy.float64}
+        Working precision. float32 is the network's own (and the fast one); float64 evaluates
+        the same float32 weights without rounding in between, a reference for tests: the
+        network's second-difference feature multiplies position rounding by 400, so two float32
+        evaluations (torch's batched and single-frame ones included) drift apart by ~1e-4 over
+        a video.
+
+    Raises
+    ------
+    Unsupported
+        A part of ``net`` this path does not implement (checked at construction): it covers
+        one LSTM layer, ``read_cell``, ``diff_features``, keypoints with the x, y map and no
+        ``pixel_skip`` -- both shipped configurations.
+    """
+
+    def __init__(self, net: nn.Module, dtype=np.float32):
+        if np.dtype(dtype) not in (np.dtype(np.float32), np.dtype(np.float64)):
+            raise ValueError(f"dtype: expected numpy.float32 or numpy.float64, got {dtype!r}")
+        self.F = np.dtype(dtype).type
+        self.net = net
+        self.reload()
+        self.reset()
+
+    # -- weights --------------------------------------------------------------------------------
+    def reload(self) -> None:
+        """Copy the network's weights (again) and lay out the buffers."""
+        net, F = self.net, self.F
+        try:
+            c = net.config
+            need = {"layers == 1": c.layers == 1, "read_cell": c.read_cell,
+                    "diff_features": c.diff_features, "keypoints >= 1": c.keypoints >= 1,
+                    "no pixel_skip": not c.pixel_skip and net.skip is None,
+                    "x, y targets": net.kp_pos is not None}
+            missing = [k for k, ok in need.items() if not ok]
+            if missing:
+                raise Unsupported(f"config: the NumPy path needs {missing}")
+            self.c = c
+            H, W = c.frame_size
+            self.H, self.W, self.pool = H, W, c.pool
+            Hp, Wp = H // c.pool, W // c.pool
+            self.convs = _conv_stack(net.conv, 1, Hp, Wp, F)
+            if not all(cv.relu for cv in self.convs):
+                raise Unsupported("conv: expected a ReLU after each layer")
+            K = self.K = int(c.keypoints)
+            # the learned keypoint channels read the same zero-padded frame as the first conv
+            self.kp = (_conv_stack(net.kp, 1, Hp, Wp, F, buf=self.convs[0].buf)[0]
+                       if net.kp is not None else None)
+            if self.kp is not None and self.kp.relu:
+                raise Unsupported("kp: expected a bare Conv2d")
+            # (H W, 2) and (Hp Wp, 2) pixel centres; channel 0's in float64 (see encode)
+            self.grid64 = net._grid.detach().cpu().double().numpy().T.copy()
+            self.grid_pool = _np(net._grid_pool, F).T.copy()
+            wx, bx = _mlp(net.phi_x, ("F", "L", "R"), F)[0]
+            self.phi_x = np.ascontiguousarray(np.concatenate([wx, bx[:, None]], 1))
+            n_conv = wx.shape[1]
+            self.conv_out = np.zeros(n_conv + 1, F)  # last conv's output, then 1
+            self.conv_out[-1] = 1
+            self.kp_pos = _linear(net.kp_pos, F)
+            self.kp_gate = float(net.kp_gate.item())
+            self.ix, self.iy = c.targets.index("x"), c.targets.index("y")
+            self.vis = bool(c.kp_visibility)
+            self.log_mref = float(net._log_mref) if self.vis else 0.0
+            Z, hid, feat = int(c.latent), int(c.hidden), int(c.feat)
+            self.Z, self.hidden = Z, hid
+            # encoder head input: [phi_x (feat), centres (2K), log masses (K), h, c, roll (0|2), 1]
+            self.roll = bool(c.roll_features)
+            n_fx = feat + 3 * K
+            self.sl_fx = slice(0, n_fx)
+            self.sl_kp = slice(feat, n_fx)
+            self.sl_h = slice(n_fx, n_fx + hid)
+            self.sl_c = slice(n_fx + hid, n_fx + 2 * hid)
+            self.i_roll = n_fx + 2 * hid  # roll features at i_roll, i_roll + 1
+            self.enc_in = np.zeros(n_fx + 2 * hid + (2 if self.roll else 0) + 1, F)
+            self.enc_in[-1] = 1
+            (w1, b1), (w2, b2) = _mlp(net.enc, ("L", "R", "L"), F)
+            if w1.shape[1] != self.enc_in.size - 1:
+                raise Unsupported(f"enc: expected {self.enc_in.size - 1} inputs, got {w1.shape[1]}")
+            self.enc1 = np.ascontiguousarray(np.concatenate([w1, b1[:, None]], 1))
+            self.enc2 = np.ascontiguousarray(np.concatenate([w2, b2[:, None]], 1))
+            self.enc_hid = np.zeros(w1.shape[0] + 1, F)
+            self.enc_hid[-1] = 1
+            wz, bz = _mlp(net.phi_z, ("L", "R"), F)[0]
+            self.phi_z = np.ascontiguousarray(np.concatenate([wz, bz[:, None]], 1))
+            self.z_in = np.zeros(Z + 1, F)
+            self.z_in[-1] = 1
+            cell = net.cells[0]
+            if not isinstance(cell, nn.LSTMCell) or cell.bias is False:
+                raise Unsupported(f"cells: expected a biased nn.LSTMCell, got {cell}")
+            # LSTM input: [phi_z (feat), velocity (2), acceleration (2), h, 1]; one product
+            # [W_ih | W_hh | b_ih + b_hh] instead of two. The i, f, o rows are halved (exact in
+            # binary) so that one tanh gives all four gates: sigmoid(x) = (1 + tanh(x / 2)) / 2.
+            wl = np.concatenate([_np(cell.weight_ih, F), _np(cell.weight_hh, F),
+                                 (_np(cell.bias_ih, F) + _np(cell.bias_hh, F))[:, None]], 1)
+            if wl.shape[1] != feat + 4 + hid + 1:
+                raise Unsupported(f"cells: expected {feat + 4} inputs, got {wl.shape[1] - hid - 1}")
+            wl[:2 * hid] *= F(0.5)
+            wl[3 * hid:] *= F(0.5)
+            self.lstm = np.ascontiguousarray(wl)
+            self.lstm_in = np.zeros(wl.shape[1], F)
+            self.lstm_in[-1] = 1
+            self.sl_feat = slice(0, feat)
+            self.sl_lh = slice(feat + 4, feat + 4 + hid)
+            self.gates = np.zeros(4 * hid, F)
+            self.tmp_h = np.zeros(hid, F)
+            self.pos_idx = [int(i) for i in net._pos_idx]
+            if self.roll:
+                self.r_idx = int(net._r_idx)
+                self.roll_scale = float(net.roll_scale.item())
+                self.roll_bias = float(net.roll_bias.item())
+                self.roll_half = math.exp(net.roll_log_half.item())
+                self.roll_std = math.exp(net.roll_log_std.item())
+        except AttributeError as exc:  # a network built differently from what this path knows
+            raise Unsupported(f"net: {exc}") from exc
+
+    # -- state ----------------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Zero state (no frame seen)."""
+        self.enc_in[self.sl_h] = 0
+        self.enc_in[self.sl_c] = 0
+        # The few scalars of the state are Python floats (float64): numpy scalar arithmetic
+        # costs ~10x more per operation, and float64 rounds less than torch's float32 does.
+        self.pos = (0.0, 0.0)
+        self.vel = (0.0, 0.0)
+        self.n = 0.0
+        self.stats = (0.0, 0.0, 0.0)  # low-frame run, rolling frames, summed deceleration
+        self._set_roll_features()
+
+    def torch_state(self, device=None) -> list[tuple[torch.Tensor, ...]]:
+        """The state in ``Vid2ParamNet``'s layout (batch of one, float32)."""
+        t = lambda a: torch.tensor(np.asarray(a, np.float32).reshape(1, -1), device=device)  # noqa: E731
+        last = (t(self.enc_in[self.sl_h]), t(self.enc_in[self.sl_c]), t(self.pos), t(self.vel),
+                t([self.n]))
+        return [(*last, t(self.stats)) if self.roll else last]
+
+    def set_torch_state(self, state) -> None:
+        """Take the state from ``Vid2ParamNet``'s layout (batch of one)."""
+        a = lambda x: x.detach().to("cpu", torch.float64).numpy().reshape(-1)  # noqa: E731
+        if len(state) != 1 or len(state[0]) != (6 if self.roll else 5):
+            raise ValueError("state: expected one layer's (h, c, pos, vel, n[, stats]) tuple, "
+                             f"got {len(state)} layers")
+        last = state[0]
+        self.enc_in[self.sl_h], self.enc_in[self.sl_c] = a(last[0]), a(last[1])
+        self.pos, self.vel = tuple(a(last[2]).tolist()), tuple(a(last[3]).tolist())
+        self.n = float(a(last[4])[0])
+        if self.roll:
+            self.stats = tuple(a(last[5]).tolist())
+        self._set_roll_features()
+
+    def _set_roll_features(self) -> None:
+        """``Vid2ParamNet.read``'s rolling mean and count features from ``stats``."""
+        if not self.roll:
+            return
+        s, g = self.stats, _model.ROLL_GAIN
+        mean = min(max(s[2] / max(s[1], 1.0) / _model._R_TOP, -2.0), 2.0)
+        self.enc_in[self.i_roll:self.i_roll + 2] = (g * mean, g * (s[1] / (s[1] + 10.0)))
+
+    # -- the network, one frame -----------------------------------------------------------------
+    def encode(self, frame: np.ndarray) -> np.ndarray:
+        """``encode_frames`` of one (H, W) frame (uint8 or float in [0, 255]), written into the
+        encoder head's input; returns that slice (n_fx,) (a view: copy to keep it)."""
+        F, ei = self.F, self.enc_in
+        full = np.divide(frame, F(255.0), dtype=F)
+        x = full
+        if self.pool > 1:
+            p = self.pool
+            x = full.reshape(self.H // p, p, self.W // p, p).sum((1, 3)) / F(p * p)
+        self.convs[0].inner[0] = x
+        for i, conv in enumerate(self.convs):
+            y = conv()  # (out_c, ho wo)
+            if i + 1 == len(self.convs):
+                self.conv_out[:-1] = y.reshape(-1)
+            else:
+                self.convs[i + 1].inner[...] = y.reshape(conv.out_c, conv.ho, conv.wo)
+        np.matmul(self.phi_x, self.conv_out, out=ei[self.sl_feat])
+        np.maximum(ei[self.sl_feat], 0, out=ei[self.sl_feat])
+        # The centres are sums over thousands of pixels: float64 here, as float32 dot products
+        # put ~1e-5 into the fed-back position, which the second-difference feature multiplies
+        # by 400 (measured on the camera model: 5x torch's own deviation from a float64 run).
+        K, t = self.K, self.c.kp_threshold
+        heat0 = (np.maximum(full - F(t), 0) if t else full).reshape(-1) + F(1e-6)
+        m0 = heat0.sum()
+        kp = ei[self.sl_kp]
+        kp[:2] = heat0 @ self.grid64 / np.float64(m0)
+        kp[2 * K] = np.log(m0)
+        if self.kp is not None:
+            heat = self.kp()  # (K - 1, Hp Wp); the frame is already in the first conv's buffer
+            np.maximum(heat, 0, out=heat)
+            heat += F(1e-6)
+            m = heat.sum(1)
+            # these centres feed the head's MLP only (kp_pos reads channel 0): float32 will do
+            heat /= m[:, None]
+            kp[2:2 * K] = (heat @ self.grid_pool).reshape(-1)
+            kp[2 * K + 1:] = np.log(m)
+        return ei[self.sl_fx]
+
+    def enc_step(self) -> tuple[np.ndarray, np.ndarray]:
+        """Encoder head on the buffer (frame features and state) -> mu, std, each (Z,)."""
+        F, Z, ei = self.F, self.Z, self.enc_in
+        hb = self.enc_hid
+        np.matmul(self.enc1, ei, out=hb[:-1])
+        np.maximum(hb[:-1], 0, out=hb[:-1])
+        raw = self.enc2 @ hb
+        mu = raw[:Z]
+        # torch's softplus (threshold 20) to within an ulp
+        std = np.logaddexp(F(0), raw[Z:])
+        std += F(_model._MIN_STD)
+        # the scalar blends in Python floats (see reset)
+        K = self.K
+        kx, ky = (self.kp_pos[0] @ ei[self.sl_kp] + self.kp_pos[1]).tolist()
+        ix, iy, g = self.ix, self.iy, self.kp_gate
+        mx, my = float(mu[ix]), float(mu[iy])
+        if self.vis:
+            v = 1.0 / (1.0 + math.exp(-4.0 * (float(ei[self.sl_kp][2 * K]) - self.log_mref)))
+            mu[ix] = v * (kx + g * mx) + (1.0 - v) * mx
+            mu[iy] = v * (ky + g * my) + (1.0 - v) * my
+        else:
+            mu[ix] = mx * g + kx
+            mu[iy] = my * g + ky
+        if self.roll:
+            f0, c = (x / _model.ROLL_GAIN for x in ei[self.i_roll:self.i_roll + 2].tolist())
+            v = 10.0 * c / (10.0 * c + self.roll_half * (1.0 - c))
+            i = self.r_idx
+            mu[i] = (1.0 - v) * float(mu[i]) + v * (self.roll_scale * f0 + self.roll_bias)
+            std[i] = (1.0 - v) * float(std[i]) + v * self.roll_std
+        return mu, std
+
+    def step_rnn(self, z: np.ndarray) -> None:
+        """Advance the state with the fed-back z (Z,)."""
+        F, li, hid, ei = self.F, self.lstm_in, self.hidden, self.enc_in
+        self.z_in[:-1] = z
+        np.matmul(self.phi_z, self.z_in, out=li[self.sl_feat])
+        np.maximum(li[self.sl_feat], 0, out=li[self.sl_feat])
+        n = self.n
+        pos = (float(z[self.pos_idx[0]]), float(z[self.pos_idx[1]]))
+        vel = ((pos[0] - self.pos[0]) * 10.0, (pos[1] - self.pos[1]) * 10.0) if n >= 1 \
+            else (0.0, 0.0)
+        acc = ((vel[0] - self.vel[0]) * 40.0, (vel[1] - self.vel[1]) * 40.0) if n >= 2 \
+            else (0.0, 0.0)
+        f = self.sl_feat.stop
+        li[f:f + 4] = (min(max(vel[0], -5.0), 5.0), min(max(vel[1], -5.0), 5.0),
+                       min(max(acc[0], -10.0), 10.0), min(max(acc[1], -10.0), 10.0))
+        li[self.sl_lh] = ei[self.sl_h]
+        g = self.gates
+        np.matmul(self.lstm, li, out=g)
+        np.tanh(g, out=g)
+        sg = g[:2 * hid]  # tanh(x/2) of the input and forget gates -> sigmoid(x)
+        sg *= F(0.5)
+        sg += F(0.5)
+        so = g[3 * hid:]
+        so *= F(0.5)
+        so += F(0.5)
+        c = ei[self.sl_c]
+        c *= g[hid:2 * hid]
+        c += g[:hid] * g[2 * hid:3 * hid]
+        np.tanh(c, out=self.tmp_h)
+        np.multiply(so, self.tmp_h, out=ei[self.sl_h])
+        if self.roll:
+            self.stats = self._roll_stats(pos, vel, self.vel, n, self.stats)
+            self._set_roll_features()
+        self.pos, self.vel, self.n = pos, vel, min(n + 1.0, 2.0)
+
+    @staticmethod
+    def _roll_stats(pos, vel, vel_prev, n, stats) -> tuple[float, float, float]:
+        """``Vid2ParamNet._roll_stats`` for one frame, on Python floats."""
+        M = _model
+        low = min(stats[0] + 1.0 if pos[1] * M.BOX_WIDTH < M.ROLL_HEIGHT else 0.0, 3.0)
+        vx, vxp = vel[0], vel_prev[0]
+        dec = -math.copysign(1.0, vx) * (vx - vxp) / M.DT**2 if vx else 0.0
+        x = pos[0] * M.BOX_WIDTH
+        ok = (low >= 3 and n >= 2 and abs(vx) > _ROLL_STEP and abs(vxp) > _ROLL_STEP
+              and vx * vxp > 0 and abs(dec) < M.ROLL_DEC_MAX
+              and M.ROLL_WALL < x < M.BOX_WIDTH - M.ROLL_WALL)
+        return (low, stats[1] + 1.0, stats[2] + dec) if ok else (low, stats[1], stats[2])
+
+    def step(self, frame: np.ndarray, eps: np.ndarray | None = None,
+             noise: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """One frame: the encoder's posterior given it and the frames before, then the state
+        update (``Vid2ParamNet.filter`` for a batch of one).
+
+        Parameters
+        ----------
+        frame : ndarray, shape (H, W)
+            uint8, or float in [0, 255].
+        eps : ndarray, shape (Z,), optional
+            Standard normal noise; with ``noise > 0`` the LSTM is fed ``mu + noise * std * eps``
+            (``Vid2ParamNet.filter`` with ``sample=True``), else ``mu``.
+        noise : float
+            ``config.recur_noise``.
+
+        Returns
+        -------
+        mu, std : ndarray, shape (Z,)
+            Normalised units, as ``enc_step``; fresh arrays.
+        """
+        self.encode(frame)
+        mu, std = self.enc_step()
+        if eps is not None and noise > 0:
+            self.step_rnn(mu + self.F(noise) * std * np.asarray(eps, self.F))
+        else:
+            self.step_rnn(mu)
+        return mu, std
+
+
+
+#: Frames per piece in ``encode_frames_batch``: the conv activations of 1024 28x28 frames take
+#: ~6 MB, those of a whole batch of 100 videos (20,000 frames) ~0.7 GB.
+ENCODE_CHUNK = 1024
+
+
+def encode_frames_batch(net: nn.Module, frames: torch.Tensor,
+                        chunk: int | None = None) -> torch.Tensor:
+    """``net.encode_frames(frames)`` in pieces of ``chunk`` frames (same numbers).
+
+    Why: on all frames of a batch at once, the encoder's intermediate tensors (conv
+    activations, keypoint heat maps and their normalised copies) are hundreds of megabytes,
+    written once and read once: measured on the 2-core CPU, one thread, 100 videos x 200 frames
+    took 2.3 s of CPU in one piece and ~0.6 s in pieces that stay in cache. With gradients
+    (training) the call is passed through unchanged.
+
+    Parameters
+    ----------
+    frames : Tensor, shape (..., H, W)
+    chunk : int, optional
+        Frames per piece; default ``ENCODE_CHUNK``.
+
+    Returns
+    -------
+    Tensor, shape (..., feat + 3 * keypoints)
+    """
+    chunk = ENCODE_CHUNK if chunk is None else int(chunk)
+    lead = frames.shape[:-2]
+    n = int(np.prod(lead)) if lead else 1
+    if torch.is_grad_enabled() or n <= chunk:
+        return net.encode_frames(frames)
+    flat = frames.reshape(n, *frames.shape[-2:])
+    first = net.encode_frames(flat[:chunk])
+    out = torch.empty((n, first.shape[-1]), dtype=first.dtype, device=first.device)
+    out[:chunk] = first
+    for i in range(chunk, n, chunk):
+        out[i:i + chunk] = net.encode_frames(flat[i:i + chunk])
+    return out.reshape(*lead, -1)
+
+def _weights_version(net: nn.Module) -> tuple[int, ...]:
+    """Changes whenever a parameter or buffer is modified in place (optimiser steps,
+    ``load_state_dict``) or replaced."""
+    return tuple((id(t), t._version) for t in (*net.parameters(), *net.buffers()))
+
+
+def frame_filter_for(net: nn.Module, device, previous: FrameFilter | None = None):
+    """A reset :class:`FrameFilter` for ``net``, or None where the torch modules must run.
+
+    None when ``device`` is not the CPU (the weights stay on the accelerator) or when the
+    network has a part the NumPy path does not implement. ``previous`` (a filter of the same
+    network) is reused when no weight has changed since it copied them.
+    """
+    if torch.device(device).type != "cpu":
+        return None
+    version = _weights_version(net)
+    if previous is not None and previous.net is net and previous.version == version:
+        previous.reset()
+        return previous
+    try:
+        ff = FrameFilter(net)
+    except Unsupported:
+        return None
+    ff.version = version
+    return ff
+
+
+class LazyPosterior(Posterior):
+    """A :class:`~sysid_bench.estimator.Posterior` whose ``samples`` are drawn when first read.
+
+    The samples are ``clip(loc + std * eps, lo, hi)`` with ``eps`` the first ``(n_samples, 4)``
+    standard normals of ``numpy.random.default_rng(seed)``: each posterior has its own keyed
+    stream, so the bytes depend on the seed only, not on which posteriors were read before or
+    in what order, and a posterior nobody samples costs no draw. Why: drawing, clipping and
+    checking 200 x 4 samples was ~40% of a streamed frame's time, and an online consumer
+    (a controller reading the mean) never reads them.
+
+    Parameters
+    ----------
+    mean, std : ndarray, shape (4,)
+    extras : dict
+    loc : ndarray, shape (4,)
+        Centre of the samples (the mean before clipping).
+    seed : sequence of int
+        Key of the samples' stream.
+    n_samples : int
+    bounds : (ndarray, ndarray), optional
+        Clip the samples to ``[lo, hi]``.
+    """
+
+    def __init__(self, mean, std, extras, *, loc, seed, n_samples: int, bounds=None):
+        super().__init__(mean=mean, std=std, samples=None, extras=extras)
+        self._draw = (np.asarray(loc, np.float64), tuple(int(s) for s in seed), int(n_samples),
+                      bounds)
+
+    @property
+    def samples(self):
+        draw = self.__dict__.get("_draw")
+        if draw is not None:
+            loc, seed, n, bounds = draw
+            s = loc + self.std * np.random.default_rng(seed).standard_normal((n, loc.size))
+            if bounds is not None:
+                np.minimum(np.maximum(s, bounds[0], out=s), bounds[1], out=s)
+            self.__dict__["_samples"] = s
+            self.__dict__["_draw"] = None
+        return self.__dict__.get("_samples")
+
+    @samples.setter
+    def samples(self, value) -> None:
+        self.__dict__["_draw"] = None
+        self.__dict__["_samples"] = value

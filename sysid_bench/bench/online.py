@@ -1,0 +1,194 @@
+"""Online cost: a posterior after every frame of a video, method by method.
+
+The paper's speed claim is about online use: a robot wants the parameters after each new frame.
+A streaming method (Vid2Param) pays a constant cost per frame; a batch method (lsq, sindy) must
+re-identify on every prefix of the video seen so far, from its ``min_frames`` on, and pays for
+all of them. This module measures both on the same videos, in one process, methods interleaved
+video by video so that the machine's load falls on all of them alike: compare the ratios, not
+the absolute seconds.
+
+Every method sees video only: Vid2Param its frames, position methods ``Observation(frames=...)``
+(they track the ball themselves, as in the report's ``video`` input), floor height given.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pandas as pd
+from tqdm.auto import tqdm
+
+from sysid_bench._validate import check_positive_int
+
+__all__ = ["online_cost", "online_cost_markdown", "ONLINE_METHODS"]
+
+#: The default table: Vid2Param's stream and the cheap position methods that identify.
+ONLINE_METHODS = ("vid2param", "lsq", "sindy", "dmd")
+
+
+def _clock() -> tuple[float, float]:
+    return time.perf_counter(), time.process_time()
+
+
+def _run_vid2param(est, frames: np.ndarray, draw_samples: bool) -> int:
+    """Push every frame through one stream; returns the number of posteriors."""
+    stream = est.stream()
+    for f in frames:
+        post = stream.push(f)
+        if draw_samples:
+            post.samples  # noqa: B018 -- materialise the lazily drawn samples
+    return len(frames)
+
+
+def _run_batch(est, obs, first: int) -> int:
+    """Re-identify on every prefix ``first .. T``; returns the number of posteriors."""
+    from sysid_bench.estimator import Observation
+
+    T = len(obs.frames)
+    for n in range(first, T + 1):
+        est.identify(Observation(frames=obs.frames[:n], dt=obs.dt, floor=obs.floor))
+    return T - first + 1
+
+
+def online_cost(methods=ONLINE_METHODS, n_videos: int = 3, seed: int = 0, *,
+                n_frames: int = 200, samples: bool = True, progress: bool = False,
+                options: dict | None = None) -> pd.DataFrame:
+    """Cost of a posterior after every frame of ``n_videos`` test videos, per method.
+
+    Parameters
+    ----------
+    methods : sequence of str
+        Registered method names. ``"vid2param"`` runs its stream (one ``push`` per frame);
+        every other method re-runs ``identify`` on each prefix from its ``min_frames`` on. A
+        method that identifies no parameters (``NotImplementedError``, e.g. DMD) gets a row
+        marked ``n/a``.
+    n_videos : int
+        Test videos (``make_dataset("test", n_videos, seed, n_frames=n_frames)``).
+    seed : int
+        Seed of the videos.
+    n_frames : int
+        Frames per video T.
+    samples : bool
+        Also time Vid2Param with every posterior's samples drawn (``vid2param+samples``): its
+        posteriors draw their ``n_samples`` samples only when read.
+    progress : bool
+        Show a tqdm bar over videos.
+    options : dict, optional
+        ``{method: {option: value}}`` passed to ``methods.get``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per method: ``method``, ``mode`` (``stream`` or ``every prefix``),
+        ``first_frame`` (the first frame with a posterior), ``posteriors`` (per video),
+        ``total_s`` and ``cpu_s`` (median over videos of the wall-clock and process CPU seconds
+        for the whole video), ``per_frame_s`` (``total_s / n_frames``), ``ratio`` and
+        ``ratio_cpu`` (``total_s`` and ``cpu_s`` over Vid2Param's stream; NaN without it),
+        ``status`` (``ok`` or ``n/a: <why>``).
+    """
+    import methods as registry
+    from sysid_bench.datasets import make_dataset
+
+    names = list(methods)
+    if not names:
+        raise ValueError("methods: expected at least one method name, got none")
+    known = registry.available(include_reference=True)
+    bad = [m for m in names if m not in known]
+    if bad:
+        raise ValueError(f"methods: expected names from {known}, got {bad}")
+    n_videos = check_positive_int(n_videos, "n_videos")
+    n_frames = check_positive_int(n_frames, "n_frames")
+    options = options or {}
+    data = make_dataset("test", n_videos, int(seed), n_frames=n_frames)
+
+    runs: list[tuple[str, str, int]] = []  # (row label, method, first frame)
+    ests = {}
+    for m in names:
+        est = registry.get(m, **options.get(m, {}))
+        ests[m] = est
+        if m == "vid2param":
+            runs.append(("vid2param", m, 1))
+            if samples:
+                runs.append(("vid2param+samples", m, 1))
+        else:
+            runs.append((m, m, max(1, int(getattr(est, "min_frames", 1)))))
+    # one-time costs (loading the checkpoint, compiling the simulator) are not online costs:
+    # each method identifies a short prefix once before the clock starts
+    warm = data.observation(0)
+    for label, m, first in runs:
+        try:
+            if m == "vid2param":
+                _run_vid2param(ests[m], warm.frames[:5], True)
+            else:
+                _run_batch(ests[m], type(warm)(frames=warm.frames[:first + 2], dt=warm.dt,
+                                               floor=warm.floor), first + 2)
+        except NotImplementedError:
+            pass
+    wall = {r[0]: [] for r in runs}
+    cpu = {r[0]: [] for r in runs}
+    count = {}
+    status = {r[0]: "ok" for r in runs}
+    for i in tqdm(range(n_videos), desc="online cost", disable=not progress):
+        obs = data.observation(i)
+        for label, m, first in runs:
+            if status[label] != "ok":
+                continue
+            w0, c0 = _clock()
+            try:
+                if m == "vid2param":
+                    count[label] = _run_vid2param(ests[m], obs.frames, label.endswith("+samples"))
+                else:
+                    count[label] = _run_batch(ests[m], obs, first)
+            except NotImplementedError as exc:
+                status[label] = f"n/a: {exc}"
+                continue
+            w1, c1 = _clock()
+            wall[label].append(w1 - w0)
+            cpu[label].append(c1 - c0)
+
+    rows = []
+    for label, m, first in runs:
+        ok = status[label] == "ok"
+        total = float(np.median(wall[label])) if ok else np.nan
+        rows.append({
+            "method": label,
+            "mode": "stream" if m == "vid2param" else "every prefix",
+            "first_frame": first,
+            "posteriors": count.get(label, 0) if ok else 0,
+            "total_s": total,
+            "cpu_s": float(np.median(cpu[label])) if ok else np.nan,
+            "per_frame_s": total / n_frames,
+            "status": status[label],
+        })
+    df = pd.DataFrame(rows)
+    base = df.loc[df["method"] == "vid2param"]
+    ref_w = float(base["total_s"].iloc[0]) if len(base) else np.nan
+    ref_c = float(base["cpu_s"].iloc[0]) if len(base) else np.nan
+    df["ratio"] = df["total_s"] / ref_w
+    df["ratio_cpu"] = df["cpu_s"] / ref_c
+    df.attrs.update({"n_videos": n_videos, "seed": int(seed), "n_frames": n_frames})
+    return df
+
+
+def online_cost_markdown(df: pd.DataFrame) -> str:
+    """The ``online_cost`` table as Markdown, with a sentence saying what it measures."""
+    T = df.attrs.get("n_frames", "T")
+    n = df.attrs.get("n_videos", "?")
+    lines = [
+        f"A posterior after every frame of a {T}-frame video (median of {n} test videos, one "
+        "process, methods interleaved video by video). `stream`: one push per frame; `every "
+        "prefix`: identify re-run on frames 1..t for every t from the method's first frame. "
+        "`x vid2param`: total time over Vid2Param's stream, measured in the same run.",
+        "",
+        "| method | mode | first frame | posteriors | total s | per frame ms | x vid2param |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in df.itertuples():
+        if r.status != "ok":
+            lines.append(f"| {r.method} | {r.mode} | {r.first_frame} | - | n/a | n/a | "
+                         f"{r.status.removeprefix('n/a: ')} |")
+            continue
+        lines.append(f"| {r.method} | {r.mode} | {r.first_frame} | {r.posteriors} | "
+                     f"{r.total_s:.3g} | {r.per_frame_s * 1e3:.3g} | {r.ratio:.3g} |")
+    return "\n".join(lines) + "\n"

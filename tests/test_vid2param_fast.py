@@ -1,0 +1,147 @@
+"""The NumPy single-frame path (methods/vid2param/fast.py) against the torch modules.
+
+Why not rtol 1e-5 against torch over a whole video: the network's second-difference feature
+multiplies the fed-back position's rounding by 400, so any two float32 evaluations drift apart
+over 200 frames -- torch's own batched ``filter`` and its single-frame ``push`` differ by up to
+~7e-4 (camera model). The tests therefore compare each float32 path with a float64 evaluation of
+the same weights: the NumPy path must be no further from it than torch's batched filter is
+(within a factor), and exact to float32 rounding on the first frames, before any amplification.
+"""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param  # noqa: E402
+from methods.vid2param.fast import FrameFilter, LazyPosterior, Unsupported, fast_support  # noqa: E402
+from sysid_bench.datasets import make_dataset  # noqa: E402
+
+needs = {k: pytest.mark.skipif(not p.exists(), reason=f"no shipped {k} checkpoint")
+         for k, p in SHIPPED_CHECKPOINTS.items()}
+
+
+def _video(name: str) -> np.ndarray:
+    if name == "camera":
+        from methods.vid2param.checkpoint import load_checkpoint
+
+        nuis = load_checkpoint(SHIPPED_CHECKPOINTS["camera"])["train"]["nuisance"]
+        return np.asarray(make_dataset("test", 1, 2024, size=(50, 100), nuisance=nuis).frames[0])
+    return np.asarray(make_dataset("test", 1, 2024).frames[0])
+
+
+@pytest.mark.parametrize("name", [pytest.param("28x28", marks=needs["28x28"]),
+                                  pytest.param("camera", marks=needs["camera"])])
+def test_numpy_filter_matches_torch_over_a_video(name):
+    est = Vid2Param(checkpoint=name, device="cpu")
+    net = est._ensure_net()
+    assert fast_support(net) is None
+    frames = _video(name)  # 200 frames
+    with torch.inference_mode():
+        mu, sd, state = net.filter(torch.as_tensor(frames[None]), sample=False)
+    torch_out = torch.cat([mu[0], sd[0]], -1).numpy().astype(np.float64)
+
+    def run(dtype):
+        ff = FrameFilter(net, dtype)
+        return np.array([np.concatenate(ff.step(f)) for f in frames], np.float64), ff
+
+    fast, ff32 = run(np.float32)
+    ref, _ = run(np.float64)
+    assert fast.shape == torch_out.shape == (200, 2 * net.config.latent)
+    # the first frames: the same network to float32 rounding
+    np.testing.assert_allclose(fast[:3], torch_out[:3], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(ref[:3], torch_out[:3], rtol=1e-5, atol=1e-6)
+    # the whole video: no further from the float64 evaluation than torch's float32 filter is
+    err_fast = np.abs(fast - ref).max()
+    err_torch = np.abs(torch_out - ref).max()
+    assert err_fast <= 3 * err_torch + 1e-5, (err_fast, err_torch)
+    np.testing.assert_allclose(fast, torch_out, atol=2e-3)
+    # and the state after the last frame, in the torch layout
+    for a, b in zip(ff32.torch_state()[0], state[0]):
+        np.testing.assert_allclose(a.numpy(), b.numpy(), atol=5e-3)
+
+
+@needs["28x28"]
+def test_push_uses_numpy_path_and_agrees_with_torch_path():
+    est = Vid2Param(device="cpu", n_samples=16)
+    frames = _video("28x28")[:40]
+    fast = est.stream()
+    assert fast._fast is not None  # the shipped checkpoint runs the NumPy path on the CPU
+    slow = est.stream()
+    slow._fast, slow._state = None, est.net_.init_state(1)  # force the torch modules
+    for f in frames:
+        a, b = fast.push(f), slow.push(f)
+    np.testing.assert_allclose(a.mean, b.mean, rtol=1e-4)
+    np.testing.assert_allclose(a.std, b.std, rtol=1e-4)
+    assert a.extras["n_frames"] == b.extras["n_frames"] == 40
+    # samples: the same keyed noise on either path
+    np.testing.assert_allclose(a.samples, b.samples, rtol=1e-3, atol=1e-6)
+    # the state round-trips through the torch layout
+    st = fast.state
+    fast.state = st
+    np.testing.assert_array_equal(fast.state[0][0].numpy(), st[0][0].numpy())
+
+
+@needs["28x28"]
+def test_reset_restarts_and_weights_change_is_picked_up():
+    est = Vid2Param(device="cpu", n_samples=0)
+    frames = _video("28x28")[:10]
+    s = est.stream()
+    first = [s.push(f).mean for f in frames]
+    s.reset()
+    again = [s.push(f).mean for f in frames]
+    np.testing.assert_array_equal(np.array(first), np.array(again))
+    ff = s._fast
+    with torch.no_grad():
+        est.net_.enc[2].bias.add_(0.01)  # an in-place change, as an optimiser step makes
+    try:
+        s.reset()
+        assert s._fast is not ff  # weights copied again
+        changed = [s.push(f).mean for f in frames]
+        assert not np.allclose(np.array(changed), np.array(first))
+    finally:
+        with torch.no_grad():
+            est.net_.enc[2].bias.sub_(0.01)
+
+
+def test_unsupported_network_falls_back_to_torch(tmp_path):
+    from methods.vid2param.model import V2PConfig, Vid2ParamNet
+
+    net = Vid2ParamNet(V2PConfig(keypoints=0, diff_features=False, prior_residual=False,
+                                 roll_features=False, latent=8, hidden=16, feat=16,
+                                 channels=(4, 8)))
+    with pytest.raises(Unsupported, match="diff_features"):
+        FrameFilter(net)
+    assert "keypoints" in fast_support(net)
+    with pytest.raises(ValueError, match="dtype"):
+        FrameFilter(net, np.float16)
+
+
+def test_lazy_posterior_draws_when_read_and_is_keyed():
+    lo, hi = np.zeros(4), np.ones(4)
+    loc, std = np.full(4, 0.5), np.full(4, 0.2)
+
+    def make(seed=(3, 0, 7)):
+        return LazyPosterior(loc, std, {}, loc=loc, seed=seed, n_samples=50, bounds=(lo, hi))
+
+    a = make()
+    assert a.__dict__["_draw"] is not None  # nothing drawn yet
+    s = a.samples
+    assert s.shape == (50, 4) and (s >= 0).all() and (s <= 1).all()
+    assert a.samples is s
+    expect = np.clip(loc + std * np.random.default_rng([3, 0, 7]).standard_normal((50, 4)), lo, hi)
+    np.testing.assert_array_equal(s, expect)
+    # another key, other samples; same key, same bytes whatever was read before
+    assert not np.array_equal(make((3, 0, 8)).samples, s)
+    np.testing.assert_array_equal(make().samples, s)
+    # picklable before and after the draw; interval uses the samples
+    b = pickle.loads(pickle.dumps(make()))
+    np.testing.assert_array_equal(b.samples, s)
+    lo90, hi90 = a.interval(0.9)
+    np.testing.assert_allclose(lo90, np.quantile(s, 0.05, axis=0))
+    a.samples = None
+    assert a.samples is None
