@@ -1095,7 +1095,7 @@ def report_section(out_dir) -> list[str]:
     import pandas as pd
 
     out = Path(out_dir)
-    md = ["## 6. Interception (the paper's robot experiment, simulated)", ""]
+    md = ["## 8. Interception (the paper's robot experiment, simulated)", ""]
     res = _load_results(out)
     if not res:
         return md + ["_No interception tables in `tables/`: run `sysid-bench intercept --policy "

@@ -255,6 +255,7 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
                        "raised NotImplementedError):", "", markdown_table(g), ""]
         from sysid_bench.intercept import report_section
 
+        md += _online_section(out)  # the table report_command measured into out
         md += report_section(out)  # reads the tables `sysid-bench intercept` wrote into out
         md += ["## Where our figures differ from the paper (and where they agree)", ""]
         md += [f"- {s}" for s in readings] or ["_Nothing to compare yet._"]
@@ -264,6 +265,38 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
         return path
     finally:
         store.close()
+
+
+#: Videos (and frames) of the online-cost table per scale: lsq re-identifies on every prefix.
+ONLINE_VIDEOS = {"smoke": (1, 60), "default": (2, 200), "paper": (5, 200)}
+
+
+def _online_section(out: Path) -> list[str]:
+    """The online-cost section, from ``tables/online_cost.md`` when a run measured it."""
+    path = out / "tables" / "online_cost.md"
+    head = ["## 7. Online cost: a posterior after every frame", ""]
+    if not path.is_file():
+        return head + ["_Not measured in this run (`sysid-bench report` measures it after the "
+                       "grid; `--from-store` keeps the last table)._", ""]
+    return head + [path.read_text(), ""]
+
+
+def measure_online(scale: str, out, methods=None) -> Path | None:
+    """Measure ``sysid_bench.bench.online.online_cost`` at ``scale``'s size into
+    ``out/tables/online_cost.{csv,md}``; None when Vid2Param is not among ``methods``."""
+    from sysid_bench.bench.online import ONLINE_METHODS, online_cost, online_cost_markdown
+
+    wanted = [m for m in ONLINE_METHODS if methods is None or m in methods]
+    if "vid2param" not in wanted:
+        return None
+    n, frames = ONLINE_VIDEOS.get(scale, ONLINE_VIDEOS["default"])
+    df = online_cost(wanted, n_videos=n, n_frames=frames, seed=0)
+    tables = Path(out) / "tables"
+    tables.mkdir(parents=True, exist_ok=True)
+    _atomic_write(tables / "online_cost.csv", df.to_csv(index=False))
+    path = tables / "online_cost.md"
+    _atomic_write(path, online_cost_markdown(df))
+    return path
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -298,6 +331,7 @@ def report_command(args) -> int:
         print(f"{summary['ran']} cells computed ({summary['errors']} errors, {summary['na']} n/a), "
               f"{summary['already']} already stored, {summary['wall_s']:.0f} s", file=sys.stderr)
         store = summary["store"]
+        measure_online(args.scale, args.out, args.methods)
     path = render(store, args.out, experiments=args.experiments)
     print(path)
     return 0
