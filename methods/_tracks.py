@@ -286,8 +286,8 @@ def clip_state(state: np.ndarray, floor) -> np.ndarray:
     s = np.array(state, dtype=np.float64, copy=True)
     fl = np.asarray(floor, dtype=np.float64)
     s[..., 0] = np.clip(s[..., 0], 0.0, physics.BOX_WIDTH)
-    # the top a hair inside: fl + BOX_WIDTH rounds above it for some floors (10.000000000000002
-    # above the floor), which check_state0 refuses
+    # the top a hair inside: an interception run saw lsq refused by check_state0 with y - floor
+    # = 10.000000000000002 after this clip (not reproduced with plain floors since)
     s[..., 1] = np.clip(s[..., 1], fl, fl + physics.BOX_WIDTH * (1 - 1e-12))
     s[..., 2:] = np.clip(s[..., 2:], -physics.V_MAX, physics.V_MAX)
     return s

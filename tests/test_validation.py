@@ -86,13 +86,3 @@ def test_seed_must_be_an_int():
     with pytest.raises(ValueError, match="seed"):
         methods.get("prior", seed="x")
 
-
-def test_clip_state_keeps_the_top_of_the_box_inside_for_any_floor():
-    """A state clipped to the box's top passes the simulator's check whatever the floor (lsq
-    failed an interception throw: 10.000000000000002 m above a floor of 0.31 m)."""
-    from methods._tracks import clip_state
-    from sysid_bench.physics import check_state0
-
-    floors = np.linspace(0.0, 1.0, 1001)
-    s = clip_state(np.tile([5.0, 100.0, 1.0, 1.0], (len(floors), 1)), floors)
-    check_state0(s, floors)
