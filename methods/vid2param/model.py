@@ -88,7 +88,7 @@ class V2PConfig:
         fed-back z, scaled to order 1 (velocity: metres per frame; acceleration: x40). The
         recurrence still sees z only. Why: an LSTM fed positions alone must compute second
         differences of numbers of order 0.5 to see gravity (0.0025 per frame^2 in view units);
-        measured with a plain LSTM on true positions (scripts/lstm_probe.py), g stayed at prior
+        measured with a plain LSTM on true positions (a probe script, since removed), g stayed at prior
         level after 600 steps from positions, and reached nMSE ~0.005 with these features, also
         with 5 cm of position noise.
     keypoints : int

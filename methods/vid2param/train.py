@@ -99,7 +99,7 @@ class TrainConfig:
         alone, as a plain recurrent regressor; the VRNN terms (reconstruction, KL, the prior's
         NLL) join afterwards. Measured on CPU (500 steps, all terms from the start): a ridge
         probe found no trace of g in the LSTM state, while the same LSTM trained on the NLL
-        alone (scripts/lstm_probe.py) reads g by step 500.
+        alone (a probe script, since removed) reads g by step 500.
     size : (int, int)
         Frame size (H, W).
     nuisance : dict, optional
