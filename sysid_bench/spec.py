@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, fields
 from types import MappingProxyType
 
 __all__ = ["MethodSpec", "EXPENSIVE_COST", "INPUT_KINDS", "CAPABILITIES", "spec_of"]
@@ -74,23 +74,25 @@ class MethodSpec:
     Built by :func:`spec_of` from the class; ``entry_point`` is filled in by the registry.
     """
 
+    # no defaults here: they are the class attributes of sysid_bench.estimator.Estimator, the
+    # one place a method's declarations start from (spec_of reads every field from the class)
     name: str
-    input_kind: str = "positions"
-    min_frames: int = 1
-    identifies: bool = True
-    forecasts: bool = False
-    streams: bool = False
-    trains: bool = False
-    cost: int = 10
-    scale_cases: Mapping = field(default_factory=dict)
-    scale_options: Mapping = field(default_factory=dict)
-    fit_options: Mapping = field(default_factory=dict)
-    threads_param: str | None = None
-    inline: bool = False
-    color: str | None = None
-    figure_order: int | None = None
-    reference_posterior: bool = False
-    contract_options: Mapping = field(default_factory=dict)
+    input_kind: str
+    min_frames: int
+    identifies: bool
+    forecasts: bool
+    streams: bool
+    trains: bool
+    cost: int
+    scale_cases: Mapping
+    scale_options: Mapping
+    fit_options: Mapping
+    threads_param: str | None
+    inline: bool
+    color: str | None
+    figure_order: int | None
+    reference_posterior: bool
+    contract_options: Mapping
     entry_point: str | None = None
 
     @property
@@ -135,9 +137,11 @@ class MethodSpec:
     __hash__ = None  # holds mappings
 
     def __repr__(self) -> str:
+        from sysid_bench.estimator import Estimator  # the declarations' defaults
+
         d = self.as_dict()
-        default = asdict(MethodSpec(name=self.name))
-        diff = {k: v for k, v in d.items() if k == "name" or _plain(default.get(k)) != v}
+        default = {a: _plain(getattr(Estimator, a)) for a in DECLARED}
+        diff = {k: v for k, v in d.items() if k == "name" or default.get(k) != v}
         return "MethodSpec(" + ", ".join(f"{k}={v!r}" for k, v in diff.items()) + ")"
 
 
