@@ -13,12 +13,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR, simulate
+from methods.vid2param.rollout import clamp_state
+from sysid_bench.physics import PARAMS, PRIOR, simulate
 
 __all__ = ["PhysicsPrior", "NOISE0", "BOUNCE_NOISE0", "physics_step"]
 
-#: Fastest speed component (m/s) the rollout keeps (a noisy particle is held to a real ball's).
-V_CLIP = 25.0
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
 #: Starting per-frame process noise of x, y (m) and vx, vy (m/s); ``PhysicsPrior.log_noise``
@@ -35,7 +34,7 @@ def physics_step(state: np.ndarray, theta: np.ndarray, dt: float) -> np.ndarray:
     Parameters
     ----------
     state : ndarray, shape (S, 4)
-        ``[x, y, vx, vy]``, floor-relative metres and m/s (clamped into the box first).
+        ``[x, y, vx, vy]``, floor-relative metres and m/s (``rollout.clamp_state`` first).
     theta : ndarray, shape (S, 4)
         ``(e, g, d, r)``, clipped to the prior.
 
@@ -43,11 +42,7 @@ def physics_step(state: np.ndarray, theta: np.ndarray, dt: float) -> np.ndarray:
     -------
     ndarray, shape (S, 4)
     """
-    s = np.array(state, dtype=np.float64)
-    s[:, 0] = np.clip(s[:, 0], 0.0, BOX_WIDTH)
-    s[:, 1] = np.clip(s[:, 1], 1e-9, BOX_WIDTH)
-    s[:, 2:] = np.clip(s[:, 2:], -V_CLIP, V_CLIP)
-    return simulate(np.clip(theta, _LO, _HI), s, 2, dt)[:, 1]
+    return simulate(np.clip(theta, _LO, _HI), clamp_state(state), 2, dt)[:, 1]
 
 
 class PhysicsPrior(nn.Module):

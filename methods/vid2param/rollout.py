@@ -19,7 +19,7 @@ import numpy as np
 
 from sysid_bench.physics import BOX_WIDTH, DT, PARAMS, PRIOR, simulate
 
-__all__ = ["StateFit", "WINDOW", "fit_state", "sample_posterior", "sample_trajectories"]
+__all__ = ["StateFit", "WINDOW", "clamp_state", "fit_state", "sample_posterior", "sample_trajectories"]
 
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
@@ -71,12 +71,20 @@ class StateFit:
     floor: float = 0.0
 
 
+def clamp_state(state: np.ndarray) -> np.ndarray:
+    """States (..., 4) kept where the simulator accepts them and a real ball can be: inside the
+    box, on or above the floor, speed components within ``_V_MAX``. Returns a copy."""
+    s = np.array(state, dtype=np.float64, copy=True)
+    s[..., 0] = np.clip(s[..., 0], 0.0, BOX_WIDTH)
+    s[..., 1] = np.clip(s[..., 1], _Y_MIN, BOX_WIDTH)
+    s[..., 2:4] = np.clip(s[..., 2:4], -_V_MAX, _V_MAX)
+    return s
+
+
 def _clamp(v: np.ndarray) -> np.ndarray:
     """State, normalised parameters and floor (..., 9) kept where the simulator accepts them."""
     v = v.copy()
-    v[..., 0] = np.clip(v[..., 0], 0.0, BOX_WIDTH)
-    v[..., 1] = np.clip(v[..., 1], _Y_MIN, BOX_WIDTH)
-    v[..., 2:4] = np.clip(v[..., 2:4], -_V_MAX, _V_MAX)
+    v[..., :4] = clamp_state(v[..., :4])
     v[..., 4:8] = np.clip(v[..., 4:8], 0.0, 1.0)
     v[..., 8] = np.clip(v[..., 8], -_FLOOR_MAX, _FLOOR_MAX)
     return v
@@ -262,11 +270,7 @@ def sample_posterior(fit: StateFit, n_samples: int,
     L = np.linalg.cholesky(fit.cov + 1e-12 * np.eye(9))
     mean = np.concatenate([fit.state0, fit.theta, [fit.floor]])
     v = mean + rng.standard_normal((int(n_samples), 9)) @ L.T
-    s0 = v[:, :4].copy()
-    s0[:, 0] = np.clip(s0[:, 0], 0.0, BOX_WIDTH)
-    s0[:, 1] = np.clip(s0[:, 1], _Y_MIN, BOX_WIDTH)
-    s0[:, 2:] = np.clip(s0[:, 2:], -_V_MAX, _V_MAX)
-    return s0, np.clip(v[:, 4:8], _LO, _HI), v[:, 8]
+    return clamp_state(v[:, :4]), np.clip(v[:, 4:8], _LO, _HI), v[:, 8]
 
 
 def sample_trajectories(fit: StateFit, n_last: int, horizon: int, n_samples: int,
