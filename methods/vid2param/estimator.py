@@ -43,6 +43,12 @@ _HI = np.array([PRIOR[p][1] for p in PARAMS])
 _SPAN = _HI - _LO
 
 
+def _physical(mu_n: np.ndarray, sd_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised posterior mean and (calibrated) std of (e, g, d, r), (4,) each, in physical
+    units; the mean clipped to the prior."""
+    return _LO + _SPAN * np.clip(mu_n, 0.0, 1.0), _SPAN * sd_n
+
+
 def _std_scale(ck: dict) -> np.ndarray:
     """The checkpoint's std calibration factors for ``PARAMS`` (ones when it has none)."""
     cal = ck.get("calibration") or {}
@@ -503,9 +509,7 @@ class Vid2Param(Estimator):
         sd = sd[0].cpu().numpy().astype(np.float64)
         idx = self._index()
         pos = BOX_WIDTH * mu[:, [names.index("x"), names.index("y")]]
-        theta_mean = _LO + _SPAN * np.clip(mu[-1, idx], 0.0, 1.0)
-        theta_std = _SPAN * sd[-1, idx] * self.std_scale_
-        return pos, theta_mean, theta_std, state
+        return (pos, *_physical(mu[-1, idx], sd[-1, idx] * self.std_scale_), state)
 
     def _forecast_track(self, pos, th_mu, th_sd, horizon: int, dt: float):
         """Forecast from the network's track (T, 2) and parameter posterior, as
@@ -671,10 +675,8 @@ class Vid2ParamStream(Stream):
             raise NotImplementedError("this checkpoint has no position dimensions or no physics "
                                       "prior; use Vid2Param.forecast on the frames")
         t0 = time.perf_counter()
-        mu_n, sd_n = self.last
-        th_mu = _LO + _SPAN * np.clip(mu_n, 0.0, 1.0)
         mean, std, samples, extras = self.est._forecast_track(
-            self.track[: self.n], th_mu, _SPAN * sd_n, horizon, DT)
+            self.track[: self.n], *_physical(*self.last), horizon, DT)
         shift = np.array([0.0, 0.0 if floor is None else float(floor)])
         extras = {"wall_s": time.perf_counter() - t0, "n_simulations": 0,
                   "forecast": self.est.forecast_mode, "n_frames": self.n, **extras}

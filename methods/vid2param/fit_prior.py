@@ -91,8 +91,6 @@ def with_physics_prior(ck: dict) -> Vid2ParamNet:
 
 def _pool(est, n: int, seed: int, cfg: PriorFitConfig, desc: str) -> dict:
     """Filter ``n`` videos to a random prefix each and draw their posterior particles."""
-    from sysid_bench.datasets import make_dataset  # noqa: F401  (make_split wraps it)
-
     size = tuple(est.frame_size)
     tr = est.checkpoint_info_.get("train") or {}
     ds = make_split("train", n, seed, size, tr.get("nuisance"), 200)
@@ -134,12 +132,17 @@ def _rollouts(net, pool, idx, cfg, gen):
     return mix_m, mix_v, truth
 
 
+def _nll(mix_m, mix_v, truth):
+    """Gaussian NLL per coordinate and frame, clipped at ``NLL_CLIP``: a few videos whose state
+    fit failed (metres off) would otherwise set the noise."""
+    nll = 0.5 * (math.log(2 * math.pi) + torch.log(mix_v) + (truth - mix_m) ** 2 / mix_v)
+    return nll.clamp(max=NLL_CLIP)
+
+
 def _loss(net, pool, idx, cfg, gen):
     """Mean NLL (per coordinate and frame) and MSE (m^2) of the truths of videos ``idx``."""
     mix_m, mix_v, truth = _rollouts(net, pool, idx, cfg, gen)
-    nll = 0.5 * (math.log(2 * math.pi) + torch.log(mix_v) + (truth - mix_m) ** 2 / mix_v)
-    # clipped: a few videos whose state fit failed (metres off) would otherwise set the noise
-    return nll.clamp(max=NLL_CLIP).mean(), ((truth - mix_m) ** 2).mean()
+    return _nll(mix_m, mix_v, truth).mean(), ((truth - mix_m) ** 2).mean()
 
 
 def _coverage(net, pool, cfg, seed: int) -> dict:
@@ -147,10 +150,9 @@ def _coverage(net, pool, cfg, seed: int) -> dict:
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         mix_m, mix_v, truth = _rollouts(net, pool, list(range(len(pool["truth"]))), cfg, gen)
-    nll = 0.5 * (math.log(2 * math.pi) + torch.log(mix_v) + (truth - mix_m) ** 2 / mix_v)
     cov = ((truth - mix_m).abs() <= 1.645 * mix_v.sqrt()).float().mean()
-    return {"nll": float(nll.clamp(max=NLL_CLIP).mean()), "mse_m2": float(((truth - mix_m) ** 2).mean()),
-            "cov90": float(cov)}
+    return {"nll": float(_nll(mix_m, mix_v, truth).mean()),
+            "mse_m2": float(((truth - mix_m) ** 2).mean()), "cov90": float(cov)}
 
 
 def fit_prior(checkpoint, out, cfg: PriorFitConfig | None = None, threads: int | None = None,
