@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from sysid_bench import physics
+from sysid_bench._validate import check_positive_float
 
 __all__ = [
     "DEFAULT_SIGMA",
@@ -128,11 +129,5 @@ def gaussian_loglik(sim_pos: np.ndarray, obs_pos: np.ndarray, mask: np.ndarray, 
 
 
 def check_sigma(sigma) -> float:
-    """``sigma`` as a float > 0, else ``ValueError`` naming it."""
-    try:
-        s = float(sigma)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"sigma: expected a positive number of metres, got {sigma!r}") from exc
-    if not np.isfinite(s) or s <= 0:
-        raise ValueError(f"sigma: expected a finite number of metres > 0, got {sigma!r}")
-    return s
+    """``sigma`` (position noise, metres) as a float > 0, else ``ValueError`` naming it."""
+    return check_positive_float(sigma, "sigma")
