@@ -94,9 +94,11 @@ def chunk_seed(data_seed: int, k: int) -> int:
     return int(np.random.SeedSequence([int(data_seed), int(k)]).generate_state(1)[0])
 
 
-def make_split(split: str, n: int, seed: int, size=(28, 28), nuisance=None, n_frames: int = 200):
-    """One split of the interleaved variant (``sysid_bench.datasets.make_dataset``)."""
-    return make_dataset(split, n, seed, n_frames=n_frames, size=tuple(size), nuisance=nuisance)
+def make_split(split: str, n: int, seed: int, size=(28, 28), nuisance=None, n_frames: int = 200,
+               variant: str = "interleaved", **variant_options):
+    """One split (``sysid_bench.datasets.make_dataset``; the interleaved variant by default)."""
+    return make_dataset(split, n, seed, variant=variant, n_frames=n_frames, size=tuple(size),
+                        nuisance=nuisance, **variant_options)
 
 
 def perturb_dataset(ds, spin: float, dwell: float, seed: int = 0, p: float = 1.0):

@@ -110,6 +110,13 @@ class TrainConfig:
         (``data.perturb_dataset``), so the network meets physics that is not exactly ours.
     init : str, optional
         Checkpoint the weights started from (fine-tuning; see :func:`load_matching`).
+    variant : str
+        ``sysid_bench.datasets`` variant of the training chunks: ``"interleaved"`` (the shipped
+        models), or a sensitivity condition's (``"extrapolation"``, ``"noisy"``,
+        ``"simplified"``, ``"changing"``), with its ``variant_options`` (e.g.
+        ``{"param": "e"}``, ``{"label_noise": 0.25}``). Validation stays on the interleaved
+        test split.
+    variant_options : dict, optional
     """
 
     steps: int = 5000
@@ -136,8 +143,16 @@ class TrainConfig:
     nuisance: dict | None = field(default=None)
     perturb: dict | None = field(default=None)
     init: str | None = None
+    variant: str = "interleaved"
+    variant_options: dict | None = field(default=None)
 
     def __post_init__(self) -> None:
+        from sysid_bench.datasets import VARIANTS
+
+        if self.variant not in VARIANTS:
+            raise ValueError(f"variant: expected one of {VARIANTS}, got {self.variant!r}")
+        if self.variant_options is not None and not isinstance(self.variant_options, dict):
+            raise ValueError(f"variant_options: expected a dict, got {self.variant_options!r}")
         if self.perturb is not None:
             bad = set(self.perturb) - {"spin", "dwell", "p"}
             if bad or not isinstance(self.perturb, dict):
@@ -257,7 +272,8 @@ class _Feed:
         tc = self.tc
         if self.fixed is None:
             seed = chunk_seed(tc.data_seed, k)
-            ds = make_split("train", tc.chunk, seed, tc.size, tc.nuisance, tc.n_frames)
+            ds = make_split("train", tc.chunk, seed, tc.size, tc.nuisance, tc.n_frames,
+                            variant=tc.variant, **(tc.variant_options or {}))
             if tc.perturb:
                 ds = perturb_dataset(ds, seed=seed, **tc.perturb)
             self.frames = np.asarray(ds.frames)
@@ -678,7 +694,7 @@ def _parse(argv=None):
     p.add_argument("--stop-at", type=int, default=None, help="stop (resumable) after this step")
     p.add_argument("--no-progress", action="store_true")
     for name, val in asdict(tc).items():
-        if name in ("size", "nuisance", "perturb", "init"):
+        if name in ("size", "nuisance", "perturb", "init", "variant_options"):
             continue
         p.add_argument("--" + name.replace("_", "-"), type=type(val), default=val)
     p.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
@@ -687,6 +703,8 @@ def _parse(argv=None):
                    help='renderer options as JSON, e.g. \'{"blur": 0.5, "drop": 0.05}\'')
     p.add_argument("--perturb", type=json.loads, default=None,
                    help='deviations from our physics in training, e.g. \'{"spin": 0.3, "dwell": 0.01, "p": 0.5}\'')
+    p.add_argument("--variant-options", type=json.loads, default=None,
+                   help='options of --variant as JSON, e.g. \'{"param": "e"}\' or \'{"label_noise": 0.25}\'')
     p.add_argument("--init", default=None,
                    help="start from this checkpoint's weights where names and shapes match")
     p.add_argument("--preset", default="28x28", choices=sorted(PRESETS),
@@ -722,9 +740,10 @@ def main(argv=None) -> int:
         base["frame_size"] = list(a.size)
     mc = V2PConfig(**base)
     nuisance = getattr(a, "nuisance", PRESET_NUISANCE.get(a.preset))
-    skip = ("size", "nuisance", "perturb", "init")
+    skip = ("size", "nuisance", "perturb", "init", "variant_options")
     tc = TrainConfig(**{k: getattr(a, k) for k in asdict(TrainConfig()) if k not in skip},
-                     size=tuple(mc.frame_size), nuisance=nuisance, perturb=a.perturb, init=a.init)
+                     size=tuple(mc.frame_size), nuisance=nuisance, perturb=a.perturb, init=a.init,
+                     variant_options=a.variant_options)
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
                     max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
     if info["done"] and a.export:
