@@ -412,6 +412,7 @@ class Estimator(abc.ABC):
     scale_cases: dict = MappingProxyType({})
     scale_options: dict = MappingProxyType({})
     fit_options: dict = MappingProxyType({})
+    pretrained: dict = MappingProxyType({})
     threads_param: str | None = None
     inline: bool = False
     color: str | None = None

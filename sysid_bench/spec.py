@@ -24,6 +24,8 @@ attribute              default     meaning
 ``scale_cases``        {}          per scale: most test videos (an int, or a dict per experiment)
 ``scale_options``      {}          per scale: hyperparameters the benchmark passes to ``methods.get``
 ``fit_options``        {}          per scale: hyperparameters of the sensitivity experiment's training
+``pretrained``         {}          per scale: ``{condition: hyperparameters}`` of ready-trained
+                                   sensitivity models, loaded instead of training one
 ``threads_param``      None        the hyperparameter setting the method's own thread count, if any
 ``inline``             False       cells run in a thread of the runner's process (cheap, heavy import)
 ``color``              None        matplotlib colour in every figure (None: from ``figure_order``)
@@ -50,7 +52,7 @@ CAPABILITIES = ("identifies", "forecasts", "streams", "trains")
 #: class attributes collected into a MethodSpec, in its field order
 DECLARED = (
     "name", "input_kind", "min_frames", *CAPABILITIES, "cost", "scale_cases", "scale_options",
-    "fit_options", "threads_param", "inline", "color", "figure_order", "reference_posterior",
+    "fit_options", "pretrained", "threads_param", "inline", "color", "figure_order", "reference_posterior",
     "contract_options",
 )
 
@@ -87,6 +89,7 @@ class MethodSpec:
     scale_cases: Mapping
     scale_options: Mapping
     fit_options: Mapping
+    pretrained: Mapping
     threads_param: str | None
     inline: bool
     color: str | None
@@ -123,6 +126,12 @@ class MethodSpec:
     def training_options(self, scale: str) -> dict:
         """Hyperparameters of the sensitivity experiment's training at ``scale``."""
         return _plain(self.fit_options.get(scale, {}))
+
+    def pretrained_options(self, scale: str, condition: str) -> dict | None:
+        """Hyperparameters that load the ready-trained model of a sensitivity ``condition`` at
+        ``scale`` (e.g. ``{"checkpoint": ...}``), or None: train one."""
+        got = self.pretrained.get(scale, {}).get(condition)
+        return None if got is None else _plain(got)
 
     def as_dict(self) -> dict:
         """Plain, JSON-ready copy (part of the method's fingerprint in a results store)."""
@@ -205,6 +214,14 @@ def spec_of(cls, entry_point: str | None = None) -> MethodSpec:
     vals["scale_cases"] = _check_per_scale(cls, "scale_cases", vals["scale_cases"], None, cases=True)
     vals["scale_options"] = _check_per_scale(cls, "scale_options", vals["scale_options"], params)
     vals["fit_options"] = _check_per_scale(cls, "fit_options", vals["fit_options"], params)
+    pre = vals["pretrained"]
+    if not isinstance(pre, Mapping):
+        raise _bad(cls, "pretrained", "a dict keyed by scale name", pre)
+    for scale, conds in pre.items():
+        if not isinstance(scale, str) or not isinstance(conds, Mapping):
+            raise _bad(cls, "pretrained", "{scale: {condition: hyperparameters}}", pre)
+        _check_per_scale(cls, f"pretrained[{scale!r}]", conds, params)
+    vals["pretrained"] = _frozen(pre)
     co = vals["contract_options"]
     if not isinstance(co, Mapping) or set(co) - set(params):
         raise _bad(cls, "contract_options", f"a dict of hyperparameters among {params}", co)

@@ -29,6 +29,21 @@ SHIPPED_CHECKPOINTS = {
     "28x28": _CKPT_DIR / "v2p_28x28.pt",
     "camera": _CKPT_DIR / "v2p_camera_100x50.pt",
 }
+#: The sensitivity experiment's condition models at the default scale, one recipe and budget
+#: for all (``methods/vid2param/README.md``; ``--scale paper`` trains them afresh):
+#: ``checkpoint="sensitivity/<condition>"`` with ``:`` written ``_``.
+SENSITIVITY_CONDITIONS = ("noise:0", "noise:0.1", "noise:0.25", "noise:0.5", "extrapolation:e",
+                          "extrapolation:g", "extrapolation:d", "extrapolation:r", "simplified")
+
+
+def condition_checkpoint(condition: str) -> str:
+    """Checkpoint name of a sensitivity condition's model, e.g. ``"sensitivity/noise_0.1"``."""
+    return "sensitivity/" + condition.replace(":", "_")
+
+
+SHIPPED_CHECKPOINTS.update(
+    {condition_checkpoint(c): _CKPT_DIR / f"{condition_checkpoint(c)}.pt"
+     for c in SENSITIVITY_CONDITIONS})
 #: The shipped 28x28 checkpoint (``checkpoint=None``).
 SHIPPED_CHECKPOINT = SHIPPED_CHECKPOINTS["28x28"]
 
@@ -151,6 +166,12 @@ class Vid2Param(Estimator):
         "default": {"fit_steps": 200, "fit_lr": 1e-3, "warm_start": False},
         "paper": {"fit_steps": 5000, "fit_lr": 1e-3, "warm_start": False},
     }
+    # default scale: the condition models are trained once (one recipe and budget,
+    # ``python -m methods.vid2param.conditions``: hours on a CPU) and shipped; a condition
+    # whose checkpoint is not in this checkout is trained in the run with ``fit_options``
+    pretrained = {"default": {c: {"checkpoint": condition_checkpoint(c)}
+                              for c in SENSITIVITY_CONDITIONS
+                              if SHIPPED_CHECKPOINTS[condition_checkpoint(c)].exists()}}
     #: cheap settings for check_estimator (same code path)
     contract_options = {"n_samples": 20}
     #: the ``forecast`` kind when none is given
@@ -371,6 +392,14 @@ class Vid2Param(Estimator):
         self.checkpoint_info_ = {"path": None, "fit": {"steps": info["step"], "wall_s": info["wall_s"],
                                                        "warm_start": init is not None}}
         return self
+
+    def training_wall_s(self) -> float:
+        """Seconds the loaded model's last training run took (its card's ``train.wall_s``, or
+        this object's ``fit``); NaN when unknown."""
+        self._ensure_net()
+        info = self.checkpoint_info_ or {}
+        rec = info.get("fit") or info.get("train") or {}
+        return float(rec.get("wall_s", float("nan")))
 
     def identify(self, obs: Observation) -> Posterior:
         """Posterior over ``(e, g, d, r)`` after the last frame of ``obs``."""
