@@ -141,8 +141,12 @@ def test_sensitivity_loads_a_declared_model_instead_of_training(tmp_path):
 def test_vid2param_declares_only_condition_checkpoints_it_ships():
     from methods.vid2param.estimator import SHIPPED_CHECKPOINTS, condition_checkpoint
 
-    spec = methods.spec("vid2param")
-    for cond, opts in spec.pretrained.get("default", {}).items():
+    from methods.vid2param.estimator import SENSITIVITY_CONDITIONS
+
+    declared = methods.spec("vid2param").pretrained.get("default", {})
+    # all conditions or none: one budget for every condition
+    assert set(declared) in (set(), set(SENSITIVITY_CONDITIONS))
+    for cond, opts in declared.items():
         assert opts["checkpoint"] == condition_checkpoint(cond)
         assert SHIPPED_CHECKPOINTS[opts["checkpoint"]].exists()
 

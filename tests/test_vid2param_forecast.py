@@ -48,6 +48,26 @@ def test_fit_state_finds_a_raised_floor_from_a_bounce():
     assert abs(fit.state0[1] - states[fit.start, 1]) < 0.03
 
 
+def test_fit_state_drops_misread_frames():
+    # two frames a metre off (an occluded or dropped frame misread by the network) must not
+    # drag the fit: e (from the bounce in the window) and the state as without them
+    states, pos = _track([3.0, 1.5, 4.0, -3.0])
+    prior_e = THETA.copy()
+    prior_e[0] = 0.7  # the network's e is off; the bounce in the window corrects it
+    std = STD.copy()
+    std[0] = 0.1
+    clean = fit_state(pos, prior_e, std)
+    bad = pos.copy()
+    bad[-12] += [0.0, -1.2]
+    bad[-20] += [0.4, 0.9]
+    fit = fit_state(bad, prior_e, std)
+    assert fit.n_used == clean.n_used - 2
+    assert abs(fit.theta[0] - clean.theta[0]) < 0.01
+    assert abs(fit.theta[0] - THETA[0]) < 0.03
+    assert np.abs(fit.state0 - clean.state0).max() < 0.02
+    assert fit.sigma < 0.02
+
+
 def test_fit_state_caps_the_spread_the_window_leaves_open_and_handles_unseen_frames():
     # a ball rolling on the floor: vy is not seen (a hop changes no position to first order)
     states = simulate(THETA[None], np.array([[2.0, 0.0, 3.0, 0.0]]), 40)[0]

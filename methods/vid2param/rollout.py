@@ -202,6 +202,17 @@ def fit_state(positions, theta_mean, theta_std, dt: float = DT, window: int = WI
         sigma = max(_MIN_SIGMA, float(np.sqrt(held_cost / max(1, 2 * n - 4))))
     V, cost, J = _lm(np.vstack([held, starts]), obs, valid, W, dt, sigma, np.append(u_net, f0),
                      np.append(sd_net, sd_f), iters)
+    # A frame the network misread (occluded, dropped, blurred) can sit a metre off the path and
+    # drag the state, e and the floor with it, and inflates the noise estimate. Drop positions
+    # far outside the fit's robust spread and fit again from there.
+    keep = _inliers(V, w, valid, W, dt)
+    if keep.sum() < n and keep.sum() >= 3:
+        valid, obs, n = keep, w[keep], int(keep.sum())
+        for _ in range(2):  # refit, then again with the noise of the inliers' fit
+            resid = _path(V, W, dt)[valid] - obs
+            sigma = max(_MIN_SIGMA, float(np.sqrt((resid**2).sum() / max(1, 2 * n - 4))))
+            V, cost, J = _lm(V[None], obs, valid, W, dt, sigma, np.append(u_net, f0),
+                             np.append(sd_net, sd_f), iters)
     # a direction the window does not see (vy of a rolling ball: a small hop changes no
     # position to first order) keeps at most the spread of _STATE_CAP, not an unbounded one
     cap = np.concatenate([1.0 / _STATE_CAP**2, np.zeros(5)])
@@ -210,6 +221,28 @@ def fit_state(positions, theta_mean, theta_std, dt: float = DT, window: int = WI
     scale = np.concatenate([np.ones(4), span, [1.0]])
     return StateFit(start, V[:4], _theta(V), cov * np.outer(scale, scale), float(sigma), n,
                     float(V[8]))
+
+
+#: A position whose residual exceeds this many robust standard deviations of the fit's
+#: residuals (and at least ``_OUTLIER_MIN`` m) is dropped as a misread frame.
+_OUTLIER_Z = 5.0
+_OUTLIER_MIN = 0.1
+
+
+def _path(V: np.ndarray, W: int, dt: float) -> np.ndarray:
+    """Positions (W, 2) of the fitted vector ``V`` (9,) in the track's frame."""
+    v = _clamp(V[None])
+    sim = simulate(_theta(v), v[:, :4], W, dt)[0, :, :2]
+    sim[:, 1] += v[0, 8]
+    return sim
+
+
+def _inliers(V, w, valid, W, dt) -> np.ndarray:
+    """``valid`` less the positions far from the fitted path (robust z above ``_OUTLIER_Z``)."""
+    dist = np.full(len(valid), np.inf)
+    dist[valid] = np.linalg.norm(_path(V, W, dt)[valid] - w[valid], axis=1)
+    scale = 1.4826 * np.median(dist[valid])
+    return valid & (dist <= max(_OUTLIER_Z * scale, _OUTLIER_MIN))
 
 
 def _lm(V, obs, valid, W, dt, sigma, prior_mean, prior_sd, iters):
