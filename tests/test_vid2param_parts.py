@@ -1,0 +1,128 @@
+"""Vid2Param's network as named parts: the shipped checkpoints give the numbers they gave before.
+
+``tests/data/vid2param_shipped_outputs.npz`` holds what both shipped checkpoints answered on a
+few small seeded videos (filter means and stds, the recurrent state's read-out, the learned
+prior's and the physics prior's rollouts, the training pass's loss terms and gradient size, the
+stream's pushes on both its paths, forecasts), written by this file's ``__main__`` with the
+network as it was before it was split into parts. Regenerate only for a deliberate change of
+the numbers: ``PYTHONPATH=. python tests/test_vid2param_parts.py``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param  # noqa: E402
+from methods.vid2param.checkpoint import build_net, load_checkpoint  # noqa: E402
+from methods.vid2param.data import targets_from_arrays  # noqa: E402
+from sysid_bench.datasets import make_dataset  # noqa: E402
+from sysid_bench.estimator import Observation  # noqa: E402
+from sysid_bench.physics import simulate  # noqa: E402
+from sysid_bench.render import render  # noqa: E402
+
+FIXTURE = Path(__file__).parent / "data" / "vid2param_shipped_outputs.npz"
+N_FRAMES = 60
+#: A ball rolling from the first frame (seeded test videos rarely roll within 60 frames): the
+#: 28x28 model's rolling statistic and its blend into r have something to read.
+ROLL_THETA = np.array([0.8, -9.81, 0.02, 0.4])
+ROLL_STATE0 = np.array([1.0, 0.0, 3.0, 0.0])
+needs = {k: pytest.mark.skipif(not p.exists(), reason=f"no shipped {k} checkpoint")
+         for k, p in SHIPPED_CHECKPOINTS.items()}
+
+
+def _videos(name: str):
+    """The checkpoint, frames (3, T, H, W) and targets (3, T, K): two seeded test videos (with
+    the camera nuisances for the camera model) and the rolling ball."""
+    ck = load_checkpoint(SHIPPED_CHECKPOINTS[name])
+    size = tuple(ck["config"]["frame_size"])
+    nuis = dict(ck["train"].get("nuisance") or {})
+    ds = make_dataset("test", 2, 31, n_frames=N_FRAMES, size=size, nuisance=nuis or None)
+    states = simulate(ROLL_THETA[None], ROLL_STATE0[None], N_FRAMES)
+    nuis.pop("floor_offset", None)
+    rolling = render(states, size, seed=5, **nuis)
+    frames = np.concatenate([np.asarray(ds.frames), rolling])
+    targets = targets_from_arrays(
+        np.concatenate([ds.states, states]),
+        np.concatenate([ds.labels, np.broadcast_to(ROLL_THETA, (1, N_FRAMES, 4))]),
+        np.append(ds.floor, 0.0), ck["config"]["targets"])
+    return ck, frames, targets
+
+
+def _outputs(name: str) -> dict[str, np.ndarray]:
+    """Everything the pinned checkpoint answers on its videos (see the module docstring)."""
+    torch.manual_seed(0)
+    ck, frames_np, targets = _videos(name)
+    net = build_net(ck)
+    frames = torch.as_tensor(frames_np)
+    out = {}
+    with torch.no_grad():
+        mu, sd, state = net.filter(frames)
+        out["filter_mu"], out["filter_std"] = mu.numpy(), sd.numpy()
+        out["read"] = net.read(state).numpy()
+        out["last_position"] = net.last_position(state).numpy()
+        rmu, rsd, rz = net.rollout(state, 12, generator=torch.Generator().manual_seed(1))
+        out["rollout_mu"], out["rollout_std"], out["rollout_z"] = rmu.numpy(), rsd.numpy(), rz.numpy()
+        phys = torch.tensor([[2.0, 6.0, 5.0, 3.5], [8.0, 1.0, -6.0, -4.0]])
+        theta = torch.tensor([[0.8, -9.81, 0.02, 0.3], [0.6, -5.0, 0.1, 0.5]])
+        pm, ps, pz = net.rollout_physics(phys, theta, 15, generator=torch.Generator().manual_seed(2))
+        out["physics_mean"], out["physics_std"], out["physics_z"] = pm.numpy(), ps.numpy(), pz.numpy()
+    # the training pass: loss terms (some frames forecast) and the gradient's size
+    tg = torch.as_tensor(targets)
+    net.train()
+    terms = net(frames, tg, n_obs=40, rec_frac=0.5, generator=torch.Generator().manual_seed(3))
+    terms["loss"].backward()
+    net.eval()
+    for k, v in terms.items():
+        out["train_" + k] = v.detach().numpy()
+    out["train_grad_sq"] = np.array(sum(float((p.grad.double() ** 2).sum())
+                                        for p in net.parameters() if p.grad is not None))
+    # the estimator: pushes on the NumPy and torch paths, identify, forecasts
+    est = Vid2Param(checkpoint=name, device="cpu", n_samples=16, seed=4)
+    obs = Observation(frames=frames_np[-1])
+    for path in ("fast", "torch"):
+        s = est.stream()
+        if path == "torch":
+            s._fast, s._state = None, est._ensure_net().init_state(1)
+        posts = [s.push(f) for f in obs.frames]
+        out[f"push_{path}_mean"] = np.array([p.mean for p in posts])
+        out[f"push_{path}_std"] = np.array([p.std for p in posts])
+        fc = s.forecast(10)
+        out[f"push_{path}_forecast_mean"], out[f"push_{path}_forecast_std"] = fc.mean, fc.std
+    post = est.identify(obs)
+    out["identify_mean"], out["identify_std"] = post.mean, post.std
+    fc = est.forecast(obs.prefix(50), 10)
+    out["forecast_mean"], out["forecast_std"] = fc.mean, fc.std
+    return out
+
+
+@pytest.mark.parametrize("name", [pytest.param("28x28", marks=needs["28x28"]),
+                                  pytest.param("camera", marks=needs["camera"])])
+def test_shipped_checkpoints_give_the_pinned_outputs(name):
+    want = np.load(FIXTURE)
+    got = _outputs(name)
+    keys = sorted(k.split("/", 1)[1] for k in want.files if k.startswith(name + "/"))
+    assert keys == sorted(got), "the fixture and _outputs name different outputs"
+    for k in keys:
+        np.testing.assert_allclose(got[k], want[f"{name}/{k}"], rtol=1e-5, atol=1e-5,
+                                   err_msg=f"{name}: {k}")
+
+
+def _write_fixture() -> None:
+    arrays = {}
+    for name in SHIPPED_CHECKPOINTS:
+        for k, v in _outputs(name).items():
+            v = np.asarray(v)
+            arrays[f"{name}/{k}"] = v.astype(np.float32) if v.dtype == np.float64 else v
+    FIXTURE.parent.mkdir(exist_ok=True)
+    np.savez_compressed(FIXTURE, **arrays)
+    print(FIXTURE, FIXTURE.stat().st_size, "bytes")
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    _write_fixture()
