@@ -112,6 +112,78 @@ def test_shipped_checkpoints_give_the_pinned_outputs(name):
                                    err_msg=f"{name}: {k}")
 
 
+def test_a_removed_option_loads_at_its_fixed_value_and_is_refused_at_another():
+    from methods.vid2param.model import REMOVED, V2PConfig
+
+    d = V2PConfig().to_dict()
+    assert not set(REMOVED) & set(d)
+    # older checkpoints store the removed options: at the value the network has, they load
+    assert V2PConfig.from_dict({**d, **REMOVED}) == V2PConfig()
+    other = {"recur_noise": 1.0, "pixel_skip": True, "diff_features": False, "read_cell": False,
+             "prior_residual": False, "layers": 2}
+    assert set(other) == set(REMOVED)
+    for name, value in other.items():
+        with pytest.raises(ValueError, match=f"'{name}' was removed"):
+            V2PConfig.from_dict({**d, name: value})
+    with pytest.raises(ValueError, match="keypoints: expected an int >= 1"):
+        V2PConfig(keypoints=0)
+    with pytest.raises(TypeError):
+        V2PConfig(recur_noise=0.0)
+
+
+def test_older_weight_names_load_and_an_older_training_state_resumes_in_place():
+    """The renaming (``checkpoint.RENAMED``) also moved parameters: Adam's per-parameter state,
+    kept by position, must follow them."""
+    from methods.vid2param.checkpoint import (RENAMED, upgrade_optimizer_state,
+                                              upgrade_state_dict)
+    from methods.vid2param.model import V2PConfig, Vid2ParamNet
+
+    torch.manual_seed(0)
+    net = Vid2ParamNet(V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8)))
+    opt = torch.optim.Adam(net.parameters())
+    for p in net.parameters():
+        p.grad = torch.randn_like(p)
+    opt.step()
+    # the same weights and state as an older network saved them: old names, its order
+    back = {new: old for old, new in RENAMED.items()}
+    def old_name(name):
+        for new, old in back.items():
+            if name == new or (new.endswith(".") and name.startswith(new)):
+                return old + name[len(new):]
+        return name
+    names = [n for n, _ in net.named_parameters()]
+    old_order = sorted(range(len(names)), key=lambda i: old_name(names[i]))
+    sd = {old_name(names[i]): net.state_dict()[names[i]] for i in old_order}
+    st = opt.state_dict()
+    saved = {"state": {j: st["state"][i] for j, i in enumerate(old_order)},
+             "param_groups": [{**st["param_groups"][0], "params": list(range(len(names)))}]}
+    assert "cells.0.weight_ih" in sd and "kp_gate" in sd
+    assert list(upgrade_state_dict(net.state_dict())) == list(net.state_dict())  # no-op
+    torch.manual_seed(1)
+    fresh = Vid2ParamNet(net.config)
+    fresh.load_state_dict(upgrade_state_dict(sd))
+    opt2 = torch.optim.Adam(fresh.parameters())
+    opt2.load_state_dict(upgrade_optimizer_state(saved, sd, fresh))
+    for (name, p), q in zip(net.named_parameters(), fresh.parameters()):
+        torch.testing.assert_close(q, p, msg=name)
+        torch.testing.assert_close(opt2.state[q]["exp_avg"], opt.state[p]["exp_avg"], msg=name)
+
+
+def test_the_recurrent_state_is_named_and_maps_over_its_tensors():
+    from methods.vid2param.model import V2PConfig, Vid2ParamNet
+
+    net = Vid2ParamNet(V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8)))
+    st = net.step_rnn(torch.rand(2, 8), net.init_state(2))
+    assert st.h.shape == st.c.shape == (2, 16) and st.roll.shape == (2, 3)
+    assert st.last_pos.shape == st.last_vel.shape == (2, 2) and st.n_seen.tolist() == [[1], [1]]
+    wide = st.map(lambda t: t.repeat(3, 1))
+    assert wide.h.shape == (6, 16) and wide.roll.shape == (6, 3)
+    assert net.init_state(1).map(lambda t: t + 1).n_seen.item() == 1.0
+    cam = Vid2ParamNet(V2PConfig.preset("camera"))
+    assert cam.init_state(1).roll is None and cam.rolling is None
+    assert cam.read(cam.init_state(1)).shape == (1, 2 * cam.config.hidden)
+
+
 def _write_fixture() -> None:
     arrays = {}
     for name in SHIPPED_CHECKPOINTS:
