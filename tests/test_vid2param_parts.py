@@ -65,12 +65,14 @@ def _outputs(name: str) -> dict[str, np.ndarray]:
         out["filter_mu"], out["filter_std"] = mu.numpy(), sd.numpy()
         out["read"] = net.read(state).numpy()
         out["last_position"] = net.last_position(state).numpy()
-        rmu, rsd, rz = net.rollout(state, 12, generator=torch.Generator().manual_seed(1))
-        out["rollout_mu"], out["rollout_std"], out["rollout_z"] = rmu.numpy(), rsd.numpy(), rz.numpy()
+        rollout = net.rollout(state, 12, generator=torch.Generator().manual_seed(1))
+        for k, v in zip(("rollout_mu", "rollout_std", "rollout_z"), rollout):
+            out[k] = v.numpy()
         phys = torch.tensor([[2.0, 6.0, 5.0, 3.5], [8.0, 1.0, -6.0, -4.0]])
         theta = torch.tensor([[0.8, -9.81, 0.02, 0.3], [0.6, -5.0, 0.1, 0.5]])
-        pm, ps, pz = net.rollout_physics(phys, theta, 15, generator=torch.Generator().manual_seed(2))
-        out["physics_mean"], out["physics_std"], out["physics_z"] = pm.numpy(), ps.numpy(), pz.numpy()
+        rollout = net.rollout_physics(phys, theta, 15, generator=torch.Generator().manual_seed(2))
+        for k, v in zip(("physics_mean", "physics_std", "physics_z"), rollout):
+            out[k] = v.numpy()
     # the training pass: loss terms (some frames forecast) and the gradient's size
     tg = torch.as_tensor(targets)
     net.train()

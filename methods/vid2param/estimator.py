@@ -557,8 +557,8 @@ class Vid2Param(Estimator):
 
     def _forecast_learned_prior(self, frames, horizon: int):
         """The latent rollout of a checkpoint without a physics prior (older ones): the learned
-        prior unrolled from ``n_samples`` filtered particles; mean and std are the exact
-        moments of the particles' Gaussian mixture."""
+        prior unrolled from the filtered state, ``n_samples`` particles of sampled z; mean and
+        std are the exact moments of the particles' Gaussian mixture."""
         net = self._ensure_net()
         S = max(2, int(self.n_samples))
         gen = self._generator(7)

@@ -281,8 +281,9 @@ class FrameFilter:
         """Take the state from the network's (batch of one)."""
         a = lambda x: x.detach().to("cpu", torch.float64).numpy().reshape(-1)  # noqa: E731
         if not isinstance(state, RecurrentState) or (state.roll is not None) != self.roll:
-            raise ValueError(f"state: expected a RecurrentState {'with' if self.roll else 'without'}"
-                             f" rolling statistics, got {state!r}")
+            kind = "with" if self.roll else "without"
+            raise ValueError(f"state: expected a RecurrentState {kind} rolling statistics, "
+                             f"got {state!r}")
         self.enc_in[self.sl_h], self.enc_in[self.sl_c] = a(state.h), a(state.c)
         self.pos, self.vel = tuple(a(state.last_pos).tolist()), tuple(a(state.last_vel).tolist())
         self.n = float(a(state.n_seen)[0])

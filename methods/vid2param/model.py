@@ -1,17 +1,13 @@
-"""The Vid2Param network: a VRNN whose first latent dimensions are the physical quantities.
+"""The Vid2Param network: a VRNN whose first latent dimensions are the physical quantities,
+composed of the named parts of ``methods.vid2param.parts`` and ``methods.vid2param.prior``.
 
 Shapes use B = batch, T = frames, H x W = frame size, Z = latent size, K = supervised dims
 (``len(config.targets)``, the first K latent dimensions), R = what the heads read of the
 recurrent state.
 
-The network is composed of the named parts of ``methods.vid2param.parts`` (frame encoder,
-keypoint position, recurrence, posterior and prior heads, rolling evidence, decoder) and the
-physics prior of ``methods.vid2param.prior``; the config chooses which.
-
 Cost is part of the design (training runs on a 2-core CPU): everything that does not depend on
-the recurrence is computed for all frames at once -- the frame encoder on all B*T frames before
-the time loop, the prior, the decoder and every loss term after it. Only the posterior head,
-the sampling and the recurrence step run once per frame.
+the recurrence is computed for all frames at once -- the frame encoder before the time loop,
+the prior, the decoder and every loss term after it.
 """
 
 from __future__ import annotations
@@ -197,21 +193,9 @@ PRESETS = {
 }
 
 
-class _ScaleGrad(torch.autograd.Function):
-    """Identity forward; multiplies the gradient by ``scale`` backward."""
-
-    @staticmethod
-    def forward(ctx, x, scale):
-        ctx.scale = scale
-        return x.view_as(x)
-
-    @staticmethod
-    def backward(ctx, g):
-        return g * ctx.scale, None
-
-
 def _scale_grad(x: torch.Tensor, scale: float) -> torch.Tensor:
-    return x if scale == 1.0 or not x.requires_grad else _ScaleGrad.apply(x, scale)
+    """``x`` forward (exactly: ``x - x`` is 0); its gradient multiplied by ``scale`` backward."""
+    return x if scale == 1.0 or not x.requires_grad else x.detach() + scale * (x - x.detach())
 
 
 def gaussian_nll(mu, std, target) -> torch.Tensor:
@@ -221,11 +205,7 @@ def gaussian_nll(mu, std, target) -> torch.Tensor:
 
 def gaussian_kl(mu_q, std_q, mu_p, std_p) -> torch.Tensor:
     """Elementwise KL( N(mu_q, std_q) || N(mu_p, std_p) )."""
-    return (
-        torch.log(std_p / std_q)
-        + (std_q**2 + (mu_q - mu_p) ** 2) / (2 * std_p**2)
-        - 0.5
-    )
+    return torch.log(std_p / std_q) + (std_q**2 + (mu_q - mu_p) ** 2) / (2 * std_p**2) - 0.5
 
 
 class Vid2ParamNet(nn.Module):
@@ -243,10 +223,8 @@ class Vid2ParamNet(nn.Module):
     posterior : parts.GaussianHead
         q(z_t | x_t, h_{t-1}) before ``keypoints`` and ``rolling`` replace x, y and blend r.
     prior : parts.PriorHead
-    phys_prior : PhysicsPrior or None
-        With ``config.physics_prior``.
-    rolling : parts.RollingEvidence or None
-        With ``config.roll_features``.
+    phys_prior : PhysicsPrior or None (``config.physics_prior``)
+    rolling : parts.RollingEvidence or None (``config.roll_features``)
     decoder : parts.Decoder
     """
 
@@ -263,9 +241,6 @@ class Vid2ParamNet(nn.Module):
         self.phys_prior = PhysicsPrior() if c.physics_prior else None
         self.rolling = RollingEvidence(c.targets.index("r")) if c.roll_features else None
         self.decoder = Decoder(c, n_read)
-        xy = torch.zeros(c.latent, dtype=torch.bool)
-        xy[[c.targets.index("x"), c.targets.index("y")]] = True
-        self.register_buffer("_xy", xy, persistent=False)
 
     # -- the parts, one step ----------------------------------------------------------------------
     def encode_frames(self, frames: torch.Tensor) -> torch.Tensor:
@@ -300,15 +275,9 @@ class Vid2ParamNet(nn.Module):
             mu, std = self.rolling(mu, std, h)
         return mu, std
 
-    def visibility(self, fx: torch.Tensor) -> torch.Tensor:
-        """How visible the ball is, (B, 1) in (0, 1), from ``fx`` (``KeypointPosition``)."""
-        return self.keypoints.visibility(fx)
-
-    def prior_step(self, h: torch.Tensor, last: torch.Tensor | None = None):
-        """Prior p(z_t | h_{t-1}) -> (mu, std), each (..., Z); ``last`` (..., 2) the last
-        fed-back position (``last_position``), required."""
-        if last is None:
-            raise ValueError("last: the prior needs the last position (last_position(state))")
+    def prior_step(self, h: torch.Tensor, last: torch.Tensor):
+        """Prior p(z_t | h_{t-1}) -> (mu, std), each (..., Z), from the read-out ``h`` (..., R)
+        and the last fed-back position ``last`` (..., 2) (``last_position``)."""
         return self.prior(h, last)
 
     def decode(self, z: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
@@ -320,20 +289,14 @@ class Vid2ParamNet(nn.Module):
         return u.reshape(*lead, *u.shape[-2:])
 
     # -- training pass --------------------------------------------------------------------------
-    def forward(
-        self,
-        frames: torch.Tensor,
-        targets: torch.Tensor,
-        n_obs: int | None = None,
-        rec_frac: float = 1.0,
-        generator: torch.Generator | None = None,
-    ) -> dict[str, torch.Tensor]:
+    def forward(self, frames: torch.Tensor, targets: torch.Tensor, n_obs: int | None = None,
+                rec_frac: float = 1.0, generator: torch.Generator | None = None) -> dict:
         """Loss terms for a batch of videos.
 
         Frames ``[0, n_obs)`` are observed (z from the posterior); frames ``[n_obs, T)`` are
         forecast (z from the prior, no frame read), which trains the closed-loop rollout. The
-        decoder and the KL use the sampled z; the recurrence is fed the mean (a sampled z's
-        noise, ~0.1 m in the positions early in training, buries gravity's 2.5 cm per frame^2).
+        decoder reads a sampled z; the recurrence is fed the mean (a sample's noise, ~0.1 m in
+        the positions early in training, buries gravity's 2.5 cm per frame^2).
 
         Parameters
         ----------
@@ -363,28 +326,22 @@ class Vid2ParamNet(nn.Module):
         n_obs = T if n_obs is None else int(n_obs)
         fx = self.encode_frames(frames[:, :n_obs])  # (B, n_obs, feat), all frames at once
         state = self.init_state(B, frames.device)
-        hs, zs, mus, stds, lasts = [], [], [], [], []
-        fmu, fstd = [], []
+        hs, zs, lasts, post, fore = [], [], [], [], []  # post, fore: (mu, std) per frame
         for t in range(T):
-            h = self.read(state)
-            hs.append(h)
-            last = self.last_position(state)
-            lasts.append(last)
+            hs.append(self.read(state))
+            lasts.append(self.last_position(state))
             if t < n_obs:
-                mu, std = self.enc_step(fx[:, t], h)
-                mus.append(mu)
-                stds.append(std)
+                mu, std = self.enc_step(fx[:, t], hs[-1])
             else:
-                mu, std = self.prior_step(_scale_grad(h, c.aux_grad), last)
-                fmu.append(mu)
-                fstd.append(std)
+                mu, std = self.prior_step(_scale_grad(hs[-1], c.aux_grad), lasts[-1])
+            (post if t < n_obs else fore).append((mu, std))
             zs.append(mu + std * torch.randn(mu.shape, generator=generator, device=mu.device))
             state = self.step_rnn(mu, state)
         H = torch.stack(hs, 1)  # (B, T, R): the read-out of h_{t-1} for each t
         Zs = torch.stack(zs, 1)
         Hobs = _scale_grad(H[:, :n_obs], c.aux_grad)
         pmu, pstd = self.prior_step(Hobs, torch.stack(lasts[:n_obs], 1))  # batched over time
-        qmu, qstd = torch.stack(mus, 1), torch.stack(stds, 1)
+        qmu, qstd = (torch.stack(a, 1) for a in zip(*post))
         tgt_obs = targets[:, :n_obs]
         n_rec = max(1, min(n_obs, round(rec_frac * n_obs)))
         if n_rec < n_obs:
@@ -401,22 +358,16 @@ class Vid2ParamNet(nn.Module):
         nll = gaussian_nll(qmu[..., :K], qstd[..., :K], tgt_obs).sum(-1)
         nll_prior = gaussian_nll(pmu[..., :K], pstd[..., :K], tgt_obs).sum(-1)
         if n_obs < T:
-            fm, fs = torch.stack(fmu, 1), torch.stack(fstd, 1)
+            fm, fs = (torch.stack(a, 1) for a in zip(*fore))
             nll_fc = gaussian_nll(fm[..., :K], fs[..., :K], targets[:, n_obs:]).sum(-1)
             nll_prior = torch.cat([nll_prior, nll_fc], 1)
         per_frame = c.alpha * rec.mean() + c.beta * kl.mean() + c.gamma * nll.mean()
         loss = per_frame + c.gamma_prior * nll_prior.mean()
         err = (qmu[..., :K] - tgt_obs) ** 2
-        return {
-            "loss": loss,
-            "loss_nll": c.gamma * nll.mean(),
-            "rec": rec.mean().detach(),
-            "kl": kl.mean().detach(),
-            "nll": nll.mean().detach(),
-            "nll_prior": nll_prior.mean().detach(),
-            "mse": err.mean(1).detach(),
-            "mse_last": err[:, -1].detach(),
-        }
+        terms = {"rec": rec.mean(), "kl": kl.mean(), "nll": nll.mean(),
+                 "nll_prior": nll_prior.mean(), "mse": err.mean(1), "mse_last": err[:, -1]}
+        return {"loss": loss, "loss_nll": c.gamma * nll.mean(),
+                **{k: v.detach() for k, v in terms.items()}}
 
     # -- inference ------------------------------------------------------------------------------
     @torch.no_grad()
@@ -442,17 +393,15 @@ class Vid2ParamNet(nn.Module):
         fx = encode_frames_batch(self, frames)  # in cache-sized pieces (same numbers)
         if state is None:
             state = self.init_state(B, frames.device)
-        mus, stds = [], []
+        out = []
         for t in range(T):
-            mu, std = self.enc_step(fx[:, t], self.read(state))
-            mus.append(mu)
-            stds.append(std)
-            state = self.step_rnn(mu, state)
-        return torch.stack(mus, 1), torch.stack(stds, 1), state
+            out.append(self.enc_step(fx[:, t], self.read(state)))
+            state = self.step_rnn(out[-1][0], state)
+        return *(torch.stack(a, 1) for a in zip(*out)), state
 
     def _in_box(self, z: torch.Tensor) -> torch.Tensor:
         """z (B, Z) with its position dimensions clamped to the box ([0, 1] each)."""
-        return torch.where(self._xy, z.clamp(0.0, 1.0), z)
+        return torch.where(self.keypoints.mask.bool(), z.clamp(0.0, 1.0), z)
 
     @torch.no_grad()
     def rollout(self, state: RecurrentState, horizon: int,
@@ -471,20 +420,17 @@ class Vid2ParamNet(nn.Module):
         -------
         mu, std, z : Tensor, shape (S, horizon, Z)
             The prior's mean and std at each future frame and the sampled z. Positions are
-            kept inside the box (normalised x and y - floor in [0, 1]); measured on the shipped
-            28x28 model (50 test videos, 50 frames after 100), this took the 50-step error
-            from 7.1 to 6.0 m and changed nothing in the first 5 steps.
+            kept inside the box (normalised x and y - floor in [0, 1]): the 50-step error of
+            the 28x28 model fell from 7.1 to 6.0 m so, the first 5 steps did not change.
         """
-        mus, stds, zs = [], [], []
+        out = []
         for _ in range(horizon):
             mu, std = self.prior_step(self.read(state), self.last_position(state))
             z = mu + std * torch.randn(mu.shape, generator=generator, device=mu.device)
             mu, z = self._in_box(mu), self._in_box(z)
-            mus.append(mu)
-            stds.append(std)
-            zs.append(z)
+            out.append((mu, std, z))
             state = self.step_rnn(mu, state)
-        return torch.stack(mus, 1), torch.stack(stds, 1), torch.stack(zs, 1)
+        return tuple(torch.stack(a, 1) for a in zip(*out))
 
     def rollout_physics(self, phys: torch.Tensor, theta: torch.Tensor, horizon: int,
                         dt: float = DT, generator: torch.Generator | None = None,
@@ -516,18 +462,15 @@ class Vid2ParamNet(nn.Module):
                              "(config.physics_prior is False)")
         lo_box = torch.tensor([0.0, 0.0, -torch.inf, -torch.inf], device=phys.device)
         hi_box = torch.tensor([BOX_WIDTH, BOX_WIDTH, torch.inf, torch.inf], device=phys.device)
-        means, stds, states = [], [], []
+        out = []
         for _ in range(int(horizon)):
             mean, std = self.phys_prior(phys, theta, dt)
+            phys = mean
             if sample:
                 eps = torch.randn(mean.shape, generator=generator, device=mean.device)
                 phys = torch.maximum(torch.minimum(mean + std * eps, hi_box), lo_box)
-            else:
-                phys = mean
-            means.append(mean)
-            stds.append(std)
-            states.append(phys)
-        return torch.stack(means, 1), torch.stack(stds, 1), torch.stack(states, 1)
+            out.append((mean, std, phys))
+        return tuple(torch.stack(a, 1) for a in zip(*out))
 
 
 def count_parameters(net: nn.Module) -> int:

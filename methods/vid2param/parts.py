@@ -1,15 +1,8 @@
 """The named parts :class:`~methods.vid2param.model.Vid2ParamNet` is composed of.
 
-Shapes: B = batch, H x W = frame size, Hp x Wp = the frame pooled by ``config.pool``,
-Z = latent size, K = keypoint channels, R = what the heads read of the recurrent state
-(``Recurrence.n_read``).
-
-``FrameEncoder``      frames -> features ``fx`` (conv path and keypoints)
-``KeypointPosition``  the posterior's x, y means from keypoint channel 0's centre
-``Recurrence``        ``phi_z(z)`` and the position differences -> LSTM cell; ``RecurrentState``
-``GaussianHead``      an MLP giving a diagonal Gaussian (the posterior's); ``PriorHead`` the prior's
-``RollingEvidence``   the rolling statistic's blend into the posterior's r
-``Decoder``           frame logits from ``phi_z(z)`` and the recurrent state
+Each is built from the ``V2PConfig`` (``c``) or the sizes it needs. Shapes: B = batch,
+H x W = frame size, Hp x Wp = the frame pooled by ``c.pool``, Z = latent size, K = keypoint
+channels, R = what the heads read of the recurrent state (``Recurrence.n_read``).
 """
 
 from __future__ import annotations
@@ -27,19 +20,16 @@ __all__ = ["FrameEncoder", "KeypointPosition", "RecurrentState", "Recurrence", "
            "PriorHead", "RollingEvidence", "Decoder"]
 
 _MIN_STD = 1e-3
-#: Rolling-statistic gates (see ``RollingEvidence``), chosen on validation videos: fed-back
-#: height (m) under which the ball may roll (a 28x28 keypoint's height is ~5 mm off; a hop from
-#: the 0.25 m/s rolling threshold rises 3 mm); distance (m) from the walls inside which a frame
-#: is left out (a wall contact breaks the second difference); largest deceleration (m/s^2)
-#: taken as rolling (r <= 0.7 plus ~2 m/s^2 of per-frame noise; a spun bounce gives tens).
-ROLL_HEIGHT = 0.015
-ROLL_WALL = 0.5
-ROLL_DEC_MAX = 10.0
+#: Rolling-statistic gates (``RollingEvidence``), chosen on validation videos: fed-back height
+#: (m) under which the ball may roll (a 28x28 keypoint's height is ~5 mm off; a hop from the
+#: 0.25 m/s rolling threshold rises 3 mm), distance (m) from the walls inside which a frame is
+#: left out (a wall contact breaks the second difference), largest deceleration (m/s^2) taken as
+#: rolling (r <= 0.7 plus ~2 m/s^2 of per-frame noise; a spun bounce gives tens), smallest
+#: horizontal step (normalised units per frame).
+ROLL_HEIGHT, ROLL_WALL, ROLL_DEC_MAX, ROLL_STEP = 0.015, 0.5, 10.0, 0.002
 #: Scale of the rolling features the heads read: Adam moves a new input's weights by about the
 #: learning rate per step whatever the input's size, so its size sets how fast it takes effect.
 ROLL_GAIN = 5.0
-#: Smallest horizontal step (normalised units per frame) of a rolling frame.
-ROLL_STEP = 0.002
 _R_TOP = PRIOR["r"][1]  # m/s^2: top of the prior's r
 
 
@@ -74,22 +64,16 @@ def _conv_im2col(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
 
 
 def _apply_convs(module: nn.Module, x: torch.Tensor) -> torch.Tensor:
-    """``module(x)`` for a Conv2d or a Sequential of Conv2d and ReLU.
+    """``module(x)`` for FrameEncoder's convolutions (square, biased; alone or with ReLUs).
 
-    A single frame without gradients (a streamed ``push`` on the torch path) goes through
-    im2col and one matrix product per layer: on one CPU thread the 28x28 encoder's two
-    convolutions take 59 us so, 145 us through oneDNN. Batches keep the library's convolutions
-    (faster there). Same numbers up to float rounding.
+    A single frame without gradients (a ``push`` on the torch path) goes through im2col and one
+    matrix product per layer: 59 us for the 28x28 encoder's convolutions on one CPU thread,
+    145 us through oneDNN (faster on batches). Same numbers up to float rounding.
     """
     if x.shape[0] != 1 or torch.is_grad_enabled():
         return module(x)
     for m in (module if isinstance(module, nn.Sequential) else [module]):
-        if isinstance(m, nn.Conv2d) and m.kernel_size[0] == m.kernel_size[1] \
-                and m.stride[0] == m.stride[1] and m.padding[0] == m.padding[1] \
-                and m.groups == 1 and m.dilation == (1, 1) and m.bias is not None:
-            x = _conv_im2col(m, x)
-        else:
-            x = m(x)
+        x = _conv_im2col(m, x) if isinstance(m, nn.Conv2d) else m(x)
     return x
 
 
@@ -102,15 +86,10 @@ class FrameEncoder(nn.Module):
     and log total mass. Channel 0 is the ball's intensity centroid: sub-pixel positions from
     the first training step. The conv path and the learned channels see the frame average-pooled
     by ``pool`` (convolutions over 5000-pixel frames made a CPU training step ~10 s).
-
-    Parameters
-    ----------
-    config : V2PConfig
     """
 
-    def __init__(self, config):
+    def __init__(self, c):
         super().__init__()
-        c = config
         H, W = c.frame_size
         Hp, Wp = H // c.pool, W // c.pool
         self.pool, self.kp_threshold, self.keypoints = c.pool, float(c.kp_threshold), c.keypoints
@@ -125,24 +104,14 @@ class FrameEncoder(nn.Module):
         self.kp = nn.Conv2d(1, c.keypoints - 1, 3, padding=1) if c.keypoints > 1 else None
         self.register_buffer("grid", _centre_grid(H, W), persistent=False)
         self.register_buffer("grid_pool", _centre_grid(Hp, Wp), persistent=False)
-        #: size of ``fx``
-        self.n_out = c.feat + 3 * c.keypoints
+        self.n_out = c.feat + 3 * c.keypoints  # size of fx
 
     def pooled(self, x: torch.Tensor) -> torch.Tensor:
         """(N, 1, H, W) frames in [0, 1] average-pooled by ``pool`` -> (N, 1, Hp, Wp)."""
         return x if self.pool == 1 else F.avg_pool2d(x, self.pool)
 
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
-        """
-        Parameters
-        ----------
-        frames : Tensor, shape (..., H, W)
-            uint8 or float in [0, 255].
-
-        Returns
-        -------
-        Tensor, shape (..., feat + 3 K)
-        """
+        """``fx`` (..., feat + 3 K) of frames (..., H, W), uint8 or float in [0, 255]."""
         lead = frames.shape[:-2]
         full = frames.reshape(-1, 1, *frames.shape[-2:]).to(torch.float32) / 255.0
         x = self.pooled(full)
@@ -174,32 +143,23 @@ class KeypointPosition(nn.Module):
     third of a full ball's): ``v (map + gate mlp) + (1 - v) mlp``. On a dropped or occluded
     frame the map reports the middle of the frame (or a sliver of the ball); the MLP, which
     reads the recurrent state, carries the position on.
-
-    Parameters
-    ----------
-    config : V2PConfig
     """
 
-    def __init__(self, config):
+    def __init__(self, c):
+        from sysid_bench.render import view_geometry
+
         super().__init__()
-        c = config
         self.keypoints, self.use_visibility = c.keypoints, bool(c.kp_visibility)
         self.map = nn.Linear(3 * c.keypoints, 2).requires_grad_(False)
         self.gate = nn.Parameter(torch.zeros(()))
         place = _xy_place(c.targets, c.latent)
         self.register_buffer("place", place, persistent=False)
         self.register_buffer("mask", place.sum(0), persistent=False)  # (Z,) 1 at x, y
-        self._set_geometry(c)
-
-    def _set_geometry(self, c) -> None:
-        """Channel 0's centre (fractions of W and H) to normalised x, y, and ``log_mref``."""
-        from sysid_bench.render import view_geometry
-
+        # channel 0's centre (fractions of W and H) to normalised x, y: col = radius + x sx,
+        # x_norm = x / 10; rows grow downwards from the floor: row = H - radius - (y - floor) sy
         H, W = c.frame_size
         geo = view_geometry((H, W))
         sx, sy = geo.px_per_m  # pixels per metre
-        # col = radius + x sx, x_norm = x / 10; rows grow downwards from the floor:
-        # row = H - radius - (y - floor) sy, y_norm = (y - floor) / 10
         with torch.no_grad():
             self.map.weight.zero_()
             self.map.bias.zero_()
@@ -232,11 +192,8 @@ class RecurrentState:
     Attributes
     ----------
     h, c : Tensor, shape (B, hidden)
-        The LSTM's.
-    last_pos : Tensor, shape (B, 2)
-        The last fed-back x, y (normalised by the view width).
-    last_vel : Tensor, shape (B, 2)
-        The last velocity feature (metres per frame).
+    last_pos, last_vel : Tensor, shape (B, 2)
+        The last fed-back x, y (normalised by the view width) and velocity feature.
     n_seen : Tensor, shape (B, 1)
         Frames seen, capped at 2 (what the differences need).
     roll : Tensor, shape (B, 3), or None
@@ -267,21 +224,15 @@ class Recurrence(nn.Module):
     features it read g at nMSE ~0.005). The heads read ``[h, c]`` (the evidence is integrated in
     the cell, which ``h = o tanh(c)`` hides), and with ``roll_features`` the rolling mean and
     count (``RollingEvidence``).
-
-    Parameters
-    ----------
-    config : V2PConfig
     """
 
-    def __init__(self, config):
+    def __init__(self, c):
         super().__init__()
-        c = config
         self.hidden, self.roll_features = c.hidden, bool(c.roll_features)
         self.phi_z = nn.Sequential(nn.Linear(c.latent, c.feat), nn.ReLU())
         self.cell = nn.LSTMCell(c.feat + 4, c.hidden)
         self.pos_idx = [c.targets.index("x"), c.targets.index("y")]
-        #: size of ``read``'s output (R)
-        self.n_read = 2 * c.hidden + (2 if self.roll_features else 0)
+        self.n_read = 2 * c.hidden + (2 if self.roll_features else 0)  # R
 
     def init_state(self, batch: int, device=None) -> RecurrentState:
         """The state before the first frame: zeros."""
@@ -325,11 +276,6 @@ class PriorHead(GaussianHead):
 
     Forecasting unrolls the prior; a step of at most 0.05 (0.5 m per frame) is a far easier
     target than an absolute position.
-
-    Parameters
-    ----------
-    n_read, hidden, latent : int
-    targets : tuple of str
     """
 
     def __init__(self, n_read: int, hidden: int, latent: int, targets: tuple[str, ...]):
@@ -386,12 +332,7 @@ class RollingEvidence(nn.Module):
         mu_r = (1 - v) mlp + v (scale * mean + bias),  std_r = (1 - v) mlp_std + v exp(log_std)
 
     with ``scale``, ``bias``, ``log_std``, ``log_half`` learned (from 1, 0, log 0.06, log 10):
-    fed to the MLP alone, the statistic left r where it was.
-
-    Parameters
-    ----------
-    r_index : int
-        r's latent dimension.
+    fed to the MLP alone, the statistic left r where it was. ``r_index``: r's latent dimension.
     """
 
     def __init__(self, r_index: int):
@@ -421,26 +362,15 @@ class Decoder(nn.Module):
     Mirrors the encoder: dense to a base grid, then stride-2 transposed convolutions (each
     doubles the size); the base is the pooled frame's size / 2^layers rounded up and the output
     cropped, so sizes not divisible by 2^layers (50x100) work. It reconstructs the pooled frame.
-
-    Parameters
-    ----------
-    config : V2PConfig
-    n_read : int
-        R.
     """
 
-    def __init__(self, config, n_read: int):
+    def __init__(self, c, n_read: int):
         super().__init__()
-        c = config
-        H, W = c.frame_size
-        #: (Hp, Wp) of the decoded frames
-        self.size = (H // c.pool, W // c.pool)
+        self.size = (c.frame_size[0] // c.pool, c.frame_size[1] // c.pool)  # (Hp, Wp)
         k = 2 ** len(c.channels)
         self.base = (c.channels[-1], -(-self.size[0] // k), -(-self.size[1] // k))
-        self.fc = nn.Sequential(
-            nn.Linear(c.feat + n_read, c.feat), nn.ReLU(),
-            nn.Linear(c.feat, int(math.prod(self.base))), nn.ReLU()
-        )
+        self.fc = nn.Sequential(nn.Linear(c.feat + n_read, c.feat), nn.ReLU(),
+                                nn.Linear(c.feat, int(math.prod(self.base))), nn.ReLU())
         deconvs = []
         chans = list(c.channels[::-1]) + [1]
         for i in range(len(c.channels)):
