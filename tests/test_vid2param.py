@@ -20,9 +20,9 @@ from sysid_bench.physics import PARAMS, PRIOR  # noqa: E402
 
 LO = np.array([PRIOR[p][0] for p in PARAMS])
 HI = np.array([PRIOR[p][1] for p in PARAMS])
-#: The plain VRNN: every option of the shipped configuration (V2PConfig()) off.
-BARE = dict(diff_features=False, keypoints=0, aux_grad=1.0, read_cell=False,
-            prior_residual=False, roll_features=False, physics_prior=False)
+#: The fewest options of the shipped configuration (V2PConfig()): one keypoint channel, the
+#: plain VRNN's gradients, no rolling statistic, the learned prior's rollout.
+BARE = dict(keypoints=1, aux_grad=1.0, roll_features=False, physics_prior=False)
 TINY = V2PConfig(**BARE, latent=8, hidden=16, feat=16, channels=(4, 8))
 
 needs_shipped = pytest.mark.skipif(
@@ -110,20 +110,6 @@ def test_stream_keeps_state_and_matches_identify(est, tiny_data):
     s.reset()
     again = s.push(obs.frames[0])
     np.testing.assert_allclose(again.mean, posts[0].mean, rtol=1e-6)
-
-
-def test_stochastic_recurrence_stream_matches_identify(tiny_data, tmp_path):
-    """recur_noise=1 (the paper's sampled z in the recurrence): same noise stream either way."""
-    tc = TrainConfig(steps=1, batch=2, n_frames=24, val_n=0, warmup=1, min_obs=10)
-    cfg = V2PConfig(**BARE, latent=8, hidden=16, feat=16, channels=(4, 8), recur_noise=1.0)
-    train(cfg, tc, dataset=tiny_data, out=tmp_path, progress=False, device="cpu", log=lambda s: None)
-    est = Vid2Param(checkpoint=export(tmp_path / "state.pt", tmp_path / "n1.pt"), device="cpu")
-    obs = tiny_data.observation(3)
-    s = est.stream()
-    last = [s.push(f) for f in obs.frames][-1]
-    np.testing.assert_allclose(last.mean, est.identify(obs).mean, rtol=1e-5)
-    fc = est.forecast(obs, 5)
-    assert (fc.std > 0).all()
 
 
 def test_same_seed_same_numbers(tiny_ckpt, tiny_data):
@@ -227,10 +213,10 @@ def test_training_resumes_where_it_stopped(tiny_data, tmp_path):
 
 def test_fit_trains_briefly(tiny_ckpt, tiny_data):
     e = Vid2Param(checkpoint=tiny_ckpt, device="cpu", fit_steps=2)
-    w0 = load_checkpoint(tiny_ckpt)["state_dict"]["enc.2.weight"].clone()
+    w0 = load_checkpoint(tiny_ckpt)["state_dict"]["posterior.mlp.2.weight"].clone()
     assert e.fit(tiny_data) is e
     assert e.checkpoint_info_["fit"]["warm_start"]
-    assert not torch.equal(e.net_.state_dict()["enc.2.weight"], w0)
+    assert not torch.equal(e.net_.state_dict()["posterior.mlp.2.weight"], w0)
     assert isinstance(e.identify(tiny_data.observation(0)), Posterior)
 
 
@@ -289,15 +275,11 @@ def test_keypoint_encoder_localises_at_initialisation(tiny_data):
     from methods.vid2param.model import Vid2ParamNet
 
     torch.manual_seed(0)
-    net = Vid2ParamNet(V2PConfig(keypoints=2, diff_features=True))
-    mu, _, _ = net.filter(torch.as_tensor(np.asarray(tiny_data.frames)), sample=False)
+    net = Vid2ParamNet(V2PConfig(keypoints=2))
+    mu, _, _ = net.filter(torch.as_tensor(np.asarray(tiny_data.frames)))
     truth = targets_from_dataset(tiny_data, ("x", "y"))
     rmse_m = 10.0 * np.sqrt(((mu[..., :2].numpy() - truth) ** 2).mean())
     assert rmse_m < 0.03, rmse_m
-    # without keypoints the same untrained network knows nothing of the position
-    net0 = Vid2ParamNet(V2PConfig(**BARE))
-    mu0, _, _ = net0.filter(torch.as_tensor(np.asarray(tiny_data.frames)), sample=False)
-    assert 10.0 * np.sqrt(((mu0[..., :2].numpy() - truth) ** 2).mean()) > 1.0
 
 
 def test_perturbed_copy_of_a_test_split_keeps_cases_and_changes_bounces():
@@ -329,18 +311,18 @@ def test_aux_grad_changes_gradients_into_the_lstm_not_the_loss(tiny_data):
         torch.manual_seed(0)
         net = Vid2ParamNet(V2PConfig(aux_grad=aux))
         out = net(fr, tg, n_obs=20, generator=torch.Generator().manual_seed(1))
-        grads.append(torch.autograd.grad(out["loss"], net.cells[0].weight_hh)[0])
+        grads.append(torch.autograd.grad(out["loss"], net.recurrence.cell.weight_hh)[0])
         losses.append(float(out["loss"].detach()))
     assert losses[0] == pytest.approx(losses[1], rel=1e-6)
     assert float(grads[1].norm()) < 0.8 * float(grads[0].norm())
 
 
 def test_shipped_style_options_stream_identify_forecast_agree(tiny_data, tmp_path):
-    """keypoints + diff_features + aux_grad + read_cell + the NLL warm-up, end to end."""
+    """Learned keypoints, aux_grad, the rolling evidence, the physics prior and the NLL warm-up,
+    end to end."""
     tc = TrainConfig(steps=3, batch=2, n_frames=24, val_n=0, warmup=1, min_obs=10,
                      nll_only_steps=2)
-    cfg = V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8), keypoints=2,
-                    diff_features=True, aux_grad=0.01, read_cell=True)
+    cfg = V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8), keypoints=2, aux_grad=0.01)
     train(cfg, tc, dataset=tiny_data, out=tmp_path, progress=False, device="cpu", log=lambda s: None)
     est = Vid2Param(checkpoint=export(tmp_path / "state.pt", tmp_path / "opt.pt"), device="cpu",
                     n_samples=8)
@@ -356,8 +338,7 @@ def test_shipped_style_options_stream_identify_forecast_agree(tiny_data, tmp_pat
 # -- camera-like configuration ------------------------------------------------------------------
 CAMERA_NUISANCE = {"blur": 0.5, "occlusion": 0.1, "drop": 0.1, "noise": 8.0, "floor_offset": 1.0}
 CAMERA_TINY = dict(frame_size=(20, 40), latent=8, hidden=16, feat=16, channels=(4, 8),
-                   keypoints=2, kp_threshold=0.2, kp_visibility=True, pool=2,
-                   diff_features=True, read_cell=True, aux_grad=0.1, prior_residual=True,
+                   keypoints=2, kp_threshold=0.2, kp_visibility=True, pool=2, aux_grad=0.1,
                    roll_features=False, physics_prior=False)
 
 
@@ -394,7 +375,7 @@ def test_thresholded_keypoint_ignores_pixel_noise(camera_data):
     for t in (0.0, 0.2):
         cfg = {**CAMERA_TINY, "kp_threshold": t, "kp_visibility": False}
         net = Vid2ParamNet(V2PConfig(**cfg))
-        mu, _, _ = net.filter(fr, sample=False)
+        mu, _, _ = net.filter(fr)
         errs.append(10 * np.sqrt(((mu[..., 0].numpy() - truth)[seen] ** 2).mean()))
     assert errs[1] < 0.2 < errs[0], errs  # metres
 
@@ -403,8 +384,8 @@ def test_visibility_is_low_on_dropped_frames_and_high_on_seen_ones(camera_data):
     from methods.vid2param.model import Vid2ParamNet
 
     net = Vid2ParamNet(V2PConfig(**CAMERA_TINY))
-    vis = net.visibility(net.encode_frames(torch.as_tensor(np.asarray(camera_data.frames)))
-                         .flatten(0, 1)).reshape(camera_data.frames.shape[:2]).detach().numpy()
+    fx = net.encode_frames(torch.as_tensor(np.asarray(camera_data.frames))).flatten(0, 1)
+    vis = net.keypoints.visibility(fx).reshape(camera_data.frames.shape[:2]).detach().numpy()
     dropped = camera_data.extras["dropped"]
     seen = ~(dropped | camera_data.extras["occluded"])
     assert dropped.any()
@@ -412,21 +393,23 @@ def test_visibility_is_low_on_dropped_frames_and_high_on_seen_ones(camera_data):
     assert np.median(vis[seen]) > 0.9
 
 
-def test_residual_prior_from_an_absolute_one_starts_at_a_step_of_zero(tiny_ckpt, tiny_data):
+def test_residual_prior_from_an_absolute_one_starts_at_a_step_of_zero(tiny_ckpt, tiny_data,
+                                                                      tmp_path):
+    """Fine-tuning from a checkpoint of the removed absolute prior (its weights only)."""
     from methods.vid2param.model import Vid2ParamNet
     from methods.vid2param.train import load_matching
 
-    cfg = V2PConfig.from_dict({**load_checkpoint(tiny_ckpt)["config"], "prior_residual": True,
-                               "diff_features": True})
-    net = Vid2ParamNet(cfg)
-    loaded, skipped = load_matching(net, tiny_ckpt)
-    assert "cells.0.weight_hh" in loaded and "prior.2.weight" in loaded
-    _, _, state = net.filter(torch.as_tensor(np.asarray(tiny_data.frames[:2, :10])), sample=False)
+    ck = load_checkpoint(tiny_ckpt)
+    net = Vid2ParamNet(V2PConfig.from_dict(ck["config"]))
+    ck["config"] = {**ck["config"], "prior_residual": False}
+    with pytest.raises(ValueError, match="prior_residual"):
+        V2PConfig.from_dict(ck["config"])
+    loaded, skipped = load_matching(net, save_atomic(ck, tmp_path / "absolute.pt"))
+    assert "recurrence.cell.weight_hh" in loaded and "prior.mlp.2.weight" in loaded
+    _, _, state = net.filter(torch.as_tensor(np.asarray(tiny_data.frames[:2, :10])))
     mu, _ = net.prior_step(net.read(state), net.last_position(state))
     np.testing.assert_allclose(mu[:, :2].detach().numpy(), net.last_position(state).numpy(),
                                atol=1e-6)
-    with pytest.raises(ValueError, match="last"):
-        net.prior_step(net.read(state))
 
 
 def test_load_matching_across_frame_sizes_copies_the_shared_parts(tiny_ckpt):
@@ -436,9 +419,9 @@ def test_load_matching_across_frame_sizes_copies_the_shared_parts(tiny_ckpt):
     base = load_checkpoint(tiny_ckpt)
     net = Vid2ParamNet(V2PConfig.from_dict({**base["config"], "frame_size": [20, 40]}))
     loaded, skipped = load_matching(net, tiny_ckpt)
-    assert "phi_x.1.weight" in skipped and "cells.0.weight_ih" in loaded
-    np.testing.assert_array_equal(net.state_dict()["cells.0.weight_ih"].numpy(),
-                                  base["state_dict"]["cells.0.weight_ih"].numpy())
+    assert "encoder.phi_x.1.weight" in skipped and "recurrence.cell.weight_ih" in loaded
+    np.testing.assert_array_equal(net.state_dict()["recurrence.cell.weight_ih"].numpy(),
+                                  base["state_dict"]["recurrence.cell.weight_ih"].numpy())
 
 
 def test_camera_style_training_end_to_end(camera_data, tmp_path):
@@ -515,7 +498,7 @@ def test_export_calibrates_the_stds_and_the_estimator_applies_them(tiny_ckpt, ti
     f = calibrate(net, tiny_data, lengths=(10, 24))
     assert f.shape == (len(net.config.targets),) and (f > 0).all()
     # after scaling, 90% intervals hold 90% of the calibration set's truths (per dimension)
-    mu, sd, _ = net.filter(torch.as_tensor(np.asarray(tiny_data.frames)), sample=False)
+    mu, sd, _ = net.filter(torch.as_tensor(np.asarray(tiny_data.frames)))
     tg = targets_from_dataset(tiny_data, net.config.targets)
     z = (np.abs(mu.numpy()[:, [9, 23], : len(f)] - tg[:, [9, 23]]) / (sd.numpy()[:, [9, 23], : len(f)] * f))
     np.testing.assert_allclose((z.reshape(-1, len(f)) <= 1.6448536).mean(0), 0.9, atol=0.13)
@@ -569,8 +552,8 @@ def test_roll_features_read_the_deceleration_of_a_rolling_track_and_ignore_fligh
     from methods.vid2param.model import Vid2ParamNet
     from sysid_bench.physics import simulate
 
-    cfg = V2PConfig(**{**BARE, "diff_features": True, "roll_features": True}, latent=8,
-                    hidden=16, feat=16, channels=(4, 8))
+    cfg = V2PConfig(**{**BARE, "roll_features": True}, latent=8, hidden=16, feat=16,
+                    channels=(4, 8))
     net = Vid2ParamNet(cfg)
     theta = np.array([[0.8, -9.8, 0.1, 0.1], [0.8, -9.8, 0.1, 0.6], [0.9, -9.8, 0.1, 0.6]])
     s0 = np.array([[1.0, 0.0, 3.0, 0.0], [2.0, 0.0, -4.0, 0.0], [1.0, 5.0, 1.0, 0.0]])
@@ -583,21 +566,20 @@ def test_roll_features_read_the_deceleration_of_a_rolling_track_and_ignore_fligh
     state = net.init_state(3)
     for t in range(40):
         state = net.step_rnn(z[:, t], state)
-    low, count, dec_sum = state[-1][5].T.numpy()
+    low, count, dec_sum = state.roll.T.numpy()
     # frames 2..39 roll (the first two give no second difference); the second ball's frames
     # within 0.5 m of the wall (six here, the bounce among them) are left out
     np.testing.assert_array_equal(count, [38, 32, 0])
     np.testing.assert_allclose(dec_sum[:2] / count[:2], [0.1, 0.6], atol=2e-3)
-    assert not state[-1][5].requires_grad
-    # the encoder's r: the network's own where nothing rolled, blended towards the statistic
+    assert not state.roll.requires_grad
+    # the posterior's r: the network's own where nothing rolled, blended towards the statistic
     # (r / 0.7 normalised) by the evidence n / (n + 10) where it did
-    from methods.vid2param.model import _gauss
-
     h = net.read(state)
-    fx = torch.zeros(3, cfg.feat)
+    fx = torch.zeros(3, net.encoder.n_out)
     with torch.no_grad():
         mu, sd = net.enc_step(fx, h)
-        mlp_mu, mlp_sd = _gauss(net.enc(torch.cat([fx, h], -1)))
+        mlp_mu, mlp_sd = net.posterior(torch.cat([fx, h], -1))
+        kp_mu = net.keypoints(fx, mlp_mu)
     i = cfg.targets.index("r")
     v = np.array([38 / 48, 32 / 42, 0.0])
     want = (1 - v) * mlp_mu[:, i].numpy() + v * np.array([0.1, 0.6, 0.0]) / 0.7
@@ -605,27 +587,25 @@ def test_roll_features_read_the_deceleration_of_a_rolling_track_and_ignore_fligh
     np.testing.assert_allclose(sd[:, i].numpy(), (1 - v) * mlp_sd[:, i].numpy() + v * 0.06,
                                rtol=1e-4)
     others = [k for k in range(cfg.latent) if k != i]
-    np.testing.assert_array_equal(mu[:, others].numpy(), mlp_mu[:, others].numpy())
+    np.testing.assert_array_equal(mu[:, others].numpy(), kp_mu[:, others].numpy())
 
 
 def test_load_matching_widens_the_lstm_input_and_keeps_the_function(tiny_ckpt, tiny_data):
-    """Fine-tuning with new LSTM inputs starts from exactly the old network's answers."""
+    """Fine-tuning with new inputs of the heads starts from exactly the old network's answers."""
     from methods.vid2param.model import Vid2ParamNet
     from methods.vid2param.train import load_matching
 
     ck = load_checkpoint(tiny_ckpt)
     old = Vid2ParamNet(V2PConfig.from_dict(ck["config"]))
     old.load_state_dict(ck["state_dict"])
-    net = Vid2ParamNet(V2PConfig.from_dict({**ck["config"], "diff_features": True,
-                                            "roll_features": True}))
+    net = Vid2ParamNet(V2PConfig.from_dict({**ck["config"], "roll_features": True}))
     loaded, _ = load_matching(net, tiny_ckpt)
-    assert {"cells.0.weight_ih", "enc.0.weight", "prior.0.weight"} <= set(loaded)
-    # the LSTM gains the 4 difference inputs, the heads the 2 rolling features
-    assert net.cells[0].weight_ih.shape[1] == old.cells[0].weight_ih.shape[1] + 4
-    assert net.enc[0].weight.shape[1] == old.enc[0].weight.shape[1] + 2
+    assert {"posterior.mlp.0.weight", "prior.mlp.0.weight", "decoder.fc.0.weight"} <= set(loaded)
+    # the heads gain the 2 rolling features
+    assert net.posterior.mlp[0].weight.shape[1] == old.posterior.mlp[0].weight.shape[1] + 2
     frames = torch.as_tensor(np.asarray(tiny_data.frames[:2]))
-    mu_new, _, _ = net.filter(frames, sample=False)
-    mu_old, _, _ = old.filter(frames, sample=False)
+    mu_new, _, _ = net.filter(frames)
+    mu_old, _, _ = old.filter(frames)
     np.testing.assert_allclose(mu_new.numpy(), mu_old.numpy(), atol=1e-6)
 
 
@@ -635,8 +615,8 @@ def test_rollout_keeps_forecast_positions_inside_the_box():
     net = Vid2ParamNet(TINY)
     ix, iy = TINY.targets.index("x"), TINY.targets.index("y")
     with torch.no_grad():
-        net.prior[-1].bias[ix] = 5.0  # a prior that throws the ball out of the right wall
-        net.prior[-1].bias[iy] = -5.0  # and through the floor
+        net.prior.mlp[-1].bias[ix] = 5.0  # a prior that throws the ball out of the right wall
+        net.prior.mlp[-1].bias[iy] = -5.0  # and through the floor
     mu, _, z = net.rollout(net.init_state(3), 10, generator=torch.Generator().manual_seed(0))
     for t in (mu, z):
         assert t[..., [ix, iy]].min() >= 0.0 and t[..., [ix, iy]].max() <= 1.0

@@ -116,8 +116,8 @@ def test_unknown_forecast_kind_lists_the_known_ones():
 
 def test_a_config_missing_fields_is_refused_naming_them():
     d = V2PConfig().to_dict()
-    del d["read_cell"], d["physics_prior"]
-    with pytest.raises(ValueError, match=r"lacks fields \['read_cell'\]"):
+    del d["kp_visibility"], d["physics_prior"]
+    with pytest.raises(ValueError, match=r"lacks fields \['kp_visibility'\]"):
         V2PConfig.from_dict(d)
     # a field added later takes the value that reproduces older checkpoints
     d = V2PConfig().to_dict()

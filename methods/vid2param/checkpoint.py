@@ -6,10 +6,10 @@ A checkpoint is a ``torch.save`` dict of tensors and plain Python values (loadab
 ``format``            "vid2param-checkpoint"
 ``format_version``    int, ``FORMAT_VERSION``
 ``config``            ``V2PConfig.to_dict()``
-``state_dict``        network weights
+``state_dict``        network weights (older checkpoints use the names of ``RENAMED``)
 ``train``             training settings (includes ``data_seed``), step, wall time
 ``git_commit``        commit the training code was at (``"unknown"`` outside git) and ``dirty``
-``source_sha256``     hash of model.py + train.py + data.py when trained
+``source_sha256``     hash of model.py + parts.py + train.py + data.py when trained
 ``val_metrics``       validation metrics at the time of writing
 ``optimizer`` etc.    only in resumable training states, not in shipped checkpoints
 
@@ -29,11 +29,31 @@ import torch
 
 from methods.vid2param.model import V2PConfig, Vid2ParamNet
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "save_atomic", "load_checkpoint", "build_net", "git_info"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "RENAMED", "save_atomic", "load_checkpoint", "build_net",
+           "upgrade_state_dict", "upgrade_optimizer_state", "git_info"]
 
 FORMAT = "vid2param-checkpoint"
 FORMAT_VERSION = 1
 _HERE = Path(__file__).resolve().parent
+#: Weight names of checkpoints written before the network was composed of named parts -> today's
+#: (a name ending in "." renames every weight it begins).
+RENAMED = {
+    "conv.": "encoder.conv.",
+    "phi_x.": "encoder.phi_x.",
+    "kp.": "encoder.kp.",
+    "kp_pos.": "keypoints.map.",
+    "kp_gate": "keypoints.gate",
+    "phi_z.": "recurrence.phi_z.",
+    "cells.0.": "recurrence.cell.",
+    "enc.": "posterior.mlp.",
+    "prior.": "prior.mlp.",
+    "roll_scale": "rolling.scale",
+    "roll_bias": "rolling.bias",
+    "roll_log_std": "rolling.log_std",
+    "roll_log_half": "rolling.log_half",
+    "dec_in.": "decoder.fc.",
+    "deconv.": "decoder.deconv.",
+}
 
 
 def save_atomic(obj: dict, path) -> Path:
@@ -101,6 +121,40 @@ def load_checkpoint(path, *, expect_resumable: bool = False) -> dict:
     return ck
 
 
+def _names(state_dict: dict) -> list[str]:
+    """Today's names (``RENAMED``) of ``state_dict``'s weights, in its order."""
+    if "cells.0.weight_ih" not in state_dict:  # written with today's names
+        return list(state_dict)
+    out = []
+    for name in state_dict:
+        for old, new in RENAMED.items():
+            if name == old or (old.endswith(".") and name.startswith(old)):
+                name = new + name[len(old):]
+                break
+        out.append(name)
+    return out
+
+
+def upgrade_state_dict(state_dict: dict) -> dict:
+    """``state_dict`` with the weight names of today's network (``RENAMED``), same order."""
+    return dict(zip(_names(state_dict), state_dict.values()))
+
+
+def upgrade_optimizer_state(opt_state: dict, state_dict: dict, net) -> dict:
+    """An optimizer's state saved beside ``state_dict``, reordered to ``net.parameters()``.
+
+    An optimizer keys its per-parameter state by position. The renaming moved parameters, so
+    an older training state would otherwise hand Adam's moments to other parameters (several
+    are scalars: no shape check would catch it). ``state_dict``'s order is that of the
+    parameters when saved (the network has no persistent buffers).
+    """
+    order = {name: i for i, (name, _) in enumerate(net.named_parameters())}
+    saved = [order[name] for name in _names(state_dict)]
+    return {"state": {saved[i]: v for i, v in opt_state["state"].items()},
+            "param_groups": [{**g, "params": sorted(saved[i] for i in g["params"])}
+                             for g in opt_state["param_groups"]]}
+
+
 def build_net(ck: dict, path="checkpoint") -> Vid2ParamNet:
     """The network described by a loaded checkpoint, weights loaded, in eval mode.
 
@@ -112,7 +166,7 @@ def build_net(ck: dict, path="checkpoint") -> Vid2ParamNet:
         raise ValueError(f"checkpoint: {str(path)!r} has an invalid config ({exc})") from exc
     net = Vid2ParamNet(cfg)
     try:
-        net.load_state_dict(ck["state_dict"], strict=True)
+        net.load_state_dict(upgrade_state_dict(ck["state_dict"]), strict=True)
     except (RuntimeError, TypeError, AttributeError) as exc:
         raise ValueError(
             f"checkpoint: weights in {str(path)!r} do not match its config "
@@ -142,7 +196,7 @@ def git_info() -> dict:
 def source_sha256() -> str:
     """Hash of the files that define the model and its training."""
     h = hashlib.sha256()
-    for name in ("model.py", "train.py", "data.py"):
+    for name in ("model.py", "parts.py", "train.py", "data.py"):
         p = _HERE / name
         if p.exists():
             h.update(name.encode())

@@ -136,9 +136,6 @@ class Vid2Param(Estimator):
     warm_start : bool
         ``fit`` continues from ``checkpoint``'s weights when its frame size matches the data;
         otherwise (or if False) it trains a fresh network of the same architecture.
-    sample_state : bool
-        Feed a sampled z_t to the LSTM at each frame, as in training (True), or the encoder
-        mean (False: deterministic filtering).
     forecast : {"latent", "physics"}, optional
         How ``forecast`` predicts (see ``FORECASTS``; None: ``default_forecast``, "latent"
         here, "physics" for ``vid2param-physics``): ``"latent"`` unrolls the network's
@@ -192,7 +189,6 @@ class Vid2Param(Estimator):
         fit_steps: int = 200,
         fit_lr: float = 1e-4,
         warm_start: bool = True,
-        sample_state: bool = True,
         forecast: str | None = None,
     ):
         self.checkpoint = checkpoint
@@ -205,7 +201,6 @@ class Vid2Param(Estimator):
         self.fit_steps = fit_steps
         self.fit_lr = fit_lr
         self.warm_start = warm_start
-        self.sample_state = sample_state
         self.forecast_kind = forecast
 
     # ``forecast`` names a method too: the hyperparameter is stored as ``forecast_kind``
@@ -333,15 +328,14 @@ class Vid2Param(Estimator):
             )
         return _check_frames_array(obs.frames, self.frame_size, "frames", 3)
 
-    def _run(self, frames: np.ndarray, salt: int = 0):
+    def _run(self, frames: np.ndarray):
         """Filter (N, T, H, W) frames; returns normalised mu, std (N, T, 4) and wall time."""
         net = self._ensure_net()
         idx = self._index()
         t0 = time.perf_counter()
         with torch.inference_mode():
             fr = torch.as_tensor(frames, device=self.device_)
-            mu, sd, _ = net.filter(fr, generator=self._generator(salt),
-                                   sample=bool(self.sample_state))
+            mu, sd, _ = net.filter(fr)
             mu = mu[..., idx].cpu().numpy().astype(np.float64)
             sd = sd[..., idx].cpu().numpy().astype(np.float64) * self.std_scale_
         return mu, sd, time.perf_counter() - t0
@@ -451,7 +445,7 @@ class Vid2Param(Estimator):
         sel = [n - 1 for n in lengths]
         mus, sds = [], []
         for i in range(0, fr.shape[0], b):
-            mu, sd, _ = self._run(fr[i : i + b], salt=i)
+            mu, sd, _ = self._run(fr[i : i + b])
             mus.append(mu[:, sel])
             sds.append(sd[:, sel])
         mu, sd = np.concatenate(mus), np.concatenate(sds)
@@ -534,8 +528,7 @@ class Vid2Param(Estimator):
         net = self._ensure_net()
         names = self.config_.targets
         with torch.inference_mode():
-            mu, sd, state = net.filter(torch.as_tensor(frames[None], device=self.device_),
-                                       sample=False)
+            mu, sd, state = net.filter(torch.as_tensor(frames[None], device=self.device_))
         mu = mu[0].cpu().numpy().astype(np.float64)
         sd = sd[0].cpu().numpy().astype(np.float64)
         idx = self._index()
@@ -595,21 +588,17 @@ class Vid2Param(Estimator):
 
     def _forecast_learned_prior(self, frames, horizon: int):
         """The latent rollout of a checkpoint without a physics prior (older ones): the learned
-        prior unrolled from ``n_samples`` filtered particles; mean and std are the exact
-        moments of the particles' Gaussian mixture."""
+        prior unrolled from the filtered state, ``n_samples`` particles of sampled z; mean and
+        std are the exact moments of the particles' Gaussian mixture."""
         net = self._ensure_net()
         S = max(2, int(self.n_samples))
         gen = self._generator(7)
         names = self.config_.targets
         xy = [names.index("x"), names.index("y")]
         with torch.inference_mode():
-            fr = torch.as_tensor(frames[None], device=self.device_)
-            stochastic = bool(self.sample_state) and self.config_.recur_noise > 0
-            # a deterministic recurrence gives identical particles: filter once, then copy
-            _, _, state = net.filter(fr, particles=S if stochastic else 1, generator=gen,
-                                     sample=stochastic)
-            if not stochastic:
-                state = [tuple(t.expand(S, -1).contiguous() for t in layer) for layer in state]
+            # the recurrence is deterministic: filter once, then copy the state per particle
+            _, _, state = net.filter(torch.as_tensor(frames[None], device=self.device_))
+            state = state.map(lambda t: t.expand(S, -1).contiguous())
             mu, sd, z = (a.cpu().numpy().astype(np.float64)
                          for a in net.rollout(state, horizon, generator=gen))
         m, sd, samples = (BOX_WIDTH * a[..., xy] for a in (mu, sd, z))
@@ -674,10 +663,7 @@ class Vid2ParamStream(Stream):
         # float32 rounding, ~4x fewer microseconds); elsewhere the torch modules
         self._fast = frame_filter_for(self.net, self.est.device_, self._fast)
         self._state = None if self._fast is not None else self.net.init_state(1, self.est.device_)
-        self.n = 0
-        # same noise streams as identify(): the recurrence's noise from the same generator,
-        # each posterior's samples keyed by its frame count (drawn when read)
-        self.gen = self.est._generator(0)
+        self.n = 0  # each posterior's samples are keyed by the frame count, as identify()'s
         # the network's own track (floor-relative metres) and last posterior, for forecast()
         self.track = np.full((256, 2), np.nan)
         self.last = None
@@ -715,7 +701,7 @@ class Vid2ParamStream(Stream):
 
     @property
     def state(self):
-        """The recurrent state in ``Vid2ParamNet``'s layout (list of per-layer tuples)."""
+        """The recurrent state, as ``Vid2ParamNet``'s (``RecurrentState``)."""
         if self._fast is not None:
             return self._fast.torch_state(self.est.device_)
         return self._state
@@ -731,13 +717,8 @@ class Vid2ParamStream(Stream):
         """Add one (H, W) frame; returns the posterior given every frame since ``reset``."""
         fr = _check_frames_array(frame, self.hw, "frame", 2)
         t0 = time.perf_counter()
-        noise = self.net.config.recur_noise
-        sample = self.est.sample_state and noise > 0
         if self._fast is not None:
-            # the torch path's noise stream, so both paths feed the LSTM the same z
-            eps = (torch.randn((1, self.net.config.latent), generator=self.gen).numpy()[0]
-                   if sample else None)
-            mu, sd = self._fast.step(fr, eps, noise)
+            mu, sd = self._fast.step(fr)
             mu_n = mu[self._idx_np].astype(np.float64)
             sd_n = sd[self._idx_np].astype(np.float64) * self.est.std_scale_
             xy = mu[self._xy_np] if self._xy_np is not None else None
@@ -746,11 +727,7 @@ class Vid2ParamStream(Stream):
                 x = torch.from_numpy(np.ascontiguousarray(fr)).to(self.est.device_)
                 fx = self.net.encode_frames(x[None])
                 mu, sd = self.net.enc_step(fx, self.net.read(self._state))
-                if sample:
-                    eps = torch.randn(mu.shape, generator=self.gen, device=mu.device)
-                    self._state = self.net.step_rnn(mu + noise * sd * eps, self._state)
-                else:
-                    self._state = self.net.step_rnn(mu, self._state)
+                self._state = self.net.step_rnn(mu, self._state)
                 mu_n = mu[0, self.idx].cpu().numpy().astype(np.float64)
                 sd_n = sd[0, self.idx].cpu().numpy().astype(np.float64) * self.est.std_scale_
                 xy = mu[0, self._xy_np].cpu().numpy() if self._xy_np is not None else None

@@ -32,16 +32,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from methods.vid2param import model as _model
+from methods.vid2param import parts as _parts
+from methods.vid2param.parts import RecurrentState
 from sysid_bench.estimator import Posterior
 
 __all__ = ["FrameFilter", "LazyPosterior", "Unsupported", "fast_support", "frame_filter_for",
            "encode_frames_batch", "ENCODE_CHUNK"]
-
-#: smallest horizontal step (normalised units per frame) of a rolling frame, as in
-#: ``Vid2ParamNet._roll_stats``
-_ROLL_STEP = 0.002
-
 
 class Unsupported(ValueError):
     """The network has a part the fast path does not implement (the torch path is used)."""
@@ -166,9 +162,8 @@ class FrameFilter:
     Raises
     ------
     Unsupported
-        A part of ``net`` this path does not implement (checked at construction): it covers
-        one LSTM layer, ``read_cell``, ``diff_features``, keypoints with the x, y map and no
-        ``pixel_skip`` -- both shipped configurations.
+        A part of ``net`` this path does not implement (checked at construction): a network
+        built differently from what ``methods.vid2param.parts`` builds.
     """
 
     def __init__(self, net: nn.Module, dtype=np.float32):
@@ -184,44 +179,37 @@ class FrameFilter:
         """Copy the network's weights (again) and lay out the buffers."""
         net, F = self.net, self.F
         try:
-            c = net.config
-            need = {"layers == 1": c.layers == 1, "read_cell": c.read_cell,
-                    "diff_features": c.diff_features, "keypoints >= 1": c.keypoints >= 1,
-                    "no pixel_skip": not c.pixel_skip and net.skip is None,
-                    "x, y targets": net.kp_pos is not None}
-            missing = [k for k, ok in need.items() if not ok]
-            if missing:
-                raise Unsupported(f"config: the NumPy path needs {missing}")
-            self.c = c
+            c = self.c = net.config
+            enc = net.encoder
             H, W = c.frame_size
             self.H, self.W, self.pool = H, W, c.pool
             Hp, Wp = H // c.pool, W // c.pool
-            self.convs = _conv_stack(net.conv, 1, Hp, Wp, F)
+            self.convs = _conv_stack(enc.conv, 1, Hp, Wp, F)
             if not all(cv.relu for cv in self.convs):
                 raise Unsupported("conv: expected a ReLU after each layer")
             K = self.K = int(c.keypoints)
             # the learned keypoint channels read the same zero-padded frame as the first conv
-            self.kp = (_conv_stack(net.kp, 1, Hp, Wp, F, buf=self.convs[0].buf)[0]
-                       if net.kp is not None else None)
+            self.kp = (_conv_stack(enc.kp, 1, Hp, Wp, F, buf=self.convs[0].buf)[0]
+                       if enc.kp is not None else None)
             if self.kp is not None and self.kp.relu:
                 raise Unsupported("kp: expected a bare Conv2d")
             # (H W, 2) and (Hp Wp, 2) pixel centres; channel 0's in float64 (see encode)
-            self.grid64 = net._grid.detach().cpu().double().numpy().T.copy()
-            self.grid_pool = _np(net._grid_pool, F).T.copy()
-            wx, bx = _mlp(net.phi_x, ("F", "L", "R"), F)[0]
+            self.grid64 = enc.grid.detach().cpu().double().numpy().T.copy()
+            self.grid_pool = _np(enc.grid_pool, F).T.copy()
+            wx, bx = _mlp(enc.phi_x, ("F", "L", "R"), F)[0]
             self.phi_x = np.ascontiguousarray(np.concatenate([wx, bx[:, None]], 1))
             n_conv = wx.shape[1]
             self.conv_out = np.zeros(n_conv + 1, F)  # last conv's output, then 1
             self.conv_out[-1] = 1
-            self.kp_pos = _linear(net.kp_pos, F)
-            self.kp_gate = float(net.kp_gate.item())
+            self.kp_pos = _linear(net.keypoints.map, F)
+            self.kp_gate = float(net.keypoints.gate.item())
             self.ix, self.iy = c.targets.index("x"), c.targets.index("y")
-            self.vis = bool(c.kp_visibility)
-            self.log_mref = float(net._log_mref) if self.vis else 0.0
+            self.vis = bool(net.keypoints.use_visibility)
+            self.log_mref = float(net.keypoints.log_mref)
             Z, hid, feat = int(c.latent), int(c.hidden), int(c.feat)
             self.Z, self.hidden = Z, hid
             # encoder head input: [phi_x (feat), centres (2K), log masses (K), h, c, roll (0|2), 1]
-            self.roll = bool(c.roll_features)
+            self.roll = net.rolling is not None
             n_fx = feat + 3 * K
             self.sl_fx = slice(0, n_fx)
             self.sl_kp = slice(feat, n_fx)
@@ -230,18 +218,18 @@ class FrameFilter:
             self.i_roll = n_fx + 2 * hid  # roll features at i_roll, i_roll + 1
             self.enc_in = np.zeros(n_fx + 2 * hid + (2 if self.roll else 0) + 1, F)
             self.enc_in[-1] = 1
-            (w1, b1), (w2, b2) = _mlp(net.enc, ("L", "R", "L"), F)
+            (w1, b1), (w2, b2) = _mlp(net.posterior.mlp, ("L", "R", "L"), F)
             if w1.shape[1] != self.enc_in.size - 1:
                 raise Unsupported(f"enc: expected {self.enc_in.size - 1} inputs, got {w1.shape[1]}")
             self.enc1 = np.ascontiguousarray(np.concatenate([w1, b1[:, None]], 1))
             self.enc2 = np.ascontiguousarray(np.concatenate([w2, b2[:, None]], 1))
             self.enc_hid = np.zeros(w1.shape[0] + 1, F)
             self.enc_hid[-1] = 1
-            wz, bz = _mlp(net.phi_z, ("L", "R"), F)[0]
+            wz, bz = _mlp(net.recurrence.phi_z, ("L", "R"), F)[0]
             self.phi_z = np.ascontiguousarray(np.concatenate([wz, bz[:, None]], 1))
             self.z_in = np.zeros(Z + 1, F)
             self.z_in[-1] = 1
-            cell = net.cells[0]
+            cell = net.recurrence.cell
             if not isinstance(cell, nn.LSTMCell) or cell.bias is False:
                 raise Unsupported(f"cells: expected a biased nn.LSTMCell, got {cell}")
             # LSTM input: [phi_z (feat), velocity (2), acceleration (2), h, 1]; one product
@@ -260,13 +248,13 @@ class FrameFilter:
             self.sl_lh = slice(feat + 4, feat + 4 + hid)
             self.gates = np.zeros(4 * hid, F)
             self.tmp_h = np.zeros(hid, F)
-            self.pos_idx = [int(i) for i in net._pos_idx]
+            self.pos_idx = [int(i) for i in net.recurrence.pos_idx]
             if self.roll:
-                self.r_idx = int(net._r_idx)
-                self.roll_scale = float(net.roll_scale.item())
-                self.roll_bias = float(net.roll_bias.item())
-                self.roll_half = math.exp(net.roll_log_half.item())
-                self.roll_std = math.exp(net.roll_log_std.item())
+                r = net.rolling
+                self.r_idx = r.r_index
+                self.roll_scale, self.roll_bias = float(r.scale.item()), float(r.bias.item())
+                self.roll_half = math.exp(r.log_half.item())
+                self.roll_std = math.exp(r.log_std.item())
         except AttributeError as exc:  # a network built differently from what this path knows
             raise Unsupported(f"net: {exc}") from exc
 
@@ -283,33 +271,32 @@ class FrameFilter:
         self.stats = (0.0, 0.0, 0.0)  # low-frame run, rolling frames, summed deceleration
         self._set_roll_features()
 
-    def torch_state(self, device=None) -> list[tuple[torch.Tensor, ...]]:
-        """The state in ``Vid2ParamNet``'s layout (batch of one, float32)."""
+    def torch_state(self, device=None) -> RecurrentState:
+        """The state as the network's (batch of one, float32)."""
         t = lambda a: torch.tensor(np.asarray(a, np.float32).reshape(1, -1), device=device)  # noqa: E731
-        last = (t(self.enc_in[self.sl_h]), t(self.enc_in[self.sl_c]), t(self.pos), t(self.vel),
-                t([self.n]))
-        return [(*last, t(self.stats)) if self.roll else last]
+        return RecurrentState(t(self.enc_in[self.sl_h]), t(self.enc_in[self.sl_c]), t(self.pos),
+                              t(self.vel), t([self.n]), t(self.stats) if self.roll else None)
 
-    def set_torch_state(self, state) -> None:
-        """Take the state from ``Vid2ParamNet``'s layout (batch of one)."""
+    def set_torch_state(self, state: RecurrentState) -> None:
+        """Take the state from the network's (batch of one)."""
         a = lambda x: x.detach().to("cpu", torch.float64).numpy().reshape(-1)  # noqa: E731
-        if len(state) != 1 or len(state[0]) != (6 if self.roll else 5):
-            raise ValueError("state: expected one layer's (h, c, pos, vel, n[, stats]) tuple, "
-                             f"got {len(state)} layers")
-        last = state[0]
-        self.enc_in[self.sl_h], self.enc_in[self.sl_c] = a(last[0]), a(last[1])
-        self.pos, self.vel = tuple(a(last[2]).tolist()), tuple(a(last[3]).tolist())
-        self.n = float(a(last[4])[0])
+        if not isinstance(state, RecurrentState) or (state.roll is not None) != self.roll:
+            kind = "with" if self.roll else "without"
+            raise ValueError(f"state: expected a RecurrentState {kind} rolling statistics, "
+                             f"got {state!r}")
+        self.enc_in[self.sl_h], self.enc_in[self.sl_c] = a(state.h), a(state.c)
+        self.pos, self.vel = tuple(a(state.last_pos).tolist()), tuple(a(state.last_vel).tolist())
+        self.n = float(a(state.n_seen)[0])
         if self.roll:
-            self.stats = tuple(a(last[5]).tolist())
+            self.stats = tuple(a(state.roll).tolist())
         self._set_roll_features()
 
     def _set_roll_features(self) -> None:
-        """``Vid2ParamNet.read``'s rolling mean and count features from ``stats``."""
+        """``Recurrence.read``'s rolling mean and count features from ``stats``."""
         if not self.roll:
             return
-        s, g = self.stats, _model.ROLL_GAIN
-        mean = min(max(s[2] / max(s[1], 1.0) / _model._R_TOP, -2.0), 2.0)
+        s, g = self.stats, _parts.ROLL_GAIN
+        mean = min(max(s[2] / max(s[1], 1.0) / _parts._R_TOP, -2.0), 2.0)
         self.enc_in[self.i_roll:self.i_roll + 2] = (g * mean, g * (s[1] / (s[1] + 10.0)))
 
     # -- the network, one frame -----------------------------------------------------------------
@@ -361,7 +348,7 @@ class FrameFilter:
         mu = raw[:Z]
         # torch's softplus (threshold 20) to within an ulp
         std = np.logaddexp(F(0), raw[Z:])
-        std += F(_model._MIN_STD)
+        std += F(_parts._MIN_STD)
         # the scalar blends in Python floats (see reset)
         K = self.K
         kx, ky = (self.kp_pos[0] @ ei[self.sl_kp] + self.kp_pos[1]).tolist()
@@ -375,7 +362,7 @@ class FrameFilter:
             mu[ix] = mx * g + kx
             mu[iy] = my * g + ky
         if self.roll:
-            f0, c = (x / _model.ROLL_GAIN for x in ei[self.i_roll:self.i_roll + 2].tolist())
+            f0, c = (x / _parts.ROLL_GAIN for x in ei[self.i_roll:self.i_roll + 2].tolist())
             v = 10.0 * c / (10.0 * c + self.roll_half * (1.0 - c))
             i = self.r_idx
             mu[i] = (1.0 - v) * float(mu[i]) + v * (self.roll_scale * f0 + self.roll_bias)
@@ -419,31 +406,25 @@ class FrameFilter:
 
     @staticmethod
     def _roll_stats(pos, vel, vel_prev, n, stats) -> tuple[float, float, float]:
-        """``Vid2ParamNet._roll_stats`` for one frame, on Python floats."""
-        M = _model
+        """``parts._roll_update`` for one frame, on Python floats."""
+        M = _parts
         low = min(stats[0] + 1.0 if pos[1] * M.BOX_WIDTH < M.ROLL_HEIGHT else 0.0, 3.0)
         vx, vxp = vel[0], vel_prev[0]
         dec = -math.copysign(1.0, vx) * (vx - vxp) / M.DT**2 if vx else 0.0
         x = pos[0] * M.BOX_WIDTH
-        ok = (low >= 3 and n >= 2 and abs(vx) > _ROLL_STEP and abs(vxp) > _ROLL_STEP
+        ok = (low >= 3 and n >= 2 and abs(vx) > M.ROLL_STEP and abs(vxp) > M.ROLL_STEP
               and vx * vxp > 0 and abs(dec) < M.ROLL_DEC_MAX
               and M.ROLL_WALL < x < M.BOX_WIDTH - M.ROLL_WALL)
         return (low, stats[1] + 1.0, stats[2] + dec) if ok else (low, stats[1], stats[2])
 
-    def step(self, frame: np.ndarray, eps: np.ndarray | None = None,
-             noise: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-        """One frame: the encoder's posterior given it and the frames before, then the state
-        update (``Vid2ParamNet.filter`` for a batch of one).
+    def step(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One frame: the posterior given it and the frames before, then the state update
+        (``Vid2ParamNet.filter`` for a batch of one).
 
         Parameters
         ----------
         frame : ndarray, shape (H, W)
             uint8, or float in [0, 255].
-        eps : ndarray, shape (Z,), optional
-            Standard normal noise; with ``noise > 0`` the LSTM is fed ``mu + noise * std * eps``
-            (``Vid2ParamNet.filter`` with ``sample=True``), else ``mu``.
-        noise : float
-            ``config.recur_noise``.
 
         Returns
         -------
@@ -452,10 +433,7 @@ class FrameFilter:
         """
         self.encode(frame)
         mu, std = self.enc_step()
-        if eps is not None and noise > 0:
-            self.step_rnn(mu + self.F(noise) * std * np.asarray(eps, self.F))
-        else:
-            self.step_rnn(mu)
+        self.step_rnn(mu)
         return mu, std
 
 

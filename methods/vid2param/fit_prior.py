@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from methods.vid2param.checkpoint import load_checkpoint, save_atomic
+from methods.vid2param.checkpoint import load_checkpoint, save_atomic, upgrade_state_dict
 from methods.vid2param.data import make_split, perturb_dataset
 from methods.vid2param.model import V2PConfig, Vid2ParamNet
 from methods.vid2param.rollout import fit_state, sample_trajectories
@@ -81,7 +81,8 @@ def with_physics_prior(ck: dict) -> Vid2ParamNet:
     depend on what it is run on)."""
     cfg = V2PConfig.from_dict({**ck["config"], "physics_prior": True})
     net = Vid2ParamNet(cfg)
-    weights = {k: v for k, v in ck["state_dict"].items() if not k.startswith("phys_prior.")}
+    weights = {k: v for k, v in upgrade_state_dict(ck["state_dict"]).items()
+               if not k.startswith("phys_prior.")}
     missing, unexpected = net.load_state_dict(weights, strict=False)
     if unexpected or any(not k.startswith("phys_prior.") for k in missing):
         raise ValueError(f"checkpoint: weights do not match its config (missing {missing}, "

@@ -38,6 +38,8 @@ from methods.vid2param.checkpoint import (
     load_checkpoint,
     save_atomic,
     source_sha256,
+    upgrade_optimizer_state,
+    upgrade_state_dict,
 )
 from methods.vid2param.data import (
     chunk_seed,
@@ -191,19 +193,21 @@ def init_record(path) -> dict:
 
 
 #: First-layer weights whose new inputs, if any, are appended at the end of the old ones.
-_WIDENED = ("cells.0.weight_ih", "enc.0.weight", "prior.0.weight", "dec_in.0.weight")
+_WIDENED = ("recurrence.cell.weight_ih", "posterior.mlp.0.weight", "prior.mlp.0.weight",
+            "decoder.fc.0.weight")
 
 
 def load_matching(net: Vid2ParamNet, path) -> tuple[list[str], list[str]]:
     """Copy into ``net`` every tensor of the checkpoint at ``path`` whose name and shape match.
 
     For fine-tuning from another configuration (a new loss weight or flag, another frame
-    size): what the two networks share starts trained, the rest starts fresh. The keypoint
-    map ``kp_pos`` is never copied: it is set from ``net``'s own view geometry. Going from an
-    absolute to a residual prior (``prior_residual``), the prior's x, y means start at a step
-    of 0. A first-layer weight whose input has grown by inputs appended at its end (the LSTM's
-    with ``diff_features``, the heads' with ``roll_features``) gets the old columns and zeros
-    for the new ones, so the fine-tune starts from exactly the old network's function.
+    size): what the two networks share starts trained, the rest starts fresh. Older weight
+    names are read as today's (``checkpoint.RENAMED``). The keypoint map is never copied: it is
+    set from ``net``'s own view geometry. From a checkpoint whose prior was absolute (the
+    removed ``prior_residual`` option off), the prior's x, y means start at a step of 0. A
+    first-layer weight whose input has grown by inputs appended at its end (the heads' with
+    ``roll_features``) gets the old columns and zeros for the new ones, so the fine-tune starts
+    from exactly the old network's function.
 
     Returns
     -------
@@ -211,12 +215,12 @@ def load_matching(net: Vid2ParamNet, path) -> tuple[list[str], list[str]]:
         Names of ``net``'s tensors copied and not copied.
     """
     ck = load_checkpoint(path)
-    src = ck["state_dict"]
+    src = upgrade_state_dict(ck["state_dict"])
     own = net.state_dict()
     loaded, skipped = [], []
     for name, val in own.items():
         other = src.get(name)
-        if other is not None and other.shape == val.shape and not name.startswith("kp_pos."):
+        if other is not None and other.shape == val.shape and not name.startswith("keypoints.map."):
             own[name] = other.to(val.dtype)
             loaded.append(name)
         elif (other is not None and name in _WIDENED and other.ndim == 2
@@ -228,10 +232,10 @@ def load_matching(net: Vid2ParamNet, path) -> tuple[list[str], list[str]]:
         else:
             skipped.append(name)
     c = net.config
-    if c.prior_residual and not V2PConfig.from_dict(ck["config"]).prior_residual:
+    if not ck["config"].get("prior_residual", True):
         # the source prior predicts absolute positions; as a step from the last position start
         # its x, y means at 0 ("stay put") instead of doubling the position
-        w, b = own["prior.2.weight"], own["prior.2.bias"]
+        w, b = own["prior.mlp.2.weight"], own["prior.mlp.2.bias"]
         for name in ("x", "y"):
             w[c.targets.index(name)] = 0.0
             b[c.targets.index(name)] = 0.0
@@ -292,15 +296,14 @@ class _Feed:
 
 @torch.no_grad()
 def _prefix_posteriors(net: Vid2ParamNet, frames: np.ndarray, lengths, batch: int = 100,
-                       device="cpu", sample: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                       device="cpu") -> tuple[np.ndarray, np.ndarray]:
     """Encoder means and stds of the supervised dimensions after each of ``lengths`` frames,
     one filtering pass per ``batch`` videos: two arrays (N, L, K)."""
     sel = [int(L) - 1 for L in lengths]
     K = len(net.config.targets)
     mus, stds = [], []
     for i in range(0, len(frames), batch):
-        mu, sd, _ = net.filter(torch.as_tensor(frames[i : i + batch], device=device),
-                               sample=sample)
+        mu, sd, _ = net.filter(torch.as_tensor(frames[i : i + batch], device=device))
         mus.append(mu[:, sel, :K].cpu().numpy())
         stds.append(sd[:, sel, :K].cpu().numpy())
     return np.concatenate(mus), np.concatenate(stds)
@@ -379,7 +382,7 @@ def calibrate(net: Vid2ParamNet, ds, lengths=(50, 100, 150, 200), batch: int = 1
     names = net.config.targets
     frames = np.asarray(ds.frames)
     lengths = [int(L) for L in lengths if L <= frames.shape[1]] or [frames.shape[1]]
-    mu, sd = _prefix_posteriors(net, frames, lengths, batch, sample=False)
+    mu, sd = _prefix_posteriors(net, frames, lengths, batch)
     tg = targets_from_dataset(ds, names)[:, [L - 1 for L in lengths]]
     z = np.abs(mu - tg) / sd  # (N, L, K)
     q = np.quantile(z.reshape(-1, len(names)), level, axis=0)
@@ -564,8 +567,8 @@ def train(
     net = Vid2ParamNet(mc).to(dev)
     opt = torch.optim.Adam(net.parameters(), lr=tc.lr)
     if ck is not None:
-        net.load_state_dict(ck["state_dict"])
-        opt.load_state_dict(ck["optimizer"])
+        net.load_state_dict(upgrade_state_dict(ck["state_dict"]))
+        opt.load_state_dict(upgrade_optimizer_state(ck["optimizer"], ck["state_dict"], net))
     elif init_net is not None:
         if init_net.config.to_dict() != mc.to_dict():
             raise ValueError("init_net: expected a network with model_config's architecture")
@@ -710,13 +713,12 @@ def _parse(argv=None):
     p.add_argument("--preset", default="28x28", choices=sorted(PRESETS),
                    help="model configuration (V2PConfig.preset) and its data settings; the "
                         "options below override single fields")
-    for name in ("latent", "hidden", "layers", "feat", "keypoints", "pool"):
+    for name in ("latent", "hidden", "feat", "keypoints", "pool"):
         p.add_argument("--" + name, type=int, default=None)
-    for name in ("alpha", "beta", "gamma", "gamma_prior", "recur_noise", "aux_grad", "kp_threshold"):
+    for name in ("alpha", "beta", "gamma", "gamma_prior", "aux_grad", "kp_threshold"):
         p.add_argument("--" + name.replace("_", "-"), type=float, default=None)
     p.add_argument("--channels", type=int, nargs="+", default=None)
-    for name in ("pixel_skip", "read_cell", "kp_visibility", "prior_residual", "diff_features",
-                 "roll_features", "physics_prior"):
+    for name in ("kp_visibility", "roll_features", "physics_prior"):
         p.add_argument("--" + name.replace("_", "-"), action=argparse.BooleanOptionalAction,
                        default=None, help=f"V2PConfig.{name} (default: the preset's)")
     p.add_argument("--targets", nargs="+", default=None)

@@ -1,0 +1,386 @@
+"""The named parts :class:`~methods.vid2param.model.Vid2ParamNet` is composed of.
+
+Each is built from the ``V2PConfig`` (``c``) or the sizes it needs. Shapes: B = batch,
+H x W = frame size, Hp x Wp = the frame pooled by ``c.pool``, Z = latent size, K = keypoint
+channels, R = what the heads read of the recurrent state (``Recurrence.n_read``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from sysid_bench.physics import BOX_WIDTH, DT, PRIOR
+
+__all__ = ["FrameEncoder", "KeypointPosition", "RecurrentState", "Recurrence", "GaussianHead",
+           "PriorHead", "RollingEvidence", "Decoder"]
+
+_MIN_STD = 1e-3
+#: Rolling-statistic gates (``RollingEvidence``), chosen on validation videos: fed-back height
+#: (m) under which the ball may roll (a 28x28 keypoint's height is ~5 mm off; a hop from the
+#: 0.25 m/s rolling threshold rises 3 mm), distance (m) from the walls inside which a frame is
+#: left out (a wall contact breaks the second difference), largest deceleration (m/s^2) taken as
+#: rolling (r <= 0.7 plus ~2 m/s^2 of per-frame noise; a spun bounce gives tens), smallest
+#: horizontal step (normalised units per frame).
+ROLL_HEIGHT, ROLL_WALL, ROLL_DEC_MAX, ROLL_STEP = 0.015, 0.5, 10.0, 0.002
+#: Scale of the rolling features the heads read: Adam moves a new input's weights by about the
+#: learning rate per step whatever the input's size, so its size sets how fast it takes effect.
+ROLL_GAIN = 5.0
+_R_TOP = PRIOR["r"][1]  # m/s^2: top of the prior's r
+
+
+def _gauss(raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Split a (..., 2Z) head output into mean and std (softplus keeps std positive)."""
+    mu, s = raw.chunk(2, dim=-1)
+    return mu, F.softplus(s) + _MIN_STD
+
+
+def _xy_place(targets: tuple[str, ...], latent: int) -> torch.Tensor:
+    """(2, Z) one-hot rows: where an (x, y) pair goes in the latent vector."""
+    place = torch.zeros(2, latent)
+    place[0, targets.index("x")] = place[1, targets.index("y")] = 1.0
+    return place
+
+
+def _centre_grid(h: int, w: int) -> torch.Tensor:
+    """(2, h*w) pixel centres: column and row as fractions of the width and height."""
+    gy, gx = torch.meshgrid((torch.arange(h) + 0.5) / h, (torch.arange(w) + 0.5) / w,
+                            indexing="ij")
+    return torch.stack([gx.flatten(), gy.flatten()], 0)
+
+
+def _conv_im2col(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
+    """``conv(x)`` for one (1, C, H, W) image as a patch matrix times the weights."""
+    (k, _), (s, _), (pad, _) = conv.kernel_size, conv.stride, conv.padding
+    ho = (x.shape[-2] + 2 * pad - k) // s + 1
+    wo = (x.shape[-1] + 2 * pad - k) // s + 1
+    cols = F.unfold(x, k, padding=pad, stride=s)[0]  # (C k k, ho wo)
+    out = torch.addmm(conv.bias[:, None], conv.weight.reshape(conv.out_channels, -1), cols)
+    return out.reshape(1, conv.out_channels, ho, wo)
+
+
+def _apply_convs(module: nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """``module(x)`` for FrameEncoder's convolutions (square, biased; alone or with ReLUs).
+
+    A single frame without gradients (a ``push`` on the torch path) goes through im2col and one
+    matrix product per layer: 59 us for the 28x28 encoder's convolutions on one CPU thread,
+    145 us through oneDNN (faster on batches). Same numbers up to float rounding.
+    """
+    if x.shape[0] != 1 or torch.is_grad_enabled():
+        return module(x)
+    for m in (module if isinstance(module, nn.Sequential) else [module]):
+        x = _conv_im2col(m, x) if isinstance(m, nn.Conv2d) else m(x)
+    return x
+
+
+class FrameEncoder(nn.Module):
+    """Frame features ``fx = [phi_x(conv(frame)), keypoint centres, keypoint log masses]``.
+
+    Keypoints are spatial expectations (as in deep spatial autoencoders): K non-negative heat
+    maps -- channel 0 the full-resolution frame less ``kp_threshold``, channels 1.. learned 3x3
+    convolutions of the pooled frame -- each give their centre of mass (column, row, in [0, 1])
+    and log total mass. Channel 0 is the ball's intensity centroid: sub-pixel positions from
+    the first training step. The conv path and the learned channels see the frame average-pooled
+    by ``pool`` (convolutions over 5000-pixel frames made a CPU training step ~10 s).
+    """
+
+    def __init__(self, c):
+        super().__init__()
+        H, W = c.frame_size
+        Hp, Wp = H // c.pool, W // c.pool
+        self.pool, self.kp_threshold, self.keypoints = c.pool, float(c.kp_threshold), c.keypoints
+        convs, ch = [], 1
+        for out in c.channels:  # each halves the frame (stride 2)
+            convs += [nn.Conv2d(ch, out, 4, stride=2, padding=1), nn.ReLU()]
+            ch = out
+        self.conv = nn.Sequential(*convs)
+        with torch.no_grad():
+            n_conv = self.conv(torch.zeros(1, 1, Hp, Wp)).numel()
+        self.phi_x = nn.Sequential(nn.Flatten(), nn.Linear(n_conv, c.feat), nn.ReLU())
+        self.kp = nn.Conv2d(1, c.keypoints - 1, 3, padding=1) if c.keypoints > 1 else None
+        self.register_buffer("grid", _centre_grid(H, W), persistent=False)
+        self.register_buffer("grid_pool", _centre_grid(Hp, Wp), persistent=False)
+        self.n_out = c.feat + 3 * c.keypoints  # size of fx
+
+    def pooled(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 1, H, W) frames in [0, 1] average-pooled by ``pool`` -> (N, 1, Hp, Wp)."""
+        return x if self.pool == 1 else F.avg_pool2d(x, self.pool)
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        """``fx`` (..., feat + 3 K) of frames (..., H, W), uint8 or float in [0, 255]."""
+        lead = frames.shape[:-2]
+        full = frames.reshape(-1, 1, *frames.shape[-2:]).to(torch.float32) / 255.0
+        x = self.pooled(full)
+        out = self.phi_x(_apply_convs(self.conv, x))
+        t = self.kp_threshold
+        # without the threshold, pixel noise spread over a camera frame pulls the centroid to
+        # the middle; 1e-6 keeps a blank frame's centre defined
+        heat0 = (full if not t else torch.relu(full - t)).flatten(2) + 1e-6
+        mass0 = heat0.sum(-1, keepdim=True)
+        centre = (heat0 / mass0) @ self.grid.T  # (N, 1, 2)
+        mass = mass0
+        if self.kp is not None:
+            heat = torch.relu(_apply_convs(self.kp, x)).flatten(2) + 1e-6  # (N, K-1, Hp*Wp)
+            m = heat.sum(-1, keepdim=True)
+            centre = torch.cat([centre, (heat / m) @ self.grid_pool.T], 1)  # (N, K, 2)
+            mass = torch.cat([mass0, m], 1)
+        out = torch.cat([out, centre.flatten(1), torch.log(mass[..., 0])], -1)
+        return out.reshape(*lead, -1)
+
+
+class KeypointPosition(nn.Module):
+    """The posterior's x, y means: keypoint channel 0's centre mapped to metres by the view
+    geometry, plus the MLP's means scaled by ``gate`` (starts at 0).
+
+    The map is fixed: with it or the heat maps learnable, the other loss terms (KL to an
+    imprecise prior, reconstruction) dragged the positions from 5 mm to 3-20 cm off, which
+    buries gravity's 2.5 cm per frame^2. With ``kp_visibility`` the map is weighted by how
+    visible the ball is, ``v = sigmoid(4 (log m0 - log m_ref))`` (m0 channel 0's mass, m_ref a
+    third of a full ball's): ``v (map + gate mlp) + (1 - v) mlp``. On a dropped or occluded
+    frame the map reports the middle of the frame (or a sliver of the ball); the MLP, which
+    reads the recurrent state, carries the position on.
+    """
+
+    def __init__(self, c):
+        from sysid_bench.render import view_geometry
+
+        super().__init__()
+        self.keypoints, self.use_visibility = c.keypoints, bool(c.kp_visibility)
+        self.map = nn.Linear(3 * c.keypoints, 2).requires_grad_(False)
+        self.gate = nn.Parameter(torch.zeros(()))
+        place = _xy_place(c.targets, c.latent)
+        self.register_buffer("place", place, persistent=False)
+        self.register_buffer("mask", place.sum(0), persistent=False)  # (Z,) 1 at x, y
+        # channel 0's centre (fractions of W and H) to normalised x, y: col = radius + x sx,
+        # x_norm = x / 10; rows grow downwards from the floor: row = H - radius - (y - floor) sy
+        H, W = c.frame_size
+        geo = view_geometry((H, W))
+        sx, sy = geo.px_per_m  # pixels per metre
+        with torch.no_grad():
+            self.map.weight.zero_()
+            self.map.bias.zero_()
+            self.map.weight[0, 0] = W / (10.0 * sx)
+            self.map.bias[0] = -geo.radius / (10.0 * sx)
+            self.map.weight[1, 1] = -H / (10.0 * sy)
+            self.map.bias[1] = (H - geo.radius) / (10.0 * sy)
+        # a full ball's mass in channel 0 (an anti-aliased disc of value 1, less the threshold)
+        self.log_mref = math.log(max(1e-3, math.pi * geo.radius**2 * (1 - c.kp_threshold) / 3))
+
+    def visibility(self, fx: torch.Tensor) -> torch.Tensor:
+        """How visible the ball is, (B, 1) in (0, 1), from ``fx`` (B, feat + 3 K): 0.5 at a
+        third of a full ball's mass in channel 0."""
+        return torch.sigmoid(4.0 * (fx[:, -self.keypoints, None] - self.log_mref))
+
+    def forward(self, fx: torch.Tensor, mu: torch.Tensor) -> torch.Tensor:
+        """The posterior's means ``mu`` (B, Z) with x, y replaced as above."""
+        kp = self.map(fx[:, -3 * self.keypoints:]) @ self.place
+        if self.use_visibility:
+            vis = self.visibility(fx)
+            return (mu * (1 - self.mask) + vis * (kp + self.gate * mu * self.mask)
+                    + (1 - vis) * mu * self.mask)
+        return mu * (1 - self.mask + self.gate * self.mask) + kp
+
+
+@dataclass(frozen=True, eq=False)
+class RecurrentState:
+    """The recurrence's state after some frames, batch B.
+
+    Attributes
+    ----------
+    h, c : Tensor, shape (B, hidden)
+    last_pos, last_vel : Tensor, shape (B, 2)
+        The last fed-back x, y (normalised by the view width) and velocity feature.
+    n_seen : Tensor, shape (B, 1)
+        Frames seen, capped at 2 (what the differences need).
+    roll : Tensor, shape (B, 3), or None
+        With ``roll_features``: consecutive low frames, rolling frames, summed deceleration.
+    """
+
+    h: torch.Tensor
+    c: torch.Tensor
+    last_pos: torch.Tensor
+    last_vel: torch.Tensor
+    n_seen: torch.Tensor
+    roll: torch.Tensor | None = None
+
+    def map(self, fn) -> RecurrentState:
+        """The state with ``fn`` applied to each tensor (e.g. ``lambda t: t.to(device)``)."""
+        return RecurrentState(**{f.name: None if getattr(self, f.name) is None
+                                 else fn(getattr(self, f.name)) for f in fields(self)})
+
+
+class Recurrence(nn.Module):
+    """``h_t = LSTM([phi_z(z_t), velocity, acceleration], h_{t-1})``.
+
+    The LSTM sees the fed-back z only, so forecasting runs in latent space without decoding
+    frames. Beside ``phi_z(z)`` it gets the first and second differences of z's position
+    dimensions, scaled to order 1 (velocity in metres per frame, acceleration x 40): fed
+    positions alone, an LSTM must difference numbers of order 0.5 twice to see gravity's
+    0.0025 per frame^2 (a plain LSTM on true positions left g at the prior's level; with these
+    features it read g at nMSE ~0.005). The heads read ``[h, c]`` (the evidence is integrated in
+    the cell, which ``h = o tanh(c)`` hides), and with ``roll_features`` the rolling mean and
+    count (``RollingEvidence``).
+    """
+
+    def __init__(self, c):
+        super().__init__()
+        self.hidden, self.roll_features = c.hidden, bool(c.roll_features)
+        self.phi_z = nn.Sequential(nn.Linear(c.latent, c.feat), nn.ReLU())
+        self.cell = nn.LSTMCell(c.feat + 4, c.hidden)
+        self.pos_idx = [c.targets.index("x"), c.targets.index("y")]
+        self.n_read = 2 * c.hidden + (2 if self.roll_features else 0)  # R
+
+    def init_state(self, batch: int, device=None) -> RecurrentState:
+        """The state before the first frame: zeros."""
+        z = torch.zeros(batch, self.hidden, device=device)
+        m = torch.zeros(batch, 2, device=device)
+        roll = torch.zeros(batch, 3, device=device) if self.roll_features else None
+        return RecurrentState(z, z, m, m, torch.zeros(batch, 1, device=device), roll)
+
+    def read(self, state: RecurrentState) -> torch.Tensor:
+        """What the posterior, prior and decoder read of the state: (B, R)."""
+        out = torch.cat([state.h, state.c], -1)
+        if state.roll is not None:
+            out = torch.cat([out, _roll_features(state.roll)], -1)
+        return out
+
+    def forward(self, z: torch.Tensor, state: RecurrentState) -> RecurrentState:
+        """The state after feeding back ``z`` (B, Z)."""
+        n, vel_prev = state.n_seen, state.last_vel
+        pos = z[:, self.pos_idx]
+        vel = torch.where(n >= 1, (pos - state.last_pos) * 10.0, torch.zeros_like(pos))
+        acc = torch.where(n >= 2, (vel - vel_prev) * 40.0, torch.zeros_like(pos))
+        inp = torch.cat([self.phi_z(z), vel.clamp(-5, 5), acc.clamp(-10, 10)], dim=-1)
+        h, c = self.cell(inp, (state.h, state.c))
+        roll = None if state.roll is None else _roll_update(pos, vel, vel_prev, n, state.roll)
+        return RecurrentState(h, c, pos, vel, torch.clamp(n + 1, max=2.0), roll)
+
+
+class GaussianHead(nn.Module):
+    """A diagonal Gaussian over z from an MLP: (..., n_in) -> mean, std, each (..., Z)."""
+
+    def __init__(self, n_in: int, hidden: int, latent: int):
+        super().__init__()
+        self.mlp = nn.Sequential(nn.Linear(n_in, hidden), nn.ReLU(), nn.Linear(hidden, 2 * latent))
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return _gauss(self.mlp(x))
+
+
+class PriorHead(GaussianHead):
+    """The prior p(z_t | h_{t-1}): its x, y means are a step from the last fed-back position.
+
+    Forecasting unrolls the prior; a step of at most 0.05 (0.5 m per frame) is a far easier
+    target than an absolute position.
+    """
+
+    def __init__(self, n_read: int, hidden: int, latent: int, targets: tuple[str, ...]):
+        super().__init__(n_read, hidden, latent)
+        self.register_buffer("place", _xy_place(targets, latent), persistent=False)
+
+    def forward(self, h: torch.Tensor, last: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and std (..., Z) from the read-out ``h`` (..., R) and the last fed-back
+        position ``last`` (..., 2)."""
+        mu, std = _gauss(self.mlp(h))
+        return mu + last @ self.place, std
+
+
+def _roll_features(stats: torch.Tensor) -> torch.Tensor:
+    """The heads' rolling inputs (B, 2) from the statistics (B, 3): ``ROLL_GAIN`` times the mean
+    deceleration divided by the prior's top r (about r normalised) and ``n / (n + 10)``."""
+    mean = (stats[:, 2:3] / stats[:, 1:2].clamp(min=1.0) / _R_TOP).clamp(-2, 2)
+    count = stats[:, 1:2] / (stats[:, 1:2] + 10.0)
+    return torch.cat([ROLL_GAIN * mean, ROLL_GAIN * count], -1)
+
+
+def _roll_update(pos, vel, vel_prev, n, stats) -> torch.Tensor:
+    """The rolling statistics (B, 3) after the newest fed-back frame (see ``RollingEvidence``).
+
+    ``pos`` (B, 2) normalised; ``vel``, ``vel_prev`` (B, 2) metres per frame; ``n`` (B, 1)
+    frames seen before this one (capped at 2). A fixed function of the fed-back z, gradient
+    stopped.
+    """
+    pos, vel, vel_prev = pos.detach(), vel.detach(), vel_prev.detach()
+    low = torch.where(pos[:, 1:2] * BOX_WIDTH < ROLL_HEIGHT, stats[:, 0:1] + 1.0,
+                      torch.zeros_like(n)).clamp(max=3.0)
+    vx, vxp = vel[:, 0:1], vel_prev[:, 0:1]
+    dec = -torch.sign(vx) * (vx - vxp) / DT**2
+    x = pos[:, 0:1] * BOX_WIDTH  # positions are normalised by the view width
+    ok = ((low >= 3) & (n >= 2) & (vx.abs() > ROLL_STEP) & (vxp.abs() > ROLL_STEP)
+          & (vx * vxp > 0) & (dec.abs() < ROLL_DEC_MAX)
+          & (x > ROLL_WALL) & (x < BOX_WIDTH - ROLL_WALL)).to(pos.dtype)
+    return torch.cat([low, stats[:, 1:2] + ok, stats[:, 2:3] + ok * dec], -1)
+
+
+class RollingEvidence(nn.Module):
+    """The rolling statistic and its blend into the posterior's r.
+
+    Rolling resistance is at most 0.7 m/s^2, 1.75 mm per frame^2, against ~5 mm of per-frame
+    noise in the second difference of 28x28 keypoint positions, so one frame's acceleration
+    hides it. Summed over a roll the second differences telescope and the noise stays that of
+    two velocities. So the recurrent state keeps (``RecurrentState.roll``) the mean horizontal
+    deceleration ``-sgn(vx) d2x / dt^2`` over the frames where the fed-back track rolls -- the
+    last three heights below ``ROLL_HEIGHT``, the last two horizontal steps over ``ROLL_STEP``
+    and of one sign, more than ``ROLL_WALL`` from the walls, a deceleration under
+    ``ROLL_DEC_MAX`` -- and their count n. The heads read both (``Recurrence.read``), and the
+    posterior's r is blended towards the statistic by the evidence ``v = n / (n + n_half)``::
+
+        mu_r = (1 - v) mlp + v (scale * mean + bias),  std_r = (1 - v) mlp_std + v exp(log_std)
+
+    with ``scale``, ``bias``, ``log_std``, ``log_half`` learned (from 1, 0, log 0.06, log 10):
+    fed to the MLP alone, the statistic left r where it was. ``r_index``: r's latent dimension.
+    """
+
+    def __init__(self, r_index: int):
+        super().__init__()
+        self.r_index = int(r_index)
+        self.scale = nn.Parameter(torch.ones(()))
+        self.bias = nn.Parameter(torch.zeros(()))
+        self.log_std = nn.Parameter(torch.tensor(math.log(0.06)))
+        self.log_half = nn.Parameter(torch.tensor(math.log(10.0)))
+
+    def forward(self, mu: torch.Tensor, std: torch.Tensor, h: torch.Tensor):
+        """The posterior's ``mu``, ``std`` (B, Z) with r blended; ``h`` (B, R) the read-out,
+        whose last two columns are the rolling features."""
+        i = self.r_index
+        feats = h[:, -2:] / ROLL_GAIN  # the mean (normalised r) and c = n / (n + 10)
+        c = feats[:, 1:2]
+        v = 10.0 * c / (10.0 * c + torch.exp(self.log_half) * (1.0 - c))  # n / (n + n_half)
+        r_mu = (1 - v) * mu[:, i:i + 1] + v * (self.scale * feats[:, 0:1] + self.bias)
+        r_sd = (1 - v) * std[:, i:i + 1] + v * torch.exp(self.log_std)
+        return (torch.cat([mu[:, :i], r_mu, mu[:, i + 1:]], -1),
+                torch.cat([std[:, :i], r_sd, std[:, i + 1:]], -1))
+
+
+class Decoder(nn.Module):
+    """Frame logits from ``phi_z(z_t)`` and the read-out of ``h_{t-1}``.
+
+    Mirrors the encoder: dense to a base grid, then stride-2 transposed convolutions (each
+    doubles the size); the base is the pooled frame's size / 2^layers rounded up and the output
+    cropped, so sizes not divisible by 2^layers (50x100) work. It reconstructs the pooled frame.
+    """
+
+    def __init__(self, c, n_read: int):
+        super().__init__()
+        self.size = (c.frame_size[0] // c.pool, c.frame_size[1] // c.pool)  # (Hp, Wp)
+        k = 2 ** len(c.channels)
+        self.base = (c.channels[-1], -(-self.size[0] // k), -(-self.size[1] // k))
+        self.fc = nn.Sequential(nn.Linear(c.feat + n_read, c.feat), nn.ReLU(),
+                                nn.Linear(c.feat, int(math.prod(self.base))), nn.ReLU())
+        deconvs = []
+        chans = list(c.channels[::-1]) + [1]
+        for i in range(len(c.channels)):
+            deconvs.append(nn.ConvTranspose2d(chans[i], chans[i + 1], 4, stride=2, padding=1))
+            if i < len(c.channels) - 1:
+                deconvs.append(nn.ReLU())
+        self.deconv = nn.Sequential(*deconvs)
+
+    def forward(self, fz: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """Logits (N, Hp, Wp) from ``fz`` (N, feat) and ``h`` (N, R)."""
+        u = self.fc(torch.cat([fz, h], -1))
+        u = self.deconv(u.reshape(-1, *self.base))[..., : self.size[0], : self.size[1]]
+        return u[:, 0]

@@ -1,0 +1,202 @@
+"""Vid2Param's network as named parts: the shipped checkpoints give the numbers they gave before.
+
+``tests/data/vid2param_shipped_outputs.npz`` holds what both shipped checkpoints answered on a
+few small seeded videos (filter means and stds, the recurrent state's read-out, the learned
+prior's and the physics prior's rollouts, the training pass's loss terms and gradient size, the
+stream's pushes on both its paths, forecasts), written by this file's ``__main__`` with the
+network as it was before it was split into parts. Regenerate only for a deliberate change of
+the numbers: ``PYTHONPATH=. python tests/test_vid2param_parts.py``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param  # noqa: E402
+from methods.vid2param.checkpoint import build_net, load_checkpoint  # noqa: E402
+from methods.vid2param.data import targets_from_arrays  # noqa: E402
+from sysid_bench.datasets import make_dataset  # noqa: E402
+from sysid_bench.estimator import Observation  # noqa: E402
+from sysid_bench.physics import simulate  # noqa: E402
+from sysid_bench.render import render  # noqa: E402
+
+FIXTURE = Path(__file__).parent / "data" / "vid2param_shipped_outputs.npz"
+N_FRAMES = 60
+#: A ball rolling from the first frame (seeded test videos rarely roll within 60 frames): the
+#: 28x28 model's rolling statistic and its blend into r have something to read.
+ROLL_THETA = np.array([0.8, -9.81, 0.02, 0.4])
+ROLL_STATE0 = np.array([1.0, 0.0, 3.0, 0.0])
+needs = {k: pytest.mark.skipif(not p.exists(), reason=f"no shipped {k} checkpoint")
+         for k, p in SHIPPED_CHECKPOINTS.items()}
+
+
+def _videos(name: str):
+    """The checkpoint, frames (3, T, H, W) and targets (3, T, K): two seeded test videos (with
+    the camera nuisances for the camera model) and the rolling ball."""
+    ck = load_checkpoint(SHIPPED_CHECKPOINTS[name])
+    size = tuple(ck["config"]["frame_size"])
+    nuis = dict(ck["train"].get("nuisance") or {})
+    ds = make_dataset("test", 2, 31, n_frames=N_FRAMES, size=size, nuisance=nuis or None)
+    states = simulate(ROLL_THETA[None], ROLL_STATE0[None], N_FRAMES)
+    nuis.pop("floor_offset", None)
+    rolling = render(states, size, seed=5, **nuis)
+    frames = np.concatenate([np.asarray(ds.frames), rolling])
+    targets = targets_from_arrays(
+        np.concatenate([ds.states, states]),
+        np.concatenate([ds.labels, np.broadcast_to(ROLL_THETA, (1, N_FRAMES, 4))]),
+        np.append(ds.floor, 0.0), ck["config"]["targets"])
+    return ck, frames, targets
+
+
+def _outputs(name: str) -> dict[str, np.ndarray]:
+    """Everything the pinned checkpoint answers on its videos (see the module docstring)."""
+    torch.manual_seed(0)
+    ck, frames_np, targets = _videos(name)
+    net = build_net(ck)
+    frames = torch.as_tensor(frames_np)
+    out = {}
+    with torch.no_grad():
+        mu, sd, state = net.filter(frames)
+        out["filter_mu"], out["filter_std"] = mu.numpy(), sd.numpy()
+        out["read"] = net.read(state).numpy()
+        out["last_position"] = net.last_position(state).numpy()
+        rollout = net.rollout(state, 12, generator=torch.Generator().manual_seed(1))
+        for k, v in zip(("rollout_mu", "rollout_std", "rollout_z"), rollout):
+            out[k] = v.numpy()
+        phys = torch.tensor([[2.0, 6.0, 5.0, 3.5], [8.0, 1.0, -6.0, -4.0]])
+        theta = torch.tensor([[0.8, -9.81, 0.02, 0.3], [0.6, -5.0, 0.1, 0.5]])
+        rollout = net.rollout_physics(phys, theta, 15, generator=torch.Generator().manual_seed(2))
+        for k, v in zip(("physics_mean", "physics_std", "physics_z"), rollout):
+            out[k] = v.numpy()
+    # the training pass: loss terms (some frames forecast) and the gradient's size
+    tg = torch.as_tensor(targets)
+    net.train()
+    terms = net(frames, tg, n_obs=40, rec_frac=0.5, generator=torch.Generator().manual_seed(3))
+    terms["loss"].backward()
+    net.eval()
+    for k, v in terms.items():
+        out["train_" + k] = v.detach().numpy()
+    out["train_grad_sq"] = np.array(sum(float((p.grad.double() ** 2).sum())
+                                        for p in net.parameters() if p.grad is not None))
+    # the estimator: pushes on the NumPy and torch paths, identify, forecasts
+    est = Vid2Param(checkpoint=name, device="cpu", n_samples=16, seed=4)
+    obs = Observation(frames=frames_np[-1])
+    for path in ("fast", "torch"):
+        s = est.stream()
+        if path == "torch":
+            s._fast, s._state = None, est._ensure_net().init_state(1)
+        posts = [s.push(f) for f in obs.frames]
+        out[f"push_{path}_mean"] = np.array([p.mean for p in posts])
+        out[f"push_{path}_std"] = np.array([p.std for p in posts])
+        fc = s.forecast(10)
+        out[f"push_{path}_forecast_mean"], out[f"push_{path}_forecast_std"] = fc.mean, fc.std
+    post = est.identify(obs)
+    out["identify_mean"], out["identify_std"] = post.mean, post.std
+    fc = est.forecast(obs.prefix(50), 10)
+    out["forecast_mean"], out["forecast_std"] = fc.mean, fc.std
+    return out
+
+
+@pytest.mark.parametrize("name", [pytest.param("28x28", marks=needs["28x28"]),
+                                  pytest.param("camera", marks=needs["camera"])])
+def test_shipped_checkpoints_give_the_pinned_outputs(name):
+    want = np.load(FIXTURE)
+    got = _outputs(name)
+    keys = sorted(k.split("/", 1)[1] for k in want.files if k.startswith(name + "/"))
+    assert keys == sorted(got), "the fixture and _outputs name different outputs"
+    for k in keys:
+        np.testing.assert_allclose(got[k], want[f"{name}/{k}"], rtol=1e-5, atol=1e-5,
+                                   err_msg=f"{name}: {k}")
+
+
+def test_a_removed_option_loads_at_its_fixed_value_and_is_refused_at_another():
+    from methods.vid2param.model import REMOVED, V2PConfig
+
+    d = V2PConfig().to_dict()
+    assert not set(REMOVED) & set(d)
+    # older checkpoints store the removed options: at the value the network has, they load
+    assert V2PConfig.from_dict({**d, **REMOVED}) == V2PConfig()
+    other = {"recur_noise": 1.0, "pixel_skip": True, "diff_features": False, "read_cell": False,
+             "prior_residual": False, "layers": 2}
+    assert set(other) == set(REMOVED)
+    for name, value in other.items():
+        with pytest.raises(ValueError, match=f"'{name}' was removed"):
+            V2PConfig.from_dict({**d, name: value})
+    with pytest.raises(ValueError, match="keypoints: expected an int >= 1"):
+        V2PConfig(keypoints=0)
+    with pytest.raises(TypeError):
+        V2PConfig(recur_noise=0.0)
+
+
+def test_older_weight_names_load_and_an_older_training_state_resumes_in_place():
+    """The renaming (``checkpoint.RENAMED``) also moved parameters: Adam's per-parameter state,
+    kept by position, must follow them."""
+    from methods.vid2param.checkpoint import (RENAMED, upgrade_optimizer_state,
+                                              upgrade_state_dict)
+    from methods.vid2param.model import V2PConfig, Vid2ParamNet
+
+    torch.manual_seed(0)
+    net = Vid2ParamNet(V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8)))
+    opt = torch.optim.Adam(net.parameters())
+    for p in net.parameters():
+        p.grad = torch.randn_like(p)
+    opt.step()
+    # the same weights and state as an older network saved them: old names, its order
+    back = {new: old for old, new in RENAMED.items()}
+    def old_name(name):
+        for new, old in back.items():
+            if name == new or (new.endswith(".") and name.startswith(new)):
+                return old + name[len(new):]
+        return name
+    names = [n for n, _ in net.named_parameters()]
+    old_order = sorted(range(len(names)), key=lambda i: old_name(names[i]))
+    sd = {old_name(names[i]): net.state_dict()[names[i]] for i in old_order}
+    st = opt.state_dict()
+    saved = {"state": {j: st["state"][i] for j, i in enumerate(old_order)},
+             "param_groups": [{**st["param_groups"][0], "params": list(range(len(names)))}]}
+    assert "cells.0.weight_ih" in sd and "kp_gate" in sd
+    assert list(upgrade_state_dict(net.state_dict())) == list(net.state_dict())  # no-op
+    torch.manual_seed(1)
+    fresh = Vid2ParamNet(net.config)
+    fresh.load_state_dict(upgrade_state_dict(sd))
+    opt2 = torch.optim.Adam(fresh.parameters())
+    opt2.load_state_dict(upgrade_optimizer_state(saved, sd, fresh))
+    for (name, p), q in zip(net.named_parameters(), fresh.parameters()):
+        torch.testing.assert_close(q, p, msg=name)
+        torch.testing.assert_close(opt2.state[q]["exp_avg"], opt.state[p]["exp_avg"], msg=name)
+
+
+def test_the_recurrent_state_is_named_and_maps_over_its_tensors():
+    from methods.vid2param.model import V2PConfig, Vid2ParamNet
+
+    net = Vid2ParamNet(V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8)))
+    st = net.step_rnn(torch.rand(2, 8), net.init_state(2))
+    assert st.h.shape == st.c.shape == (2, 16) and st.roll.shape == (2, 3)
+    assert st.last_pos.shape == st.last_vel.shape == (2, 2) and st.n_seen.tolist() == [[1], [1]]
+    wide = st.map(lambda t: t.repeat(3, 1))
+    assert wide.h.shape == (6, 16) and wide.roll.shape == (6, 3)
+    assert net.init_state(1).map(lambda t: t + 1).n_seen.item() == 1.0
+    cam = Vid2ParamNet(V2PConfig.preset("camera"))
+    assert cam.init_state(1).roll is None and cam.rolling is None
+    assert cam.read(cam.init_state(1)).shape == (1, 2 * cam.config.hidden)
+
+
+def _write_fixture() -> None:
+    arrays = {}
+    for name in SHIPPED_CHECKPOINTS:
+        for k, v in _outputs(name).items():
+            v = np.asarray(v)
+            arrays[f"{name}/{k}"] = v.astype(np.float32) if v.dtype == np.float64 else v
+    FIXTURE.parent.mkdir(exist_ok=True)
+    np.savez_compressed(FIXTURE, **arrays)
+    print(FIXTURE, FIXTURE.stat().st_size, "bytes")
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    _write_fixture()
