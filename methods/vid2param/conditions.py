@@ -1,8 +1,9 @@
 """Train the sensitivity experiment's condition models: ``python -m methods.vid2param.conditions``.
 
-One recipe and one budget for every condition (:data:`RECIPE`, the first phase of the shipped
-28x28 model: 2000 steps of 32 videos x 200 frames from scratch, the first 600 on the NLL
-alone), only the training data differ (``sysid_bench.bench.sensitivity``):
+One recipe and one budget for every condition: ``V2PConfig()`` trained from scratch with
+``TrainConfig()``'s defaults (2000 steps of 32 videos x 200 frames, the first 600 on the NLL
+alone: what ``python -m methods.vid2param.train --out DIR`` runs), only the training data
+differ (``sysid_bench.bench.sensitivity``):
 
 ``noise:<level>``      the interleaved train split, labels with Gaussian noise of ``level`` x
                        the range (``noise:0`` is the control)
@@ -34,9 +35,9 @@ from methods.vid2param.estimator import (
 
 __all__ = ["RECIPE", "train_condition", "condition_data", "main"]
 
-#: Training settings shared by every condition (``TrainConfig`` fields).
-RECIPE = {"steps": 2000, "batch": 32, "nll_only_steps": 600, "n_frames": 200, "val_n": 200,
-          "val_every": 250, "chunk": 2000, "seed": 0, "data_seed": 0}
+#: Settings beyond ``TrainConfig()``'s defaults shared by every condition (none: the defaults
+#: are the recipe).
+RECIPE: dict = {}
 
 
 def condition_data(condition: str) -> tuple[str, dict]:

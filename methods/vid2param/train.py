@@ -121,8 +121,8 @@ class TrainConfig:
     variant_options : dict, optional
     """
 
-    steps: int = 5000
-    batch: int = 16
+    steps: int = 2000
+    batch: int = 32
     lr: float = 1e-3
     lr_min: float = 5e-5
     warmup: int = 100
@@ -140,7 +140,7 @@ class TrainConfig:
     val_every: int = 250
     ckpt_every: float = 180.0
     threads: int = 1
-    nll_only_steps: int = 0
+    nll_only_steps: int = 600
     size: tuple[int, int] = (28, 28)
     nuisance: dict | None = field(default=None)
     perturb: dict | None = field(default=None)
