@@ -174,3 +174,4 @@ def test_training_config_takes_a_data_variant():
     assert frames.shape == (4, 10, 28, 28)
     # trained on the lower half of e's range only: normalised e below 0.5
     assert (targets[..., 2] <= 0.5 + 1e-6).all()
+
