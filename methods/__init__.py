@@ -66,6 +66,7 @@ def unregister(name: str) -> None:
 
 register("vid2param", "methods.vid2param:Vid2Param", requires=("torch",))
 register("vid2param-physics", "methods.vid2param:Vid2ParamPhysics", requires=("torch",))
+register("vid2param-changing", "methods.vid2param:Vid2ParamChanging", requires=("torch",))
 register("nuts", "methods.nuts:NUTS", requires=("jax", "numpyro"))
 register("emcee", "methods.ensemble:Emcee", requires=("emcee",))
 register("lsq", "methods.lsq:LSQ")

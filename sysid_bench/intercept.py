@@ -721,7 +721,9 @@ def known_policies() -> list[str]:
     """Every policy name :func:`make_policy` accepts."""
     import methods
 
-    return list(POLICIES) + [m for m in methods.available() if m not in POLICIES]
+    # a registered method is a policy when it forecasts (its forecast sets the target)
+    return list(POLICIES) + [m for m in methods.available()
+                             if m not in POLICIES and methods.spec(m).forecasts]
 
 
 def make_policy(name: str, **options) -> Policy:

@@ -10,10 +10,11 @@ from methods.vid2param.estimator import (
     SHIPPED_CHECKPOINT,
     SHIPPED_CHECKPOINTS,
     Vid2Param,
+    Vid2ParamChanging,
     Vid2ParamPhysics,
     Vid2ParamStream,
 )
 from methods.vid2param.model import PRESETS, V2PConfig
 
-__all__ = ["Vid2Param", "Vid2ParamPhysics", "Vid2ParamStream", "V2PConfig", "PRESETS", "FORECASTS",
+__all__ = ["Vid2Param", "Vid2ParamChanging", "Vid2ParamPhysics", "Vid2ParamStream", "V2PConfig", "PRESETS", "FORECASTS",
            "SHIPPED_CHECKPOINT", "SHIPPED_CHECKPOINTS"]
