@@ -6,8 +6,9 @@ prior's and the physics prior's rollouts, the training pass's loss terms and gra
 stream's pushes on both its paths, forecasts), written by this file's ``__main__`` with the
 network as it was before it was split into parts. Regenerate only for a deliberate change of
 the numbers: ``PYTHONPATH=. python tests/test_vid2param_parts.py``. The camera model's forecasts
-were re-recorded once after the state fit learnt to drop misread frames (a change of the fit,
-not of the network; every other entry is as recorded before the split).
+were re-recorded after changes of the forecast, not of the network: the state fit drops
+misread frames; its physics prior's noise was refitted (so its physics rollout too); with the floor given, heights are put
+on it from above the fitted floor. Every other entry is as recorded before the split.
 """
 
 from __future__ import annotations

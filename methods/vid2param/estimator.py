@@ -506,8 +506,11 @@ class Vid2Param(Estimator):
         if self.forecast_mode == "latent" and net.phys_prior is None:
             mean, std, samples, extras = self._forecast_learned_prior(frames, horizon)
         else:
-            mean, std, samples, extras = self._forecast_track(*self._track(frames)[:3], horizon,
-                                                              float(obs.dt))
+            # with the floor given, heights are taken above the fitted floor and put on it: a
+            # network that cannot see a raised floor (the camera model) reads heights in a
+            # frame of its own, which the fitted floor (a bounce pins it) ties to the real one
+            mean, std, samples, extras = self._forecast_track(
+                *self._track(frames)[:3], horizon, float(obs.dt), above_floor=obs.floor is not None)
         extras = {"wall_s": time.perf_counter() - t0, "n_simulations": 0,
                   "forecast": self.forecast_mode, **extras}
         return Forecast(mean=shift + mean, std=std, samples=shift + samples, extras=extras)
@@ -541,10 +544,12 @@ class Vid2Param(Estimator):
         pos = BOX_WIDTH * mu[:, [names.index("x"), names.index("y")]]
         return (pos, *_physical(mu[-1, idx], sd[-1, idx] * self.std_scale_), state)
 
-    def _forecast_track(self, pos, th_mu, th_sd, horizon: int, dt: float):
+    def _forecast_track(self, pos, th_mu, th_sd, horizon: int, dt: float,
+                        above_floor: bool = False):
         """Forecast from the network's track (T, 2) and parameter posterior, as
-        ``forecast_kind`` says; returns floor-relative mean, std (horizon, 2), samples
-        (S, horizon, 2) and extras.
+        ``forecast_kind`` says; returns mean, std (horizon, 2), samples (S, horizon, 2) and
+        extras. Heights are in the track's frame, or above each draw's fitted floor with
+        ``above_floor``.
 
         Both kinds start from ``n_samples`` joint draws of the state and parameters: the MAP of
         the network's posterior (the prior) and its own positions of the last
@@ -563,7 +568,8 @@ class Vid2Param(Estimator):
         physics = self.forecast_mode == "physics"
         states, theta, floor = sample_trajectories(fit, len(pos), horizon if physics else 0, S,
                                                    self._rng(11), dt)
-        lift = np.stack([np.zeros(S), floor], 1)[:, None, :]  # (S, 1, 2): back to the track's frame
+        # (S, 1, 2): back to the track's frame, or kept above the fitted floor
+        lift = np.stack([np.zeros(S), np.zeros(S) if above_floor else floor], 1)[:, None, :]
         extras = {"state_fit_sigma_m": fit.sigma, "particles": S, "floor_m": fit.floor}
         if physics:
             samples = states[:, 1:, :2] + lift
@@ -710,7 +716,10 @@ class Vid2ParamStream(Stream):
         horizon : int
             Frames to predict, at most ``MAX_HORIZON``.
         floor : float, optional
-            Floor height added to the heights (0 when None, the camera's floor).
+            Offset added to the heights, which are in the network's own frame (the track's):
+            0 when None. For the 28x28 model that frame is floor-relative; the camera model,
+            which cannot see a raised floor, reads heights a constant below the world's
+            (the interception policy passes the gap between the tracked ball and the track).
         """
         horizon = check_horizon(horizon, MAX_HORIZON)
         if self.n == 0:
