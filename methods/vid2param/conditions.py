@@ -28,8 +28,8 @@ import sys
 from pathlib import Path
 
 from methods.vid2param.estimator import (
+    CONDITION_CHECKPOINTS,
     SENSITIVITY_CONDITIONS,
-    SHIPPED_CHECKPOINTS,
     condition_checkpoint,
 )
 
@@ -63,7 +63,7 @@ def train_condition(condition: str, out, threads: int = 1, device: str = "auto",
                     max_minutes=max_minutes)
     if not info["done"]:
         return None
-    dest = SHIPPED_CHECKPOINTS[condition_checkpoint(condition)]
+    dest = CONDITION_CHECKPOINTS[condition_checkpoint(condition)]
     dest.parent.mkdir(parents=True, exist_ok=True)
     return export(run / "state.pt", dest)
 
@@ -86,7 +86,7 @@ def main(argv=None) -> int:
     for c in todo:
         condition_data(c)  # validate every name before any work
     for c in todo:
-        dest = SHIPPED_CHECKPOINTS[condition_checkpoint(c)]
+        dest = CONDITION_CHECKPOINTS[condition_checkpoint(c)]
         if dest.exists() and not a.retrain:
             print(f"{c}: {dest} exists, skipped")
             continue

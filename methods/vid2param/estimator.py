@@ -43,9 +43,10 @@ def condition_checkpoint(condition: str) -> str:
     return "sensitivity/" + condition.replace(":", "_")
 
 
-SHIPPED_CHECKPOINTS.update(
-    {condition_checkpoint(c): _CKPT_DIR / f"{condition_checkpoint(c)}.pt"
-     for c in SENSITIVITY_CONDITIONS})
+#: Where each condition model lives (whether or not this checkout has it).
+CONDITION_CHECKPOINTS = {condition_checkpoint(c): _CKPT_DIR / f"{condition_checkpoint(c)}.pt"
+                         for c in SENSITIVITY_CONDITIONS}
+SHIPPED_CHECKPOINTS.update({k: p for k, p in CONDITION_CHECKPOINTS.items() if p.exists()})
 #: The shipped 28x28 checkpoint (``checkpoint=None``).
 SHIPPED_CHECKPOINT = SHIPPED_CHECKPOINTS["28x28"]
 
@@ -171,8 +172,7 @@ class Vid2Param(Estimator):
     # shipped, some trained in the run) would not compare.
     pretrained = ({"default": {c: {"checkpoint": condition_checkpoint(c)}
                                for c in SENSITIVITY_CONDITIONS}}
-                  if all(SHIPPED_CHECKPOINTS[condition_checkpoint(c)].exists()
-                         for c in SENSITIVITY_CONDITIONS) else {})
+                  if all(p.exists() for p in CONDITION_CHECKPOINTS.values()) else {})
     #: cheap settings for check_estimator (same code path)
     contract_options = {"n_samples": 20}
     #: the ``forecast`` kind when none is given
