@@ -175,3 +175,11 @@ def test_training_config_takes_a_data_variant():
     # trained on the lower half of e's range only: normalised e below 0.5
     assert (targets[..., 2] <= 0.5 + 1e-6).all()
 
+
+
+def test_no_verdict_when_the_control_is_at_guessing_level():
+    bad = {p: 0.08 for p in PARAMS}
+    lines = Sensitivity().reading(_frame(_rows("noise:0", bad), _rows("noise:0.5", bad),
+                                         _rows("simplified", bad)))
+    assert all("Holds" not in ln and "Does not hold" not in ln for ln in lines)
+    assert sum("Cannot tell" in ln for ln in lines) == 2

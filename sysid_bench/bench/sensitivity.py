@@ -256,10 +256,18 @@ class Sensitivity(Experiment):
         at = df[(df.n_frames == last) & (df.metric == "se")]
         ctl = at[at.condition.isin(["noise:0", "noise:0.0"])]
         ctl_mse = None
+        meaningful = True
+
+        def verdict(holds: bool) -> str:
+            if not meaningful:
+                return "Cannot tell at this budget (the control is at guessing level)"
+            return "Holds" if holds else "Does not hold"
+
         if len(ctl):
             s = ci_summary(ctl.assign(k=0), ["k"]).iloc[0]
             ctl_mse = float(s["mean"])
-            if s["lo"] > 0.5 * GUESS_MSE:
+            meaningful = not s["lo"] > 0.5 * GUESS_MSE
+            if not meaningful:
                 out.append(
                     f"CAVEAT: the control model (clean labels, full physics, this scale's training "
                     f"budget) scores {fmt_ci(s['mean'], s['lo'], s['hi'])} at {last} frames, not "
@@ -282,7 +290,7 @@ class Sensitivity(Experiment):
                        f"Here (MSE @ {last} frames): " + ", ".join(
                            f"{r.level:g} of the range {fmt_ci(r['mean'], r.lo, r.hi)}"
                            for _, r in s.iterrows())
-                       + f". {'Holds' if holds else 'Does not hold'} (rule: every level within "
+                       + f". {verdict(holds)} (rule: every level within "
                        f"2x the control's MSE; worst {worst / ctl_mse:.2f}x).")
         ex = df[df.condition.str.startswith("extrapolation:")]
         for cond, g in ex.groupby("condition"):
@@ -300,7 +308,7 @@ class Sensitivity(Experiment):
                     f"{near.mean():.3g} within 0.1 of the range above it (n={len(near)}), "
                     f"{far.mean():.3g} beyond 0.3 (n={len(far)}), where answering the top of "
                     f"the training range would score {stuck:.3g}. "
-                    f"{'Holds' if holds else 'Does not hold'} (rule: beyond 0.3, less than half "
+                    f"{verdict(holds)} (rule: beyond 0.3, less than half "
                     "that error).")
         sim = df[(df.condition == "simplified") & (df.n_frames == last)]
         ctl = df[(df.condition.isin(["noise:0", "noise:0.0"])) & (df.n_frames == last)]
@@ -312,6 +320,6 @@ class Sensitivity(Experiment):
                        f"still estimated on full-physics video. Here (MSE @ {last} frames): "
                        + "; ".join(f"{p} {a:.3g} simplified vs {b:.3g} full"
                                    for p, (a, b) in pairs.items())
-                       + f". {'Holds' if holds else 'Does not hold'} (rule: within 2x the "
+                       + f". {verdict(holds)} (rule: within 2x the "
                        "control's MSE, or under 0.01).")
         return out
