@@ -1061,7 +1061,7 @@ def intercept_figure(results: dict, path, draw: str | None = None) -> Path | Non
         pick = [fcs[i] for i in sorted({int(round(q * (len(fcs) - 1))) for q in (0.0, 0.4, 0.8)})] \
             if fcs else []
         colours = ["#dd8452", "#55a868", "#8172b3"]
-        for j, (ax, dim, b) in enumerate(((axes[0, 1], 1, by), (axes[0, 2], 0, bx))):
+        for ax, dim, b in ((axes[0, 1], 1, by), (axes[0, 2], 0, bx)):
             ax.plot(bt, b, color="k", lw=1.5, label="ball (true)")
             for c, f in zip(colours, pick):
                 ft, fm, fs = np.asarray(f["times"]), np.asarray(f["mean"]), np.asarray(f["std"])

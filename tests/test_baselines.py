@@ -22,13 +22,12 @@ import numpy as np
 import pytest
 
 from methods import _simulation, _tracks, _weights
-from sysid_bench import simulator
 from methods.bo import BayesOpt
 from methods.dmd import DMD
 from methods.ensemble import Emcee
 from methods.lsq import LSQ
 from methods.sindy import SINDy
-from sysid_bench import physics
+from sysid_bench import physics, simulator
 from sysid_bench.datasets import make_dataset
 from sysid_bench.estimator import Forecast, Observation, Posterior
 from sysid_bench.metrics import param_mse

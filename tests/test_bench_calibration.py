@@ -15,11 +15,11 @@ import pytest
 from tqdm import tqdm
 
 import methods
-from sysid_bench.simulator import DEFAULT_SIGMA
 from sysid_bench.datasets import make_dataset
 from sysid_bench.estimator import Observation
 from sysid_bench.metrics import interval_coverage
 from sysid_bench.physics import BOX_WIDTH
+from sysid_bench.simulator import DEFAULT_SIGMA
 
 METHODS = ["emcee", "nuts"]  # nuts: about 6 minutes on 2 cores (50 x ~6 s + compile)
 N_CASES = 50

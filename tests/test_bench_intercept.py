@@ -44,7 +44,7 @@ def test_bench_vid2param_control_step(benchmark):
     # the stream's push alone, same frames, same process, right after
     stream = pol.est.stream()
     pushes = []
-    for rep in range(3):
+    for _ in range(3):
         stream.reset()
         for fr in throw.frames:
             t0 = time.perf_counter()

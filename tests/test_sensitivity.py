@@ -139,9 +139,11 @@ def test_sensitivity_loads_a_declared_model_instead_of_training(tmp_path):
 
 
 def test_vid2param_declares_only_condition_checkpoints_it_ships():
-    from methods.vid2param.estimator import SHIPPED_CHECKPOINTS, condition_checkpoint
-
-    from methods.vid2param.estimator import SENSITIVITY_CONDITIONS
+    from methods.vid2param.estimator import (
+        SENSITIVITY_CONDITIONS,
+        SHIPPED_CHECKPOINTS,
+        condition_checkpoint,
+    )
 
     declared = methods.spec("vid2param").pretrained.get("default", {})
     # all conditions or none: one budget for every condition

@@ -139,8 +139,7 @@ def test_a_removed_option_loads_at_its_fixed_value_and_is_refused_at_another():
 def test_older_weight_names_load_and_an_older_training_state_resumes_in_place():
     """The renaming (``checkpoint.RENAMED``) also moved parameters: Adam's per-parameter state,
     kept by position, must follow them."""
-    from methods.vid2param.checkpoint import (RENAMED, upgrade_optimizer_state,
-                                              upgrade_state_dict)
+    from methods.vid2param.checkpoint import RENAMED, upgrade_optimizer_state, upgrade_state_dict
     from methods.vid2param.model import V2PConfig, Vid2ParamNet
 
     torch.manual_seed(0)

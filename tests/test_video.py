@@ -266,9 +266,8 @@ def test_cli_bad_geometry_and_existing_out_untouched(tmp_path, video_file):
 
 def test_run_identify_registered():
     """`sysid-bench identify` is a sub-command of the one CLI."""
-    from sysid_bench.cli import _parser
-
     from sysid_bench import video
+    from sysid_bench.cli import _parser
 
     args = _parser("identify").parse_args(["identify", "v.mp4", "--checkpoint", "camera"])
     assert args.fn is video.run and args.checkpoint == "camera"

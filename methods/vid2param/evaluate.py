@@ -32,8 +32,8 @@ from tqdm.auto import tqdm
 
 from methods.vid2param.data import perturb_dataset, rolls_mask
 from methods.vid2param.estimator import Vid2Param
-from sysid_bench.datasets import make_dataset
 from sysid_bench.bench.forecasting import forecast_interval
+from sysid_bench.datasets import make_dataset
 from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
 
 _LO = np.array([PRIOR[p][0] for p in PARAMS])

@@ -25,8 +25,8 @@ from methods.vid2param.parts import (
     GaussianHead,
     KeypointPosition,
     PriorHead,
-    RecurrentState,
     Recurrence,
+    RecurrentState,
     RollingEvidence,
 )
 from methods.vid2param.prior import PhysicsPrior

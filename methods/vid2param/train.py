@@ -682,7 +682,7 @@ PRESET_NUISANCE = {
 def _parse(argv=None):
     p = argparse.ArgumentParser(prog="python -m methods.vid2param.train", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    mc, tc = V2PConfig(), TrainConfig()
+    tc = TrainConfig()
     p.add_argument("--out", required=True, help="folder for the resumable state.pt")
     p.add_argument("--export", help="write a shipped checkpoint (+ .json card) here at the end")
     p.add_argument("--export-only", action="store_true",

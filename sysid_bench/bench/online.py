@@ -116,7 +116,7 @@ def online_cost(methods=ONLINE_METHODS, n_videos: int = 3, seed: int = 0, *,
     # one-time costs (loading the checkpoint, compiling the simulator) are not online costs:
     # each method identifies a short prefix once before the clock starts
     warm = data.observation(0)
-    for label, m, first in runs:
+    for _label, m, first in runs:
         try:
             if m == "vid2param":
                 _run_vid2param(ests[m], warm.frames[:5], True)

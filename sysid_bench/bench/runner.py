@@ -34,10 +34,10 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolE
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
+from sysid_bench._validate import check_positive_int
 from sysid_bench.bench.cases import Scale, get_scale, unknown_name
 from sysid_bench.bench.experiment import Cell, execute
 from sysid_bench.bench.store import Store, lock_run_dir
-from sysid_bench._validate import check_positive_int
 
 __all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "provenance",
            "method_fingerprint", "default_inline", "default_run_dir", "STORE_NAME"]

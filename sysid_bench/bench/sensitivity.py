@@ -92,9 +92,8 @@ def trained_model(ctx: Context, method: str, condition: str):
     -------
     (Estimator, train_wall_s)
     """
-    from sysid_bench.bench.runner import method_fingerprint
-
     import methods
+    from sysid_bench.bench.runner import method_fingerprint
 
     sens = ctx.scale.sensitivity
     pre = methods.spec(method).pretrained_options(ctx.scale.name, condition)
