@@ -717,13 +717,23 @@ POLICIES = {
 }
 
 
-def known_policies() -> list[str]:
-    """Every policy name :func:`make_policy` accepts."""
+def _is_policy(name) -> bool:
+    """A built-in policy, or a registered method that forecasts (its forecast sets the target).
+    Reads one method's declarations (importing its module) only when asked about it."""
     import methods
 
-    # a registered method is a policy when it forecasts (its forecast sets the target)
-    return list(POLICIES) + [m for m in methods.available()
-                             if m not in POLICIES and methods.spec(m).forecasts]
+    if not isinstance(name, str):
+        return False
+    if name in POLICIES:
+        return True
+    return name in methods.available() and methods.spec(name).forecasts
+
+
+def known_policies() -> list[str]:
+    """Every policy name :func:`make_policy` accepts (imports every registered method)."""
+    import methods
+
+    return list(POLICIES) + [m for m in methods.available() if m not in POLICIES and _is_policy(m)]
 
 
 def make_policy(name: str, **options) -> Policy:
@@ -734,9 +744,9 @@ def make_policy(name: str, **options) -> Policy:
     ValueError
         Unknown name (the message lists the known ones) or options the policy does not take.
     """
-    known = known_policies()
-    if not isinstance(name, str) or name not in known:
-        raise ValueError(f"policy: unknown policy {name!r}; known policies: {', '.join(known)}")
+    if not _is_policy(name):
+        known = ", ".join(known_policies())
+        raise ValueError(f"policy: unknown policy {name!r}; known policies: {known}")
     try:
         if name in POLICIES:
             return POLICIES[name](**options)

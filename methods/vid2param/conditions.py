@@ -33,11 +33,7 @@ from methods.vid2param.estimator import (
     condition_checkpoint,
 )
 
-__all__ = ["RECIPE", "train_condition", "condition_data", "main"]
-
-#: Settings beyond ``TrainConfig()``'s defaults shared by every condition (none: the defaults
-#: are the recipe).
-RECIPE: dict = {}
+__all__ = ["train_condition", "condition_data", "main"]
 
 
 def condition_data(condition: str) -> tuple[str, dict]:
@@ -58,7 +54,7 @@ def train_condition(condition: str, out, threads: int = 1, device: str = "auto",
 
     variant, opts = condition_data(condition)
     run = Path(out) / condition_checkpoint(condition).split("/", 1)[1]
-    tc = TrainConfig(**RECIPE, threads=int(threads), variant=variant, variant_options=opts)
+    tc = TrainConfig(threads=int(threads), variant=variant, variant_options=opts)
     _, info = train(V2PConfig(), tc, out=run, device=device, progress=progress,
                     max_minutes=max_minutes)
     if not info["done"]:

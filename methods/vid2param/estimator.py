@@ -16,6 +16,7 @@ import torch
 
 from methods.vid2param.checkpoint import build_net, load_checkpoint
 from sysid_bench._validate import check_horizon, check_positive_float, check_positive_int
+from sysid_bench.bench.cases import get_scale
 from sysid_bench.estimator import MAX_HORIZON, Estimator, Forecast, Observation, Posterior, Stream
 from sysid_bench.physics import BOX_WIDTH, DT, PARAMS, PRIOR
 
@@ -31,11 +32,11 @@ SHIPPED_CHECKPOINTS = {
     # the 28x28 model fine-tuned on videos whose parameters change every 50 frames
     "changing": _CKPT_DIR / "v2p_28x28_changing.pt",
 }
-#: The sensitivity experiment's condition models at the default scale, one recipe and budget
-#: for all (``methods/vid2param/README.md``; ``--scale paper`` trains them afresh):
+#: The sensitivity experiment's conditions at the default scale (its scale says which), one model
+#: each, one recipe and budget for all (``methods/vid2param/README.md``; ``--scale paper``
+#: trains them afresh):
 #: ``checkpoint="sensitivity/<condition>"`` with ``:`` written ``_``.
-SENSITIVITY_CONDITIONS = ("noise:0", "noise:0.1", "noise:0.25", "noise:0.5", "extrapolation:e",
-                          "extrapolation:g", "extrapolation:d", "extrapolation:r", "simplified")
+SENSITIVITY_CONDITIONS = tuple(get_scale("default").sensitivity_conditions())
 
 
 def condition_checkpoint(condition: str) -> str:
@@ -382,8 +383,8 @@ class Vid2Param(Estimator):
                          n_frames=int(frames.shape[1]), val_n=0, size=size,
                          p_full=1.0 if frames.shape[1] <= 50 else 0.7,
                          min_obs=max(1, min(50, frames.shape[1] - 1)),
-                         # the recipe's share of NLL-only warm-up (600 of 2000 steps)
-                         nll_only_steps=int(0.3 * steps))
+                         # the recipe's share of NLL-only warm-up
+                         nll_only_steps=steps * TrainConfig.nll_only_steps // TrainConfig.steps)
         init = base if (self.warm_start and base is not None and base.config.frame_size == size) else None
         net, info = run_training(mc, tc, dataset=train, device=self.device, progress=False,
                                  init_net=init, log=lambda s: None)

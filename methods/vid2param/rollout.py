@@ -205,11 +205,14 @@ def fit_state(positions, theta_mean, theta_std, dt: float = DT, window: int = WI
     # A frame the network misread (occluded, dropped, blurred) can sit a metre off the path and
     # drag the state, e and the floor with it, and inflates the noise estimate. Drop positions
     # far outside the fit's robust spread and fit again from there.
-    keep = _inliers(V, w, valid, W, dt)
+    path = _path(V, W, dt)
+    keep = _inliers(path, w, valid)
     if keep.sum() < n and keep.sum() >= 3:
         valid, obs, n = keep, w[keep], int(keep.sum())
-        for _ in range(2):  # refit, then again with the noise of the inliers' fit
-            resid = _path(V, W, dt)[valid] - obs
+        for refit in range(2):  # refit, then again with the noise of the inliers' fit
+            if refit:
+                path = _path(V, W, dt)
+            resid = path[valid] - obs
             sigma = max(_MIN_SIGMA, float(np.sqrt((resid**2).sum() / max(1, 2 * n - 4))))
             V, cost, J = _lm(V[None], obs, valid, W, dt, sigma, np.append(u_net, f0),
                              np.append(sd_net, sd_f), iters)
@@ -237,10 +240,11 @@ def _path(V: np.ndarray, W: int, dt: float) -> np.ndarray:
     return sim
 
 
-def _inliers(V, w, valid, W, dt) -> np.ndarray:
-    """``valid`` less the positions far from the fitted path (robust z above ``_OUTLIER_Z``)."""
+def _inliers(path, w, valid) -> np.ndarray:
+    """``valid`` less the positions far from the fitted ``path`` (W, 2) (robust z above
+    ``_OUTLIER_Z``)."""
     dist = np.full(len(valid), np.inf)
-    dist[valid] = np.linalg.norm(_path(V, W, dt)[valid] - w[valid], axis=1)
+    dist[valid] = np.linalg.norm(path[valid] - w[valid], axis=1)
     scale = 1.4826 * np.median(dist[valid])
     return valid & (dist <= max(_OUTLIER_Z * scale, _OUTLIER_MIN))
 

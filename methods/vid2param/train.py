@@ -679,6 +679,10 @@ PRESET_NUISANCE = {
 }
 
 
+#: TrainConfig fields whose flags are not the generic ``--name VALUE`` (JSON, two values, a path)
+_OWN_FLAGS = ("size", "nuisance", "perturb", "init", "variant_options")
+
+
 def _parse(argv=None):
     p = argparse.ArgumentParser(prog="python -m methods.vid2param.train", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -697,7 +701,7 @@ def _parse(argv=None):
     p.add_argument("--stop-at", type=int, default=None, help="stop (resumable) after this step")
     p.add_argument("--no-progress", action="store_true")
     for name, val in asdict(tc).items():
-        if name in ("size", "nuisance", "perturb", "init", "variant_options"):
+        if name in _OWN_FLAGS:
             continue
         p.add_argument("--" + name.replace("_", "-"), type=type(val), default=val)
     p.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
@@ -742,8 +746,7 @@ def main(argv=None) -> int:
         base["frame_size"] = list(a.size)
     mc = V2PConfig(**base)
     nuisance = getattr(a, "nuisance", PRESET_NUISANCE.get(a.preset))
-    skip = ("size", "nuisance", "perturb", "init", "variant_options")
-    tc = TrainConfig(**{k: getattr(a, k) for k in asdict(TrainConfig()) if k not in skip},
+    tc = TrainConfig(**{k: getattr(a, k) for k in asdict(TrainConfig()) if k not in _OWN_FLAGS},
                      size=tuple(mc.frame_size), nuisance=nuisance, perturb=a.perturb, init=a.init,
                      variant_options=a.variant_options)
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,

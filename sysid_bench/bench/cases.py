@@ -134,6 +134,16 @@ class Scale:
 
         return methods.spec(method).options(self.name, threads)
 
+    def sensitivity_conditions(self) -> list[str]:
+        """The sensitivity experiment's training conditions at this scale, e.g.
+        ``["extrapolation:e", "noise:0", "noise:0.5", "simplified"]``."""
+        sens = self.sensitivity
+        out = [f"extrapolation:{p}" for p in sens.get("extrapolation", ())]
+        out += [f"noise:{float(x):g}" for x in sens.get("label_noise", ())]
+        if sens.get("simplified"):
+            out.append("simplified")
+        return out
+
     def fit_options(self, method: str) -> dict:
         """Training hyperparameters of ``method`` in the sensitivity experiment at this scale."""
         import methods

@@ -54,12 +54,8 @@ def trains(method: str) -> bool:
 
 
 def conditions(scale) -> list[str]:
-    sens = scale.sensitivity
-    out = [f"extrapolation:{p}" for p in sens.get("extrapolation", ())]
-    out += [f"noise:{float(x):g}" for x in sens.get("label_noise", ())]
-    if sens.get("simplified"):
-        out.append("simplified")
-    return out
+    """The training conditions of ``scale`` (``Scale.sensitivity_conditions``)."""
+    return scale.sensitivity_conditions()
 
 
 def _train_spec(condition: str) -> tuple[str, dict]:
