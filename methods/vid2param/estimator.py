@@ -496,12 +496,7 @@ class Vid2Param(Estimator):
         """
         frames = self._frames_of(obs)
         horizon = check_positive_int(horizon, "horizon")
-        self._ensure_net()
-        if "x" not in self.config_.targets or "y" not in self.config_.targets:
-            raise NotImplementedError("this vid2param checkpoint carries no position dimensions.")
-        if int(self.n_samples) < 2:
-            raise ValueError(f"n_samples: a forecast needs at least 2 particles, got {self.n_samples}")
-        shift = np.array([0.0, 0.0 if obs.floor is None else float(obs.floor)])
+        self._check_particles()
         t0 = time.perf_counter()
         net = self._ensure_net()
         if self.forecast_mode == "latent" and net.phys_prior is None:
@@ -512,8 +507,18 @@ class Vid2Param(Estimator):
             # frame of its own, which the fitted floor (a bounce pins it) ties to the real one
             mean, std, samples, extras = self._forecast_track(
                 *self._track(frames)[:3], horizon, float(obs.dt), above_floor=obs.floor is not None)
+        return self._as_forecast(mean, std, samples, extras, obs.floor, t0)
+
+    def _check_particles(self) -> None:
+        if int(self.n_samples) < 2:
+            raise ValueError(f"n_samples: a forecast needs at least 2 particles, got {self.n_samples}")
+
+    def _as_forecast(self, mean, std, samples, extras, floor, t0, **more) -> Forecast:
+        """The Forecast of heights ``floor`` (None: 0) above the forecast's frame, timed from
+        ``t0``."""
+        shift = np.array([0.0, 0.0 if floor is None else float(floor)])
         extras = {"wall_s": time.perf_counter() - t0, "n_simulations": 0,
-                  "forecast": self.forecast_mode, **extras}
+                  "forecast": self.forecast_mode, **more, **extras}
         return Forecast(mean=shift + mean, std=std, samples=shift + samples, extras=extras)
 
     def filtered_track(self, frames) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -687,8 +692,7 @@ class Vid2ParamStream(Stream):
         self._idx_np = np.asarray(estimator._index())
         self.hw = tuple(self.net.config.frame_size)
         names = self.net.config.targets
-        self._xy_np = np.array([names.index("x"), names.index("y")]) \
-            if {"x", "y"} <= set(names) else None
+        self._xy_np = np.array([names.index("x"), names.index("y")])
         self._fast = None
         self.reset()
 
@@ -725,19 +729,14 @@ class Vid2ParamStream(Stream):
         horizon = check_horizon(horizon, MAX_HORIZON)
         if self.n == 0:
             raise ValueError("forecast: push at least one frame first")
-        if int(self.est.n_samples) < 2:
-            raise ValueError(f"n_samples: a forecast needs at least 2 particles, got "
-                             f"{self.est.n_samples}")
-        if self._xy_np is None or self.net.phys_prior is None and self.est.forecast_mode == "latent":
-            raise NotImplementedError("this checkpoint has no position dimensions or no physics "
-                                      "prior; use Vid2Param.forecast on the frames")
+        self.est._check_particles()
+        if self.net.phys_prior is None and self.est.forecast_mode == "latent":
+            raise NotImplementedError("this checkpoint has no physics prior; use "
+                                      "Vid2Param.forecast on the frames")
         t0 = time.perf_counter()
         mean, std, samples, extras = self.est._forecast_track(
             self.track[: self.n], *_physical(*self.last), horizon, DT)
-        shift = np.array([0.0, 0.0 if floor is None else float(floor)])
-        extras = {"wall_s": time.perf_counter() - t0, "n_simulations": 0,
-                  "forecast": self.est.forecast_mode, "n_frames": self.n, **extras}
-        return Forecast(mean=shift + mean, std=std, samples=shift + samples, extras=extras)
+        return self.est._as_forecast(mean, std, samples, extras, floor, t0, n_frames=self.n)
 
     @property
     def state(self):
@@ -761,7 +760,7 @@ class Vid2ParamStream(Stream):
             mu, sd = self._fast.step(fr)
             mu_n = mu[self._idx_np].astype(np.float64)
             sd_n = sd[self._idx_np].astype(np.float64) * self.est.std_scale_
-            xy = mu[self._xy_np] if self._xy_np is not None else None
+            xy = mu[self._xy_np]
         else:
             with torch.inference_mode():
                 x = torch.from_numpy(np.ascontiguousarray(fr)).to(self.est.device_)
@@ -770,11 +769,10 @@ class Vid2ParamStream(Stream):
                 self._state = self.net.step_rnn(mu, self._state)
                 mu_n = mu[0, self.idx].cpu().numpy().astype(np.float64)
                 sd_n = sd[0, self.idx].cpu().numpy().astype(np.float64) * self.est.std_scale_
-                xy = mu[0, self._xy_np].cpu().numpy() if self._xy_np is not None else None
-        if xy is not None:  # the network's own track, for forecast()
-            if self.n >= len(self.track):
-                self.track = np.concatenate([self.track, np.full_like(self.track, np.nan)])
-            self.track[self.n] = BOX_WIDTH * xy
+                xy = mu[0, self._xy_np].cpu().numpy()
+        if self.n >= len(self.track):  # the network's own track, for forecast()
+            self.track = np.concatenate([self.track, np.full_like(self.track, np.nan)])
+        self.track[self.n] = BOX_WIDTH * xy
         self.last = (mu_n, sd_n)
         self.n += 1
         wall = time.perf_counter() - t0
