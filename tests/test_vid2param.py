@@ -317,6 +317,49 @@ def test_aux_grad_changes_gradients_into_the_lstm_not_the_loss(tiny_data):
     assert float(grads[1].norm()) < 0.8 * float(grads[0].norm())
 
 
+def test_early_aux_grad_is_the_configs_value_for_its_steps_only(tiny_data, monkeypatch):
+    """The recipe's early phase: ``forward(aux_grad=a)`` is a network configured with ``a``,
+    and ``train`` passes it for the first ``early_aux_grad_steps`` steps, then the model's."""
+    import torch
+
+    from methods.vid2param.model import Vid2ParamNet
+
+    fr = torch.as_tensor(np.asarray(tiny_data.frames[:2, :20]))
+    tg = torch.as_tensor(targets_from_dataset(tiny_data, V2PConfig().targets)[:2, :20])
+    grads = []
+    for cfg_aux, arg in ((0.01, None), (0.1, 0.01), (0.1, None)):
+        torch.manual_seed(0)
+        net = Vid2ParamNet(V2PConfig(aux_grad=cfg_aux))
+        out = net(fr, tg, n_obs=12, generator=torch.Generator().manual_seed(1), aux_grad=arg)
+        grads.append(torch.autograd.grad(out["loss"], net.recurrence.cell.weight_hh)[0])
+    torch.testing.assert_close(grads[0], grads[1])
+    assert not torch.allclose(grads[1], grads[2])
+
+    seen = []
+    forward = Vid2ParamNet.forward
+    monkeypatch.setattr(Vid2ParamNet, "forward",
+                        lambda self, *a, **k: seen.append(k["aux_grad"]) or forward(self, *a, **k))
+    tc = TrainConfig(steps=5, batch=2, n_frames=24, val_n=0, warmup=1, min_obs=10,
+                     early_aux_grad=0.02, early_aux_grad_steps=3)
+    train(TINY, tc, dataset=tiny_data, progress=False, device="cpu", log=lambda s: None)
+    assert seen == [0.02, 0.02, 0.02, None, None]
+    for bad in ({"early_aux_grad": 1.5}, {"early_aux_grad_steps": -1}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            TrainConfig(**bad)
+
+
+def test_recipe_keeps_its_phases_shares_at_any_length():
+    d = TrainConfig()
+    assert TrainConfig.recipe() == d
+    half = TrainConfig.recipe(d.steps // 2, batch=8)
+    assert (half.steps, half.batch) == (d.steps // 2, 8)
+    assert half.nll_only_steps == d.nll_only_steps // 2
+    assert half.early_aux_grad_steps == d.early_aux_grad_steps // 2
+    assert TrainConfig.recipe(100, nll_only_steps=0).nll_only_steps == 0  # overrides win
+    with pytest.raises(ValueError, match="steps: expected an int >= 1"):
+        TrainConfig.recipe(0)
+
+
 def test_shipped_style_options_stream_identify_forecast_agree(tiny_data, tmp_path):
     """Learned keypoints, aux_grad, the rolling evidence, the physics prior and the NLL warm-up,
     end to end."""

@@ -46,15 +46,17 @@ def condition_data(condition: str) -> tuple[str, dict]:
 
 
 def train_condition(condition: str, out, threads: int = 1, device: str = "auto",
-                    progress: bool = True, max_minutes: float | None = None) -> Path | None:
+                    progress: bool = True, max_minutes: float | None = None,
+                    steps: int | None = None) -> Path | None:
     """Train (or resume) the model of ``condition`` and export it; returns the checkpoint path,
-    or None when stopped early by ``max_minutes`` (resumable)."""
+    or None when stopped early by ``max_minutes`` (resumable). ``steps``: the recipe's length
+    (``TrainConfig.recipe``; default ``TrainConfig().steps``), the same for every condition."""
     from methods.vid2param.model import V2PConfig
     from methods.vid2param.train import TrainConfig, export, train
 
     variant, opts = condition_data(condition)
     run = Path(out) / condition_checkpoint(condition).split("/", 1)[1]
-    tc = TrainConfig(threads=int(threads), variant=variant, variant_options=opts)
+    tc = TrainConfig.recipe(steps, threads=int(threads), variant=variant, variant_options=opts)
     _, info = train(V2PConfig(), tc, out=run, device=device, progress=progress,
                     max_minutes=max_minutes)
     if not info["done"]:
@@ -73,6 +75,9 @@ def main(argv=None) -> int:
                    help=f"conditions to train (default: all of {', '.join(SENSITIVITY_CONDITIONS)})")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--device", default="auto")
+    p.add_argument("--steps", type=int, default=None,
+                   help="the recipe's length for every condition (default: TrainConfig's, 2000); "
+                        "its warm-up phases keep their share")
     p.add_argument("--retrain", action="store_true", help="train conditions already exported too")
     p.add_argument("--max-minutes", type=float, default=None,
                    help="stop each run after this long (resumable)")
@@ -86,7 +91,8 @@ def main(argv=None) -> int:
         if dest.exists() and not a.retrain:
             print(f"{c}: {dest} exists, skipped")
             continue
-        got = train_condition(c, a.out, a.threads, a.device, not a.no_progress, a.max_minutes)
+        got = train_condition(c, a.out, a.threads, a.device, not a.no_progress, a.max_minutes,
+                              a.steps)
         print(f"{c}: {got if got else 'stopped early (resumable)'}", flush=True)
     return 0
 

@@ -378,13 +378,12 @@ class Vid2Param(Estimator):
         else:
             mc = V2PConfig(frame_size=size)
         steps = check_positive_int(self.fit_steps, "fit_steps")
-        tc = TrainConfig(steps=steps, batch=min(16, len(frames)), lr=float(self.fit_lr),
-                         lr_min=float(self.fit_lr) / 10, warmup=min(20, steps), seed=int(self.seed),
-                         n_frames=int(frames.shape[1]), val_n=0, size=size,
-                         p_full=1.0 if frames.shape[1] <= 50 else 0.7,
-                         min_obs=max(1, min(50, frames.shape[1] - 1)),
-                         # the recipe's share of NLL-only warm-up
-                         nll_only_steps=steps * TrainConfig.nll_only_steps // TrainConfig.steps)
+        # the recipe's phases, shortened to fit_steps
+        tc = TrainConfig.recipe(steps, batch=min(16, len(frames)), lr=float(self.fit_lr),
+                                lr_min=float(self.fit_lr) / 10, warmup=min(20, steps),
+                                seed=int(self.seed), n_frames=int(frames.shape[1]), val_n=0,
+                                size=size, p_full=1.0 if frames.shape[1] <= 50 else 0.7,
+                                min_obs=max(1, min(50, frames.shape[1] - 1)))
         init = base if (self.warm_start and base is not None and base.config.frame_size == size) else None
         net, info = run_training(mc, tc, dataset=train, device=self.device, progress=False,
                                  init_net=init, log=lambda s: None)

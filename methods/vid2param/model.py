@@ -290,7 +290,8 @@ class Vid2ParamNet(nn.Module):
 
     # -- training pass --------------------------------------------------------------------------
     def forward(self, frames: torch.Tensor, targets: torch.Tensor, n_obs: int | None = None,
-                rec_frac: float = 1.0, generator: torch.Generator | None = None) -> dict:
+                rec_frac: float = 1.0, generator: torch.Generator | None = None,
+                aux_grad: float | None = None) -> dict:
         """Loss terms for a batch of videos.
 
         Frames ``[0, n_obs)`` are observed (z from the posterior); frames ``[n_obs, T)`` are
@@ -311,6 +312,8 @@ class Vid2ParamNet(nn.Module):
             encoder; a random subset gives an unbiased estimate of the per-frame mean.
         generator : torch.Generator, optional
             Source of the sampling noise and the decoded subset.
+        aux_grad : float, optional
+            Overrides ``config.aux_grad`` for this pass (a training schedule's early phase).
 
         Returns
         -------
@@ -324,6 +327,7 @@ class Vid2ParamNet(nn.Module):
         B, T = frames.shape[:2]
         K = len(c.targets)
         n_obs = T if n_obs is None else int(n_obs)
+        aux = c.aux_grad if aux_grad is None else float(aux_grad)
         fx = self.encode_frames(frames[:, :n_obs])  # (B, n_obs, feat), all frames at once
         state = self.init_state(B, frames.device)
         hs, zs, lasts, post, fore = [], [], [], [], []  # post, fore: (mu, std) per frame
@@ -333,13 +337,13 @@ class Vid2ParamNet(nn.Module):
             if t < n_obs:
                 mu, std = self.enc_step(fx[:, t], hs[-1])
             else:
-                mu, std = self.prior_step(_scale_grad(hs[-1], c.aux_grad), lasts[-1])
+                mu, std = self.prior_step(_scale_grad(hs[-1], aux), lasts[-1])
             (post if t < n_obs else fore).append((mu, std))
             zs.append(mu + std * torch.randn(mu.shape, generator=generator, device=mu.device))
             state = self.step_rnn(mu, state)
         H = torch.stack(hs, 1)  # (B, T, R): the read-out of h_{t-1} for each t
         Zs = torch.stack(zs, 1)
-        Hobs = _scale_grad(H[:, :n_obs], c.aux_grad)
+        Hobs = _scale_grad(H[:, :n_obs], aux)
         pmu, pstd = self.prior_step(Hobs, torch.stack(lasts[:n_obs], 1))  # batched over time
         qmu, qstd = (torch.stack(a, 1) for a in zip(*post))
         tgt_obs = targets[:, :n_obs]
