@@ -666,3 +666,23 @@ def test_rollout_keeps_forecast_positions_inside_the_box():
     np.testing.assert_allclose(mu[..., ix].numpy(), 1.0)
     np.testing.assert_allclose(mu[..., iy].numpy(), 0.0)
     assert (mu[..., 2:] != 0).any()  # the other dimensions are untouched
+
+
+def test_training_forecast_keeps_fed_back_positions_inside_the_box(monkeypatch):
+    # an untrained prior's steps add up over the forecast frames; kept in the box, the
+    # forecast's NLL stays that of one box width of error instead of growing with the horizon
+    from methods.vid2param.model import Vid2ParamNet
+
+    net = Vid2ParamNet(TINY)
+    ix, iy = TINY.targets.index("x"), TINY.targets.index("y")
+    with torch.no_grad():
+        net.prior.mlp[-1].bias[ix] = 5.0
+        net.prior.mlp[-1].bias[iy] = -5.0
+    g = torch.Generator().manual_seed(0)
+    frames = torch.randint(0, 255, (2, 30, *TINY.frame_size), generator=g, dtype=torch.uint8)
+    targets = torch.rand(2, 30, len(TINY.targets), generator=g)
+    boxed = net(frames, targets, n_obs=5, generator=torch.Generator().manual_seed(1))
+    monkeypatch.setattr(Vid2ParamNet, "_in_box", lambda self, z: z)
+    loose = net(frames, targets, n_obs=5, generator=torch.Generator().manual_seed(1))
+    assert torch.isfinite(boxed["loss"])
+    assert float(boxed["nll_prior"]) < 0.05 * float(loose["nll_prior"])

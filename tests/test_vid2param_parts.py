@@ -8,7 +8,9 @@ network as it was before it was split into parts. Regenerate only for a delibera
 the numbers: ``PYTHONPATH=. python tests/test_vid2param_parts.py``. The camera model's forecasts
 were re-recorded after changes of the forecast, not of the network: the state fit drops
 misread frames; its physics prior's noise was refitted (so its physics rollout too); with the floor given, heights are put
-on it from above the fitted floor. Every other entry is as recorded before the split.
+on it from above the fitted floor. The training pass's loss terms and gradient size were re-recorded when the
+forecast frames' fed-back positions were kept in the box (as ``rollout`` keeps them). Every
+other entry is as recorded before the split.
 """
 
 from __future__ import annotations

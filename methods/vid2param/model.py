@@ -337,7 +337,10 @@ class Vid2ParamNet(nn.Module):
             if t < n_obs:
                 mu, std = self.enc_step(fx[:, t], hs[-1])
             else:
+                # kept in the box as ``rollout`` keeps it: an untrained prior's steps otherwise
+                # add up over the forecast frames (NLL ~1e6 when the full loss starts)
                 mu, std = self.prior_step(_scale_grad(hs[-1], aux), lasts[-1])
+                mu = self._in_box(mu)
             (post if t < n_obs else fore).append((mu, std))
             zs.append(mu + std * torch.randn(mu.shape, generator=generator, device=mu.device))
             state = self.step_rnn(mu, state)
