@@ -1,7 +1,7 @@
 """Train the sensitivity experiment's condition models: ``python -m methods.vid2param.conditions``.
 
 One recipe and one budget for every condition: ``V2PConfig()`` trained from scratch with
-``TrainConfig()``'s defaults (2000 steps of 32 videos x 200 frames, the first 600 on the NLL
+``TrainConfig()``'s defaults (4000 steps of 32 videos x 200 frames, the first 600 on the NLL
 alone: what ``python -m methods.vid2param.train --out DIR`` runs), only the training data
 differ (``sysid_bench.bench.sensitivity``):
 
@@ -76,7 +76,7 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--device", default="auto")
     p.add_argument("--steps", type=int, default=None,
-                   help="the recipe's length for every condition (default: TrainConfig's, 2000); "
+                   help="the recipe's length for every condition (default: TrainConfig's, 4000); "
                         "its warm-up phases keep their share")
     p.add_argument("--retrain", action="store_true", help="train conditions already exported too")
     p.add_argument("--max-minutes", type=float, default=None,

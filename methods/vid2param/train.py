@@ -106,8 +106,7 @@ class TrainConfig:
         For the first ``early_aux_grad_steps`` steps the prior and the decoder send back into the
         recurrent state this scale of their gradient instead of the model's ``aux_grad``
         (``Vid2ParamNet.forward``); 0 steps: the model's value throughout (fine-tunes). The
-        shipped model first learnt to identify with 0.01; from scratch with 0.1 throughout, the
-        control run reached only e 0.055, d 0.076 at 50 frames (model card).
+        shipped model first learnt to identify with 0.01.
     size : (int, int)
         Frame size (H, W).
     nuisance : dict, optional
@@ -127,7 +126,7 @@ class TrainConfig:
     variant_options : dict, optional
     """
 
-    steps: int = 2000
+    steps: int = 4000
     batch: int = 32
     lr: float = 1e-3
     lr_min: float = 5e-5
@@ -148,7 +147,7 @@ class TrainConfig:
     threads: int = 1
     nll_only_steps: int = 600
     early_aux_grad: float = 0.01
-    early_aux_grad_steps: int = 1600
+    early_aux_grad_steps: int = 3200
     size: tuple[int, int] = (28, 28)
     nuisance: dict | None = field(default=None)
     perturb: dict | None = field(default=None)
