@@ -702,7 +702,11 @@ class Vid2ParamPolicy(_ForecastTarget):
             return self.target
         floor = float(np.median(self.floor_gap)) if self.floor_gap else 0.0
         fc = self.stream.forecast(self._horizon(k), floor=floor)
-        return self._aim(k * self.scene.dt, None, fc.mean, fc.std)
+        # the forecast's fitted position now starts the path, so a crossing due before its
+        # first step is still seen (as the Identify policies do); the fit, not the network's
+        # raw position, since the camera model misreads the odd dropped frame by a metre
+        now = fc.extras.get("position_now_m")
+        return self._aim(k * self.scene.dt, now, fc.mean, fc.std)
 
 
 #: Built-in policy names -> factories (registered identifying methods are added by name).

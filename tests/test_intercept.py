@@ -254,3 +254,29 @@ def test_wilson_interval():
     lo, hi = ic.wilson_interval(27, 35)
     assert 0.6 < lo < 0.77 < hi < 0.9
     assert ic.wilson_interval(0, 10)[0] == 0.0 and ic.wilson_interval(10, 10)[1] == 1.0
+
+
+def test_vid2param_policy_starts_its_path_at_the_fitted_position_now():
+    # a crossing due before the forecast's first step must be visible to the last replan, so
+    # the policy hands the forecast's fitted position now (camera frame) to the crossing search
+    from sysid_bench.tracking import track
+
+    pol = ic.make_policy("vid2param", every=10)
+    sc = ic.Scene()
+    th = ic.make_throw(sc, 0, 0)
+    pol.reset(sc, np.random.default_rng(0), th)
+    seen = []
+    real = pol._aim
+    pol._aim = lambda t, pos, mean, std=None: (seen.append((t, pos, mean)),
+                                               real(t, pos, mean, std))[1]
+    for k in range(40):
+        pol.act(th.frames[k], k)
+    assert len(seen) == 4  # frames 4, 14, 24, 34
+    fine = round(sc.dt / (th.times[1] - th.times[0]))
+    for t, pos, mean in seen:
+        k = round(t / sc.dt)
+        assert np.all(np.isfinite(pos))
+        # the path is continuous: one frame from now to the forecast's first step (< 10 m/s)
+        assert np.abs(mean[0] - pos).max() < 10.0 * sc.dt
+        if np.isfinite(track(th.frames[k][None])[0]).all():  # frame 33 is dropped
+            assert np.abs(pos - th.states[k * fine, :2]).max() < 0.3, (t, pos)

@@ -518,6 +518,8 @@ class Vid2Param(Estimator):
         shift = np.array([0.0, 0.0 if floor is None else float(floor)])
         extras = {"wall_s": time.perf_counter() - t0, "n_simulations": 0,
                   "forecast": self.forecast_mode, **more, **extras}
+        if "position_now_m" in extras:
+            extras["position_now_m"] = shift + extras["position_now_m"]
         return Forecast(mean=shift + mean, std=std, samples=shift + samples, extras=extras)
 
     def filtered_track(self, frames) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -575,7 +577,10 @@ class Vid2Param(Estimator):
                                                    self._rng(11), dt)
         # (S, 1, 2): back to the track's frame, or kept above the fitted floor
         lift = np.stack([np.zeros(S), np.zeros(S) if above_floor else floor], 1)[:, None, :]
-        extras = {"state_fit_sigma_m": fit.sigma, "particles": S, "floor_m": fit.floor}
+        # the fitted position at the last frame (robust to a misread one), in the forecast's frame
+        now = (states[:, 0, :2] + lift[:, 0]).mean(0)
+        extras = {"state_fit_sigma_m": fit.sigma, "particles": S, "floor_m": fit.floor,
+                  "position_now_m": now}
         if physics:
             samples = states[:, 1:, :2] + lift
             return samples.mean(0), samples.std(0), samples, {**extras, "n_simulations": S}
