@@ -338,7 +338,7 @@ def _prefix_posteriors(net: Vid2ParamNet, frames: np.ndarray, lengths, batch: in
 
 @torch.no_grad()
 def evaluate(net: Vid2ParamNet, ds, lengths=(10, 25, 50, 100, 150, 200), batch: int = 100,
-             device="cpu", seed: int = 0) -> dict:
+             device="cpu") -> dict:
     """Parameter errors of the encoder posterior after each of ``lengths`` frames.
 
     Errors are MSEs of parameters normalised by ``PRIOR``; ``r`` is reported over all videos
@@ -362,7 +362,6 @@ def evaluate(net: Vid2ParamNet, ds, lengths=(10, 25, 50, 100, 150, 200), batch: 
     frames = np.asarray(ds.frames)
     n, t = frames.shape[:2]
     lengths = [int(L) for L in lengths if L <= t]
-    torch.manual_seed(seed)
     mu, sd = _prefix_posteriors(net, frames, lengths, batch, device)  # (N, L, K)
     truth = tg[:, [L - 1 for L in lengths]]
     rolls = rolls_mask(ds.states, ds.floor)
@@ -622,7 +621,7 @@ def train(
 
     def validate(step: int) -> None:
         net.eval()
-        m = evaluate(net, val, device=dev, seed=tc.seed)
+        m = evaluate(net, val, device=dev)
         net.train()
         history.append((int(step), m))
         log(f"[val step {step}, {wall() / 60:.1f} min] {_summary(m)}")
