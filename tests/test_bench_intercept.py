@@ -18,6 +18,19 @@ import pytest
 pytest.importorskip("torch")
 
 
+def _median_per_frame(fn, frames, passes: int = 3, before_pass=None) -> float:
+    """Median seconds of ``fn(frame)`` over ``passes`` passes through ``frames``."""
+    times = []
+    for _ in range(passes):
+        if before_pass is not None:
+            before_pass()
+        for fr in frames:
+            t0 = time.perf_counter()
+            fn(fr)
+            times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
 @pytest.mark.slow
 @pytest.mark.benchmark(group="intercept")
 def test_bench_vid2param_control_step(benchmark):
@@ -43,27 +56,14 @@ def test_bench_vid2param_control_step(benchmark):
     step_med = benchmark.stats.stats.median
 
     # the stream's push alone, same frames, same process, right after
+    from sysid_bench.tracking import track
+
     stream = pol.est.stream()
-    pushes = []
-    for _ in range(3):
-        stream.reset()
-        for fr in throw.frames:
-            t0 = time.perf_counter()
-            stream.push(fr)
-            pushes.append(time.perf_counter() - t0)
-    push_med = float(np.median(pushes))
+    push_med = _median_per_frame(stream.push, throw.frames, before_pass=stream.reset)
     # the policy also tracks the ball in every frame (the floor's offset), and its pushes run
     # colder than back-to-back ones (0.30 against 0.17 ms measured quiet): against the push
     # alone the median step stood at 2.4-2.9x, so a 3x bound on it failed by chance
-    from sysid_bench.tracking import track
-
-    tracks = []
-    for _ in range(3):
-        for fr in throw.frames:
-            t0 = time.perf_counter()
-            track(fr[None])
-            tracks.append(time.perf_counter() - t0)
-    track_med = float(np.median(tracks))
+    track_med = _median_per_frame(lambda fr: track(fr[None]), throw.frames)
     benchmark.extra_info.update(step_median_ms=1e3 * step_med, push_median_ms=1e3 * push_med,
                                 track_median_ms=1e3 * track_med,
                                 step_mean_ms=1e3 * benchmark.stats.stats.mean,
