@@ -9,8 +9,10 @@ the numbers: ``PYTHONPATH=. python tests/test_vid2param_parts.py``. The camera m
 were re-recorded after changes of the forecast, not of the network: the state fit drops
 misread frames; its physics prior's noise was refitted (so its physics rollout too); with the floor given, heights are put
 on it from above the fitted floor. The training pass's loss terms and gradient size were re-recorded when the
-forecast frames' fed-back positions were kept in the box (as ``rollout`` keeps them). Every
-other entry is as recorded before the split.
+forecast frames' fed-back positions were kept in the box (as ``rollout`` keeps them). Both
+models' physics-prior rollouts (sampled, so their means too) and forecast stds were re-recorded
+when the prior's noise learnt to read the backtest and was recalibrated (forecast means
+unchanged). Every other entry is as recorded before the split.
 """
 
 from __future__ import annotations

@@ -136,8 +136,12 @@ def _names(state_dict: dict) -> list[str]:
 
 
 def upgrade_state_dict(state_dict: dict) -> dict:
-    """``state_dict`` with the weight names of today's network (``RENAMED``), same order."""
-    return dict(zip(_names(state_dict), state_dict.values()))
+    """``state_dict`` with the weight names of today's network (``RENAMED``), same order; a
+    physics prior trained before its noise read the backtest gets the gain that ignores it."""
+    out = dict(zip(_names(state_dict), state_dict.values()))
+    if "phys_prior.log_noise" in out and "phys_prior.skill_gain" not in out:
+        out["phys_prior.skill_gain"] = torch.zeros(2)
+    return out
 
 
 def upgrade_optimizer_state(opt_state: dict, state_dict: dict, net) -> dict:

@@ -566,9 +566,10 @@ class Vid2Param(Estimator):
         physics plus the learned process noise, ``methods.vid2param.prior``) in latent space:
         its mean is that of the draws' noise-free paths (the prior's mean unrolled; with the
         noise sampled, wall and floor contacts of noisy particles bias the average), std and
-        samples come from the sampled rollout.
+        samples come from the sampled rollout, whose noise is scaled by the track's backtest
+        error (``rollout.backtest_error``) where the prior learnt a gain for it.
         """
-        from methods.vid2param.rollout import fit_state, sample_trajectories
+        from methods.vid2param.rollout import backtest_error, fit_state, sample_trajectories
 
         fit = fit_state(pos, th_mu, th_sd, dt=dt, floor=self.floor_prior())
         S = int(self.n_samples)
@@ -585,12 +586,18 @@ class Vid2Param(Estimator):
             samples = states[:, 1:, :2] + lift
             return samples.mean(0), samples.std(0), samples, {**extras, "n_simulations": S}
         net = self._ensure_net()
+        skill = None
+        if bool((net.phys_prior.skill_gain != 0).any()):
+            # how well our physics forecast the last frames seen widens or narrows the noise
+            bt = backtest_error(pos, th_mu, th_sd, dt=dt, floor=self.floor_prior())
+            extras["backtest_m"] = bt
+            skill = torch.full((S,), bt, dtype=torch.float32, device=self.device_)
         with torch.inference_mode():
             phys = torch.as_tensor(states[:, 0], dtype=torch.float32, device=self.device_)
             th = torch.as_tensor(theta, dtype=torch.float32, device=self.device_)
             path = net.rollout_physics(phys, th, horizon, dt=dt, sample=False)[0]
             mu, sd, z = (a[..., :2].cpu().numpy().astype(np.float64) for a in net.rollout_physics(
-                phys, th, horizon, dt=dt, generator=self._generator(7)))
+                phys, th, horizon, dt=dt, generator=self._generator(7), skill=skill))
         mean = (path[..., :2].cpu().numpy().astype(np.float64) + lift).mean(0)
         mu, z = mu + lift, z + lift
         return mean, np.sqrt((sd**2).mean(0) + mu.var(0)), z, extras

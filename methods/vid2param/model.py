@@ -441,7 +441,7 @@ class Vid2ParamNet(nn.Module):
 
     def rollout_physics(self, phys: torch.Tensor, theta: torch.Tensor, horizon: int,
                         dt: float = DT, generator: torch.Generator | None = None,
-                        sample: bool = True):
+                        sample: bool = True, skill: torch.Tensor | None = None):
         """Unroll the physics prior (``config.physics_prior``) from S particles.
 
         The latent state of a particle is its ``[x, y, vx, vy]`` and its parameters; each step
@@ -458,6 +458,8 @@ class Vid2ParamNet(nn.Module):
         horizon : int
         sample : bool
             Sample the process noise (False: each particle follows its mean).
+        skill : Tensor, shape (S,), optional
+            Backtest error per particle (m), which scales the noise (``PhysicsPrior``).
 
         Returns
         -------
@@ -471,7 +473,7 @@ class Vid2ParamNet(nn.Module):
         hi_box = torch.tensor([BOX_WIDTH, BOX_WIDTH, torch.inf, torch.inf], device=phys.device)
         out = []
         for _ in range(int(horizon)):
-            mean, std = self.phys_prior(phys, theta, dt)
+            mean, std = self.phys_prior(phys, theta, dt, skill)
             phys = mean
             if sample:
                 eps = torch.randn(mean.shape, generator=generator, device=mean.device)
