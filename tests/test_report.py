@@ -148,3 +148,17 @@ def test_identification_reading_checks_the_paper_claim(v2p_se, verdict):
     text = " ".join(EXPERIMENTS["identification"].reading(df))
     assert verdict in text
     assert "lsq (privileged) 50x" in text  # speed ratio to vid2param
+
+
+@pytest.mark.parametrize("cov, verdict", [(0.9, "(within 80-95%)"), (0.97, "(outside 80-95% somewhere)")])
+def test_forecast_reading_states_the_band_calibration(cov, verdict):
+    rows = []
+    for case in range(4):
+        for n in (20, 50, 100):
+            for m, c in (("vid2param", cov), ("lsq", 0.9)):
+                rows += [(m, "video", case, n, "pos_mse", 0.01), (m, "video", case, n, "cov90", c),
+                         (m, "video", case, n, "width90_m", 1.0 / n)]
+    df = pd.DataFrame(rows, columns=["method", "input", "case", "n_frames", "metric", "value"])
+    text = " ".join(EXPERIMENTS["forecasting"].reading(df))
+    assert f"vid2param {cov:.0%} after 20" in text and verdict in text
+    assert "vid2param's mean 90% band narrows" in text

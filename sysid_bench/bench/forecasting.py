@@ -218,6 +218,16 @@ class Forecasting(Experiment):
                     out.append(f"Paper: Vid2Param becomes more certain as frames are observed. "
                                f"{m}'s mean 90% band {trend}: "
                                + ", ".join(f"{v:.2f} m after {t}" for t, v in sp.items()) + ".")
+        cal = []
+        for m in sorted({k[0] for k in s.index if k[0].startswith("vid2param")}):
+            cv = df[(df.metric == "cov90") & (df.method == m)].groupby("n_frames").value.mean()
+            if len(cv):
+                ok = bool(((cv >= 0.8) & (cv <= 0.95)).all())
+                cal.append(f"{m} " + ", ".join(f"{v:.0%} after {t}" for t, v in cv.items())
+                           + (" (within 80-95%)" if ok else " (outside 80-95% somewhere)"))
+        if cal:
+            out.append("Calibration: share of the true positions inside the 90% band: "
+                       + "; ".join(cal) + ".")
         lsq = ("lsq", "video")
         rows = []
         for m in ("vid2param", "vid2param-physics"):
