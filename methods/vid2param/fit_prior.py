@@ -31,7 +31,6 @@ from tqdm import tqdm
 from methods.vid2param.checkpoint import load_checkpoint, save_atomic, upgrade_state_dict
 from methods.vid2param.data import make_split, perturb_dataset
 from methods.vid2param.model import V2PConfig, Vid2ParamNet
-from methods.vid2param.prior import SKILL_REF
 from methods.vid2param.rollout import backtest_error, fit_state, sample_trajectories
 from sysid_bench._validate import check_positive_int
 
@@ -195,9 +194,10 @@ def _group_coverage(net, pool, idx, cfg, log_scale: float) -> float:
 
 def _coverage_by_skill(net, pool, cfg, split_m: float) -> dict:
     """90% coverage of the videos whose backtest error is below / above ``split_m``."""
-    sk = np.nan_to_num(np.asarray(pool["skill"], dtype=np.float64), nan=SKILL_REF)
+    sk = np.asarray(pool["skill"], dtype=np.float64)
+    above = sk > split_m  # an unknown backtest (NaN) counts below, as in ``calibrate``
     out = {}
-    for name, idx in (("below", np.flatnonzero(sk <= split_m)), ("above", np.flatnonzero(sk > split_m))):
+    for name, idx in (("below", np.flatnonzero(~above)), ("above", np.flatnonzero(above))):
         out[name] = _group_coverage(net, pool, idx, cfg, 0.0) if len(idx) else float("nan")
     return out
 

@@ -60,8 +60,8 @@ class PhysicsPrior(nn.Module):
     of real bounces: spin, soft contacts). Both are scaled per particle by how well our physics
     forecast the frames already seen (``skill``: ``(skill / SKILL_REF) ** skill_gain``, one gain
     for the per-frame noise and one for the bounce's): on clean video a single noise fitted to
-    a mix of clean and deviating balls held 96% in its 90% bands. Trained by ``methods.vid2param.fit_prior``; a noise
-    spread over every frame instead (measured: x 0.037 m, vx 0.16 m/s per frame after training
+    a mix of clean and deviating balls held 96% in its 90% bands. Trained by
+    ``methods.vid2param.fit_prior``; a noise spread over every frame instead (measured: x 0.037 m, vx 0.16 m/s per frame after training
     on half-perturbed videos) widened clean forecasts to 2 m bands and doubled their MSE.
     """
 
