@@ -9,8 +9,11 @@ For each method whose class implements ``fit`` (Vid2Param), one cell per trainin
                        ``noise:0.0`` is also the full-physics control of the next condition.
 ``simplified``         drag and rolling fixed in training, the full model in test.
 
-Where the method declares a ready-trained model for the condition at this scale
-(``pretrained``: Vid2Param's condition checkpoints at the default scale), the cell loads it.
+Where the method declares a ready-trained model for **every** condition at this scale
+(``pretrained``: Vid2Param's condition checkpoints at the default scale), the cells load them.
+Where it declares some but not all, the conditions are run twice: every condition with models
+trained here (one budget for all), and the ready-trained ones again as ``<condition>@shipped``
+cells; the reading judges each claim within one group only, so no comparison mixes budgets.
 Otherwise it trains a **fresh** model with the method's declared budget for the scale
 (its ``fit_options``:
 not the shipped checkpoint, which saw every training sub-range and would hide extrapolation
@@ -58,6 +61,24 @@ def conditions(scale) -> list[str]:
     return scale.sensitivity_conditions()
 
 
+#: Suffix of a cell's condition that evaluates the method's ready-trained model of it while
+#: other conditions of the scale have none (``noise:0.1@shipped``).
+SHIPPED = "@shipped"
+
+
+def base_condition(condition: str) -> str:
+    """``condition`` without the :data:`SHIPPED` suffix."""
+    return condition[: -len(SHIPPED)] if condition.endswith(SHIPPED) else condition
+
+
+def shipped_conditions(method: str, scale) -> list[str]:
+    """The conditions of ``scale`` for which ``method`` declares a ready-trained model."""
+    import methods
+
+    spec = methods.spec(method)
+    return [c for c in conditions(scale) if spec.pretrained_options(scale.name, c) is not None]
+
+
 def _train_spec(condition: str) -> tuple[str, dict]:
     """(training variant, its options) for a condition."""
     kind, _, arg = condition.partition(":")
@@ -82,7 +103,8 @@ def _atomic_pickle(obj, path: Path) -> None:
 
 def trained_model(ctx: Context, method: str, condition: str):
     """The model of ``condition``: the method's ready-trained one where it declares one for
-    this scale (``pretrained``), else loaded from the run directory, else trained and saved.
+    every condition of this scale (``pretrained``) or ``condition`` ends in :data:`SHIPPED`,
+    else loaded from the run directory, else trained and saved.
 
     Returns
     -------
@@ -92,8 +114,13 @@ def trained_model(ctx: Context, method: str, condition: str):
     from sysid_bench.bench.runner import method_fingerprint
 
     sens = ctx.scale.sensitivity
-    pre = methods.spec(method).pretrained_options(ctx.scale.name, condition)
-    if pre is not None:
+    base = base_condition(condition)
+    pre = methods.spec(method).pretrained_options(ctx.scale.name, base)
+    if condition != base and pre is None:
+        raise ValueError(f"condition: {method} declares no ready-trained model of {base!r} at "
+                         f"scale {ctx.scale.name!r}, so {condition!r} cannot be evaluated")
+    everything = len(shipped_conditions(method, ctx.scale)) == len(conditions(ctx.scale))
+    if pre is not None and (condition != base or everything):
         # trained once with the method's own recipe and shipped (its card says how)
         est = ctx.estimator(method, warm=True, **pre)
         wall = getattr(est, "training_wall_s", None)
@@ -129,23 +156,32 @@ class Sensitivity(Experiment):
     title = "4. Sensitivity (methods that train)"
     heavy = True  # trains models: always on a worker, started first
     description = (
-        "One model per condition, all made by the same recipe and budget: at the default scale "
-        "the method's ready-trained condition models (Vid2Param: shipped checkpoints, see its "
-        "model card), at other scales models trained here from scratch with the method's "
-        "declared `fit_options` on the scale's `n_train` videos. Extrapolation: trained on the "
+        "One model per condition, all made by the same recipe and budget: where the method "
+        "ships a ready-trained model of every condition (Vid2Param at the default scale: "
+        "checkpoints, see its model card), those; otherwise models trained here from scratch "
+        "with the method's declared `fit_options` on the scale's `n_train` videos, and the "
+        "shipped ones (`<condition>@shipped`) as a second group. Each group is read on its own, "
+        "against its own control: no comparison mixes budgets. Extrapolation: trained on the "
         "lower half of one parameter's range, tested above it; label noise: Gaussian noise of a "
         "fraction of the range on training labels; simplified: drag and rolling fixed in "
         "training, full model in test (compare with `noise:0`, the control). Input: video."
     )
 
     def cells(self, scale, methods):
-        return [Cell(self.name, m, "video", c, "all")
-                for m in methods if trains(m) for c in conditions(scale)]
+        out = []
+        for m in methods:
+            if not trains(m):
+                continue
+            out += [Cell(self.name, m, "video", c, "all") for c in conditions(scale)]
+            shipped = shipped_conditions(m, scale)
+            if len(shipped) < len(conditions(scale)):  # some shipped: a group of their own
+                out += [Cell(self.name, m, "video", c + SHIPPED, "all") for c in shipped]
+        return out
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
         sens = ctx.scale.sensitivity
         est, wall = trained_model(ctx, cell.method, cell.condition)
-        kind, _, arg = cell.condition.partition(":")
+        kind, _, arg = base_condition(cell.condition).partition(":")
         n_test = ctx.scale.cases(self.name, cell.method)
         if kind == "extrapolation":
             ds = ctx.test_set("extrapolation", n_test, param=arg)
@@ -188,7 +224,7 @@ class Sensitivity(Experiment):
         if len(ex):
             rows = []
             for (m, cond), g in ex.groupby(["method", "condition"]):
-                p = cond.split(":")[1]
+                p = base_condition(cond).split(":")[1]
                 dist = g[g.metric == "distance"].set_index("case").value
                 se = g[(g.metric == f"se_{p}") & (g.n_frames == last)].set_index("case").value
                 j = pd.concat({"distance": dist, "se": se}, axis=1).dropna()
@@ -196,7 +232,7 @@ class Sensitivity(Experiment):
                 j["bin"] = pd.cut(j.distance, bins, include_lowest=True)
                 for b, h in j.groupby("bin", observed=True):
                     s = ci_summary(h.assign(k=0), ["k"], value="se").iloc[0]
-                    rows.append({"method": m, "input": "video", "parameter": p,
+                    rows.append({"method": m, "input": "video", "condition": cond, "parameter": p,
                                  "distance above training range": str(b), "cases": len(h),
                                  f"MSE of {p} @ {last}": fmt_ci(s["mean"], s["lo"], s["hi"])})
             out["sensitivity_extrapolation"] = pd.DataFrame(rows)
@@ -209,112 +245,148 @@ class Sensitivity(Experiment):
             return {}
         last = int(df.n_frames.max())
         fig, axes = plt.subplots(1, 3, figsize=(15, 3.8))
-        ex = df[df.condition.str.startswith("extrapolation:")]
-        for cond, g in ex.groupby("condition"):
-            p = cond.split(":")[1]
-            dist = g[g.metric == "distance"].set_index("case").value
-            se = g[(g.metric == f"se_{p}") & (g.n_frames == last)].set_index("case").value
-            d = dist.reindex(se.index)
-            axes[0].scatter(d, se, s=10, label=p)
+        groups = _groups(df)
+        for (label, g0), marker in zip(groups, ("o", "s")):
+            tag = f" ({label})" if len(groups) > 1 else ""
+            ex = g0[g0.condition.str.startswith("extrapolation:")]
+            for cond, g in ex.groupby("condition"):
+                p = cond.split(":")[1]
+                dist = g[g.metric == "distance"].set_index("case").value
+                se = g[(g.metric == f"se_{p}") & (g.n_frames == last)].set_index("case").value
+                axes[0].scatter(dist.reindex(se.index), se, s=10, marker=marker, label=p + tag)
+            nz = g0[g0.condition.str.startswith("noise:") & (g0.n_frames == last)
+                    & (g0.metric == "se")]
+            if len(nz):
+                s = ci_summary(nz.assign(level=nz.condition.str.split(":").str[1].astype(float)),
+                               ["level"])
+                axes[1].errorbar(s.level, s["mean"], yerr=[s["mean"] - s.lo, s.hi - s["mean"]],
+                                 marker=marker, capsize=3, label=label)
+            for cond, style in (("simplified", "-"), ("noise:0", "--")):
+                g = g0[(g0.condition == cond)]
+                for p in ("e", "g"):
+                    s = ci_summary(g[g.metric == f"se_{p}"], ["n_frames"])
+                    if len(s):
+                        kind = "simplified" if cond == "simplified" else "full"
+                        axes[2].plot(s.n_frames, s["mean"], ls=style, marker=marker, ms=3,
+                                     label=f"{p}, {kind} training{tag}")
         axes[0].set(xlabel="distance above training range (fraction of range)",
                     ylabel=f"normalised MSE @ {last} frames", yscale="log", title="Extrapolation")
-        axes[0].legend(fontsize=7)
-        nz = df[df.condition.str.startswith("noise:") & (df.n_frames == last) & (df.metric == "se")]
-        if len(nz):
-            s = ci_summary(nz.assign(level=nz.condition.str.split(":").str[1].astype(float)), ["level"])
-            axes[1].errorbar(s.level, s["mean"], yerr=[s["mean"] - s.lo, s.hi - s["mean"]],
-                             marker="o", capsize=3)
         axes[1].set(xlabel="training label noise (fraction of range)",
-                    ylabel=f"normalised MSE @ {last} frames", title="Label noise")
-        for cond, style in (("simplified", "-"), ("noise:0", "--")):
-            g = df[(df.condition == cond)]
-            for p in ("e", "g"):
-                s = ci_summary(g[g.metric == f"se_{p}"], ["n_frames"])
-                if len(s):
-                    axes[2].plot(s.n_frames, s["mean"], ls=style, marker="o", ms=3,
-                                 label=f"{p}, {'simplified' if cond == 'simplified' else 'full'} training")
+                    ylabel=f"normalised MSE @ {last} frames", yscale="log", title="Label noise")
         axes[2].set(xlabel="observed frames", ylabel="normalised MSE", yscale="log",
                     title="Simplified physics in training")
-        axes[2].legend(fontsize=7)
-        fig.suptitle("Sensitivity of Vid2Param (small models, equal training budget)")
+        for ax in axes:
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(fontsize=7)
+        fig.suptitle("Sensitivity of Vid2Param (" + "; ".join(label for label, _ in groups) + ")")
         return {"Sensitivity: extrapolation, label noise, simplified physics":
                 _save(fig, outdir / "sensitivity.png")}
 
     def reading(self, df):
         """One line per claim of the paper, each ending in whether it holds here, with the
         rule used: the control (clean labels, full physics) first, since every comparison
-        needs it to be far better than guessing."""
+        needs it to be far better than guessing. Each group of models (trained in the run,
+        or shipped) is read on its own, against its own control."""
         if df.empty:
             return []
+        groups = _groups(df)
+        if len(groups) == 1:
+            return _reading(groups[0][1])
         out = []
-        last = int(df.n_frames.max())
-        at = df[(df.n_frames == last) & (df.metric == "se")]
-        ctl = at[at.condition.isin(["noise:0", "noise:0.0"])]
-        ctl_mse = None
-        meaningful = True
-
-        def verdict(holds: bool) -> str:
-            if not meaningful:
-                return "Cannot tell at this budget (the control is at guessing level)"
-            return "Holds" if holds else "Does not hold"
-
-        if len(ctl):
-            s = ci_summary(ctl.assign(k=0), ["k"]).iloc[0]
-            ctl_mse = float(s["mean"])
-            meaningful = not s["lo"] > 0.5 * GUESS_MSE
-            if not meaningful:
-                out.append(
-                    f"CAVEAT: the control model (clean labels, full physics, this scale's training "
-                    f"budget) scores {fmt_ci(s['mean'], s['lo'], s['hi'])} at {last} frames, not "
-                    f"clearly better than guessing the prior mean ({GUESS_MSE:.3f}): at this budget "
-                    "the sensitivity comparisons below cannot confirm or refute the paper.")
-            else:
-                c0 = df[(df.condition == ctl.condition.iloc[0]) & (df.n_frames == last)]
-                per = ", ".join(f"{p} {c0[c0.metric == f'se_{p}'].value.mean():.3g}"
-                                for p in PARAMS)
-                out.append(f"Control (clean labels, full physics): normalised MSE "
-                           f"{fmt_ci(s['mean'], s['lo'], s['hi'])} at {last} frames ({per}; "
-                           f"guessing the prior mean scores {GUESS_MSE:.3f}).")
-        nz = at[at.condition.str.startswith("noise:")]
-        if nz.condition.nunique() > 1 and ctl_mse is not None:
-            s = ci_summary(nz.assign(level=nz.condition.str.split(":").str[1].astype(float)),
-                           ["level"]).sort_values("level")
-            worst = float(s["mean"].max())
-            holds = worst <= 2 * ctl_mse
-            out.append("Paper: performance stays consistent with large training-label noise. "
-                       f"Here (MSE @ {last} frames): " + ", ".join(
-                           f"{r.level:g} of the range {fmt_ci(r['mean'], r.lo, r.hi)}"
-                           for _, r in s.iterrows())
-                       + f". {verdict(holds)} (rule: every level within "
-                       f"2x the control's MSE; worst {worst / ctl_mse:.2f}x).")
-        ex = df[df.condition.str.startswith("extrapolation:")]
-        for cond, g in ex.groupby("condition"):
-            p = cond.split(":")[1]
-            dist = g[g.metric == "distance"].set_index("case").value
-            se = g[(g.metric == f"se_{p}") & (g.n_frames == last)].set_index("case").value
-            d = dist.reindex(se.index)
-            near, far = se[d < 0.1], se[d >= 0.3]
-            if len(near) and len(far):
-                # a model stuck at the top of its training range errs by the distance itself
-                stuck = float((d[d >= 0.3] ** 2).mean())
-                holds = far.mean() < 0.5 * stuck
-                out.append(
-                    f"Paper: extrapolation decays slowly outside the training range. {p}: MSE "
-                    f"{near.mean():.3g} within 0.1 of the range above it (n={len(near)}), "
-                    f"{far.mean():.3g} beyond 0.3 (n={len(far)}), where answering the top of "
-                    f"the training range would score {stuck:.3g}. "
-                    f"{verdict(holds)} (rule: beyond 0.3, less than half "
-                    "that error).")
-        sim = df[(df.condition == "simplified") & (df.n_frames == last)]
-        ctl = df[(df.condition.isin(["noise:0", "noise:0.0"])) & (df.n_frames == last)]
-        if len(sim) and len(ctl):
-            pairs = {p: (sim[sim.metric == f"se_{p}"].value.mean(),
-                         ctl[ctl.metric == f"se_{p}"].value.mean()) for p in ("e", "g")}
-            holds = all(a <= max(2 * b, 0.01) for a, b in pairs.values())
-            out.append(f"Paper: trained with simpler physics (drag and rolling fixed), g and e are "
-                       f"still estimated on full-physics video. Here (MSE @ {last} frames): "
-                       + "; ".join(f"{p} {a:.3g} simplified vs {b:.3g} full"
-                                   for p, (a, b) in pairs.items())
-                       + f". {verdict(holds)} (rule: within 2x the "
-                       "control's MSE, or under 0.01).")
+        for label, g in groups:
+            out += [f"[{label}] {line}" for line in _reading(g)]
+        shipped = sorted(set(groups[1][1].condition))
+        missing = sorted(set(groups[0][1].condition) - set(shipped))
+        if missing:
+            out.append(f"[{groups[1][0]}] Not shipped yet: {', '.join(missing)}; the claims "
+                       "that need them are read from the in-run models only.")
         return out
+
+
+def _groups(df) -> list[tuple[str, object]]:
+    """(label, rows with plain condition names) per group of models: one group when every
+    condition has one kind of model, else the in-run models then the shipped ones."""
+    shipped = df.condition.str.endswith(SHIPPED)
+    if not shipped.any():
+        return [("small models, equal training budget", df)]
+    s = df[shipped].assign(condition=df[shipped].condition.map(base_condition))
+    return [("in-run models, equal budget", df[~shipped]),
+            (f"shipped models, {s.condition.nunique()} conditions", s)]
+
+
+def _reading(df) -> list[str]:
+    """The claims' lines for one group of models (every condition trained alike)."""
+    if df.empty:
+        return []
+    out = []
+    last = int(df.n_frames.max())
+    at = df[(df.n_frames == last) & (df.metric == "se")]
+    ctl = at[at.condition.isin(["noise:0", "noise:0.0"])]
+    ctl_mse = None
+    meaningful = True
+
+    def verdict(holds: bool) -> str:
+        if not meaningful:
+            return "Cannot tell at this budget (the control is at guessing level)"
+        return "Holds" if holds else "Does not hold"
+
+    if len(ctl):
+        s = ci_summary(ctl.assign(k=0), ["k"]).iloc[0]
+        ctl_mse = float(s["mean"])
+        meaningful = not s["lo"] > 0.5 * GUESS_MSE
+        if not meaningful:
+            out.append(
+                f"CAVEAT: the control model (clean labels, full physics, this scale's training "
+                f"budget) scores {fmt_ci(s['mean'], s['lo'], s['hi'])} at {last} frames, not "
+                f"clearly better than guessing the prior mean ({GUESS_MSE:.3f}): at this budget "
+                "the sensitivity comparisons below cannot confirm or refute the paper.")
+        else:
+            c0 = df[(df.condition == ctl.condition.iloc[0]) & (df.n_frames == last)]
+            per = ", ".join(f"{p} {c0[c0.metric == f'se_{p}'].value.mean():.3g}"
+                            for p in PARAMS)
+            out.append(f"Control (clean labels, full physics): normalised MSE "
+                       f"{fmt_ci(s['mean'], s['lo'], s['hi'])} at {last} frames ({per}; "
+                       f"guessing the prior mean scores {GUESS_MSE:.3f}).")
+    nz = at[at.condition.str.startswith("noise:")]
+    if nz.condition.nunique() > 1 and ctl_mse is not None:
+        s = ci_summary(nz.assign(level=nz.condition.str.split(":").str[1].astype(float)),
+                       ["level"]).sort_values("level")
+        worst = float(s["mean"].max())
+        holds = worst <= 2 * ctl_mse
+        out.append("Paper: performance stays consistent with large training-label noise. "
+                   f"Here (MSE @ {last} frames): " + ", ".join(
+                       f"{r.level:g} of the range {fmt_ci(r['mean'], r.lo, r.hi)}"
+                       for _, r in s.iterrows())
+                   + f". {verdict(holds)} (rule: every level within "
+                   f"2x the control's MSE; worst {worst / ctl_mse:.2f}x).")
+    ex = df[df.condition.str.startswith("extrapolation:")]
+    for cond, g in ex.groupby("condition"):
+        p = cond.split(":")[1]
+        dist = g[g.metric == "distance"].set_index("case").value
+        se = g[(g.metric == f"se_{p}") & (g.n_frames == last)].set_index("case").value
+        d = dist.reindex(se.index)
+        near, far = se[d < 0.1], se[d >= 0.3]
+        if len(near) and len(far):
+            # a model stuck at the top of its training range errs by the distance itself
+            stuck = float((d[d >= 0.3] ** 2).mean())
+            holds = far.mean() < 0.5 * stuck
+            out.append(
+                f"Paper: extrapolation decays slowly outside the training range. {p}: MSE "
+                f"{near.mean():.3g} within 0.1 of the range above it (n={len(near)}), "
+                f"{far.mean():.3g} beyond 0.3 (n={len(far)}), where answering the top of "
+                f"the training range would score {stuck:.3g}. "
+                f"{verdict(holds)} (rule: beyond 0.3, less than half "
+                "that error).")
+    sim = df[(df.condition == "simplified") & (df.n_frames == last)]
+    ctl = df[(df.condition.isin(["noise:0", "noise:0.0"])) & (df.n_frames == last)]
+    if len(sim) and len(ctl):
+        pairs = {p: (sim[sim.metric == f"se_{p}"].value.mean(),
+                     ctl[ctl.metric == f"se_{p}"].value.mean()) for p in ("e", "g")}
+        holds = all(a <= max(2 * b, 0.01) for a, b in pairs.values())
+        out.append(f"Paper: trained with simpler physics (drag and rolling fixed), g and e are "
+                   f"still estimated on full-physics video. Here (MSE @ {last} frames): "
+                   + "; ".join(f"{p} {a:.3g} simplified vs {b:.3g} full"
+                               for p, (a, b) in pairs.items())
+                   + f". {verdict(holds)} (rule: within 2x the "
+                   "control's MSE, or under 0.01).")
+    return out
