@@ -686,3 +686,19 @@ def test_training_forecast_keeps_fed_back_positions_inside_the_box(monkeypatch):
     loose = net(frames, targets, n_obs=5, generator=torch.Generator().manual_seed(1))
     assert torch.isfinite(boxed["loss"])
     assert float(boxed["nll_prior"]) < 0.05 * float(loose["nll_prior"])
+
+
+def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
+    from dataclasses import asdict
+
+    from methods.vid2param.train import _OWN_FLAGS, _parse, _parser
+
+    actions = {a.dest: a for a in _parser()._actions if a.dest != "help"}
+    fields = [*asdict(TrainConfig()), *V2PConfig().to_dict()]
+    assert {f for f in fields if f not in (*_OWN_FLAGS, "frame_size")} <= set(actions)
+    # every flag says what it is (its field's docstring), not just its name
+    assert [d for d, a in actions.items() if not (a.help or "").replace("(default: %(default)s)", "").strip()] == []
+    a = _parse(["--out", "x"])
+    assert {k: getattr(a, k) for k in asdict(TrainConfig()) if k not in _OWN_FLAGS} == {
+        k: v for k, v in asdict(TrainConfig()).items() if k not in _OWN_FLAGS}
+    assert a.preset == "28x28" and a.latent is None and a.roll_features is None

@@ -9,10 +9,11 @@ Every random choice is a function of ``(seed, step)``: a run killed and resumed 
 state (``<out>/state.pt``, written atomically every ``--ckpt-every`` seconds) continues with the
 same batches and noise it would have drawn.
 
-Example (the shipped 28x28 checkpoint; see the README for the exact command)::
+Example (the from-scratch recipe, ``V2PConfig()`` with ``TrainConfig()``; each shipped
+checkpoint's own command is in its card and in ``methods/vid2param/README.md``)::
 
-    PYTHONPATH=. python -m methods.vid2param.train --out runs/v2p_28x28 \\
-        --export methods/vid2param/checkpoints/v2p_28x28.pt
+    python -m methods.vid2param.train --out runs/v2p_28x28 --export runs/v2p_28x28.pt
+    python -m methods.vid2param.train --out runs/camera --preset camera   # the 100x50 model
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import argparse
 import json
 import math
 import os
+import re
 import sys
 import tempfile
 import time
@@ -85,6 +87,7 @@ class TrainConfig:
         Probability that a batch is observed for all frames; otherwise only the first
         ``U[min_obs, n_frames)`` frames are observed and the rest forecast from the prior.
     min_obs : int
+        Fewest observed frames of a partly observed batch.
     p_blank : float
         Probability that a video's frames are all blanked (ball never seen), so the network
         learns to answer such input with a wide posterior near the prior.
@@ -710,50 +713,93 @@ PRESET_NUISANCE = {
 _OWN_FLAGS = ("size", "nuisance", "perturb", "init", "variant_options")
 
 
-def _parse(argv=None):
+def _field_help(cls) -> dict[str, str]:
+    """First sentence of each attribute's entry in ``cls``'s numpydoc *Attributes* section
+    (``a, b : float`` entries give every name the same text), for ``--help``."""
+    lines = (cls.__doc__ or "").splitlines()
+    try:
+        start = next(i for i, ln in enumerate(lines) if ln.strip() == "Attributes") + 2
+    except StopIteration:
+        return {}
+    out, names, text = {}, [], []
+
+    def flush():
+        sentence = re.split(r"\.\s+(?=[A-Z])", " ".join(text).replace("``", ""))[0].rstrip(".")
+        for n in names:
+            out[n] = sentence.replace("%", "%%")
+
+    for ln in lines[start:]:
+        if not ln.strip():
+            continue
+        indent = len(ln) - len(ln.lstrip())
+        if indent <= 4 and " : " in ln:
+            flush()
+            names = [n.strip() for n in ln.split(" : ")[0].split(",")]
+            text = []
+        elif indent > 4:
+            text.append(ln.strip())
+        else:
+            break
+    flush()
+    return out
+
+
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m methods.vid2param.train", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     tc = TrainConfig()
-    p.add_argument("--out", required=True, help="folder for the resumable state.pt")
-    p.add_argument("--export", help="write a shipped checkpoint (+ .json card) here at the end")
-    p.add_argument("--export-only", action="store_true",
-                   help="only export <out>/state.pt to --export, no training")
-    p.add_argument("--calibrate-n", type=int, default=0,
-                   help="with --export: fit the stds' calibration on this many fresh train videos")
-    p.add_argument("--prior-steps", type=int, default=PRIOR_STEPS,
-                   help="with --export: steps of the physics prior's training (0: none)")
-    p.add_argument("--no-resume", action="store_true", help="start afresh even if state.pt exists")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--max-minutes", type=float, default=None)
-    p.add_argument("--stop-at", type=int, default=None, help="stop (resumable) after this step")
-    p.add_argument("--no-progress", action="store_true")
+    tc_help, mc_help = _field_help(TrainConfig), _field_help(V2PConfig)
+    run = p.add_argument_group("run (what to do with the recipe)")
+    run.add_argument("--out", required=True, help="folder for the resumable state.pt")
+    run.add_argument("--export", help="write a shipped checkpoint (+ .json card) here at the end")
+    run.add_argument("--export-only", action="store_true",
+                     help="only export <out>/state.pt to --export, no training")
+    run.add_argument("--calibrate-n", type=int, default=0,
+                     help="with --export: fit the stds' calibration on this many fresh train videos")
+    run.add_argument("--prior-steps", type=int, default=PRIOR_STEPS,
+                     help="with --export: steps of the physics prior's training (0: none)")
+    run.add_argument("--no-resume", action="store_true",
+                     help="start afresh even if state.pt exists")
+    run.add_argument("--device", default="auto",
+                     help="auto (CUDA when present, else CPU), cpu or cuda[:N]")
+    run.add_argument("--max-minutes", type=float, default=None,
+                     help="stop (resumable) after this much wall-clock time")
+    run.add_argument("--stop-at", type=int, default=None, help="stop (resumable) after this step")
+    run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    rec = p.add_argument_group("recipe (TrainConfig fields; defaults are the shipped recipe)")
     for name, val in asdict(tc).items():
         if name in _OWN_FLAGS:
             continue
-        p.add_argument("--" + name.replace("_", "-"), type=type(val), default=val)
-    p.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
-                   help="frame size (default: the preset's)")
-    p.add_argument("--nuisance", type=json.loads, default=argparse.SUPPRESS,
-                   help='renderer options as JSON, e.g. \'{"blur": 0.5, "drop": 0.05}\'')
-    p.add_argument("--perturb", type=json.loads, default=None,
-                   help='deviations from our physics in training, e.g. \'{"spin": 0.3, "dwell": 0.01, "p": 0.5}\'')
-    p.add_argument("--variant-options", type=json.loads, default=None,
-                   help='options of --variant as JSON, e.g. \'{"param": "e"}\' or \'{"label_noise": 0.25}\'')
-    p.add_argument("--init", default=None,
-                   help="start from this checkpoint's weights where names and shapes match")
-    p.add_argument("--preset", default="28x28", choices=sorted(PRESETS),
-                   help="model configuration (V2PConfig.preset) and its data settings; the "
-                        "options below override single fields")
+        rec.add_argument("--" + name.replace("_", "-"), type=type(val), default=val,
+                         help=f"{tc_help.get(name, name)} (default: %(default)s)")
+    rec.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
+                     help="frame size (default: the preset's)")
+    rec.add_argument("--nuisance", type=json.loads, default=argparse.SUPPRESS,
+                     help='renderer options as JSON, e.g. \'{"blur": 0.5, "drop": 0.05}\'')
+    rec.add_argument("--perturb", type=json.loads, default=None,
+                     help='deviations from our physics in training, e.g. \'{"spin": 0.3, "dwell": 0.01, "p": 0.5}\'')
+    rec.add_argument("--variant-options", type=json.loads, default=None,
+                     help='options of --variant as JSON, e.g. \'{"param": "e"}\' or \'{"label_noise": 0.25}\'')
+    rec.add_argument("--init", default=None,
+                     help="start from this checkpoint's weights where names and shapes match")
+    model = p.add_argument_group("model (V2PConfig fields; each overrides the preset's value)")
+    model.add_argument("--preset", default="28x28", choices=sorted(PRESETS),
+                       help="model configuration (V2PConfig.preset) and its data settings")
     for name in ("latent", "hidden", "feat", "keypoints", "pool"):
-        p.add_argument("--" + name, type=int, default=None)
+        model.add_argument("--" + name, type=int, default=None, help=mc_help.get(name))
     for name in ("alpha", "beta", "gamma", "gamma_prior", "aux_grad", "kp_threshold"):
-        p.add_argument("--" + name.replace("_", "-"), type=float, default=None)
-    p.add_argument("--channels", type=int, nargs="+", default=None)
+        model.add_argument("--" + name.replace("_", "-"), type=float, default=None,
+                           help=mc_help.get(name))
+    model.add_argument("--channels", type=int, nargs="+", default=None, help=mc_help.get("channels"))
     for name in ("kp_visibility", "roll_features", "physics_prior"):
-        p.add_argument("--" + name.replace("_", "-"), action=argparse.BooleanOptionalAction,
-                       default=None, help=f"V2PConfig.{name} (default: the preset's)")
-    p.add_argument("--targets", nargs="+", default=None)
-    return p.parse_args(argv)
+        model.add_argument("--" + name.replace("_", "-"), action=argparse.BooleanOptionalAction,
+                           default=None, help=mc_help.get(name))
+    model.add_argument("--targets", nargs="+", default=None, help=mc_help.get("targets"))
+    return p
+
+
+def _parse(argv=None):
+    return _parser().parse_args(argv)
 
 
 def main(argv=None) -> int:
