@@ -336,7 +336,7 @@ def _reading(df) -> list[str]:
         meaningful = not s["lo"] > 0.5 * GUESS_MSE
         if not meaningful:
             out.append(
-                f"CAVEAT: the control model (clean labels, full physics, this scale's training "
+                f"CAVEAT: the control model (clean labels, full physics, this group's training "
                 f"budget) scores {fmt_ci(s['mean'], s['lo'], s['hi'])} at {last} frames, not "
                 f"clearly better than guessing the prior mean ({GUESS_MSE:.3f}): at this budget "
                 "the sensitivity comparisons below cannot confirm or refute the paper.")
