@@ -52,7 +52,7 @@ def train_condition(condition: str, out, threads: int = 1, device: str = "auto",
     or None when stopped early by ``max_minutes`` (resumable). ``steps``: the recipe's length
     (``TrainConfig.recipe``; default ``TrainConfig().steps``), the same for every condition."""
     from methods.vid2param.model import V2PConfig
-    from methods.vid2param.train import TrainConfig, export, train
+    from methods.vid2param.train import TrainConfig, export_with_prior, train
 
     variant, opts = condition_data(condition)
     run = Path(out) / condition_checkpoint(condition).split("/", 1)[1]
@@ -63,7 +63,8 @@ def train_condition(condition: str, out, threads: int = 1, device: str = "auto",
         return None
     dest = CONDITION_CHECKPOINTS[condition_checkpoint(condition)]
     dest.parent.mkdir(parents=True, exist_ok=True)
-    return export(run / "state.pt", dest)
+    # the recipe's last phase, as `train --export` ends: the physics prior's noise
+    return export_with_prior(run / "state.pt", dest, threads=int(threads))
 
 
 def main(argv=None) -> int:

@@ -52,7 +52,7 @@ from methods.vid2param.data import (
 )
 from methods.vid2param.model import PRESETS, V2PConfig, Vid2ParamNet, count_parameters
 
-__all__ = ["TrainConfig", "train", "evaluate", "export", "calibrate", "resolve_device",
+__all__ = ["TrainConfig", "train", "evaluate", "export", "export_with_prior", "calibrate", "resolve_device",
            "load_matching", "main"]
 
 #: Seed of the calibration videos: fresh draws of the train split (the training chunks use
@@ -687,16 +687,18 @@ def train(
     return net.cpu(), {"step": step, "wall_s": wall(), "val_history": history, "done": done}
 
 
-def _export_with_prior(state_path, out_path, calibrate_n: int, prior_steps: int) -> Path:
+def export_with_prior(state_path, out_path, calibrate_n: int = 0,
+                      prior_steps: int | None = None, threads: int | None = None) -> Path:
     """``export``, then (a config with ``physics_prior``) the last phase of the recipe: the
-    physics prior's noise trained on the exported network (``methods.vid2param.fit_prior``),
-    written over the export."""
+    physics prior's noise trained on the exported network (``methods.vid2param.fit_prior``,
+    ``prior_steps`` steps, default :data:`PRIOR_STEPS`; 0: none), written over the export."""
+    prior_steps = PRIOR_STEPS if prior_steps is None else int(prior_steps)
     out_path = Path(export(state_path, out_path, calibrate_n=calibrate_n))
     cfg = load_checkpoint(out_path)["config"]
     if cfg.get("physics_prior") and prior_steps > 0:
         from methods.vid2param.fit_prior import PriorFitConfig, fit_prior
 
-        fit_prior(out_path, out_path, PriorFitConfig(steps=prior_steps))
+        fit_prior(out_path, out_path, PriorFitConfig(steps=prior_steps), threads=threads)
         export_card(out_path)
     return out_path
 
@@ -808,7 +810,7 @@ def main(argv=None) -> int:
     if a.export_only:
         if not a.export:
             raise SystemExit("--export-only needs --export PATH")
-        print(_export_with_prior(out / "state.pt", a.export, a.calibrate_n, a.prior_steps))
+        print(export_with_prior(out / "state.pt", a.export, a.calibrate_n, a.prior_steps))
         return 0
     base = V2PConfig.preset(a.preset).to_dict()
     for name in base:
@@ -825,7 +827,7 @@ def main(argv=None) -> int:
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
                     max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
     if info["done"] and a.export:
-        print(_export_with_prior(out / "state.pt", a.export, a.calibrate_n, a.prior_steps))
+        print(export_with_prior(out / "state.pt", a.export, a.calibrate_n, a.prior_steps))
     return 0
 
 
