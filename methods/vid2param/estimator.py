@@ -173,7 +173,7 @@ class Vid2Param(Estimator):
     # in the run and reads each group on its own (conditions of different budgets don't compare).
     pretrained = {"default": {c: {"checkpoint": condition_checkpoint(c)}
                               for c in SENSITIVITY_CONDITIONS
-                              if CONDITION_CHECKPOINTS[condition_checkpoint(c)].exists()}}
+                              if condition_checkpoint(c) in SHIPPED_CHECKPOINTS}}
     #: cheap settings for check_estimator (same code path)
     contract_options = {"n_samples": 20}
     #: the ``forecast`` kind when none is given

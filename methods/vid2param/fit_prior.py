@@ -166,15 +166,26 @@ def _loss(net, pool, idx, cfg, gen):
     return _interval_score(mix_m, mix_v, truth).mean(), ((truth - mix_m) ** 2).mean()
 
 
+def _cov90(mix_m, mix_v, truth) -> float:
+    """Share of the truths inside the central 90% band of the mixture moments."""
+    return float(((truth - mix_m).abs() <= _Z90 * mix_v.sqrt()).float().mean())
+
+
+def _halves(skill, split_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the videos whose backtest error is below / above ``split_m`` (an unknown
+    backtest, NaN, counts below)."""
+    above = np.asarray(skill, dtype=np.float64) > split_m
+    return np.flatnonzero(~above), np.flatnonzero(above)
+
+
 def _coverage(net, pool, cfg, seed: int) -> dict:
     """NLL, position MSE (m^2) and 90% coverage of the mixture on a pool, all videos at once."""
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         mix_m, mix_v, truth = _rollouts(net, pool, list(range(len(pool["truth"]))), cfg, gen)
-    cov = ((truth - mix_m).abs() <= _Z90 * mix_v.sqrt()).float().mean()
     return {"nll": float(_nll(mix_m, mix_v, truth).mean()),
             "interval_score_m": float(_interval_score(mix_m, mix_v, truth).mean()),
-            "mse_m2": float(((truth - mix_m) ** 2).mean()), "cov90": float(cov)}
+            "mse_m2": float(((truth - mix_m) ** 2).mean()), "cov90": _cov90(mix_m, mix_v, truth)}
 
 
 def _group_coverage(net, pool, idx, cfg, log_scale: float) -> float:
@@ -189,15 +200,13 @@ def _group_coverage(net, pool, idx, cfg, log_scale: float) -> float:
         finally:
             prior.log_noise -= log_scale
             prior.log_bounce -= log_scale
-    return float(((truth - mix_m).abs() <= _Z90 * mix_v.sqrt()).float().mean())
+    return _cov90(mix_m, mix_v, truth)
 
 
 def _coverage_by_skill(net, pool, cfg, split_m: float) -> dict:
     """90% coverage of the videos whose backtest error is below / above ``split_m``."""
-    sk = np.asarray(pool["skill"], dtype=np.float64)
-    above = sk > split_m  # an unknown backtest (NaN) counts below, as in ``calibrate``
     out = {}
-    for name, idx in (("below", np.flatnonzero(~above)), ("above", np.flatnonzero(above))):
+    for name, idx in zip(("below", "above"), _halves(pool["skill"], split_m)):
         out[name] = _group_coverage(net, pool, idx, cfg, 0.0) if len(idx) else float("nan")
     return out
 
@@ -226,9 +235,8 @@ def calibrate(net, pool, cfg: PriorFitConfig, level: float = 0.9, log=print) -> 
     sk = np.asarray(pool["skill"], dtype=np.float64)
     x = PhysicsPrior.log_skill(torch.as_tensor(sk)).numpy()
     split = float(np.nanmedian(sk))
-    groups = [np.flatnonzero(~(sk > split)), np.flatnonzero(sk > split)]  # NaN: below
     pts, rec = [], {"split_m": split}
-    for name, idx in zip(("below", "above"), groups):
+    for name, idx in zip(("below", "above"), _halves(sk, split)):
         lo, hi = -7.0, 4.0
         before = _group_coverage(net, pool, idx, cfg, 0.0)
         if _group_coverage(net, pool, idx, cfg, lo) >= level:

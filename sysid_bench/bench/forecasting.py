@@ -211,7 +211,7 @@ class Forecasting(Experiment):
                            "mean position MSE after any prefix.")
         if any((*v2p, t) in s.index for t in afters):
             for m in sorted({k[0] for k in s.index if k[0].startswith("vid2param")}):
-                sp = df[(df.metric == "width90_m") & (df.method == m)].groupby("n_frames").value.mean()
+                sp = _per_prefix(df, "width90_m", m)
                 if len(sp) > 1:
                     trend = ("narrows" if np.all(np.diff(sp.to_numpy()) < 0)
                              else "does not narrow monotonically")
@@ -220,7 +220,7 @@ class Forecasting(Experiment):
                                + ", ".join(f"{v:.2f} m after {t}" for t, v in sp.items()) + ".")
         cal = []
         for m in sorted({k[0] for k in s.index if k[0].startswith("vid2param")}):
-            cv = df[(df.metric == "cov90") & (df.method == m)].groupby("n_frames").value.mean()
+            cv = _per_prefix(df, "cov90", m)
             if len(cv):
                 ok = bool(((cv >= 0.8) & (cv <= 0.95)).all())
                 cal.append(f"{m} " + ", ".join(f"{v:.0%} after {t}" for t, v in cv.items())
@@ -246,3 +246,8 @@ class Forecasting(Experiment):
                        + ", ".join(f"{r['mean']:.3g} after {t} ({i})" for (i, t), r in d.iterrows())
                        + ", unscaled.")
         return out
+
+
+def _per_prefix(df, metric: str, method: str):
+    """Mean of ``metric`` of ``method`` per number of observed frames (a Series)."""
+    return df[(df.metric == metric) & (df.method == method)].groupby("n_frames").value.mean()

@@ -79,6 +79,11 @@ def shipped_conditions(method: str, scale) -> list[str]:
     return [c for c in conditions(scale) if spec.pretrained_options(scale.name, c) is not None]
 
 
+def all_shipped(method: str, scale) -> bool:
+    """True when ``method`` declares a ready-trained model for every condition of ``scale``."""
+    return len(shipped_conditions(method, scale)) == len(conditions(scale))
+
+
 def _train_spec(condition: str) -> tuple[str, dict]:
     """(training variant, its options) for a condition."""
     kind, _, arg = condition.partition(":")
@@ -119,8 +124,7 @@ def trained_model(ctx: Context, method: str, condition: str):
     if condition != base and pre is None:
         raise ValueError(f"condition: {method} declares no ready-trained model of {base!r} at "
                          f"scale {ctx.scale.name!r}, so {condition!r} cannot be evaluated")
-    everything = len(shipped_conditions(method, ctx.scale)) == len(conditions(ctx.scale))
-    if pre is not None and (condition != base or everything):
+    if pre is not None and (condition != base or all_shipped(method, ctx.scale)):
         # trained once with the method's own recipe and shipped (its card says how)
         est = ctx.estimator(method, warm=True, **pre)
         wall = getattr(est, "training_wall_s", None)
@@ -173,9 +177,9 @@ class Sensitivity(Experiment):
             if not trains(m):
                 continue
             out += [Cell(self.name, m, "video", c, "all") for c in conditions(scale)]
-            shipped = shipped_conditions(m, scale)
-            if len(shipped) < len(conditions(scale)):  # some shipped: a group of their own
-                out += [Cell(self.name, m, "video", c + SHIPPED, "all") for c in shipped]
+            if not all_shipped(m, scale):  # the shipped ones (if any): a group of their own
+                out += [Cell(self.name, m, "video", c + SHIPPED, "all")
+                        for c in shipped_conditions(m, scale)]
         return out
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
