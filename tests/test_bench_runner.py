@@ -330,13 +330,34 @@ def test_cells_of_a_changed_method_are_recomputed(tmp_path, monkeypatch):
     again = run(**kw)  # e.g. a new checkpoint: its old cells must not be mixed with new ones
     assert again["stale"] == 4 and again["ran"] == 4
     with Store(tmp_path / STORE_NAME) as s:
-        assert len(s.cells()) == 4 and (s.cells().fingerprint == "retrained").all()
+        assert len(s.cells()) == 4 and s.cells().fingerprint.str.startswith("retrained:").all()
         assert s.invocations()[-1]["fingerprints"] == {"prior": "retrained"}
 
 
+def test_cells_of_a_changed_experiment_are_recomputed(tmp_path, monkeypatch):
+    from sysid_bench.bench import runner
+
+    kw = dict(scale="smoke", methods=["prior"], experiments=["identification", "forecasting"],
+              run_dir=tmp_path, workers=0, progress=False)
+    first = run(**kw)
+    real = runner.experiment_fingerprint
+    monkeypatch.setattr(runner, "experiment_fingerprint",
+                        lambda e: "new metric" if e == "forecasting" else real(e))
+    again = run(**kw)  # only the changed experiment's cells are computed again
+    n_forecasting = first["cells"] - 4
+    assert again["stale"] == n_forecasting and again["ran"] == n_forecasting
+    with Store(tmp_path / STORE_NAME) as s:
+        c = s.cells()
+        assert c[c.experiment == "forecasting"].fingerprint.str.endswith(":new metric").all()
+        assert not c[c.experiment == "identification"].fingerprint.str.contains("new").any()
+
+
 def test_fingerprint_covers_checkpoints_and_shared_code():
-    from sysid_bench.bench.runner import method_fingerprint
+    from sysid_bench.bench.runner import experiment_fingerprint, method_fingerprint
 
     fp = method_fingerprint("prior")
     assert fp == method_fingerprint("prior") and len(fp) == 16
     assert method_fingerprint("lsq") != fp
+    efp = experiment_fingerprint("forecasting")
+    assert efp == experiment_fingerprint("forecasting") and len(efp) == 16
+    assert experiment_fingerprint("identification") != efp

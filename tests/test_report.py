@@ -51,8 +51,11 @@ def test_render_from_store(store_path, tmp_path):
     assert {"method", "input"} <= set(t.columns)
     assert set(t.method) == set(FAST) and set(t.input) == {"video", "privileged"}
     assert (out / "tables" / "forecast_mse.parquet").is_file()
+    band = pd.read_csv(out / "tables" / "forecast_band.csv")  # smoke: prefixes 20, 50
+    assert list(band.columns[2:]) == [f"band (m) on frames 50-end, after {t}" for t in (20, 50)]
+    assert (band.iloc[:, 2:].to_numpy() > 0).all()
     for png in ("identification_accuracy", "identification_speed", "forecast_accuracy",
-                "forecast_examples", "changing_example", "calibration"):
+                "forecast_examples", "forecast_uncertainty", "changing_example", "calibration"):
         data = (out / "figures" / f"{png}.png").read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
         assert f"figures/{png}.png" in text
@@ -162,3 +165,23 @@ def test_forecast_reading_states_the_band_calibration(cov, verdict):
     text = " ".join(EXPERIMENTS["forecasting"].reading(df))
     assert f"vid2param {cov:.0%} after 20" in text and verdict in text
     assert "vid2param's mean 90% band narrows" in text
+
+
+@pytest.mark.parametrize("late, verdict", [((0.9, 0.5, 0.3), "narrows"),
+                                           ((0.9, 0.2, 0.3), "does not narrow monotonically")])
+def test_forecast_certainty_is_judged_on_the_frames_every_prefix_forecasts(late, verdict):
+    # the band over each prefix's next frames widens (other frames); the verdict follows the
+    # common frames' band
+    rows = []
+    for case in range(3):
+        for n, w_next, w_common in zip((20, 50, 100), (0.2, 0.3, 0.4), late):
+            rows += [("vid2param", "video", case, n, "pos_mse", 0.01),
+                     ("vid2param", "video", case, n, "width90_m", w_next),
+                     ("vid2param", "video", case, n, "width90_common_m", w_common)]
+    df = pd.DataFrame(rows, columns=["method", "input", "case", "n_frames", "metric", "value"])
+    text = " ".join(EXPERIMENTS["forecasting"].reading(df))
+    assert (f"On the frames every prefix forecasts (100 to the end), vid2param's mean 90% band "
+            f"{verdict}: {late[0]:.2f} m after 20") in text
+    assert "(other frames each time) it does not narrow monotonically: 0.20 m after 20" in text
+    band = EXPERIMENTS["forecasting"].tables(df)["forecast_band"]
+    assert band.loc[0, "band (m) on frames 100-end, after 50"] == pytest.approx(late[1])

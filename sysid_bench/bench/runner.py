@@ -40,7 +40,7 @@ from sysid_bench.bench.experiment import Cell, execute
 from sysid_bench.bench.store import Store, lock_run_dir
 
 __all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "provenance",
-           "method_fingerprint", "default_inline", "default_run_dir", "STORE_NAME"]
+           "method_fingerprint", "experiment_fingerprint", "cell_fingerprint", "default_inline", "default_run_dir", "STORE_NAME"]
 
 STORE_NAME = "results.sqlite"
 #: sources (from the repository root) every simulation-based method is built on
@@ -150,6 +150,27 @@ def method_fingerprint(name: str) -> str:
         h.update(f.read_bytes())
     h.update(spec.to_json().encode())
     return h.hexdigest()[:16]
+
+
+def experiment_fingerprint(name: str) -> str:
+    """Hash (16 hex digits) of the source of experiment ``name``'s module.
+
+    A cell's fingerprint is its method's and its experiment's (:func:`cell_fingerprint`), so
+    an experiment whose measurement changed (a new metric, another horizon) is computed again
+    instead of mixing rows of two definitions in one table.
+    """
+    import hashlib
+    import inspect
+
+    from sysid_bench.bench import EXPERIMENTS
+
+    src = inspect.getsource(inspect.getmodule(type(EXPERIMENTS[name])))
+    return hashlib.sha256(src.encode()).hexdigest()[:16]
+
+
+def cell_fingerprint(method_fp: str, experiment_fp: str) -> str:
+    """The fingerprint stored with a cell: its method's code and weights, its experiment's code."""
+    return f"{method_fp}:{experiment_fp}"
 
 
 def default_inline(meths) -> list[str]:
@@ -294,14 +315,16 @@ def _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline, p
     t0 = time.perf_counter()
     try:
         fps = {m: method_fingerprint(m) for m in meths}
+        efps = {e: experiment_fingerprint(e) for e in exps}
+        cell_fps = {(e, m): cell_fingerprint(fps[m], efps[e]) for e in exps for m in meths}
         inv = store.record_invocation({
             "argv": list(sys.argv if argv is None else argv), "scale": sc.name,
             "methods": meths, "skipped_methods": skipped, "experiments": exps,
             "workers": workers, "scheduler": None if scheduler is None else str(scheduler),
             "inline": list(inline), "retry_errors": bool(retry_errors),
-            "fingerprints": fps, **provenance(),
+            "fingerprints": fps, "experiment_fingerprints": efps, **provenance(),
         })
-        stale = store.stale_cells(fps)
+        stale = store.stale_cells(cell_fps)
         if stale:  # code or weights changed since: recompute, never mix
             store.drop_cells(ids=stale)
         retried = store.drop_cells("error") if retry_errors else 0
@@ -319,7 +342,7 @@ def _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline, p
             c: Cell = res["cell"]
             store.add_cell(c.id, c.key(), res["rows"], status=res["status"], error=res["error"],
                            wall_s=res["wall_s"], artifacts=res["artifacts"], invocation=inv,
-                           fingerprint=fps.get(c.method))
+                           fingerprint=cell_fps.get((c.experiment, c.method)))
             counts[res["status"]] += 1
             bar.update(1)
             bar.set_postfix(err=counts["error"], na=counts["n/a"], refresh=False)

@@ -15,8 +15,9 @@ Layout
                versions, host, start time.
 ``cells``      one row per finished cell: id, experiment, method, input, condition, case,
                status (``ok`` / ``error`` / ``n/a``), error text, wall seconds, finish time,
-               invocation, and the fingerprint of the method's code and weights: a run finding
-               cells of a method whose fingerprint changed computes them again.
+               invocation, and the fingerprint of the method's code and weights and of the
+               experiment's code: a run finding cells whose fingerprint changed computes them
+               again.
 ``results``    the long-format table: experiment, method, input, condition, case, n_frames,
                metric, value, status, error, wall_s (of the cell), cell_id. A failed cell has one
                row with ``metric = "error"``; a cell whose method cannot do the task (it raised
@@ -313,8 +314,8 @@ class Store:
         invocation : int, optional
             Id from :meth:`record_invocation`.
         fingerprint : str, optional
-            Hash of the method's code and weights the cell was computed with (see
-            :meth:`stale_cells`).
+            Hash of the method's code and weights and the experiment's code the cell was
+            computed with (see :meth:`stale_cells`).
         """
         if status not in ("ok", "error", "n/a"):
             raise ValueError(f"status: expected 'ok', 'error' or 'n/a', got {status!r}")
@@ -350,10 +351,13 @@ class Store:
             raise
         return True
 
-    def stale_cells(self, fingerprints: Mapping[str, str]) -> list[str]:
-        """Ids of cells of the methods in ``fingerprints`` computed with another fingerprint."""
-        rows = self._con.execute("SELECT cell_id, method, fingerprint FROM cells").fetchall()
-        return [c for c, m, fp in rows if m in fingerprints and fp != fingerprints[m]]
+    def stale_cells(self, fingerprints: Mapping[tuple[str, str], str]) -> list[str]:
+        """Ids of the cells of each ``(experiment, method)`` in ``fingerprints`` computed with
+        another fingerprint (other code or weights)."""
+        rows = self._con.execute(
+            "SELECT cell_id, experiment, method, fingerprint FROM cells").fetchall()
+        return [c for c, e, m, fp in rows
+                if (e, m) in fingerprints and fp != fingerprints[(e, m)]]
 
     def drop_cells(self, status: str | None = "error", ids: Iterable[str] | None = None) -> int:
         """Forget cells (rows, artifacts, record) so a run computes them again.
