@@ -52,8 +52,10 @@ def test_render_from_store(store_path, tmp_path):
     assert set(t.method) == set(FAST) and set(t.input) == {"video", "privileged"}
     assert (out / "tables" / "forecast_mse.parquet").is_file()
     band = pd.read_csv(out / "tables" / "forecast_band.csv")  # smoke: prefixes 20, 50
-    assert list(band.columns[2:]) == [f"band (m) on frames 50-end, after {t}" for t in (20, 50)]
-    assert (band.iloc[:, 2:].to_numpy() > 0).all()
+    assert list(band.columns[2:]) == [f"{k} on frames 50-end, after {t}"
+                                      for k in ("band (m)", "cov90") for t in (20, 50)]
+    assert (band.iloc[:, 2:4].to_numpy() > 0).all()
+    assert ((band.iloc[:, 4:] >= 0) & (band.iloc[:, 4:] <= 1)).all().all()
     for png in ("identification_accuracy", "identification_speed", "forecast_accuracy",
                 "forecast_examples", "forecast_uncertainty", "changing_example", "calibration"):
         data = (out / "figures" / f"{png}.png").read_bytes()
@@ -177,11 +179,14 @@ def test_forecast_certainty_is_judged_on_the_frames_every_prefix_forecasts(late,
         for n, w_next, w_common in zip((20, 50, 100), (0.2, 0.3, 0.4), late):
             rows += [("vid2param", "video", case, n, "pos_mse", 0.01),
                      ("vid2param", "video", case, n, "width90_m", w_next),
-                     ("vid2param", "video", case, n, "width90_common_m", w_common)]
+                     ("vid2param", "video", case, n, "width90_common_m", w_common),
+                     ("vid2param", "video", case, n, "cov90_common", 0.9)]
     df = pd.DataFrame(rows, columns=["method", "input", "case", "n_frames", "metric", "value"])
     text = " ".join(EXPERIMENTS["forecasting"].reading(df))
     assert (f"On the frames every prefix forecasts (100 to the end), vid2param's mean 90% band "
             f"{verdict}: {late[0]:.2f} m after 20") in text
+    assert "(it holds 90%, 90%, 90% of the true positions)" in text
     assert "(other frames each time) it does not narrow monotonically: 0.20 m after 20" in text
     band = EXPERIMENTS["forecasting"].tables(df)["forecast_band"]
     assert band.loc[0, "band (m) on frames 100-end, after 50"] == pytest.approx(late[1])
+    assert band.loc[0, "cov90 on frames 100-end, after 20"] == pytest.approx(0.9)

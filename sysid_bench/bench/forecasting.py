@@ -6,8 +6,9 @@ frames. Rows per case and prefix length: ``pos_mse`` (MSE of x and y over the ho
 by the 10 m view, squared), ``cov50`` / ``cov90`` (fraction of predicted coordinates whose truth
 lies in the forecast's central 50 / 90% interval), ``spread`` (mean forecast std / 10 m: how
 certain the method says it is), ``width90_m`` (mean width of the 90% band over the horizon,
-metres), ``width90_common_m`` (the same over the frames every prefix forecasts: from the last
-prefix to the video's end) and ``wall_s`` (the whole forecast).
+metres), ``width90_common_m`` and ``cov90_common`` (band width and 90% coverage over the
+frames every prefix forecasts: from the last prefix to the video's end) and ``wall_s`` (the
+whole forecast).
 
 The band over "the next 100 frames" covers other frames after each prefix (after 100 frames
 the ball is often rolling, where rolling resistance, learnt last, decides the path), so only
@@ -97,6 +98,9 @@ class Forecasting(Experiment):
             width = (hi90 - lo90).mean(axis=1)  # (frames to the end,), mean of x and y
             out.add(i, t0, "width90_m", float(np.mean(width[:h])))
             out.add(i, t0, "width90_common_m", float(np.mean(width[common - t0:])))
+            late = truth[common:]
+            out.add(i, t0, "cov90_common", np.mean((late >= lo90[common - t0:])
+                                                   & (late <= hi90[common - t0:])))
             out.add(i, t0, "spread", float(np.mean(fc.std[:h])) / BOX_WIDTH)
             out.add(i, t0, "wall_s", wall)
             out.artifacts[f"width90_{t0}"] = width.astype(np.float32)
@@ -136,11 +140,13 @@ class Forecasting(Experiment):
             rec["median s/forecast"] = f"{wall.get((m, inp), np.nan):.3g}"
             recs.append(rec)
         out = {"forecast_mse": pd.DataFrame(recs)}
-        common = df[df.metric == "width90_common_m"]
+        common = df[df.metric.isin(["width90_common_m", "cov90_common"])]
         if len(common):
             last = int(common.n_frames.max())
-            w = common.groupby(["method", "input", "n_frames"]).value.mean().unstack("n_frames")
-            w.columns = [f"band (m) on frames {last}-end, after {t}" for t in w.columns]
+            w = common.groupby(["method", "input", "metric", "n_frames"]).value.mean().unstack(
+                ["metric", "n_frames"]).sort_index(axis=1, ascending=[False, True])
+            w.columns = [f"{'band (m)' if m.startswith('width') else 'cov90'} on frames "
+                         f"{last}-end, after {t}" for m, t in w.columns]
             out["forecast_band"] = w.round(3).reset_index()
         return out
 
@@ -286,9 +292,12 @@ def _certainty_reading(df, method: str) -> list[str]:
     claim = "Paper: Vid2Param becomes more certain as frames are observed. "
     if len(common) < 2:  # a store from before the common frames were measured
         return [claim + f"{method}'s mean 90% band {_narrows(nxt)}: {fmt(nxt)}."]
+    cov = _per_prefix(df, "cov90_common", method)
+    held = (" (it holds " + ", ".join(f"{v:.0%}" for v in cov) + " of the true positions)"
+            if len(cov) == len(common) else "")
     return [claim + f"On the frames every prefix forecasts ({common.index.max()} to the end), "
-            f"{method}'s mean 90% band {_narrows(common)}: {fmt(common)}. Over the next frames "
-            f"of each prefix (other frames each time) it {_narrows(nxt)}: {fmt(nxt)}."]
+            f"{method}'s mean 90% band {_narrows(common)}: {fmt(common)}{held}. Over the next "
+            f"frames of each prefix (other frames each time) it {_narrows(nxt)}: {fmt(nxt)}."]
 
 
 def _band_figure(arts, afters):
