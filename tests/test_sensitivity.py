@@ -53,6 +53,14 @@ def test_reading_says_when_label_noise_claim_does_not_hold():
     assert "Does not hold" in noise[0]
 
 
+def test_label_noise_is_judged_per_identifiable_parameter():
+    # d three times worse: the mean over e, g, d, r (r at guessing level) would stay within 2x
+    df = _frame(_rows("noise:0", GOOD), _rows("noise:0.5", {**GOOD, "d": 3 * GOOD["d"]}))
+    noise = [ln for ln in Sensitivity().reading(df) if "label noise" in ln][0]
+    assert "Does not hold" in noise and "each of e, g, d within 2x" in noise
+    assert "at 0.5, e 1.0" in noise and "d 3." in noise
+
+
 def test_reading_warns_when_the_control_is_at_guessing_level():
     bad = {p: 0.08 for p in PARAMS}
     lines = Sensitivity().reading(_frame(_rows("noise:0", bad), _rows("noise:0.5", bad)))

@@ -64,6 +64,9 @@ def conditions(scale) -> list[str]:
 #: Suffix of a cell's condition that evaluates the method's ready-trained model of it while
 #: other conditions of the scale have none (``noise:0.1@shipped``).
 SHIPPED = "@shipped"
+#: The label-noise claim is judged on these: the parameters the control must identify (r is
+#: near guessing at 50 frames for every model).
+NOISE_RULE_PARAMS = ("e", "g", "d")
 
 
 def base_condition(condition: str) -> str:
@@ -355,14 +358,27 @@ def _reading(df) -> list[str]:
     if nz.condition.nunique() > 1 and ctl_mse is not None:
         s = ci_summary(nz.assign(level=nz.condition.str.split(":").str[1].astype(float)),
                        ["level"]).sort_values("level")
-        worst = float(s["mean"].max())
-        holds = worst <= 2 * ctl_mse
+        # judged per parameter: r is barely identified at 50 frames by any model, and its
+        # error would dilute a mean over all four
+        noisy = df[(df.n_frames == last) & df.condition.str.startswith("noise:")]
+        noisy = noisy.assign(level=noisy.condition.str.split(":").str[1].astype(float))
+        ratio = {}
+        for q in NOISE_RULE_PARAMS:
+            v = noisy[noisy.metric == f"se_{q}"].groupby("level").value.mean()
+            if 0.0 in v.index and v.loc[0.0] > 0:
+                ratio[q] = v / v.loc[0.0]
+        top = float(s.level.max())
+        worst = max((float(r.max()) for r in ratio.values()), default=np.nan)
+        holds = bool(worst <= 2)
         out.append("Paper: performance stays consistent with large training-label noise. "
                    f"Here (MSE @ {last} frames): " + ", ".join(
                        f"{r.level:g} of the range {fmt_ci(r['mean'], r.lo, r.hi)}"
                        for _, r in s.iterrows())
-                   + f". {verdict(holds)} (rule: every level within "
-                   f"2x the control's MSE; worst {worst / ctl_mse:.2f}x).")
+                   + f"; at {top:g}, " + ", ".join(f"{q} {r.loc[top]:.2f}x" for q, r in
+                                                   ratio.items())
+                   + f" the control's. {verdict(holds)} (rule: at every level, each of "
+                   + ", ".join(NOISE_RULE_PARAMS) + f" within 2x the control's MSE; worst "
+                   f"{worst:.2f}x).")
     ex = df[df.condition.str.startswith("extrapolation:")]
     for cond, g in ex.groupby("condition"):
         p = cond.split(":")[1]
