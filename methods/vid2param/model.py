@@ -291,7 +291,8 @@ class Vid2ParamNet(nn.Module):
     # -- training pass --------------------------------------------------------------------------
     def forward(self, frames: torch.Tensor, targets: torch.Tensor, n_obs: int | None = None,
                 rec_frac: float = 1.0, generator: torch.Generator | None = None,
-                aux_grad: float | None = None) -> dict:
+                aux_grad: float | None = None,
+                supervised: torch.Tensor | None = None) -> dict:
         """Loss terms for a batch of videos.
 
         Frames ``[0, n_obs)`` are observed (z from the posterior); frames ``[n_obs, T)`` are
@@ -314,6 +315,10 @@ class Vid2ParamNet(nn.Module):
             Source of the sampling noise and the decoded subset.
         aux_grad : float, optional
             Overrides ``config.aux_grad`` for this pass (a training schedule's early phase).
+        supervised : Tensor of bool, shape (K,), optional
+            Targets whose NLL terms count; default all. A target that does not vary in the
+            training data (``simplified``'s fixed d and r) tells nothing to identify, and its
+            NLL, unbounded as its std shrinks to the floor, would swamp the others'.
 
         Returns
         -------
@@ -362,11 +367,13 @@ class Vid2ParamNet(nn.Module):
                 *target.shape[:2], *self.decoder.size)
         rec = F.binary_cross_entropy_with_logits(logits, target, reduction="none").sum((-1, -2))  # (B, n_rec): summed over pixels as the authors did
         kl = gaussian_kl(qmu, qstd, pmu, pstd).sum(-1)
-        nll = gaussian_nll(qmu[..., :K], qstd[..., :K], tgt_obs).sum(-1)
-        nll_prior = gaussian_nll(pmu[..., :K], pstd[..., :K], tgt_obs).sum(-1)
+        keep = slice(None) if supervised is None else torch.as_tensor(
+            supervised, dtype=torch.bool, device=frames.device)
+        nll = gaussian_nll(qmu[..., :K], qstd[..., :K], tgt_obs)[..., keep].sum(-1)
+        nll_prior = gaussian_nll(pmu[..., :K], pstd[..., :K], tgt_obs)[..., keep].sum(-1)
         if n_obs < T:
             fm, fs = (torch.stack(a, 1) for a in zip(*fore))
-            nll_fc = gaussian_nll(fm[..., :K], fs[..., :K], targets[:, n_obs:]).sum(-1)
+            nll_fc = gaussian_nll(fm[..., :K], fs[..., :K], targets[:, n_obs:])[..., keep].sum(-1)
             nll_prior = torch.cat([nll_prior, nll_fc], 1)
         per_frame = c.alpha * rec.mean() + c.beta * kl.mean() + c.gamma * nll.mean()
         loss = per_frame + c.gamma_prior * nll_prior.mean()

@@ -312,6 +312,9 @@ class _Feed:
                 ds = perturb_dataset(ds, seed=seed, **tc.perturb)
             self.frames = np.asarray(ds.frames)
             self.targets = targets_from_dataset(ds, self.names)
+        # a label equal in every video of the chunk (a fixed parameter) is not supervised
+        spread = np.ptp(self.targets.reshape(-1, self.targets.shape[-1]), axis=0)
+        self.supervised = None if (spread > 0).all() else spread > 0
         rng = np.random.default_rng([tc.seed, k, 17])
         self.order = rng.permutation(len(self.frames))
         self.k = k
@@ -322,6 +325,12 @@ class _Feed:
             self._load_chunk(k)
         idx = np.sort(self.order[pos * self.tc.batch : (pos + 1) * self.tc.batch])
         return self.frames[idx], self.targets[idx]
+
+    def supervised_targets(self, step: int):
+        """(K,) bool: the targets that vary in ``step``'s chunk; None when all do."""
+        if divmod(step, self.per_chunk)[0] != self.k:
+            self.batch(step)
+        return self.supervised
 
 
 @torch.no_grad()
@@ -649,7 +658,7 @@ def train(
             g["lr"] = _lr_at(step, tc)
         aux = tc.early_aux_grad if step < tc.early_aux_grad_steps else None
         outd = net(fr, torch.as_tensor(tg_np, device=dev), n_obs=n_obs, rec_frac=tc.rec_frac,
-                   generator=gen, aux_grad=aux)
+                   generator=gen, aux_grad=aux, supervised=feed.supervised_targets(step))
         opt.zero_grad(set_to_none=True)
         (outd["loss"] if step >= tc.nll_only_steps else outd["loss_nll"]).backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), tc.clip)
