@@ -301,6 +301,7 @@ class _Feed:
         else:
             self.per_chunk = tc.chunk // tc.batch
         self.k = None
+        self.supervised = None
 
     def _load_chunk(self, k: int) -> None:
         tc = self.tc
