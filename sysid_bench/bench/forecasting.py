@@ -88,19 +88,17 @@ class Forecasting(Experiment):
                 out.fail(t0, exc, i)
                 continue
             wall = time.perf_counter() - start
-            fut = truth[t0 : t0 + h]
-            lo90, hi90 = forecast_interval(fc, 0.9)
-            out.add(i, t0, "pos_mse", position_mse(fut, fc.mean[:h]))
-            for level in (0.5, 0.9):
-                lo, hi = forecast_interval(fc, level)
-                out.add(i, t0, f"cov{int(level * 100)}",
-                        np.mean((fut >= lo[:h]) & (fut <= hi[:h])))
+            fut = truth[t0:]  # to the end, as the forecast
+            band = {level: forecast_interval(fc, level) for level in (0.5, 0.9)}
+            lo90, hi90 = band[0.9]
+            out.add(i, t0, "pos_mse", position_mse(fut[:h], fc.mean[:h]))
+            for level, (lo, hi) in band.items():
+                out.add(i, t0, f"cov{int(level * 100)}", _inside(fut, lo, hi, slice(h)))
             width = (hi90 - lo90).mean(axis=1)  # (frames to the end,), mean of x and y
+            late = slice(common - t0, None)
             out.add(i, t0, "width90_m", float(np.mean(width[:h])))
-            out.add(i, t0, "width90_common_m", float(np.mean(width[common - t0:])))
-            late = truth[common:]
-            out.add(i, t0, "cov90_common", np.mean((late >= lo90[common - t0:])
-                                                   & (late <= hi90[common - t0:])))
+            out.add(i, t0, "width90_common_m", float(np.mean(width[late])))
+            out.add(i, t0, "cov90_common", _inside(fut, lo90, hi90, late))
             out.add(i, t0, "spread", float(np.mean(fc.std[:h])) / BOX_WIDTH)
             out.add(i, t0, "wall_s", wall)
             out.artifacts[f"width90_{t0}"] = width.astype(np.float32)
@@ -275,6 +273,12 @@ class Forecasting(Experiment):
 def _per_prefix(df, metric: str, method: str):
     """Mean of ``metric`` of ``method`` per number of observed frames (a Series)."""
     return df[(df.metric == metric) & (df.method == method)].groupby("n_frames").value.mean()
+
+
+def _inside(truth, lo, hi, frames: slice) -> float:
+    """Share of the coordinates of ``truth[frames]`` inside ``[lo, hi][frames]``."""
+    t = truth[frames]
+    return float(np.mean((t >= lo[frames]) & (t <= hi[frames])))
 
 
 def _narrows(series) -> str:

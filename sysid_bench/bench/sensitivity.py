@@ -354,14 +354,13 @@ def _reading(df) -> list[str]:
             out.append(f"Control (clean labels, full physics): normalised MSE "
                        f"{fmt_ci(s['mean'], s['lo'], s['hi'])} at {last} frames ({per}; "
                        f"guessing the prior mean scores {GUESS_MSE:.3f}).")
-    nz = at[at.condition.str.startswith("noise:")]
+    noisy = df[(df.n_frames == last) & df.condition.str.startswith("noise:")]
+    noisy = noisy.assign(level=noisy.condition.str.split(":").str[1].astype(float))
+    nz = noisy[noisy.metric == "se"]
     if nz.condition.nunique() > 1 and ctl_mse is not None:
-        s = ci_summary(nz.assign(level=nz.condition.str.split(":").str[1].astype(float)),
-                       ["level"]).sort_values("level")
+        s = ci_summary(nz, ["level"]).sort_values("level")
         # judged per parameter: r is barely identified at 50 frames by any model, and its
         # error would dilute a mean over all four
-        noisy = df[(df.n_frames == last) & df.condition.str.startswith("noise:")]
-        noisy = noisy.assign(level=noisy.condition.str.split(":").str[1].astype(float))
         ratio = {}
         for q in NOISE_RULE_PARAMS:
             v = noisy[noisy.metric == f"se_{q}"].groupby("level").value.mean()
