@@ -633,6 +633,90 @@ def test_roll_features_read_the_deceleration_of_a_rolling_track_and_ignore_fligh
     np.testing.assert_array_equal(mu[:, others].numpy(), kp_mu[:, others].numpy())
 
 
+def _feed_positions(net, x, y):
+    """The recurrent state after feeding exact positions (N, T) in metres."""
+    z = torch.zeros(*x.shape, net.config.latent)
+    z[..., 0], z[..., 1] = torch.as_tensor(x / 10.0), torch.as_tensor(y / 10.0)
+    state = net.init_state(x.shape[0])
+    for t in range(x.shape[1]):
+        state = net.step_rnn(z[:, t], state)
+    return state
+
+
+def test_run_fit_statistic_reads_r_at_any_floor_height_and_ignores_flight():
+    """``roll_stat="fit"``: parabolas through flat runs read r exactly, wherever the floor is
+    (the camera's raised floors), across a wall bounce, and a bouncing ball adds nothing."""
+    from methods.vid2param.model import Vid2ParamNet
+    from methods.vid2param.parts import FIT_FLAT, RunFits
+    from sysid_bench.physics import simulate
+
+    cfg = V2PConfig(**{**BARE, "roll_features": True, "roll_stat": "fit"}, latent=8, hidden=16,
+                    feat=16, channels=(4, 8))
+    net = Vid2ParamNet(cfg)
+    theta = np.array([[0.8, -9.8, 0.1, 0.1], [0.8, -9.8, 0.1, 0.6], [0.9, -9.8, 0.1, 0.6]])
+    s0 = np.array([[1.0, 0.0, 3.0, 0.0], [2.0, 0.0, -4.0, 0.0], [1.0, 5.0, 1.0, 0.0]])
+    states = simulate(theta, s0, n_frames=60)
+    assert (states[:2, :, 1] == 0).all() and (np.abs(np.diff(states[2, :, 1])) > 0.02).sum() > 50
+    lift = np.array([0.0, 0.7, 0.0])[:, None]  # the second ball rolls on a raised floor
+    state = _feed_positions(net, states[..., 0], states[..., 1] + lift)
+    count, mean = (a[:, 0].numpy() for a in RunFits.summary(state.roll))
+    # the first ball rolls throughout: every frame from the (FIT_FLAT + 1)-th (the first
+    # gives no step) joins one run; the second bounces off the left wall at ~0.5 s, which
+    # ends one run and, FIT_FLAT frames after the wall zone, starts another
+    assert count[0] == 60 - FIT_FLAT - 1 and 20 < count[1] < 60 - FIT_FLAT - 1 and count[2] == 0
+    np.testing.assert_allclose(mean[:2], [0.1, 0.6], atol=1e-6)
+    assert state.roll.dtype == torch.float64 and not state.roll.requires_grad
+    # the heads read the same two features as with the steps statistic
+    feats = net.read(state)[:, -2:].detach().numpy() / 5.0
+    np.testing.assert_allclose(feats[:, 0], [0.1 / 0.7, 0.6 / 0.7, 0.0], atol=1e-5)
+    np.testing.assert_allclose(feats[:, 1], count / (count + 10.0), rtol=1e-6)
+
+
+def test_run_fit_statistic_numpy_path_equals_torch_on_noisy_tracks():
+    """``fast.FrameFilter``'s float arithmetic of ``RunFits`` gives the torch path's columns."""
+    from methods.vid2param.fast import FrameFilter
+    from methods.vid2param.parts import RunFits
+    from sysid_bench.physics import simulate
+
+    rng = np.random.default_rng(3)
+    theta = np.column_stack([rng.uniform(0.6, 0.7, 8), np.full(8, -9.8), np.full(8, 0.01),
+                             rng.uniform(0.05, 0.7, 8)])
+    s0 = np.column_stack([rng.uniform(2, 8, 8), rng.uniform(0, 2, 8), rng.uniform(-4, 4, 8),
+                          np.zeros(8)])
+    st = simulate(theta, s0, n_frames=120)
+    # keypoint-like noise: 2 mm jitter and the odd misread frame a metre off
+    x = st[..., 0] + rng.normal(0, 0.002, st.shape[:2])
+    y = st[..., 1] + rng.normal(0, 0.002, st.shape[:2])
+    y[rng.random(y.shape) < 0.03] += 1.0
+    pos = torch.as_tensor(np.stack([x, y], -1) / 10.0, dtype=torch.float32)
+    stats = torch.zeros(8, RunFits.n_cols, dtype=torch.float64)
+    last, vel, n = torch.zeros(8, 2), torch.zeros(8, 2), torch.zeros(8, 1)
+    fl = [((0.0,) * RunFits.n_cols, (0.0, 0.0), (0.0, 0.0))] * 8
+    for t in range(120):
+        v = torch.where(n >= 1, (pos[:, t] - last) * 10.0, torch.zeros(8, 2))
+        stats = RunFits.update(pos[:, t], v, vel, n, stats)
+        last, vel, n = pos[:, t], v, torch.clamp(n + 1, max=2.0)
+        for i in range(8):
+            s, p0, v0 = fl[i]
+            p = tuple(pos[i, t].double().tolist())
+            vi = tuple(vel[i].double().tolist())
+            fl[i] = (FrameFilter._fit_stats(p, vi, v0, min(float(t), 2.0), s), p, vi)
+    np.testing.assert_allclose(np.array([f[0] for f in fl]), stats.numpy(), rtol=1e-9, atol=1e-9)
+    count, mean = RunFits.summary(stats)
+    got = np.array([FrameFilter._fit_summary(f[0]) for f in fl])
+    np.testing.assert_allclose(got, torch.cat([count, mean], 1).numpy(), rtol=1e-9, atol=1e-12)
+    assert (count[:, 0] > 0).sum() >= 4  # the noisy rolls are found
+
+
+def test_roll_stat_is_validated_and_old_configs_keep_the_steps_statistic():
+    with pytest.raises(ValueError, match=r"roll_stat: expected one of \['fit', 'steps'\]"):
+        V2PConfig(roll_stat="median")
+    old = V2PConfig().to_dict()
+    del old["roll_stat"]  # written before the field existed
+    assert V2PConfig.from_dict(old).roll_stat == "steps"
+    assert V2PConfig().roll_stat == "steps" and V2PConfig.preset("camera").roll_stat == "fit"
+
+
 def test_load_matching_widens_the_lstm_input_and_keeps_the_function(tiny_ckpt, tiny_data):
     """Fine-tuning with new inputs of the heads starts from exactly the old network's answers."""
     from methods.vid2param.model import Vid2ParamNet

@@ -113,6 +113,39 @@ def test_reset_restarts_and_weights_change_is_picked_up():
             est.net_.posterior.mlp[2].bias.sub_(0.01)
 
 
+@needs["camera"]
+def test_numpy_filter_matches_torch_with_the_run_fit_statistic():
+    """The shipped camera network given the run-fit rolling statistic (as a fine-tune from it
+    starts), over a rolling camera video: the NumPy path's posteriors and its float64 rolling
+    columns are the torch filter's."""
+    from methods.vid2param.checkpoint import load_checkpoint
+    from methods.vid2param.data import rolls_mask
+    from methods.vid2param.model import V2PConfig, Vid2ParamNet
+    from methods.vid2param.parts import RunFits
+    from methods.vid2param.train import PRESET_NUISANCE, load_matching
+
+    cfg = load_checkpoint(SHIPPED_CHECKPOINTS["camera"])["config"]
+    net = Vid2ParamNet(V2PConfig.from_dict({**cfg, "roll_features": True, "roll_stat": "fit"}))
+    load_matching(net, SHIPPED_CHECKPOINTS["camera"])
+    net.eval()
+    assert fast_support(net) is None
+    ds = make_dataset("test", 12, 5, size=(50, 100), nuisance=PRESET_NUISANCE["camera"])
+    with torch.inference_mode():
+        mu, sd, state = net.filter(torch.as_tensor(np.asarray(ds.frames)))
+    count = RunFits.summary(state.roll)[0][:, 0].numpy()
+    assert (count[~rolls_mask(ds.states, ds.floor)] == 0).all()  # no roll where none is
+    i = int(np.flatnonzero(count)[0])  # a video whose rolls were found
+    ff = FrameFilter(net, np.float64)
+    fast = np.array([np.concatenate(ff.step(f)) for f in np.asarray(ds.frames[i])])
+    np.testing.assert_allclose(fast, torch.cat([mu[i], sd[i]], -1).numpy(), atol=2e-3)
+    got = ff.torch_state().roll[0]
+    assert got.dtype == state.roll.dtype == torch.float64
+    assert RunFits.summary(got[None])[0].item() == count[i]  # the same rolling frames
+    np.testing.assert_allclose(got.numpy(), state.roll[i].numpy(), rtol=1e-4, atol=1e-4)
+    ff.set_torch_state(state.map(lambda t: t[i:i + 1]))  # and back
+    np.testing.assert_array_equal(np.array(ff.stats), state.roll[i].numpy())
+
+
 def test_unsupported_network_falls_back_to_torch(tmp_path):
     from methods.vid2param.fast import frame_filter_for
     from methods.vid2param.model import V2PConfig, Vid2ParamNet

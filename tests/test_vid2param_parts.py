@@ -188,8 +188,14 @@ def test_the_recurrent_state_is_named_and_maps_over_its_tensors():
     assert wide.h.shape == (6, 16) and wide.roll.shape == (6, 3)
     assert net.init_state(1).map(lambda t: t + 1).n_seen.item() == 1.0
     cam = Vid2ParamNet(V2PConfig.preset("camera"))
-    assert cam.init_state(1).roll is None and cam.rolling is None
-    assert cam.read(cam.init_state(1)).shape == (1, 2 * cam.config.hidden)
+    roll = cam.init_state(1).roll  # the run-fit statistic keeps float64 sums
+    assert roll.shape == (1, 14) and roll.dtype == torch.float64 and cam.rolling is not None
+    assert cam.read(cam.init_state(1)).shape == (1, 2 * cam.config.hidden + 2)
+    assert cam.read(cam.init_state(1)).dtype == torch.float32
+    bare = Vid2ParamNet(V2PConfig(latent=8, hidden=16, feat=16, channels=(4, 8),
+                                  roll_features=False))
+    assert bare.init_state(1).roll is None and bare.rolling is None
+    assert bare.read(bare.init_state(1)).shape == (1, 2 * 16)
 
 
 def _write_fixture() -> None:

@@ -251,6 +251,9 @@ class FrameFilter:
             self.pos_idx = [int(i) for i in net.recurrence.pos_idx]
             if self.roll:
                 r = net.rolling
+                self.roll_stat = net.recurrence.roll_stat
+                if self.roll_stat not in (_parts.StepDecelerations, _parts.RunFits):
+                    raise Unsupported(f"roll_stat: no NumPy path for {self.roll_stat!r}")
                 self.r_idx = r.r_index
                 self.roll_scale, self.roll_bias = float(r.scale.item()), float(r.bias.item())
                 self.roll_half = math.exp(r.log_half.item())
@@ -268,14 +271,17 @@ class FrameFilter:
         self.pos = (0.0, 0.0)
         self.vel = (0.0, 0.0)
         self.n = 0.0
-        self.stats = (0.0, 0.0, 0.0)  # low-frame run, rolling frames, summed deceleration
+        # the rolling statistic's columns (parts.StepDecelerations or parts.RunFits)
+        self.stats = (0.0,) * self.roll_stat.n_cols if self.roll else ()
         self._set_roll_features()
 
     def torch_state(self, device=None) -> RecurrentState:
         """The state as the network's (batch of one, float32)."""
-        t = lambda a: torch.tensor(np.asarray(a, np.float32).reshape(1, -1), device=device)  # noqa: E731
+        t = lambda a, d=torch.float32: torch.tensor(np.asarray(a, np.float64).reshape(1, -1),  # noqa: E731
+                                                    dtype=d, device=device)
+        roll = t(self.stats, self.roll_stat.dtype) if self.roll else None
         return RecurrentState(t(self.enc_in[self.sl_h]), t(self.enc_in[self.sl_c]), t(self.pos),
-                              t(self.vel), t([self.n]), t(self.stats) if self.roll else None)
+                              t(self.vel), t([self.n]), roll)
 
     def set_torch_state(self, state: RecurrentState) -> None:
         """Take the state from the network's (batch of one)."""
@@ -296,8 +302,12 @@ class FrameFilter:
         if not self.roll:
             return
         s, g = self.stats, _parts.ROLL_GAIN
-        mean = min(max(s[2] / max(s[1], 1.0) / _parts._R_TOP, -2.0), 2.0)
-        self.enc_in[self.i_roll:self.i_roll + 2] = (g * mean, g * (s[1] / (s[1] + 10.0)))
+        if self.roll_stat is _parts.RunFits:
+            count, mean = self._fit_summary(s)
+        else:
+            count, mean = s[1], s[2] / max(s[1], 1.0)
+        mean = min(max(mean / _parts._R_TOP, -2.0), 2.0)
+        self.enc_in[self.i_roll:self.i_roll + 2] = (g * mean, g * (count / (count + 10.0)))
 
     # -- the network, one frame -----------------------------------------------------------------
     def encode(self, frame: np.ndarray) -> np.ndarray:
@@ -400,7 +410,8 @@ class FrameFilter:
         np.tanh(c, out=self.tmp_h)
         np.multiply(so, self.tmp_h, out=ei[self.sl_h])
         if self.roll:
-            self.stats = self._roll_stats(pos, vel, self.vel, n, self.stats)
+            update = self._fit_stats if self.roll_stat is _parts.RunFits else self._roll_stats
+            self.stats = update(pos, vel, self.vel, n, self.stats)
             self._set_roll_features()
         self.pos, self.vel, self.n = pos, vel, min(n + 1.0, 2.0)
 
@@ -416,6 +427,39 @@ class FrameFilter:
               and vx * vxp > 0 and abs(dec) < M.ROLL_DEC_MAX
               and M.ROLL_WALL < x < M.BOX_WIDTH - M.ROLL_WALL)
         return (low, stats[1] + 1.0, stats[2] + dec) if ok else (low, stats[1], stats[2])
+
+    @staticmethod
+    def _fit_stats(pos, vel, vel_prev, n, stats) -> tuple[float, ...]:
+        """``parts.RunFits.update`` for one frame, on Python floats."""
+        M = _parts
+        vx, vxp, vy = vel[0], vel_prev[0], vel[1]
+        x = pos[0] * M.BOX_WIDTH
+        ok = (n >= 2 and abs(vy) < M.FIT_DY and abs(vx) > M.ROLL_STEP and vx * vxp > 0
+              and M.ROLL_WALL < x < M.BOX_WIDTH - M.ROLL_WALL)
+        flat = min(stats[0] + 1.0, M.FIT_FLAT) if ok else 0.0
+        r_n, fin = stats[1], stats[11:14]
+        if flat < M.FIT_FLAT:
+            if r_n >= M.FIT_MIN:
+                w = r_n**3
+                dec = M.run_fit_deceleration(*stats[1:9], stats[10])
+                fin = (fin[0] + w, fin[1] + w * dec, fin[2] + r_n)
+            return (flat,) + (0.0,) * 10 + tuple(fin)
+        x0, dirn = (x, math.copysign(1.0, vx) if vx else 0.0) if r_n == 0 else stats[9:11]
+        t, u = r_n, x - x0
+        s = stats[1:9]
+        run = (s[0] + 1.0, s[1] + t, s[2] + t * t, s[3] + t**3, s[4] + t**4, s[5] + u,
+               s[6] + t * u, s[7] + t * t * u)
+        return (flat,) + run + (x0, dirn) + tuple(fin)
+
+    @staticmethod
+    def _fit_summary(stats) -> tuple[float, float]:
+        """``parts.RunFits.summary`` on Python floats: (frames, mean deceleration)."""
+        M, r_n = _parts, stats[1]
+        w = r_n**3 if r_n >= M.FIT_MIN else 0.0
+        dec = M.run_fit_deceleration(*stats[1:9], stats[10]) if w else 0.0
+        total = stats[11] + w
+        mean = (stats[12] + w * dec) / total if total > 0 else 0.0
+        return stats[13] + (r_n if w else 0.0), mean
 
     def step(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One frame: the posterior given it and the frames before, then the state update

@@ -20,6 +20,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from methods.vid2param.parts import (
+    ROLL_STATS,
     Decoder,
     FrameEncoder,
     GaussianHead,
@@ -83,6 +84,10 @@ class V2PConfig:
     roll_features : bool
         Keep the rolling statistic in the recurrent state and blend it into the posterior's r
         (``parts.RollingEvidence``). Needs ``r`` among the targets.
+    roll_stat : {"steps", "fit"}
+        Which rolling statistic (``parts.ROLL_STATS``): ``"steps"`` averages per-frame
+        decelerations of frames low above floor 0 (28x28); ``"fit"`` fits parabolas to runs of
+        flat frames at any height (camera: noisy heights and an unseen raised floor).
     physics_prior : bool
         The latent rollout's physics transition (``methods.vid2param.prior``).
     """
@@ -103,6 +108,7 @@ class V2PConfig:
     aux_grad: float = 0.1
     pool: int = 1
     roll_features: bool = True
+    roll_stat: str = "steps"
     physics_prior: bool = True
 
     def __post_init__(self) -> None:
@@ -122,6 +128,8 @@ class V2PConfig:
                 f"pool: expected an int >= 1 dividing frame_size {self.frame_size}, got {self.pool}"
             )
         self.keypoints, self.pool = int(self.keypoints), int(self.pool)
+        if self.roll_stat not in ROLL_STATS:
+            raise ValueError(f"roll_stat: expected one of {sorted(ROLL_STATS)}, got {self.roll_stat!r}")
         if self.roll_features and "r" not in self.targets:
             raise ValueError("roll_features: needs 'r' among targets")
         if not 0.0 <= float(self.kp_threshold) < 1.0:
@@ -177,19 +185,20 @@ class V2PConfig:
 
 #: Fields added after checkpoints were written, with the value that reproduces those
 #: checkpoints (``V2PConfig.from_dict``).
-LEGACY_DEFAULTS = {"physics_prior": False}
+LEGACY_DEFAULTS = {"physics_prior": False, "roll_stat": "steps"}
 #: Options removed (no shipped model used another value), with the value the network now
 #: always has (``V2PConfig.from_dict``): a 1-layer LSTM, fed the mean of z (not a sample), with
 #: the position differences as inputs, read as ``[h, c]`` by the heads, a residual prior, and
 #: no linear map of the raw pixels beside the conv path.
 REMOVED = {"recur_noise": 0.0, "pixel_skip": False, "diff_features": True, "read_cell": True,
            "prior_residual": True, "layers": 1}
-#: Named configurations: ``"28x28"`` is ``V2PConfig()``; ``"camera"`` is the 100x50
-#: camera-like model's (no rolling statistic: its gates were tuned on 28x28 keypoints).
+#: Named configurations: ``"28x28"`` is ``V2PConfig()``; ``"camera"`` the 100x50 camera-like
+#: recipe's, with the run-fit rolling statistic (the shipped camera model predates it and has
+#: none; its checkpoint keeps its own config).
 PRESETS = {
     "28x28": {},
     "camera": {"frame_size": (50, 100), "kp_threshold": 0.2, "kp_visibility": True, "pool": 2,
-               "roll_features": False},
+               "roll_stat": "fit"},
 }
 
 

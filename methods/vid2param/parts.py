@@ -196,8 +196,9 @@ class RecurrentState:
         The last fed-back x, y (normalised by the view width) and velocity feature.
     n_seen : Tensor, shape (B, 1)
         Frames seen, capped at 2 (what the differences need).
-    roll : Tensor, shape (B, 3), or None
-        With ``roll_features``: consecutive low frames, rolling frames, summed deceleration.
+    roll : Tensor, shape (B, n_cols), or None
+        With ``roll_features``: the rolling statistic's columns (``StepDecelerations``,
+        ``RunFits``).
     """
 
     h: torch.Tensor
@@ -229,6 +230,7 @@ class Recurrence(nn.Module):
     def __init__(self, c):
         super().__init__()
         self.hidden, self.roll_features = c.hidden, bool(c.roll_features)
+        self.roll_stat = ROLL_STATS[c.roll_stat] if c.roll_features else None
         self.phi_z = nn.Sequential(nn.Linear(c.latent, c.feat), nn.ReLU())
         self.cell = nn.LSTMCell(c.feat + 4, c.hidden)
         self.pos_idx = [c.targets.index("x"), c.targets.index("y")]
@@ -238,14 +240,15 @@ class Recurrence(nn.Module):
         """The state before the first frame: zeros."""
         z = torch.zeros(batch, self.hidden, device=device)
         m = torch.zeros(batch, 2, device=device)
-        roll = torch.zeros(batch, 3, device=device) if self.roll_features else None
+        st = self.roll_stat
+        roll = None if st is None else torch.zeros(batch, st.n_cols, device=device, dtype=st.dtype)
         return RecurrentState(z, z, m, m, torch.zeros(batch, 1, device=device), roll)
 
     def read(self, state: RecurrentState) -> torch.Tensor:
         """What the posterior, prior and decoder read of the state: (B, R)."""
         out = torch.cat([state.h, state.c], -1)
         if state.roll is not None:
-            out = torch.cat([out, _roll_features(state.roll)], -1)
+            out = torch.cat([out, _roll_features(*self.roll_stat.summary(state.roll))], -1)
         return out
 
     def forward(self, z: torch.Tensor, state: RecurrentState) -> RecurrentState:
@@ -256,7 +259,9 @@ class Recurrence(nn.Module):
         acc = torch.where(n >= 2, (vel - vel_prev) * 40.0, torch.zeros_like(pos))
         inp = torch.cat([self.phi_z(z), vel.clamp(-5, 5), acc.clamp(-10, 10)], dim=-1)
         h, c = self.cell(inp, (state.h, state.c))
-        roll = None if state.roll is None else _roll_update(pos, vel, vel_prev, n, state.roll)
+        # a fixed function of the fed-back z: gradient stopped
+        roll = None if state.roll is None else self.roll_stat.update(
+            pos.detach(), vel.detach(), vel_prev.detach(), n, state.roll)
         return RecurrentState(h, c, pos, vel, torch.clamp(n + 1, max=2.0), roll)
 
 
@@ -289,31 +294,136 @@ class PriorHead(GaussianHead):
         return mu + last @ self.place, std
 
 
-def _roll_features(stats: torch.Tensor) -> torch.Tensor:
-    """The heads' rolling inputs (B, 2) from the statistics (B, 3): ``ROLL_GAIN`` times the mean
-    deceleration divided by the prior's top r (about r normalised) and ``n / (n + 10)``."""
-    mean = (stats[:, 2:3] / stats[:, 1:2].clamp(min=1.0) / _R_TOP).clamp(-2, 2)
-    count = stats[:, 1:2] / (stats[:, 1:2] + 10.0)
-    return torch.cat([ROLL_GAIN * mean, ROLL_GAIN * count], -1)
+def _roll_features(count: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+    """The heads' rolling inputs (B, 2) from a statistic's frame count and mean deceleration
+    (m/s^2), each (B, 1): ``ROLL_GAIN`` times the mean divided by the prior's top r (about r
+    normalised) and ``n / (n + 10)``."""
+    count, mean = count.to(torch.float32), mean.to(torch.float32)
+    return torch.cat([ROLL_GAIN * (mean / _R_TOP).clamp(-2, 2),
+                      ROLL_GAIN * count / (count + 10.0)], -1)
 
 
-def _roll_update(pos, vel, vel_prev, n, stats) -> torch.Tensor:
-    """The rolling statistics (B, 3) after the newest fed-back frame (see ``RollingEvidence``).
+class StepDecelerations:
+    """``roll_stat="steps"`` (28x28 models): the mean of per-frame decelerations.
 
-    ``pos`` (B, 2) normalised; ``vel``, ``vel_prev`` (B, 2) metres per frame; ``n`` (B, 1)
-    frames seen before this one (capped at 2). A fixed function of the fed-back z, gradient
-    stopped.
+    Columns (B, 3), float32: consecutive low frames, rolling frames, summed deceleration. A
+    frame rolls when the last three fed-back heights are below ``ROLL_HEIGHT`` (absolute, so
+    the floor must be at 0), the last two horizontal steps exceed ``ROLL_STEP`` with one sign,
+    the ball is more than ``ROLL_WALL`` from the walls and the deceleration under
+    ``ROLL_DEC_MAX``.
     """
-    pos, vel, vel_prev = pos.detach(), vel.detach(), vel_prev.detach()
-    low = torch.where(pos[:, 1:2] * BOX_WIDTH < ROLL_HEIGHT, stats[:, 0:1] + 1.0,
-                      torch.zeros_like(n)).clamp(max=3.0)
-    vx, vxp = vel[:, 0:1], vel_prev[:, 0:1]
-    dec = -torch.sign(vx) * (vx - vxp) / DT**2
-    x = pos[:, 0:1] * BOX_WIDTH  # positions are normalised by the view width
-    ok = ((low >= 3) & (n >= 2) & (vx.abs() > ROLL_STEP) & (vxp.abs() > ROLL_STEP)
-          & (vx * vxp > 0) & (dec.abs() < ROLL_DEC_MAX)
-          & (x > ROLL_WALL) & (x < BOX_WIDTH - ROLL_WALL)).to(pos.dtype)
-    return torch.cat([low, stats[:, 1:2] + ok, stats[:, 2:3] + ok * dec], -1)
+
+    n_cols, dtype = 3, torch.float32
+
+    @staticmethod
+    def update(pos, vel, vel_prev, n, stats) -> torch.Tensor:
+        """The statistics (B, 3) after the newest fed-back frame: ``pos`` (B, 2) normalised;
+        ``vel``, ``vel_prev`` (B, 2) metres per frame; ``n`` (B, 1) frames seen before this one
+        (capped at 2)."""
+        low = torch.where(pos[:, 1:2] * BOX_WIDTH < ROLL_HEIGHT, stats[:, 0:1] + 1.0,
+                          torch.zeros_like(n)).clamp(max=3.0)
+        vx, vxp = vel[:, 0:1], vel_prev[:, 0:1]
+        dec = -torch.sign(vx) * (vx - vxp) / DT**2
+        x = pos[:, 0:1] * BOX_WIDTH  # positions are normalised by the view width
+        ok = ((low >= 3) & (n >= 2) & (vx.abs() > ROLL_STEP) & (vxp.abs() > ROLL_STEP)
+              & (vx * vxp > 0) & (dec.abs() < ROLL_DEC_MAX)
+              & (x > ROLL_WALL) & (x < BOX_WIDTH - ROLL_WALL)).to(pos.dtype)
+        return torch.cat([low, stats[:, 1:2] + ok, stats[:, 2:3] + ok * dec], -1)
+
+    @staticmethod
+    def summary(stats) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rolling frames and their mean deceleration (m/s^2), each (B, 1)."""
+        return stats[:, 1:2], stats[:, 2:3] / stats[:, 1:2].clamp(min=1.0)
+
+
+#: ``RunFits`` gates, chosen on the camera and 28x28 models' fed-back tracks of train-split
+#: videos (docs in the model card): largest height change (m per frame) of a rolling frame,
+#: flat frames in a row before a frame joins a run, frames of a run before its fit counts.
+FIT_DY, FIT_FLAT, FIT_MIN = 0.02, 4, 10
+
+
+def _det3(a, b, c, d, e, f, g, h, i):
+    """Determinant of [[a, b, c], [d, e, f], [g, h, i]] (tensors or floats)."""
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+
+
+def run_fit_deceleration(n, s1, s2, s3, s4, sx, stx, sttx, direction):
+    """Deceleration (m/s^2) of the least-squares parabola ``x = a + b t + c t^2`` through a run
+    from its sums (``RunFits``): ``-2 c sgn(direction) / DT^2``. Tensors or floats; a run of
+    fewer than 3 frames gives 0."""
+    det = _det3(n, s1, s2, s1, s2, s3, s2, s3, s4)
+    num = _det3(n, s1, sx, s1, s2, stx, s2, s3, sttx)
+    if isinstance(det, torch.Tensor):
+        c = torch.where(n >= 3, num / torch.where(n >= 3, det, torch.ones_like(det)), 0.0)
+        return -2.0 * c * torch.sign(direction) / DT**2
+    return -2.0 * (num / det if n >= 3 else 0.0) * math.copysign(1.0, direction) / DT**2
+
+
+class RunFits:
+    """``roll_stat="fit"`` (camera): parabolas fitted to runs of flat fed-back frames.
+
+    On camera video one frame's height is a pixel row (~0.26 m) and a misread frame is off by
+    a metre, so neither an absolute height gate nor per-frame second differences find the
+    rolls. Rolling is flat instead: a frame joins the current run when its height moved less
+    than ``FIT_DY`` in each of the last ``FIT_FLAT`` frames, its horizontal step exceeds
+    ``ROLL_STEP`` with the previous step's sign, and it is more than ``ROLL_WALL`` from the
+    walls. A ball in flight is flat for at most two frames at its apex. Rolling is a constant
+    deceleration, so each run of at least ``FIT_MIN`` frames gets a least-squares parabola of
+    x over time, whose curvature averages out the per-frame noise; runs combine weighted by
+    length^3 (a run's curvature variance falls as length^-5).
+
+    Columns (B, 14), float64 (the normal equations of 200-frame runs lose float32's digits):
+    flat frames in a row, then the current run's n, sum t, t^2, t^3, t^4, sum x, t x, t^2 x
+    (x from the run's first x), that first x and the run's direction, then the finished runs'
+    summed weight, weighted deceleration and frames.
+    """
+
+    n_cols, dtype = 14, torch.float64
+
+    @staticmethod
+    def update(pos, vel, vel_prev, n, stats) -> torch.Tensor:
+        """As ``StepDecelerations.update``."""
+        pos, vel, vel_prev = pos.double(), vel.double(), vel_prev.double()
+        n = n.double()
+        col = lambda k: stats[:, k:k + 1]  # noqa: E731
+        vx, vxp, vy = vel[:, 0:1], vel_prev[:, 0:1], vel[:, 1:2]
+        x = pos[:, 0:1] * BOX_WIDTH
+        ok = ((n >= 2) & (vy.abs() < FIT_DY) & (vx.abs() > ROLL_STEP) & (vx * vxp > 0)
+              & (x > ROLL_WALL) & (x < BOX_WIDTH - ROLL_WALL))
+        flat = torch.where(ok, (col(0) + 1.0).clamp(max=FIT_FLAT), torch.zeros_like(n))
+        join = flat >= FIT_FLAT
+        run = stats[:, 1:11]
+        # a frame that does not join ends the run: a long enough run is added to the finished
+        r_n = col(1)
+        done = (~join) & (r_n >= FIT_MIN)
+        dec = run_fit_deceleration(*run[:, :8].T[:, :, None], col(10))
+        w = torch.where(done, r_n**3, torch.zeros_like(r_n))
+        fin = torch.cat([col(11) + w, col(12) + w * dec, col(13) + torch.where(done, r_n, 0.0)], -1)
+        # the joining frame's time in its run, and x from the run's first x
+        first = r_n == 0
+        x0 = torch.where(first, x, col(9))
+        dirn = torch.where(first, torch.sign(vx), col(10))
+        t, u = r_n, x - x0
+        add = torch.cat([torch.ones_like(t), t, t**2, t**3, t**4, u, t * u, t**2 * u], -1)
+        grown = torch.cat([run[:, :8] + add, x0, dirn], -1)
+        run = torch.where(join, grown, torch.zeros_like(grown))
+        return torch.cat([flat, run, fin], -1)
+
+    @staticmethod
+    def summary(stats) -> tuple[torch.Tensor, torch.Tensor]:
+        """Frames in counted runs and their weighted mean deceleration (m/s^2), each (B, 1):
+        the finished runs and, once it has ``FIT_MIN`` frames, the current one."""
+        r_n = stats[:, 1:2]
+        live = r_n >= FIT_MIN
+        dec = run_fit_deceleration(*stats[:, 1:9].T[:, :, None], stats[:, 10:11])
+        w = torch.where(live, r_n**3, torch.zeros_like(r_n))
+        total = stats[:, 11:12] + w
+        mean = (stats[:, 12:13] + w * dec) / torch.where(total > 0, total, torch.ones_like(total))
+        return stats[:, 13:14] + torch.where(live, r_n, 0.0), mean
+
+
+#: The rolling statistics by ``V2PConfig.roll_stat``.
+ROLL_STATS = {"steps": StepDecelerations, "fit": RunFits}
 
 
 class RollingEvidence(nn.Module):
@@ -321,13 +431,13 @@ class RollingEvidence(nn.Module):
 
     Rolling resistance is at most 0.7 m/s^2, 1.75 mm per frame^2, against ~5 mm of per-frame
     noise in the second difference of 28x28 keypoint positions, so one frame's acceleration
-    hides it. Summed over a roll the second differences telescope and the noise stays that of
-    two velocities. So the recurrent state keeps (``RecurrentState.roll``) the mean horizontal
-    deceleration ``-sgn(vx) d2x / dt^2`` over the frames where the fed-back track rolls -- the
-    last three heights below ``ROLL_HEIGHT``, the last two horizontal steps over ``ROLL_STEP``
-    and of one sign, more than ``ROLL_WALL`` from the walls, a deceleration under
-    ``ROLL_DEC_MAX`` -- and their count n. The heads read both (``Recurrence.read``), and the
-    posterior's r is blended towards the statistic by the evidence ``v = n / (n + n_half)``::
+    hides it. Over a roll the noise averages out. So the recurrent state keeps
+    (``RecurrentState.roll``) a statistic of the fed-back track (``V2PConfig.roll_stat``:
+    ``StepDecelerations``, the mean of per-frame decelerations, whose second differences
+    telescope, or ``RunFits``, parabolas fitted to runs of flat frames) that gives a mean
+    horizontal deceleration over the frames where the track rolls and their count n. The heads
+    read both (``Recurrence.read``), and the posterior's r is blended towards the mean by the
+    evidence ``v = n / (n + n_half)``::
 
         mu_r = (1 - v) mlp + v (scale * mean + bias),  std_r = (1 - v) mlp_std + v exp(log_std)
 

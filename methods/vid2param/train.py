@@ -51,6 +51,7 @@ from methods.vid2param.data import (
     targets_from_dataset,
 )
 from methods.vid2param.model import PRESETS, V2PConfig, Vid2ParamNet, count_parameters
+from methods.vid2param.parts import ROLL_STATS
 
 __all__ = ["TrainConfig", "train", "evaluate", "export", "export_with_prior", "calibrate", "resolve_device",
            "load_matching", "main"]
@@ -807,6 +808,8 @@ def _parser() -> argparse.ArgumentParser:
         model.add_argument("--" + name.replace("_", "-"), action=argparse.BooleanOptionalAction,
                            default=None, help=mc_help.get(name))
     model.add_argument("--targets", nargs="+", default=None, help=mc_help.get("targets"))
+    model.add_argument("--roll-stat", default=None, choices=sorted(ROLL_STATS),
+                       help=mc_help.get("roll_stat"))
     return p
 
 
