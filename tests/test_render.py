@@ -201,3 +201,53 @@ def test_bad_input(kwargs, name):
     kw.update(kwargs)
     with pytest.raises(ValueError, match=name):
         render(**kw)
+
+
+def _discs_whole_frame(cols, rows, size, radius):
+    """The renderer's disc coverage computed over every pixel of every frame (what it did
+    before drawing on a window around the ball): the reference the window must equal."""
+    h, w = size
+    out = np.zeros((cols.shape[0], h, w), dtype=np.float32)
+    jc = np.arange(w, dtype=np.float32) + 0.5
+    ic = np.arange(h, dtype=np.float32) + 0.5
+    r = np.float32(radius + 0.5)
+    for k in range(cols.shape[1]):
+        dx2 = (jc[None, :] - cols[:, k, None].astype(np.float32)) ** 2
+        dy2 = (ic[None, :] - rows[:, k, None].astype(np.float32)) ** 2
+        d = np.sqrt(dy2[:, :, None] + dx2[:, None, :])
+        np.subtract(r, d, out=d)
+        np.clip(d, 0.0, 1.0, out=d)
+        out += d
+    if cols.shape[1] > 1:
+        out /= cols.shape[1]
+    return out
+
+
+@pytest.mark.parametrize("size", [(28, 28), (50, 100), (9, 31)])
+@pytest.mark.parametrize("n_sub", [1, 7])
+def test_disc_window_gives_the_whole_frame_bytes(size, n_sub):
+    from sysid_bench.render import _draw_discs
+
+    rng = np.random.default_rng(size[0] * 10 + n_sub)
+    h, w = size
+    radius = RADIUS_FRACTION * min(h, w)
+    # centres anywhere, partly outside the image, with blur-like spreads up to half the view
+    c = rng.uniform(-radius, w + radius, (300, 1)) + rng.normal(0, 1, (1, n_sub)) * rng.uniform(0, w / 2, (300, 1))
+    r = rng.uniform(-radius, h + radius, (300, 1)) + rng.normal(0, 1, (1, n_sub)) * rng.uniform(0, 3, (300, 1))
+    got = _draw_discs(c, r, size, radius)
+    np.testing.assert_array_equal(got, _discs_whole_frame(c, r, size, radius))
+    assert _draw_discs(c[:0], r[:0], size, radius).shape == (0, h, w)
+
+
+def test_camera_render_bytes_are_those_of_the_whole_frame_renderer(monkeypatch):
+    """Whole camera videos (blur, noise, occlusions, a raised floor) come out byte for byte as
+    the whole-frame disc drawing makes them."""
+    import sysid_bench.render as R
+
+    rng = np.random.default_rng(5)
+    sts = physics.simulate(physics.sample_theta(4, rng), physics.sample_state0(4, rng), n_frames=60)
+    kw = dict(size=(50, 100), blur=0.5, occlusion=0.05, drop=0.05, noise=8.0, floor_offset=1.0,
+              seed=11)
+    new = render(sts, **kw)
+    monkeypatch.setattr(R, "_draw_discs", _discs_whole_frame)
+    np.testing.assert_array_equal(new, render(sts, **kw))
