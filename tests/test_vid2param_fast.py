@@ -144,6 +144,8 @@ def test_numpy_filter_matches_torch_with_the_run_fit_statistic():
     np.testing.assert_allclose(got.numpy(), state.roll[i].numpy(), rtol=1e-4, atol=1e-4)
     ff.set_torch_state(state.map(lambda t: t[i:i + 1]))  # and back
     np.testing.assert_array_equal(np.array(ff.stats), state.roll[i].numpy())
+    with pytest.raises(ValueError, match="14 rolling columns"):  # a steps-statistic state
+        ff.set_torch_state(state.map(lambda t: t[i:i + 1, :3]))
 
 
 def test_unsupported_network_falls_back_to_torch(tmp_path):

@@ -290,6 +290,9 @@ class FrameFilter:
             kind = "with" if self.roll else "without"
             raise ValueError(f"state: expected a RecurrentState {kind} rolling statistics, "
                              f"got {state!r}")
+        if self.roll and state.roll.shape[-1] != self.roll_stat.n_cols:
+            raise ValueError(f"state: expected {self.roll_stat.n_cols} rolling columns "
+                             f"({self.roll_stat.__name__}), got {state.roll.shape[-1]}")
         self.enc_in[self.sl_h], self.enc_in[self.sl_c] = a(state.h), a(state.c)
         self.pos, self.vel = tuple(a(state.last_pos).tolist()), tuple(a(state.last_vel).tolist())
         self.n = float(a(state.n_seen)[0])
