@@ -252,8 +252,12 @@ class FrameFilter:
             if self.roll:
                 r = net.rolling
                 self.roll_stat = net.recurrence.roll_stat
-                if self.roll_stat not in (_parts.StepDecelerations, _parts.RunFits):
+                # the statistic's float update and (count, mean) summary, chosen once
+                paths = {_parts.StepDecelerations: (self._roll_stats, self._steps_summary),
+                         _parts.RunFits: (self._fit_stats, self._fit_summary)}
+                if self.roll_stat not in paths:
                     raise Unsupported(f"roll_stat: no NumPy path for {self.roll_stat!r}")
+                self._roll_update, self._roll_summary = paths[self.roll_stat]
                 self.r_idx = r.r_index
                 self.roll_scale, self.roll_bias = float(r.scale.item()), float(r.bias.item())
                 self.roll_half = math.exp(r.log_half.item())
@@ -305,10 +309,7 @@ class FrameFilter:
         if not self.roll:
             return
         s, g = self.stats, _parts.ROLL_GAIN
-        if self.roll_stat is _parts.RunFits:
-            count, mean = self._fit_summary(s)
-        else:
-            count, mean = s[1], s[2] / max(s[1], 1.0)
+        count, mean = self._roll_summary(s)
         mean = min(max(mean / _parts._R_TOP, -2.0), 2.0)
         self.enc_in[self.i_roll:self.i_roll + 2] = (g * mean, g * (count / (count + 10.0)))
 
@@ -413,8 +414,7 @@ class FrameFilter:
         np.tanh(c, out=self.tmp_h)
         np.multiply(so, self.tmp_h, out=ei[self.sl_h])
         if self.roll:
-            update = self._fit_stats if self.roll_stat is _parts.RunFits else self._roll_stats
-            self.stats = update(pos, vel, self.vel, n, self.stats)
+            self.stats = self._roll_update(pos, vel, self.vel, n, self.stats)
             self._set_roll_features()
         self.pos, self.vel, self.n = pos, vel, min(n + 1.0, 2.0)
 
@@ -430,6 +430,11 @@ class FrameFilter:
               and vx * vxp > 0 and abs(dec) < M.ROLL_DEC_MAX
               and M.ROLL_WALL < x < M.BOX_WIDTH - M.ROLL_WALL)
         return (low, stats[1] + 1.0, stats[2] + dec) if ok else (low, stats[1], stats[2])
+
+    @staticmethod
+    def _steps_summary(stats) -> tuple[float, float]:
+        """``parts.StepDecelerations.summary`` on Python floats: (frames, mean deceleration)."""
+        return stats[1], stats[2] / max(stats[1], 1.0)
 
     @staticmethod
     def _fit_stats(pos, vel, vel_prev, n, stats) -> tuple[float, ...]:
