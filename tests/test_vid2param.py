@@ -775,7 +775,8 @@ def test_training_forecast_keeps_fed_back_positions_inside_the_box(monkeypatch):
 def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
     from dataclasses import asdict
 
-    from methods.vid2param.train import _OWN_FLAGS, _parse, _parser
+    from methods.vid2param.estimator import SHIPPED_CHECKPOINTS
+    from methods.vid2param.train import _OWN_FLAGS, PRESET_TRAIN, _parse, _parser, _train_config
 
     actions = {a.dest: a for a in _parser()._actions if a.dest != "help"}
     fields = [*asdict(TrainConfig()), *V2PConfig().to_dict()]
@@ -783,9 +784,17 @@ def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
     # every flag says what it is (its field's docstring), not just its name
     assert [d for d, a in actions.items() if not (a.help or "").replace("(default: %(default)s)", "").strip()] == []
     a = _parse(["--out", "x"])
-    assert {k: getattr(a, k) for k in asdict(TrainConfig()) if k not in _OWN_FLAGS} == {
-        k: v for k, v in asdict(TrainConfig()).items() if k not in _OWN_FLAGS}
+    assert _train_config(a, V2PConfig()) == TrainConfig()  # no flags: the 28x28 recipe
     assert a.preset == "28x28" and a.latent is None and a.roll_features is None
+    # a preset's recipe, with its shipped init resolved; a flag given overrides the preset
+    cam = V2PConfig.preset("camera")
+    tc = _train_config(_parse(["--out", "x", "--preset", "camera"]), cam)
+    assert tc.init == str(SHIPPED_CHECKPOINTS["28x28"]) and tc.size == (50, 100)
+    assert {k: getattr(tc, k) for k in PRESET_TRAIN["camera"] if k != "init"} == {
+        k: v for k, v in PRESET_TRAIN["camera"].items() if k != "init"}
+    tc = _train_config(_parse(["--out", "x", "--preset", "camera", "--steps", "7", "--init", "none",
+                               "--perturb", "null"]), cam)
+    assert (tc.steps, tc.init, tc.perturb, tc.nll_only_steps) == (7, None, None, 150)
 
 
 def test_labels_fixed_in_training_are_not_supervised():
