@@ -39,6 +39,13 @@ SHIPPED_CHECKPOINTS = {
 SENSITIVITY_CONDITIONS = tuple(get_scale("default").sensitivity_conditions())
 
 
+def checkpoint_path(checkpoint) -> Path:
+    """A shipped checkpoint's name (``SHIPPED_CHECKPOINTS``) as its path; a path as given."""
+    if isinstance(checkpoint, str) and checkpoint in SHIPPED_CHECKPOINTS:
+        return SHIPPED_CHECKPOINTS[checkpoint]
+    return Path(checkpoint)
+
+
 def condition_checkpoint(condition: str) -> str:
     """Checkpoint name of a sensitivity condition's model, e.g. ``"sensitivity/noise_0.1"``."""
     return "sensitivity/" + condition.replace(":", "_")
@@ -244,11 +251,7 @@ class Vid2Param(Estimator):
 
     # -- loading --------------------------------------------------------------------------------
     def _checkpoint_path(self) -> Path:
-        if self.checkpoint is None:
-            return SHIPPED_CHECKPOINTS[self.default_checkpoint]
-        if isinstance(self.checkpoint, str) and self.checkpoint in SHIPPED_CHECKPOINTS:
-            return SHIPPED_CHECKPOINTS[self.checkpoint]
-        return Path(self.checkpoint)
+        return checkpoint_path(self.default_checkpoint if self.checkpoint is None else self.checkpoint)
 
     def _ensure_net(self):
         if getattr(self, "net_", None) is None:

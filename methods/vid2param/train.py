@@ -716,19 +716,17 @@ def export_with_prior(state_path, out_path, calibrate_n: int = 0,
 
 #: Steps of the physics prior's training at export (``fit_prior``'s default).
 PRIOR_STEPS = 150
-#: Camera nuisances the camera preset trains on (the shipped camera model's).
-PRESET_NUISANCE = {
-    "camera": {"blur": 0.5, "occlusion": 0.05, "drop": 0.05, "noise": 8.0, "floor_offset": 1.0},
-}
 #: TrainConfig values a preset's recipe takes instead of the defaults (a flag given overrides
-#: them). The camera model starts from the shipped 28x28 model's weights (``init`` names a
+#: them). The camera preset trains on the shipped camera model's nuisances. It starts from the shipped 28x28 model's weights (``init`` names a
 #: shipped checkpoint or a path): from scratch, its run had learnt none of e, g, d after 2250
 #: of 4000 steps (model card), while the 28x28 recipe learns g by step 2000. The network
 #: already identifies, so no early aux-grad phase, a short encoder-only warm-up for the new
 #: size-dependent layers, and half the videos with spin and contact dwell (as the shipped
 #: camera model).
 PRESET_TRAIN = {
-    "camera": {"init": "28x28", "steps": 1500, "nll_only_steps": 150, "early_aux_grad_steps": 0,
+    "camera": {"nuisance": {"blur": 0.5, "occlusion": 0.05, "drop": 0.05, "noise": 8.0,
+                            "floor_offset": 1.0},
+               "init": "28x28", "steps": 1500, "nll_only_steps": 150, "early_aux_grad_steps": 0,
                "chunk": 600, "val_n": 100, "val_every": 500,
                "perturb": {"spin": 0.3, "dwell": 0.01, "p": 0.5}},
 }
@@ -738,9 +736,9 @@ def _resolve_init(init: str | None) -> str | None:
     """A shipped checkpoint's name (``"28x28"``, ``"camera"``) as its path; a path as given."""
     if init is None or init.lower() == "none":  # "none": from scratch, whatever the preset
         return None
-    from methods.vid2param.estimator import SHIPPED_CHECKPOINTS
+    from methods.vid2param.estimator import checkpoint_path
 
-    return str(SHIPPED_CHECKPOINTS[init]) if init in SHIPPED_CHECKPOINTS else init
+    return str(checkpoint_path(init))
 
 
 #: TrainConfig fields whose flags are not the generic ``--name VALUE`` (JSON, two values, a path)
@@ -841,18 +839,15 @@ def _parse(argv=None):
 
 def _train_config(a: argparse.Namespace, mc: V2PConfig) -> TrainConfig:
     """The recipe of parsed flags ``a``: TrainConfig's defaults, then the preset's
-    (``PRESET_TRAIN``, ``PRESET_NUISANCE``), then the flags given."""
+    (``PRESET_TRAIN``), then the flags given (a JSON flag given as ``null`` clears the preset's)."""
     recipe = dict(PRESET_TRAIN.get(a.preset, {}))
     recipe.update({k: v for k in asdict(TrainConfig()) if k not in _OWN_FLAGS
                    and (v := getattr(a, k)) is not None})
-    if hasattr(a, "perturb"):
-        recipe["perturb"] = a.perturb
+    recipe.update({k: getattr(a, k) for k in ("nuisance", "perturb") if hasattr(a, k)})
     if a.init is not None:
         recipe["init"] = a.init
     recipe["init"] = _resolve_init(recipe.get("init"))
-    return TrainConfig(**recipe, size=tuple(mc.frame_size),
-                       nuisance=getattr(a, "nuisance", PRESET_NUISANCE.get(a.preset)),
-                       variant_options=a.variant_options)
+    return TrainConfig(**recipe, size=tuple(mc.frame_size), variant_options=a.variant_options)
 
 
 def main(argv=None) -> int:
