@@ -13,17 +13,35 @@ Positions here are floor-relative metres (``floor = 0``): the latent space's con
 
 from __future__ import annotations
 
+import dataclasses
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 
-from sysid_bench.physics import BOX_WIDTH, DT, PARAMS, PRIOR, simulate
+from sysid_bench.physics import BOX_WIDTH, DT, PARAMS, PRIOR
+from sysid_bench.physics import simulate as _physics_simulate
 
-__all__ = ["StateFit", "WINDOW", "HOLDOUT", "backtest_error", "clamp_state", "fit_state", "sample_posterior",
+__all__ = ["StateFit", "WINDOW", "HOLDOUT", "backtest_error", "clamp_state", "fit_state", "fit_track",
+           "simulations", "sample_posterior",
            "sample_trajectories"]
 
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
+
+_counter = threading.local()
+
+
+def simulate(theta, state, n_frames, dt):
+    """``sysid_bench.physics.simulate``, counting the trajectories (``simulations``)."""
+    _counter.n = getattr(_counter, "n", 0) + len(theta)
+    return _physics_simulate(theta, state, n_frames, dt)
+
+
+def simulations() -> int:
+    """Trajectories this thread has simulated here so far (difference two readings to count a
+    fit's: every method reports the simulations it spent)."""
+    return int(getattr(_counter, "n", 0))
 #: Finite-difference steps of the Jacobian (m, m, m/s, m/s).
 _EPS = np.array([1e-4, 1e-4, 1e-4, 1e-4])
 #: Smallest position noise (m) assumed for the state's covariance: a perfect fit of a short
@@ -37,6 +55,8 @@ _V_MAX = 25.0
 _FLOOR_MAX = 2.0
 #: Largest std of the fitted state (m, m, m/s, m/s) in a direction the window leaves open.
 _STATE_CAP = np.array([0.5, 0.5, 1.0, 1.0])
+#: Largest factor by which ``fit_track`` widens its covariance for correlated residuals.
+_TAU_MAX = 50.0
 #: Frames fitted: 1.5 s holds a bounce or a stretch of rolling at any launch speed.
 WINDOW = 30
 #: Most frames a backtest holds out (``backtest_error``).
@@ -203,28 +223,127 @@ def fit_state(positions, theta_mean, theta_std, dt: float = DT, window: int = WI
                              np.full(5, 1e-9), iters)
     if sigma is None:
         sigma = max(_MIN_SIGMA, float(np.sqrt(held_cost / max(1, 2 * n - 4))))
-    V, cost, J = _lm(np.vstack([held, starts]), obs, valid, W, dt, sigma, np.append(u_net, f0),
+    V, _, J = _lm(np.vstack([held, starts]), obs, valid, W, dt, sigma, np.append(u_net, f0),
                      np.append(sd_net, sd_f), iters)
-    # A frame the network misread (occluded, dropped, blurred) can sit a metre off the path and
-    # drag the state, e and the floor with it, and inflates the noise estimate. Drop positions
-    # far outside the fit's robust spread and fit again from there.
-    path = _path(V, W, dt)
-    keep = _inliers(path, w, valid)
-    if keep.sum() < n and keep.sum() >= 3:
+    prior = (np.append(u_net, f0), np.append(sd_net, sd_f))
+    V, J, sigma, valid = _drop_misread(V, J, sigma, w, valid, dt, prior, iters)
+    return _result(start, V, J, sigma, int(valid.sum()))
+
+
+def fit_track(positions, theta_mean, theta_std, dt: float = DT, stage: int = 40,
+              iters: int = 10, floor: tuple[float, float] = (0.0, 0.005)) -> StateFit:
+    """MAP state and parameters given EVERY seen position and the network's posterior.
+
+    ``fit_state`` over the whole track: the state at the first seen frame and the parameters,
+    fitted to all positions with the network's posterior as the prior. A parameter that acts
+    slowly (drag: a few percent of the speed per second) shows in a long track far more than in
+    any window. One fit of 200 frames from a guess at the start falls into a wrong bounce
+    sequence (a different number of bounces fits nearly as well locally), so the window grows
+    from the start by ``stage`` frames at a time, each fit starting from the last: every stage
+    adds at most a bounce or two to a path that already fits the frames before.
+
+    Parameters
+    ----------
+    positions : ndarray, shape (T, 2)
+        Floor-relative positions (m); NaN rows are unseen frames.
+    theta_mean, theta_std : ndarray, shape (4,)
+        The network's posterior (``PARAMS`` order, physical units).
+    stage : int
+        Frames added per stage (the first stage fits the first ``stage`` seen frames).
+    iters : int
+        Levenberg-Marquardt iterations per stage.
+    floor : (float, float)
+        Prior mean and std (m) of the floor (as for ``fit_state``).
+
+    Returns
+    -------
+    StateFit
+        ``start`` is the first seen frame; ``cov``'s parameter block is the posterior's
+        (Laplace approximation).
+    """
+    p = np.asarray(positions, dtype=np.float64)
+    stage = max(5, int(stage))
+    seen = np.flatnonzero(np.isfinite(p).all(1))
+    if len(seen) < 3:
+        return fit_state(p, theta_mean, theta_std, dt=dt, window=len(p), iters=iters, floor=floor)
+    start = int(seen[0])
+    first = fit_state(p[:start + stage], theta_mean, theta_std, dt=dt, window=stage, iters=iters,
+                      floor=floor)
+    span = _HI - _LO
+    u_net = np.clip((np.clip(np.asarray(theta_mean, float), _LO, _HI) - _LO) / span, 0, 1)
+    sd_net = np.maximum(np.asarray(theta_std, float) / span, 1e-3)
+    prior = (np.append(u_net, float(floor[0])), np.append(sd_net, max(float(floor[1]), 1e-6)))
+    start = first.start
+    V = np.concatenate([first.state0, (first.theta - _LO) / span, [first.floor]])
+    sigma, J = first.sigma, None
+    T = p.shape[0]
+    end = start + stage
+    while end < T:
+        end = min(T, end + stage)
+        w = p[start:end]
+        valid = np.isfinite(w).all(1)
+        V, _, J = _lm(V[None], w[valid], valid, end - start, dt, sigma, *prior, iters)
+        V, J, sigma, valid = _drop_misread(V, J, sigma, w, valid, dt, prior, iters, reestimate=True)
+    if J is None:  # the track was no longer than the first stage
+        return first
+    fit = _result(start, V, J, sigma, int(valid.sum()))
+    # The Laplace covariance takes the residuals as independent; the network's misreadings
+    # persist over frames (a blurred ball reads low for several), so n frames carry the
+    # evidence of fewer: widen by the residuals' integrated autocorrelation time.
+    resid = np.where(valid[:, None], _path(V, end - start, dt) - w, np.nan)
+    return dataclasses.replace(fit, cov=fit.cov * _correlation_time(resid))
+
+
+def _correlation_time(resid: np.ndarray) -> float:
+    """Integrated autocorrelation time ``1 + 2 sum_k rho_k`` of residuals (W, 2) (NaN rows:
+    unseen or dropped frames), summed over lags until the first that is not positive (the
+    tail of an estimated autocorrelation is noise), at least 1 and at most ``_TAU_MAX``: the
+    factor by which correlated noise inflates the variance of a fit over many frames."""
+    r = np.where(np.isfinite(resid), resid, 0.0)
+    seen = np.isfinite(resid).all(1).astype(float)
+    var = (r**2).sum()
+    if seen.sum() < 10 or var <= 0:
+        return 1.0
+    tau = 1.0
+    for k in range(1, len(r) // 2):
+        pairs = (seen[:-k] * seen[k:]).sum()
+        if pairs < 5:
+            break
+        rho = (r[:-k] * r[k:]).sum() / pairs / (var / seen.sum())
+        if rho <= 0:
+            break
+        tau += 2.0 * rho
+    return float(min(tau, _TAU_MAX))
+
+
+def _drop_misread(V, J, sigma, w, valid, dt, prior, iters, reestimate=False):
+    """Drop positions far outside the fit's robust spread and fit again (twice: the second
+    time with the noise of the inliers' fit).
+
+    A frame the network misread (occluded, dropped, blurred) can sit a metre off the path and
+    drag the state, e and the floor with it, and inflates the noise estimate. With
+    ``reestimate`` the noise is re-estimated and the fit redone even when nothing is dropped
+    (a growing window's noise moves with it). Returns ``V, J, sigma, valid``.
+    """
+    W = len(w)
+    keep = _inliers(_path(V, W, dt), w, valid)
+    if (keep.sum() < valid.sum() or reestimate) and keep.sum() >= 3:
         valid, obs, n = keep, w[keep], int(keep.sum())
-        for refit in range(2):  # refit, then again with the noise of the inliers' fit
-            if refit:
-                path = _path(V, W, dt)
-            resid = path[valid] - obs
+        for _ in range(2):
+            resid = _path(V, W, dt)[valid] - obs
             sigma = max(_MIN_SIGMA, float(np.sqrt((resid**2).sum() / max(1, 2 * n - 4))))
-            V, cost, J = _lm(V[None], obs, valid, W, dt, sigma, np.append(u_net, f0),
-                             np.append(sd_net, sd_f), iters)
+            V, _, J = _lm(V[None], obs, valid, W, dt, sigma, *prior, iters)
+    return V, J, sigma, valid
+
+
+def _result(start, V, J, sigma, n) -> StateFit:
+    """The StateFit of the fitted vector ``V`` (9,) and its whitened Jacobian ``J``."""
     # a direction the window does not see (vy of a rolling ball: a small hop changes no
     # position to first order) keeps at most the spread of _STATE_CAP, not an unbounded one
     cap = np.concatenate([1.0 / _STATE_CAP**2, np.zeros(5)])
     cov = np.linalg.inv(J.T @ J + np.diag(cap) + 1e-12 * np.eye(9))
     # the covariance is in (state, u, floor) coordinates: u's rows/columns to physical units
-    scale = np.concatenate([np.ones(4), span, [1.0]])
+    scale = np.concatenate([np.ones(4), _HI - _LO, [1.0]])
     return StateFit(start, V[:4], _theta(V), cov * np.outer(scale, scale), float(sigma), n,
                     float(V[8]))
 
@@ -268,10 +387,13 @@ def _lm(V, obs, valid, W, dt, sigma, prior_mean, prior_sd, iters):
         pos = (sim - obs).reshape(len(v), -1) / sigma
         return np.concatenate([pos, (v[:, 4:] - prior_mean) / prior_sd], 1)
 
-    def jacobian(v, r0):  # (M, n*2+5, 9) by forward differences, one batched simulation
-        pert = (v[:, None, :] + np.diag(eps)[None]).reshape(-1, D)
+    def jacobian(v, r0):  # (M, n*2+5, 9) by one-sided differences, one batched simulation
+        # a coordinate at its bound is differenced inwards: outwards the clamp makes the
+        # column zero, and the covariance would claim the parameter unknown
+        h = np.where(_clamp(v + eps) != v + eps, -eps, eps)  # (M, 9)
+        pert = (v[:, None, :] + h[:, :, None] * np.eye(D)[None]).reshape(-1, D)
         rp = residuals(pert).reshape(len(v), D, -1)
-        return np.transpose((rp - r0[:, None, :]) / eps[None, :, None], (0, 2, 1))
+        return np.transpose((rp - r0[:, None, :]) / h[:, :, None], (0, 2, 1))
 
     r = residuals(V)
     cost = (r**2).sum(1)
