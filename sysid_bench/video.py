@@ -629,14 +629,18 @@ class IdentifyResult:
     info: dict
 
 
+#: Methods that read frames through a Vid2Param checkpoint (``--checkpoint``).
+_TAKES_CHECKPOINT = ("vid2param", "vid2param-physics")
+
+
 def _estimator(method: str, checkpoint: str | None, seed: int):
     import methods
 
-    if method == "vid2param":
-        return methods.get("vid2param", checkpoint=checkpoint or "28x28", seed=seed)
+    if method in _TAKES_CHECKPOINT:
+        return methods.get(method, checkpoint=checkpoint or "28x28", seed=seed)
     if checkpoint is not None:
-        raise ValueError(f"checkpoint: only vid2param takes a checkpoint, got {checkpoint!r} "
-                         f"with method {method!r}")
+        raise ValueError(f"checkpoint: only {' and '.join(_TAKES_CHECKPOINT)} take a checkpoint, "
+                         f"got {checkpoint!r} with method {method!r}")
     return methods.get(method)
 
 
@@ -785,7 +789,7 @@ def identify_video(path, *, method: str = "vid2param", checkpoint: str | None = 
             notes.append(f"no forecast: {exc}")
     info = {
         "method": method,
-        "checkpoint": (checkpoint or "28x28") if method == "vid2param" else None,
+        "checkpoint": (checkpoint or "28x28") if method in _TAKES_CHECKPOINT else None,
         "file": str(path),
         "fps": clip.source_fps,
         "model_fps": clip.fps,

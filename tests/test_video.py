@@ -271,3 +271,16 @@ def test_run_identify_registered():
 
     args = _parser("identify").parse_args(["identify", "v.mp4", "--checkpoint", "camera"])
     assert args.fn is video.run and args.checkpoint == "camera"
+
+
+def test_vid2param_physics_reads_a_file_and_a_blank_one(video_file, episode, tmp_path):
+    pytest.importorskip("torch")
+    theta, _ = episode
+    res = identify_video(video_file, method="vid2param-physics", every=100)
+    assert res.info["checkpoint"] == "28x28" and res.info["estimated_frames"] == [99, 199]
+    assert _nmse(theta, res.mean[-1]) < 0.001
+    # no ball: every frame unseen for the fit, so the network's prior-wide answer stands
+    path = write_video(tmp_path / "blank.mp4", np.full((30, 64, 64), 30, np.uint8))
+    blank = identify_video(path, method="vid2param-physics")
+    span = np.array([PRIOR[p][1] - PRIOR[p][0] for p in ("e", "g", "d", "r")])
+    assert np.all(blank.std[-1, :3] > 0.5 * span[:3] / np.sqrt(12))

@@ -6,8 +6,10 @@ the validation seed used during training), video only:
 * normalised MSE per parameter after each of ``--lengths`` frames (``r`` also over the videos in
   which the ball rolls, and the mean posterior std of ``r`` where it never rolls);
 * 50% and 90% interval coverage after the last length;
-* the same errors for ``lsq`` (frames -> tracking -> fit) on the first ``--lsq-n`` cases, at
-  ``--lsq-lengths``, with the seconds per identification of both methods;
+* the same errors for ``vid2param-physics`` (the physics fitted to the network's own track) on
+  the first ``--physics-n`` cases at ``--physics-lengths``, and for ``lsq`` (frames -> tracking
+  -> fit) on the first ``--lsq-n`` cases at ``--lsq-lengths``, with the seconds per
+  identification of each;
 * with ``--spin`` / ``--dwell``, a robustness study: the same test cases re-simulated with
   ``sysid_bench.physics.simulate_perturbed`` (each video its own spin loss ~ U[0, spin] and
   contact dwell ~ U[0, dwell]) and rendered again, scored the same way, plus the RMS position
@@ -108,15 +110,31 @@ def evaluate_lsq(ds, lengths, n: int, seed: int = 0) -> dict:
     """``lsq`` on frames (tracked) for the first ``n`` videos after each length."""
     import methods
 
-    est = methods.get("lsq", seed=seed)
+    videos = [video_observation(ds, i) for i in range(n)]  # tracked once, cut per length
+    return evaluate_identifier(methods.get("lsq", seed=seed), ds, videos, lengths)
+
+
+def evaluate_physics(checkpoint, ds, lengths, n: int, threads: int = 1) -> dict:
+    """``vid2param-physics`` (the physics fitted to the network's track) on the first ``n``
+    videos after each length: one network pass and one fit per video and length."""
+    import methods
+
+    est = methods.get("vid2param-physics", checkpoint=checkpoint, device="cpu", threads=threads,
+                      n_samples=0)
+    return evaluate_identifier(est, ds, [ds.observation(i) for i in range(n)], lengths)
+
+
+def evaluate_identifier(est, ds, videos, lengths) -> dict:
+    """Scores of ``est.identify`` on ``videos`` (the first ``len(videos)`` of ``ds``) cut after
+    each length, with the median seconds per identification."""
+    n = len(videos)
     truth = (np.asarray(ds.theta)[:n, -1] - _LO) / (_HI - _LO)
     rolls = rolls_mask(ds.states[:n], ds.floor[:n])
     long_rolls = rolls_mask(ds.states[:n], ds.floor[:n], min_frames=LONG_ROLL)
     res, secs = {}, {}
-    videos = [video_observation(ds, i) for i in range(n)]  # tracked once, cut per length
     for L in lengths:
         mu, sd, walls = [], [], []
-        for i in tqdm(range(n), desc=f"lsq @ {L} frames", mininterval=30):
+        for i in tqdm(range(n), desc=f"{est.name} @ {L} frames", mininterval=30):
             obs = videos[i].prefix(L)
             t0 = time.perf_counter()
             try:
@@ -196,9 +214,10 @@ def figures(out: dict, ds, fest, outdir, name: str, n_examples: int = 3) -> list
     for ax, p in zip(axes, PARAMS):
         key = (lambda r: r["nmse_r_rolling"]) if p == "r" else (lambda r, p=p: r["nmse"][p])
         ax.plot(lengths, [key(v[str(L)]) for L in lengths], "o-", label="Vid2Param")
-        if "lsq" in out:
-            ll = out["lsq"]["by_length"]
-            ax.plot([int(L) for L in ll], [key(ll[L]) for L in ll], "s", ms=8, label="lsq")
+        for other, mark in (("vid2param-physics", "D"), ("lsq", "s")):
+            if other in out:
+                ll = out[other]["by_length"]
+                ax.plot([int(L) for L in ll], [key(ll[L]) for L in ll], mark, ms=8, label=other)
         ax.axhline(1 / 12, color="grey", ls=":", label="prior guess")
         ax.axhline(0.03 if p == "r" else 0.01, color="k", ls="--", lw=0.8, label="target")
         ax.set_yscale("log")
@@ -260,6 +279,9 @@ def main(argv=None) -> int:
     p.add_argument("--lengths", type=int, nargs="+", default=[10, 25, 50, 100, 150, 200])
     p.add_argument("--lsq-n", type=int, default=0)
     p.add_argument("--lsq-lengths", type=int, nargs="+", default=[50, 200])
+    p.add_argument("--physics-n", type=int, default=50,
+                   help="videos identified by vid2param-physics (network track + physics fit)")
+    p.add_argument("--physics-lengths", type=int, nargs="+", default=[50, 200])
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--spin", type=float, default=0.0, help="robustness study: max spin loss")
     p.add_argument("--dwell", type=float, default=0.0, help="robustness study: max dwell (s)")
@@ -281,6 +303,9 @@ def main(argv=None) -> int:
            "vid2param": evaluate_vid2param(est, ds, a.lengths)}
     if a.lsq_n > 0:
         out["lsq"] = evaluate_lsq(ds, a.lsq_lengths, min(a.lsq_n, a.n), seed=0)
+    if a.physics_n > 0:
+        out["vid2param-physics"] = evaluate_physics(a.checkpoint, ds, a.physics_lengths,
+                                                    min(a.physics_n, a.n), a.threads)
     # forecasting needs samples: one estimator for the robustness study and the figures
     fest = Vid2Param(checkpoint=a.checkpoint, device="cpu", threads=a.threads)
     if a.spin > 0 or a.dwell > 0:

@@ -299,21 +299,24 @@ def _correlation_time(resid: np.ndarray) -> float:
     unseen or dropped frames), summed over lags until the first that is not positive (the
     tail of an estimated autocorrelation is noise), at least 1 and at most ``_TAU_MAX``: the
     factor by which correlated noise inflates the variance of a fit over many frames."""
-    r = np.where(np.isfinite(resid), resid, 0.0)
     seen = np.isfinite(resid).all(1).astype(float)
-    var = (r**2).sum()
-    if seen.sum() < 10 or var <= 0:
+    r = np.where(seen[:, None] > 0, resid, 0.0)
+    if seen.sum() < 10:
         return 1.0
-    tau = 1.0
-    for k in range(1, len(r) // 2):
-        pairs = (seen[:-k] * seen[k:]).sum()
-        if pairs < 5:
-            break
-        rho = (r[:-k] * r[k:]).sum() / pairs / (var / seen.sum())
-        if rho <= 0:
-            break
-        tau += 2.0 * rho
-    return float(min(tau, _TAU_MAX))
+    taus = []
+    for c in range(r.shape[1]):  # x and y misreadings persist differently: the longer counts
+        var = (r[:, c] ** 2).sum() / seen.sum()
+        tau = 1.0
+        for k in range(1, len(r) // 2 if var > 0 else 1):
+            pairs = (seen[:-k] * seen[k:]).sum()
+            if pairs < 5:
+                break
+            rho = (r[:-k, c] * r[k:, c]).sum() / pairs / var
+            if rho <= 0:
+                break
+            tau += 2.0 * rho
+        taus.append(tau)
+    return float(min(max(taus), _TAU_MAX))
 
 
 def _drop_misread(V, J, sigma, w, valid, dt, prior, iters, reestimate=False):

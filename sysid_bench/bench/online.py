@@ -24,7 +24,7 @@ from sysid_bench._validate import check_positive_int
 __all__ = ["online_cost", "online_cost_markdown", "ONLINE_METHODS"]
 
 #: The default table: Vid2Param's stream and the cheap position methods that identify.
-ONLINE_METHODS = ("vid2param", "lsq", "sindy", "dmd")
+ONLINE_METHODS = ("vid2param", "vid2param-physics", "lsq", "sindy", "dmd")
 
 
 def _clock() -> tuple[float, float]:
