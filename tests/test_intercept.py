@@ -276,7 +276,9 @@ def test_vid2param_policy_starts_its_path_at_the_fitted_position_now():
     for t, pos, mean in seen:
         k = round(t / sc.dt)
         assert np.all(np.isfinite(pos))
-        # the path is continuous: one frame from now to the forecast's first step (< 10 m/s)
-        assert np.abs(mean[0] - pos).max() < 10.0 * sc.dt
+        # the path is continuous: one frame from now to the forecast's first step is about the
+        # ball's own step (10 m/s, 0.48 m a frame, just after the bounce before frame 34)
+        step = np.abs(th.states[(k + 1) * fine, :2] - th.states[k * fine, :2]).max()
+        assert np.abs(mean[0] - pos).max() < step + 0.2
         if np.isfinite(track(th.frames[k][None])[0]).all():  # frame 33 is dropped
             assert np.abs(pos - th.states[k * fine, :2]).max() < 0.3, (t, pos)

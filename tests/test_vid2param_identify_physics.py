@@ -82,7 +82,6 @@ def test_physics_identification_beats_the_network_alone_and_is_seeded():
     est = methods.get("vid2param-physics", threads=1, n_samples=50)
     net = methods.get("vid2param", threads=1, n_samples=0)
     ds = make_dataset("test", 3, 2024)
-    lo = np.array([v[0] for v in PRIOR.values()])
     errs = {"physics": [], "network": []}
     for i in range(3):
         obs = ds.observation(i)

@@ -13,7 +13,6 @@ Positions here are floor-relative metres (``floor = 0``): the latent space's con
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 from dataclasses import dataclass
 
@@ -286,12 +285,12 @@ def fit_track(positions, theta_mean, theta_std, dt: float = DT, stage: int = 40,
         V, J, sigma, valid = _drop_misread(V, J, sigma, w, valid, dt, prior, iters, reestimate=True)
     if J is None:  # the track was no longer than the first stage
         return first
-    fit = _result(start, V, J, sigma, int(valid.sum()))
     # The Laplace covariance takes the residuals as independent; the network's misreadings
     # persist over frames (a blurred ball reads low for several), so n frames carry the
-    # evidence of fewer: widen by the residuals' integrated autocorrelation time.
+    # evidence of fewer: the positions' information is divided by the residuals' integrated
+    # autocorrelation time (the prior's is not: it is the network's, already calibrated).
     resid = np.where(valid[:, None], _path(V, end - start, dt) - w, np.nan)
-    return dataclasses.replace(fit, cov=fit.cov * _correlation_time(resid))
+    return _result(start, V, J, sigma, int(valid.sum()), tau=_correlation_time(resid))
 
 
 def _correlation_time(resid: np.ndarray) -> float:
@@ -339,12 +338,15 @@ def _drop_misread(V, J, sigma, w, valid, dt, prior, iters, reestimate=False):
     return V, J, sigma, valid
 
 
-def _result(start, V, J, sigma, n) -> StateFit:
-    """The StateFit of the fitted vector ``V`` (9,) and its whitened Jacobian ``J``."""
+def _result(start, V, J, sigma, n, tau: float = 1.0) -> StateFit:
+    """The StateFit of the fitted vector ``V`` (9,) and its whitened Jacobian ``J`` (positions'
+    rows, then the prior's five), the positions' information divided by ``tau``."""
     # a direction the window does not see (vy of a rolling ball: a small hop changes no
     # position to first order) keeps at most the spread of _STATE_CAP, not an unbounded one
     cap = np.concatenate([1.0 / _STATE_CAP**2, np.zeros(5)])
-    cov = np.linalg.inv(J.T @ J + np.diag(cap) + 1e-12 * np.eye(9))
+    data, prior = J[:-5], J[-5:]
+    info = data.T @ data / tau + prior.T @ prior
+    cov = np.linalg.inv(info + np.diag(cap) + 1e-12 * np.eye(9))
     # the covariance is in (state, u, floor) coordinates: u's rows/columns to physical units
     scale = np.concatenate([np.ones(4), _HI - _LO, [1.0]])
     return StateFit(start, V[:4], _theta(V), cov * np.outer(scale, scale), float(sigma), n,
