@@ -926,7 +926,8 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("video", help="video file (any format FFmpeg reads)")
     p.add_argument("--method", default="vid2param", help="identifying method (default vid2param)")
     p.add_argument("--checkpoint", default=None, choices=("28x28", "camera"),
-                   help="vid2param's model: 28x28 (default) or camera (100x50 view)")
+                   help="the model of vid2param and vid2param-physics: 28x28 (default) or camera "
+                        "(100x50 view)")
     p.add_argument("--out", default=None,
                    help="output folder (default: <video name>_sysid beside the current folder)")
     g = p.add_argument_group("geometry (default: framed as the suite's renderer)")
