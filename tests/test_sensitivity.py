@@ -83,6 +83,20 @@ def test_extrapolation_rule_compares_with_answering_the_training_range_edge():
     assert "Does not hold" in line
 
 
+def test_extrapolation_of_a_parameter_the_control_cannot_identify_is_not_judged():
+    # r after 50 frames: most balls have not rolled, every model answers its prior
+    d = np.r_[np.full(10, 0.05), np.full(10, 0.4)]
+    blind_ctl = {**GOOD, "r": 0.09}
+    far = _rows("extrapolation:r", {"e": 0.01, "g": 0.002, "d": 0.01, "r": 0.3}, distance=d)
+    line = [ln for ln in Sensitivity().reading(_frame(_rows("noise:0", blind_ctl), far))
+            if "extrapolation" in ln][0]
+    assert "Cannot tell for r" in line and "Holds" not in line and "Does not hold" not in line
+    sighted_ctl = {**GOOD, "r": 0.01}  # a control that reads r: the rule applies
+    line = [ln for ln in Sensitivity().reading(_frame(_rows("noise:0", sighted_ctl), far))
+            if "extrapolation" in ln][0]
+    assert "Does not hold" in line
+
+
 def test_simplified_rule():
     ok = _frame(_rows("noise:0", GOOD), _rows("simplified", {**GOOD, "e": 0.015}))
     assert "Holds" in [ln for ln in Sensitivity().reading(ok) if "simpler physics" in ln][0]

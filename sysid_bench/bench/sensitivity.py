@@ -389,13 +389,20 @@ def _reading(df) -> list[str]:
             # a model stuck at the top of its training range errs by the distance itself
             stuck = float((d[d >= 0.3] ** 2).mean())
             holds = far.mean() < 0.5 * stuck
+            # a parameter the control itself does not identify at this length (r before the
+            # ball rolls) says nothing about extrapolation: every model answers its prior
+            c0 = df[(df.n_frames == last) & df.condition.isin(["noise:0", "noise:0.0"])]
+            p_ctl = c0[c0.metric == f"se_{p}"].value.mean() if len(c0) else np.nan
+            blind = bool(p_ctl > 0.5 * GUESS_MSE)
+            judged = (f"Cannot tell for {p}: the control does not identify {p} after {last} "
+                      f"frames either (MSE {p_ctl:.3g}; guessing the prior mean scores "
+                      f"{GUESS_MSE:.3f})." if blind else
+                      f"{verdict(holds)} (rule: beyond 0.3, less than half that error).")
             out.append(
                 f"Paper: extrapolation decays slowly outside the training range. {p}: MSE "
                 f"{near.mean():.3g} within 0.1 of the range above it (n={len(near)}), "
                 f"{far.mean():.3g} beyond 0.3 (n={len(far)}), where answering the top of "
-                f"the training range would score {stuck:.3g}. "
-                f"{verdict(holds)} (rule: beyond 0.3, less than half "
-                "that error).")
+                f"the training range would score {stuck:.3g}. " + judged)
     sim = df[(df.condition == "simplified") & (df.n_frames == last)]
     ctl = df[(df.condition.isin(["noise:0", "noise:0.0"])) & (df.n_frames == last)]
     if len(sim) and len(ctl):
