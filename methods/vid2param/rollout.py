@@ -27,7 +27,7 @@ __all__ = ["StateFit", "WINDOW", "HOLDOUT", "backtest_error", "clamp_state", "fi
 
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
-
+#: Trajectories simulated by each thread (``simulations``).
 _counter = threading.local()
 
 
@@ -41,6 +41,8 @@ def simulations() -> int:
     """Trajectories this thread has simulated here so far (difference two readings to count a
     fit's: every method reports the simulations it spent)."""
     return int(getattr(_counter, "n", 0))
+
+
 #: Finite-difference steps of the Jacobian (m, m, m/s, m/s).
 _EPS = np.array([1e-4, 1e-4, 1e-4, 1e-4])
 #: Smallest position noise (m) assumed for the state's covariance: a perfect fit of a short

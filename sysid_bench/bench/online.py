@@ -23,7 +23,8 @@ from sysid_bench._validate import check_positive_int
 
 __all__ = ["online_cost", "online_cost_markdown", "ONLINE_METHODS"]
 
-#: The default table: Vid2Param's stream and the cheap position methods that identify.
+#: The default table: Vid2Param's stream, the physics fitted to its track on every prefix
+#: (vid2param-physics) and the cheap position methods that identify.
 ONLINE_METHODS = ("vid2param", "vid2param-physics", "lsq", "sindy", "dmd")
 
 
