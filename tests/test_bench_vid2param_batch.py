@@ -21,7 +21,11 @@ from sysid_bench.datasets import make_dataset  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")
 
-SPEEDUP = 2.0  # the previous path ran ~60 videos/s on an idle 2-core machine; target 170
+#: Chunked encoding over the previous whole-batch path, same run. Measured 3.0x (189 / 63
+#: videos/s) when it was written; 1.66-1.82x (132-151 / 79-89) on the same 2-core machine
+#: three days later with the code of then and of now alike (docs/vid2param-speed.md): the
+#: ratio moves with the machine, so the bound keeps a margin below the lowest seen.
+SPEEDUP = 1.5
 
 
 @pytest.mark.benchmark(group="vid2param-batch")
