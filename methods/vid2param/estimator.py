@@ -69,6 +69,15 @@ _HI = np.array([PRIOR[p][1] for p in PARAMS])
 _SPAN = _HI - _LO
 
 
+def _check_lengths(lengths, T: int) -> list[int]:
+    """Prefix lengths as positive ints, each at most the video's ``T`` frames."""
+    lengths = [check_positive_int(int(n), "lengths") for n in np.atleast_1d(lengths)]
+    for n in lengths:
+        if n > T:
+            raise ValueError(f"lengths: expected values <= {T}, got {n}")
+    return lengths
+
+
 def _physical(mu_n: np.ndarray, sd_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Normalised posterior mean and (calibrated) std of (e, g, d, r), (4,) each, in physical
     units; the mean clipped to the prior."""
@@ -417,10 +426,7 @@ class Vid2Param(Estimator):
         """
         frames = self._frames_of(obs)
         T = frames.shape[0]
-        lengths = [check_positive_int(int(n), "lengths") for n in np.atleast_1d(lengths)]
-        for n in lengths:
-            if n > T:
-                raise ValueError(f"lengths: expected values <= {T}, got {n}")
+        lengths = _check_lengths(lengths, T)
         mu, sd, wall = self._run(frames[None])
         # samples keyed by the prefix length: the same noise as a stream's after n frames
         return [
@@ -544,15 +550,28 @@ class Vid2Param(Estimator):
 
     def _track(self, frames):
         """``filtered_track`` of checked frames, plus the recurrent state after the last."""
+        mu, sd, state = self._filtered(frames)
+        return (self._positions(mu), *self._parameters(mu[-1], sd[-1]), state)
+
+    def _filtered(self, frames):
+        """The network's latent means and stds (T, K) after every frame of one checked video
+        (float64), and the recurrent state after the last."""
         net = self._ensure_net()
-        names = self.config_.targets
         with torch.inference_mode():
             mu, sd, state = net.filter(torch.as_tensor(frames[None], device=self.device_))
-        mu = mu[0].cpu().numpy().astype(np.float64)
-        sd = sd[0].cpu().numpy().astype(np.float64)
+        return (mu[0].cpu().numpy().astype(np.float64), sd[0].cpu().numpy().astype(np.float64),
+                state)
+
+    def _positions(self, mu: np.ndarray) -> np.ndarray:
+        """Floor-relative positions (T, 2) (m) of latent means (T, K)."""
+        names = self.config_.targets
+        return BOX_WIDTH * mu[:, [names.index("x"), names.index("y")]]
+
+    def _parameters(self, mu: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Calibrated posterior of ``(e, g, d, r)`` (4,) each, physical units, from one frame's
+        latent means and stds (K,)."""
         idx = self._index()
-        pos = BOX_WIDTH * mu[:, [names.index("x"), names.index("y")]]
-        return (pos, *_physical(mu[-1, idx], sd[-1, idx] * self.std_scale_), state)
+        return _physical(mu[idx], sd[idx] * self.std_scale_)
 
     def _forecast_track(self, pos, th_mu, th_sd, horizon: int, dt: float,
                         above_floor: bool = False):
@@ -671,10 +690,6 @@ class Vid2ParamPhysics(Vid2Param):
     fit_options = {}
     pretrained = {}
 
-    def identify(self, obs: Observation) -> Posterior:
-        """Posterior over ``(e, g, d, r)`` after the last frame of ``obs``."""
-        return self.identify_prefixes(obs, [obs.n_frames if isinstance(obs, Observation) else 1])[0]
-
     def identify_prefixes(self, obs: Observation, lengths) -> list[Posterior]:
         """Posteriors after each of ``lengths`` frames: one network pass, one fit per prefix.
 
@@ -685,28 +700,19 @@ class Vid2ParamPhysics(Vid2Param):
 
         frames = self._frames_of(obs)
         T = frames.shape[0]
-        lengths = [check_positive_int(int(n), "lengths") for n in np.atleast_1d(lengths)]
-        for n in lengths:
-            if n > T:
-                raise ValueError(f"lengths: expected values <= {T}, got {n}")
+        lengths = _check_lengths(lengths, T)
         t0 = time.perf_counter()
-        net = self._ensure_net()
-        names = self.config_.targets
-        idx = self._index()
-        with torch.inference_mode():
-            mu, sd, _ = net.filter(torch.as_tensor(frames[None], device=self.device_))
-        mu = mu[0].cpu().numpy().astype(np.float64)
-        sd = sd[0].cpu().numpy().astype(np.float64)
-        pos = BOX_WIDTH * mu[:, [names.index("x"), names.index("y")]]
+        mu, sd, _ = self._filtered(frames)
+        pos = self._positions(mu)
         # a frame without the ball (black, dropped, never found) gets the network's guess of a
         # position, metres wide: unseen for the fit, not a point on the path
-        pos[BOX_WIDTH * sd[:, names.index("x")] > UNSEEN_SD_M] = np.nan
+        pos[BOX_WIDTH * sd[:, self.config_.targets.index("x")] > UNSEEN_SD_M] = np.nan
         wall = time.perf_counter() - t0
         floor = self.floor_prior()
         out = []
         for n in lengths:
             t1, sims = time.perf_counter(), simulations()
-            th_mu, th_sd = _physical(mu[n - 1, idx], sd[n - 1, idx] * self.std_scale_)
+            th_mu, th_sd = self._parameters(mu[n - 1], sd[n - 1])
             fit = fit_track(pos[:n], th_mu, th_sd, dt=float(obs.dt), floor=floor)
             extras = {"wall_s": wall * n / T + time.perf_counter() - t1, "n_frames": n,
                       "n_simulations": simulations() - sims, "network_mean": th_mu,

@@ -201,15 +201,14 @@ def fit_state(positions, theta_mean, theta_std, dt: float = DT, window: int = WI
         wide covariance and the network's parameters (a forecast from it says it knows little).
     """
     p = np.asarray(positions, dtype=np.float64)
+    prior = _network_prior(theta_mean, theta_std, floor)
+    u_net, sd_net, f0, sd_f = prior[0][:4], prior[1][:4], prior[0][4], prior[1][4]
     span = _HI - _LO
-    u_net = np.clip((np.clip(np.asarray(theta_mean, float), _LO, _HI) - _LO) / span, 0, 1)
-    sd_net = np.maximum(np.asarray(theta_std, float) / span, 1e-3)
     T = p.shape[0]
     start = _window_start(p, int(window))
     w = p[start:]
     valid = np.isfinite(w).all(1)
     n = int(valid.sum())
-    f0, sd_f = float(floor[0]), max(float(floor[1]), 1e-6)
     if n < 3:
         last = w[valid][-1] if n else np.array([BOX_WIDTH / 2, BOX_WIDTH / 2])
         v = _clamp(np.concatenate([[last[0], last[1] - f0, 0.0, 0.0], u_net, [f0]]))
@@ -220,13 +219,10 @@ def fit_state(positions, theta_mean, theta_std, dt: float = DT, window: int = WI
     # first the state alone, parameters held at the network's (a bounce early in the window
     # trades the incoming speed against e: fitted jointly from a poor start, e ran to its bound)
     starts = _starts(w, valid, u_net, f0, dt)
-    held, held_cost, _ = _lm(starts, obs, valid, W, dt, 1.0, np.append(u_net, f0),
-                             np.full(5, 1e-9), iters)
+    held, held_cost, _ = _lm(starts, obs, valid, W, dt, 1.0, prior[0], np.full(5, 1e-9), iters)
     if sigma is None:
         sigma = max(_MIN_SIGMA, float(np.sqrt(held_cost / max(1, 2 * n - 4))))
-    V, _, J = _lm(np.vstack([held, starts]), obs, valid, W, dt, sigma, np.append(u_net, f0),
-                     np.append(sd_net, sd_f), iters)
-    prior = (np.append(u_net, f0), np.append(sd_net, sd_f))
+    V, _, J = _lm(np.vstack([held, starts]), obs, valid, W, dt, sigma, *prior, iters)
     V, J, sigma, valid = _drop_misread(V, J, sigma, w, valid, dt, prior, iters)
     return _result(start, V, J, sigma, int(valid.sum()))
 
@@ -245,16 +241,12 @@ def fit_track(positions, theta_mean, theta_std, dt: float = DT, stage: int = 40,
 
     Parameters
     ----------
-    positions : ndarray, shape (T, 2)
-        Floor-relative positions (m); NaN rows are unseen frames.
-    theta_mean, theta_std : ndarray, shape (4,)
-        The network's posterior (``PARAMS`` order, physical units).
+    positions, theta_mean, theta_std, dt, floor
+        As for ``fit_state``.
     stage : int
         Frames added per stage (the first stage fits the first ``stage`` seen frames).
     iters : int
         Levenberg-Marquardt iterations per stage.
-    floor : (float, float)
-        Prior mean and std (m) of the floor (as for ``fit_state``).
 
     Returns
     -------
@@ -270,12 +262,9 @@ def fit_track(positions, theta_mean, theta_std, dt: float = DT, stage: int = 40,
     start = int(seen[0])
     first = fit_state(p[:start + stage], theta_mean, theta_std, dt=dt, window=stage, iters=iters,
                       floor=floor)
-    span = _HI - _LO
-    u_net = np.clip((np.clip(np.asarray(theta_mean, float), _LO, _HI) - _LO) / span, 0, 1)
-    sd_net = np.maximum(np.asarray(theta_std, float) / span, 1e-3)
-    prior = (np.append(u_net, float(floor[0])), np.append(sd_net, max(float(floor[1]), 1e-6)))
+    prior = _network_prior(theta_mean, theta_std, floor)
     start = first.start
-    V = np.concatenate([first.state0, (first.theta - _LO) / span, [first.floor]])
+    V = np.concatenate([first.state0, (first.theta - _LO) / (_HI - _LO), [first.floor]])
     sigma, J = first.sigma, None
     T = p.shape[0]
     end = start + stage
@@ -293,6 +282,15 @@ def fit_track(positions, theta_mean, theta_std, dt: float = DT, stage: int = 40,
     # autocorrelation time (the prior's is not: it is the network's, already calibrated).
     resid = np.where(valid[:, None], _path(V, end - start, dt) - w, np.nan)
     return _result(start, V, J, sigma, int(valid.sum()), tau=_correlation_time(resid))
+
+
+def _network_prior(theta_mean, theta_std, floor) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's Gaussian prior on ``(u, floor)`` (5,): mean and std, from the network's
+    posterior (physical units, normalised to the prior's range) and the floor's prior."""
+    span = _HI - _LO
+    u_net = np.clip((np.clip(np.asarray(theta_mean, float), _LO, _HI) - _LO) / span, 0, 1)
+    sd_net = np.maximum(np.asarray(theta_std, float) / span, 1e-3)
+    return (np.append(u_net, float(floor[0])), np.append(sd_net, max(float(floor[1]), 1e-6)))
 
 
 def _correlation_time(resid: np.ndarray) -> float:

@@ -379,6 +379,7 @@ def _reading(df) -> list[str]:
                    + ", ".join(NOISE_RULE_PARAMS) + f" within 2x the control's MSE; worst "
                    f"{worst:.2f}x).")
     ex = df[df.condition.str.startswith("extrapolation:")]
+    c0 = df[(df.n_frames == last) & df.condition.isin(["noise:0", "noise:0.0"])]
     for cond, g in ex.groupby("condition"):
         p = cond.split(":")[1]
         dist = g[g.metric == "distance"].set_index("case").value
@@ -391,7 +392,6 @@ def _reading(df) -> list[str]:
             holds = far.mean() < 0.5 * stuck
             # a parameter the control itself does not identify at this length (r before the
             # ball rolls) says nothing about extrapolation: every model answers its prior
-            c0 = df[(df.n_frames == last) & df.condition.isin(["noise:0", "noise:0.0"])]
             p_ctl = c0[c0.metric == f"se_{p}"].value.mean() if len(c0) else np.nan
             blind = bool(p_ctl > 0.5 * GUESS_MSE)
             judged = (f"Cannot tell for {p}: the control does not identify {p} after {last} "
