@@ -124,9 +124,16 @@ class FrameEncoder(nn.Module):
         centre = (heat0 / mass0) @ self.grid.T  # (N, 1, 2)
         mass = mass0
         if self.kp is not None:
-            heat = torch.relu(_apply_convs(self.kp, x)).flatten(2) + 1e-6  # (N, K-1, Hp*Wp)
-            m = heat.sum(-1, keepdim=True)
-            centre = torch.cat([centre, (heat / m) @ self.grid_pool.T], 1)  # (N, K, 2)
+            if x.shape[0] > 1 or torch.is_grad_enabled():
+                # a 1 -> K-1 channel conv runs ~5x faster on the CPU on a channels_last input
+                # (oneDNN's direct NHWC kernel; 35 -> 7 ms per 1024 28x28 frames, one thread;
+                # training's forward + backward 87 -> 50 ms); the maps come out (N, Hp, Wp, K-1)
+                x = x.to(memory_format=torch.channels_last)
+            maps = torch.relu(_apply_convs(self.kp, x)).permute(0, 2, 3, 1)
+            heat = maps.reshape(x.shape[0], -1, self.keypoints - 1) + 1e-6  # (N, Hp*Wp, K-1)
+            m = heat.sum(1)[..., None]  # (N, K-1, 1)
+            centre_k = torch.matmul(self.grid_pool, heat).transpose(1, 2) / m  # (N, K-1, 2)
+            centre = torch.cat([centre, centre_k], 1)  # (N, K, 2)
             mass = torch.cat([mass0, m], 1)
         out = torch.cat([out, centre.flatten(1), torch.log(mass[..., 0])], -1)
         return out.reshape(*lead, -1)
