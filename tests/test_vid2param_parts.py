@@ -200,6 +200,31 @@ def test_the_recurrent_state_is_named_and_maps_over_its_tensors():
     assert bare.read(bare.init_state(1)).shape == (1, 2 * 16)
 
 
+@pytest.mark.parametrize("preset", ["default", "camera"])
+def test_the_channels_last_keypoint_convolution_gives_the_nchw_numbers(preset, monkeypatch):
+    import methods.vid2param.parts as parts
+    from methods.vid2param.model import V2PConfig
+
+    torch.manual_seed(0)
+    c = V2PConfig() if preset == "default" else V2PConfig.preset("camera")
+    enc = parts.FrameEncoder(c)
+    frames = (torch.rand(6, *c.frame_size) ** 8 * 255).to(torch.uint8)
+
+    def run(channels_last: bool):
+        monkeypatch.setattr(parts, "KEYPOINT_CHANNELS_LAST", channels_last)
+        enc.zero_grad()
+        fx = enc(frames)
+        fx.square().sum().backward()
+        return fx.detach(), enc.kp.weight.grad.clone()
+
+    (fx_cl, g_cl), (fx_old, g_old) = run(True), run(False)
+    assert fx_cl.shape == (6, enc.n_out)
+    torch.testing.assert_close(fx_cl, fx_old, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(g_cl, g_old, rtol=1e-4, atol=1e-5)
+    with torch.no_grad():  # batches and single frames (im2col) agree too
+        torch.testing.assert_close(enc(frames[:1]), enc(frames)[:1], rtol=1e-5, atol=1e-6)
+
+
 def _write_fixture(names=("28x28", "camera")) -> None:
     """Record ``names``' outputs; the fixture's entries of other checkpoints are kept."""
     arrays = dict(np.load(FIXTURE)) if FIXTURE.exists() else {}

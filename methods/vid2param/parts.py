@@ -53,6 +53,11 @@ def _centre_grid(h: int, w: int) -> torch.Tensor:
     return torch.stack([gx.flatten(), gy.flatten()], 0)
 
 
+#: Run the keypoint convolution on a channels_last input (see ``FrameEncoder.forward``); the
+#: batched-identification benchmark turns it off to time the path before it.
+KEYPOINT_CHANNELS_LAST = True
+
+
 def _conv_im2col(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
     """``conv(x)`` for one (1, C, H, W) image as a patch matrix times the weights."""
     (k, _), (s, _), (pad, _) = conv.kernel_size, conv.stride, conv.padding
@@ -124,7 +129,7 @@ class FrameEncoder(nn.Module):
         centre = (heat0 / mass0) @ self.grid.T  # (N, 1, 2)
         mass = mass0
         if self.kp is not None:
-            if x.shape[0] > 1 or torch.is_grad_enabled():
+            if KEYPOINT_CHANNELS_LAST and (x.shape[0] > 1 or torch.is_grad_enabled()):
                 # a 1 -> K-1 channel conv runs ~5x faster on the CPU on a channels_last input
                 # (oneDNN's direct NHWC kernel; 35 -> 7 ms per 1024 28x28 frames, one thread;
                 # training's forward + backward 87 -> 50 ms); the maps come out (N, Hp, Wp, K-1)
