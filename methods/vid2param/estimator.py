@@ -281,8 +281,12 @@ class Vid2Param(Estimator):
             self.net_ = net.to(self.device_)
             self.config_ = net.config
             self.std_scale_ = _std_scale(ck)
+            from methods.vid2param.drag import DragBlend  # not at the top: `-m ...drag` runs it
+
+            self.drag_ = DragBlend.from_record(ck.get("drag_evidence"))
             self.checkpoint_info_ = {k: ck.get(k) for k in ("train", "git_commit", "val_metrics",
-                                                            "source_sha256", "calibration")}
+                                                            "source_sha256", "calibration",
+                                                            "drag_evidence")}
             self.checkpoint_info_["path"] = str(path)
         return self.net_
 
@@ -347,15 +351,50 @@ class Vid2Param(Estimator):
 
     def _run(self, frames: np.ndarray):
         """Filter (N, T, H, W) frames; returns normalised mu, std (N, T, 4) and wall time."""
-        net = self._ensure_net()
-        idx = self._index()
         t0 = time.perf_counter()
-        with torch.inference_mode():
-            fr = torch.as_tensor(frames, device=self.device_)
-            mu, sd, _ = net.filter(fr)
-            mu = mu[..., idx].cpu().numpy().astype(np.float64)
-            sd = sd[..., idx].cpu().numpy().astype(np.float64) * self.std_scale_
+        mu, sd, _ = self._sequences(frames)
         return mu, sd, time.perf_counter() - t0
+
+    def _sequences(self, frames: np.ndarray, drag: bool = True):
+        """Filter (N, T, H, W) frames: ``_calibrated`` of the network's latent sequences."""
+        net = self._ensure_net()
+        with torch.inference_mode():
+            mu, sd, _ = net.filter(torch.as_tensor(frames, device=self.device_))
+            mu = mu.cpu().numpy().astype(np.float64)
+            sd = sd.cpu().numpy().astype(np.float64)
+        return self._calibrated(mu, sd, drag)
+
+    def _calibrated(self, mu: np.ndarray, sd: np.ndarray, drag: bool = True):
+        """The parameter posteriors of latent sequences.
+
+        Parameters
+        ----------
+        mu, sd : ndarray, shape (..., T, K)
+            The network's latent means and stds after every frame.
+        drag : bool
+            Blend the drag evidence into d (``methods.vid2param.drag``) when the checkpoint
+            has it.
+
+        Returns
+        -------
+        mu, sd : ndarray, shape (..., T, 4)
+            Normalised, std-calibrated, ``PARAMS`` order.
+        positions : ndarray, shape (..., T, 2)
+            The network's track, metres.
+        """
+        names = self.config_.targets
+        pos = BOX_WIDTH * mu[..., [names.index("x"), names.index("y")]]
+        idx = self._index()
+        m, s = mu[..., idx], sd[..., idx] * self.std_scale_
+        if drag and self.drag_ is not None:
+            from methods.vid2param.drag import statistic_track
+
+            T = pos.shape[-2]
+            D, S = statistic_track(pos.reshape(-1, T, 2), self.drag_.k)
+            i = PARAMS.index("d")
+            m[..., i], s[..., i] = self.drag_.apply(m[..., i], s[..., i],
+                                                    D.reshape(m.shape[:-1]), S.reshape(m.shape[:-1]))
+        return m, s, pos
 
     # -- the interface --------------------------------------------------------------------------
     def fit(self, train=None) -> Vid2Param:
@@ -403,6 +442,7 @@ class Vid2Param(Estimator):
         self.net_ = net.to(self.device_)
         self.config_ = net.config
         self.std_scale_ = np.ones(len(PARAMS))  # a new fit is not calibrated
+        self.drag_ = None  # nor has it a drag evidence fitted to it
         self.checkpoint_info_ = {"path": None, "fit": {"steps": info["step"], "wall_s": info["wall_s"],
                                                        "warm_start": init is not None}}
         return self
@@ -551,7 +591,7 @@ class Vid2Param(Estimator):
     def _track(self, frames):
         """``filtered_track`` of checked frames, plus the recurrent state after the last."""
         mu, sd, state = self._filtered(frames)
-        return (self._positions(mu), *self._parameters(mu[-1], sd[-1]), state)
+        return (self._positions(mu), *self._parameters(mu, sd), state)
 
     def _filtered(self, frames):
         """The network's latent means and stds (T, K) after every frame of one checked video
@@ -567,11 +607,12 @@ class Vid2Param(Estimator):
         names = self.config_.targets
         return BOX_WIDTH * mu[:, [names.index("x"), names.index("y")]]
 
-    def _parameters(self, mu: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Calibrated posterior of ``(e, g, d, r)`` (4,) each, physical units, from one frame's
-        latent means and stds (K,)."""
-        idx = self._index()
-        return _physical(mu[idx], sd[idx] * self.std_scale_)
+    def _parameters(self, mu: np.ndarray, sd: np.ndarray,
+                    n: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Calibrated posterior of ``(e, g, d, r)`` (4,) each, physical units, after frame ``n``
+        (default: the last) of latent sequences (T, K) (``_calibrated``)."""
+        m, s, _ = self._calibrated(mu[:n], sd[:n])
+        return _physical(m[-1], s[-1])
 
     def _forecast_track(self, pos, th_mu, th_sd, horizon: int, dt: float,
                         above_floor: bool = False):
@@ -712,7 +753,7 @@ class Vid2ParamPhysics(Vid2Param):
         out = []
         for n in lengths:
             t1, sims = time.perf_counter(), simulations()
-            th_mu, th_sd = self._parameters(mu[n - 1], sd[n - 1])
+            th_mu, th_sd = self._parameters(mu, sd, n)
             fit = fit_track(pos[:n], th_mu, th_sd, dt=float(obs.dt), floor=floor)
             extras = {"wall_s": wall * n / T + time.perf_counter() - t1, "n_frames": n,
                       "n_simulations": simulations() - sims, "network_mean": th_mu,
@@ -808,6 +849,10 @@ class Vid2ParamStream(Stream):
         # the network's own track (floor-relative metres) and last posterior, for forecast()
         self.track = np.full((256, 2), np.nan)
         self.last = None
+        drag = self.est.drag_
+        if drag is not None:
+            from methods.vid2param.drag import DragStatistic
+        self._drag = None if drag is None else DragStatistic(1, drag.k)
 
     def forecast(self, horizon: int, floor: float | None = None) -> Forecast:
         """Positions of the ``horizon`` frames after the last pushed one (metres).
@@ -873,6 +918,11 @@ class Vid2ParamStream(Stream):
         if self.n >= len(self.track):  # the network's own track, for forecast()
             self.track = np.concatenate([self.track, np.full_like(self.track, np.nan)])
         self.track[self.n] = BOX_WIDTH * xy
+        if self._drag is not None:  # as Vid2Param._calibrated, one frame on
+            self._drag.update(self.track[self.n][None])
+            D, S = self._drag.summary()
+            i = PARAMS.index("d")
+            (mu_n[i],), (sd_n[i],) = self.est.drag_.apply(mu_n[i:i + 1], sd_n[i:i + 1], D, S)
         self.last = (mu_n, sd_n)
         self.n += 1
         wall = time.perf_counter() - t0

@@ -1,0 +1,319 @@
+"""Drag evidence: the drag constant read off the network's own track, blended into its d.
+
+Drag acts slowly (``ax = -d |v| vx``: a few percent of the speed per second), and the camera
+network's posterior over d stays well above what a fit of our physics to its own track gets
+(model card). The track carries it: over a window of ``2 k + 1`` frames that flies between
+the walls, the k-frame second difference of x (which averages the track's centimetre
+misreadings) is the deceleration, and ``|v| vx`` its regressor. A running least-squares sum
+over every such window gives an estimate ``D = sum(-ax f) / sum(f^2)`` and its evidence
+``S = sum(f^2)``; it is blended with the network's d by inverse variance::
+
+    var_stat = c / S + b^2,   d_stat = scale * D + bias
+
+with ``scale, bias, c, b`` (``DragBlend``) fitted by Gaussian NLL on train-split videos, the
+network frozen (as the physics prior is, ``fit_prior``). The blended d is not fed back into the
+recurrence: the network runs exactly as trained, and a checkpoint without a fitted blend
+answers as before.
+
+``python -m methods.vid2param.drag --checkpoint camera --out PATH`` fits the blend and writes
+it into a copy of the checkpoint (``drag_evidence``); ``python -m methods.vid2param.train
+--preset camera`` does so at export.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sysid_bench.physics import BOX_WIDTH, DT, PRIOR
+
+__all__ = ["DragBlend", "DragStatistic", "statistic_track", "fit_blend", "fit_drag", "main",
+           "K", "WALL_M", "FLY_M", "ACC_CAP"]
+
+#: Frames between the three positions of a window's second difference (window 2 K + 1).
+#: Chosen on train-split tracks of the camera model (K = 6, 8, 10 within 5% of each other).
+K = 6
+#: A window counts only away from the walls (a wall hit flips vx), ...
+WALL_M = 0.6
+#: ... when the ball flies (heights spread over more than this: a roll has no drag) ...
+FLY_M = 0.3
+#: ... and when its deceleration is below this (m/s^2; a misread frame gives metres per s^2).
+ACC_CAP = 8.0
+#: Frames before which the blend's fit does not score the posterior (no window yet).
+FIT_FROM = 20
+
+_LO_D, _HI_D = PRIOR["d"]
+_SPAN_D = _HI_D - _LO_D
+
+
+@dataclass(frozen=True)
+class DragBlend:
+    """The fitted blend of the drag statistic into the posterior's d (see the module).
+
+    Attributes
+    ----------
+    scale, bias : float
+        ``d_stat = scale * D + bias`` (1/m).
+    log_c, log_b : float
+        ``var_stat = exp(log_c) / S + exp(2 log_b)`` ((1/m)^2).
+    k : int
+        The statistic's ``K``.
+    """
+
+    scale: float
+    bias: float
+    log_c: float
+    log_b: float
+    k: int = K
+
+    @classmethod
+    def from_record(cls, rec: dict | None) -> DragBlend | None:
+        """The blend stored under a checkpoint's ``drag_evidence`` (None when absent)."""
+        if not rec:
+            return None
+        try:
+            out = cls(**{f: rec[f] for f in ("scale", "bias", "log_c", "log_b", "k")})
+        except KeyError as exc:
+            raise ValueError(f"checkpoint: drag_evidence lacks {exc.args[0]!r}") from None
+        vals = np.array([out.scale, out.bias, out.log_c, out.log_b], dtype=float)
+        if not np.isfinite(vals).all() or int(out.k) < 1:
+            raise ValueError(f"checkpoint: drag_evidence must be finite with k >= 1, got {rec}")
+        return out
+
+    def apply(self, mu_n, sd_n, D, S) -> tuple[np.ndarray, np.ndarray]:
+        """The blended posterior of d.
+
+        Parameters
+        ----------
+        mu_n, sd_n : ndarray, shape (...)
+            The network's (calibrated) mean and std of d, normalised to the prior's range.
+        D, S : ndarray, shape (...)
+            The statistic's estimate (1/m; NaN before a window counted) and evidence.
+
+        Returns
+        -------
+        mu_n, sd_n : ndarray, shape (...)
+            Normalised, as given.
+        """
+        mu_n, sd_n = np.asarray(mu_n, float), np.asarray(sd_n, float)
+        ok = np.isfinite(D) & (S > 0)
+        S_ = np.where(ok, S, 1.0)
+        var = (math.exp(self.log_c) / S_ + math.exp(2 * self.log_b)) / _SPAN_D**2
+        w_s = np.where(ok, 1.0 / var, 0.0)
+        d_s = np.where(ok, (self.scale * np.where(ok, D, 0.0) + self.bias - _LO_D) / _SPAN_D, 0.0)
+        w_n = 1.0 / sd_n**2
+        prec = w_n + w_s
+        return (w_n * mu_n + w_s * d_s) / prec, 1.0 / np.sqrt(prec)
+
+
+class DragStatistic:
+    """The running drag statistic of B tracks, one frame at a time.
+
+    Parameters
+    ----------
+    batch : int
+    k : int
+        Frames between a window's three positions.
+    dt : float
+        Seconds per frame.
+    """
+
+    def __init__(self, batch: int, k: int = K, dt: float = DT):
+        self.k, self.dt, self.w = int(k), float(dt), 2 * int(k) + 1
+        self.buf = np.full((int(batch), self.w, 2), np.nan)
+        self.n = 0
+        self.saf = np.zeros(int(batch))
+        self.sff = np.zeros(int(batch))
+
+    def update(self, pos) -> None:
+        """Add each track's newest position ``pos`` (B, 2), metres (x, height; NaN: unseen)."""
+        self.buf[:, self.n % self.w] = pos
+        self.n += 1
+        if self.n < self.w:
+            return
+        win = self.buf[:, (self.n + np.arange(self.w)) % self.w]  # oldest first
+        xs, ys, k, dt = win[..., 0], win[..., 1], self.k, self.dt
+        dx = np.diff(xs, axis=1)
+        with np.errstate(invalid="ignore"):
+            ax = (xs[:, 2 * k] - 2 * xs[:, k] + xs[:, 0]) / (k * dt) ** 2
+            vx = (xs[:, 2 * k] - xs[:, 0]) / (2 * k * dt)
+            vy = (ys[:, k + 1] - ys[:, k - 1]) / (2 * dt)
+            ok = (np.isfinite(win).all((1, 2)) & ((dx > 0).all(1) | (dx < 0).all(1))
+                  & (xs > WALL_M).all(1) & (xs < BOX_WIDTH - WALL_M).all(1)
+                  & (ys.max(1) - ys.min(1) > FLY_M) & (np.abs(ax) < ACC_CAP))
+        f = np.where(ok, np.hypot(vx, vy) * vx, 0.0)
+        self.saf += np.where(ok, -ax * f, 0.0)
+        self.sff += f * f
+
+    def summary(self) -> tuple[np.ndarray, np.ndarray]:
+        """The estimate ``D`` (B,) (1/m; NaN while no window counted) and evidence ``S`` (B,)."""
+        pos = self.sff > 0
+        return np.where(pos, self.saf / np.where(pos, self.sff, 1.0), np.nan), self.sff.copy()
+
+
+def statistic_track(pos, k: int = K, dt: float = DT) -> tuple[np.ndarray, np.ndarray]:
+    """``DragStatistic`` after every frame of whole tracks.
+
+    Parameters
+    ----------
+    pos : ndarray, shape (B, T, 2)
+        Metres.
+
+    Returns
+    -------
+    D, S : ndarray, shape (B, T)
+    """
+    pos = np.asarray(pos, dtype=np.float64)
+    st = DragStatistic(pos.shape[0], k, dt)
+    D, S = np.empty(pos.shape[:2]), np.empty(pos.shape[:2])
+    for t in range(pos.shape[1]):
+        st.update(pos[:, t])
+        D[:, t], S[:, t] = st.summary()
+    return D, S
+
+
+def _nll(blend: DragBlend, mu_n, sd_n, D, S, truth_n) -> float:
+    mu, sd = blend.apply(mu_n, sd_n, D, S)
+    return float(np.mean(np.log(sd) + 0.5 * ((mu - truth_n) / sd) ** 2))
+
+
+def fit_blend(mu_n, sd_n, D, S, truth_n, k: int = K) -> tuple[DragBlend, float]:
+    """The ``DragBlend`` of least Gaussian NLL of the true d (Nelder-Mead, deterministic).
+
+    Parameters
+    ----------
+    mu_n, sd_n, D, S : ndarray, shape (N, T)
+        The network's normalised d posterior and the statistic after every frame.
+    truth_n : ndarray, shape (N,)
+        True d, normalised.
+
+    Returns
+    -------
+    DragBlend, float
+        The blend and its mean NLL over frames ``FIT_FROM`` on.
+    """
+    from scipy.optimize import minimize
+
+    sl = (slice(None), slice(FIT_FROM, None))
+    args = (mu_n[sl], sd_n[sl], D[sl], S[sl], np.asarray(truth_n, float)[:, None])
+
+    def loss(p):
+        return _nll(DragBlend(*p, k=k), *args)
+
+    res = minimize(loss, np.array([1.0, 0.0, math.log(1e-3), math.log(3e-3)]),
+                   method="Nelder-Mead", options={"maxiter": 4000, "xatol": 1e-7,
+                                                  "fatol": 1e-10})
+    blend = DragBlend(*(float(v) for v in res.x), k=k)
+    return blend, float(res.fun)
+
+
+def _network_d(est, ds) -> tuple[np.ndarray, ...]:
+    """The network's normalised d posterior (N, T) each, its track (N, T, 2) m and true d
+    (N,) normalised, for the videos of ``ds`` (the drag evidence off)."""
+    from sysid_bench.physics import PARAMS
+
+    i_d = PARAMS.index("d")
+    frames = np.asarray(ds.frames)
+    mus, sds, pos = [], [], []
+    for i in range(0, len(frames), 100):
+        mu, sd, p = est._sequences(frames[i:i + 100], drag=False)
+        mus.append(mu[..., i_d])
+        sds.append(sd[..., i_d])
+        pos.append(p)
+    theta = np.asarray(ds.theta)
+    d = theta[:, -1, i_d] if theta.ndim == 3 else theta[:, i_d]
+    return (np.concatenate(mus), np.concatenate(sds), np.concatenate(pos),
+            (d - _LO_D) / _SPAN_D)
+
+
+def _scores(mu, sd, truth) -> dict:
+    """nMSE and 90% coverage of d after 50, 100 and 200 frames (those the videos have)."""
+    out = {}
+    for n in (50, 100, 200):
+        if n <= mu.shape[1]:
+            m, s = np.clip(mu[:, n - 1], 0, 1), sd[:, n - 1]
+            out[str(n)] = {"nmse": float(np.mean((m - truth) ** 2)),
+                           "coverage90": float(np.mean(np.abs(m - truth) <= 1.6448536 * s))}
+    return out
+
+
+@dataclass
+class DragFitConfig:
+    """Videos of the blend's fit (train split, ``seed``) and of its check (``seed + 1``)."""
+
+    n_videos: int = 300
+    n_val: int = 100
+    seed: int = 7
+    k: int = K
+
+
+def fit_drag(checkpoint, out, cfg: DragFitConfig | None = None, threads: int | None = None,
+             log=print) -> dict:
+    """Fit the drag evidence of ``checkpoint`` and write the checkpoint with it to ``out``.
+
+    The videos are the train split rendered as the checkpoint was trained (size, nuisances,
+    variant), constant parameters, our physics. Returns the record stored under
+    ``drag_evidence`` (the blend, its NLL, validation scores before and after).
+    """
+    import torch
+
+    from methods.vid2param.checkpoint import load_checkpoint, save_atomic
+    from methods.vid2param.data import make_split
+    from methods.vid2param.estimator import Vid2Param
+
+    cfg = cfg or DragFitConfig()
+    t0 = time.perf_counter()
+    est = Vid2Param(checkpoint=str(checkpoint), device="cpu", n_samples=0, threads=threads)
+    est._ensure_net()
+    path = Path(est.checkpoint_info_["path"])
+    tr = est.checkpoint_info_.get("train") or {}
+    size, nuis = tuple(est.frame_size), tr.get("nuisance")
+    n_fr = int(tr.get("n_frames", 200))
+    variant = tr.get("variant", "interleaved")
+    fit_set = make_split("train", cfg.n_videos, cfg.seed, size, nuis, n_fr, variant=variant)
+    val_set = make_split("train", cfg.n_val, cfg.seed + 1, size, nuis, n_fr, variant=variant)
+    with torch.inference_mode():
+        mu, sd, pos, truth = _network_d(est, fit_set)
+        D, S = statistic_track(pos, cfg.k)
+        blend, nll = fit_blend(mu, sd, D, S, truth, cfg.k)
+        vmu, vsd, vpos, vtruth = _network_d(est, val_set)
+    vD, vS = statistic_track(vpos, cfg.k)
+    bmu, bsd = blend.apply(vmu, vsd, vD, vS)
+    record = {**asdict(blend), "nll": nll, "config": asdict(cfg), "from": str(path),
+              "statistic": {"wall_m": WALL_M, "fly_m": FLY_M, "acc_cap": ACC_CAP,
+                            "fit_from": FIT_FROM},
+              "val_network": _scores(vmu, vsd, vtruth), "val_blended": _scores(bmu, bsd, vtruth),
+              "wall_s": time.perf_counter() - t0}
+    log(f"drag evidence: {asdict(blend)}; validation d nMSE network "
+        f"{record['val_network']} -> blended {record['val_blended']}")
+    ck = dict(load_checkpoint(path))
+    ck["drag_evidence"] = record
+    save_atomic(ck, out)
+    return record
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m methods.vid2param.drag",
+                                 description=__doc__.splitlines()[0])
+    ap.add_argument("--checkpoint", default="camera", help="shipped name or path")
+    ap.add_argument("--out", required=True, help="checkpoint file to write (may be the same)")
+    ap.add_argument("--n-videos", type=int, default=DragFitConfig.n_videos)
+    ap.add_argument("--n-val", type=int, default=DragFitConfig.n_val)
+    ap.add_argument("--seed", type=int, default=DragFitConfig.seed)
+    ap.add_argument("--threads", type=int, default=None)
+    a = ap.parse_args(argv)
+    fit_drag(a.checkpoint, Path(a.out), DragFitConfig(a.n_videos, a.n_val, a.seed),
+             threads=a.threads)
+    from methods.vid2param.train import export_card
+
+    export_card(a.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
