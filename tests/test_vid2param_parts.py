@@ -13,8 +13,10 @@ forecast frames' fed-back positions were kept in the box (as ``rollout`` keeps t
 models' physics-prior rollouts (sampled, so their means too) and forecast stds were re-recorded
 when the prior's noise learnt to read the backtest and was recalibrated (forecast means
 unchanged). The camera model's entries were all re-recorded when its checkpoint was replaced
-by the camera preset's model (``_write_fixture(["camera"])``). Every other entry is as recorded
-before the split.
+by the camera preset's model (``_write_fixture(["camera"])``), and again when that checkpoint
+gained its drag evidence (``methods.vid2param.drag``: d of identify, the pushes and the
+forecasts moved; the network's own outputs by float rounding only, from the channels_last
+keypoint convolution, within the tolerances). Every other entry is as recorded before the split.
 """
 
 from __future__ import annotations

@@ -7,14 +7,22 @@ the walls, the k-frame second difference of x (which averages the track's centim
 misreadings) is the deceleration averaged with triangular weights over the window, and the
 same average of ``|v| vx`` (one-frame central differences) its regressor. A running least-squares sum
 over every such window gives an estimate ``D = sum(-ax f) / sum(f^2)`` and its evidence
-``S = sum(f^2)``; it is blended with the network's d by inverse variance::
+``S = sum(f^2)``.
 
-    var_stat = c / S + b^2,   d_stat = scale * D + bias
+Two sums are kept: over all windows (``D_a``), and over the windows without a bounce
+(``D_b``: no one-frame rise of the vertical velocity above ``BOUNCE_DV``). Our physics keeps vx
+through a bounce, so on our videos both read d and the first has far more windows; a real ball
+(spin, a soft contact) loses horizontal speed at a bounce, which the first reads as drag. They
+are blended with the network's d by inverse variance::
 
-with ``scale, bias, c, b`` (``DragBlend``) fitted by Gaussian NLL on train-split videos, the
-network frozen (as the physics prior is, ``fit_prior``). The blended d is not fed back into the
-recurrence: the network runs exactly as trained, and a checkpoint without a fitted blend
-answers as before.
+    var_a = c_a / S_a + b_a^2 + gamma (D_a - D_b)^2,   var_b = c_b / S_b + b_b^2
+    d_a = scale * D_a + bias,                          d_b = scale * D_b + bias
+
+so the all-window estimate counts as long as the bounce-free one agrees with it. The seven
+numbers (``DragBlend``) are fitted by Gaussian NLL on train-split videos, half of them
+re-simulated with spin and contact dwell as in the network's training, the network frozen (as
+the physics prior is, ``fit_prior``). The blended d is not fed back into the recurrence: the
+network runs exactly as trained, and a checkpoint without a fitted blend answers as before.
 
 ``python -m methods.vid2param.drag --checkpoint camera --out PATH`` fits the blend and writes
 it into a copy of the checkpoint (``drag_evidence``); ``python -m methods.vid2param.train
@@ -26,15 +34,15 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from sysid_bench.physics import BOX_WIDTH, DT, PRIOR
 
-__all__ = ["DragBlend", "DragStatistic", "statistic_track", "fit_blend", "fit_drag", "main",
-           "K", "WALL_M", "FLY_M", "ACC_CAP"]
+__all__ = ["DragBlend", "DragStatistic", "DragFitConfig", "statistic_track", "fit_blend",
+           "fit_drag", "main", "K", "WALL_M", "FLY_M", "ACC_CAP", "BOUNCE_DV"]
 
 #: Frames between the three positions of a window's second difference (window 2 K + 1).
 #: Chosen on validation tracks of the camera model (train split; K = 4, 6, 8: model card).
@@ -45,6 +53,9 @@ WALL_M = 0.6
 FLY_M = 0.3
 #: ... and when its deceleration is below this (m/s^2; a misread frame gives metres per s^2).
 ACC_CAP = 8.0
+#: A window holds a bounce when its one-frame vertical velocity rises by more than this (m/s;
+#: gravity changes it by 0.5 per frame; chosen on validation tracks with 1.5 and 3).
+BOUNCE_DV = 1.5
 #: Frames before which the blend's fit does not score the posterior (no window yet).
 FIT_FROM = 20
 
@@ -52,24 +63,34 @@ _LO_D, _HI_D = PRIOR["d"]
 _SPAN_D = _HI_D - _LO_D
 
 
+_FIELDS = ("scale", "bias", "log_c", "log_b", "log_c_free", "log_b_free", "log_gamma")
+
+
 @dataclass(frozen=True)
 class DragBlend:
-    """The fitted blend of the drag statistic into the posterior's d (see the module).
+    """The fitted blend of the drag statistics into the posterior's d (see the module).
 
     Attributes
     ----------
     scale, bias : float
-        ``d_stat = scale * D + bias`` (1/m).
+        ``d = scale * D + bias`` (1/m), both statistics.
     log_c, log_b : float
-        ``var_stat = exp(log_c) / S + exp(2 log_b)`` ((1/m)^2).
+        The all-window statistic's ``var = exp(log_c) / S + exp(2 log_b)`` ((1/m)^2), ...
+    log_c_free, log_b_free : float
+        ... the bounce-free one's, ...
+    log_gamma : float
+        ... and the weight of their squared disagreement in the first's variance.
     k : int
-        The statistic's ``K``.
+        The statistics' ``K``.
     """
 
     scale: float
     bias: float
     log_c: float
     log_b: float
+    log_c_free: float
+    log_b_free: float
+    log_gamma: float
     k: int = K
 
     @classmethod
@@ -78,10 +99,10 @@ class DragBlend:
         if not rec:
             return None
         try:
-            out = cls(**{f: rec[f] for f in ("scale", "bias", "log_c", "log_b", "k")})
+            out = cls(**{f: rec[f] for f in (*_FIELDS, "k")})
         except KeyError as exc:
             raise ValueError(f"checkpoint: drag_evidence lacks {exc.args[0]!r}") from None
-        vals = np.array([out.scale, out.bias, out.log_c, out.log_b], dtype=float)
+        vals = np.array([getattr(out, f) for f in _FIELDS], dtype=float)
         if not np.isfinite(vals).all() or int(out.k) < 1:
             raise ValueError(f"checkpoint: drag_evidence must be finite with k >= 1, got {rec}")
         return out
@@ -93,8 +114,9 @@ class DragBlend:
         ----------
         mu_n, sd_n : ndarray, shape (...)
             The network's (calibrated) mean and std of d, normalised to the prior's range.
-        D, S : ndarray, shape (...)
-            The statistic's estimate (1/m; NaN before a window counted) and evidence.
+        D, S : ndarray, shape (..., 2)
+            The statistics' estimates (1/m; NaN before a window counted) and evidence: all
+            windows, bounce-free windows (``DragStatistic.summary``).
 
         Returns
         -------
@@ -102,14 +124,17 @@ class DragBlend:
             Normalised, as given.
         """
         mu_n, sd_n = np.asarray(mu_n, float), np.asarray(sd_n, float)
+        D, S = np.asarray(D, float), np.asarray(S, float)
         ok = np.isfinite(D) & (S > 0)
-        S_ = np.where(ok, S, 1.0)
-        var = (math.exp(self.log_c) / S_ + math.exp(2 * self.log_b)) / _SPAN_D**2
-        w_s = np.where(ok, 1.0 / var, 0.0)
-        d_s = np.where(ok, (self.scale * np.where(ok, D, 0.0) + self.bias - _LO_D) / _SPAN_D, 0.0)
-        w_n = 1.0 / sd_n**2
-        prec = w_n + w_s
-        return (w_n * mu_n + w_s * d_s) / prec, 1.0 / np.sqrt(prec)
+        Dz, Sz = np.where(ok, D, 0.0), np.where(ok, S, 1.0)
+        gap = np.where(ok.all(-1), (Dz[..., 0] - Dz[..., 1]) ** 2, 0.0)
+        var_a = math.exp(self.log_c) / Sz[..., 0] + math.exp(2 * self.log_b) \
+            + math.exp(self.log_gamma) * gap
+        var_b = math.exp(self.log_c_free) / Sz[..., 1] + math.exp(2 * self.log_b_free)
+        w = np.where(ok, _SPAN_D**2 / np.stack([var_a, var_b], -1), 0.0)
+        d = (self.scale * Dz + self.bias - _LO_D) / _SPAN_D
+        prec = 1.0 / sd_n**2 + w.sum(-1)
+        return (mu_n / sd_n**2 + (w * d).sum(-1)) / prec, 1.0 / np.sqrt(prec)
 
 
 class DragStatistic:
@@ -132,8 +157,8 @@ class DragStatistic:
         self.tri = (self.k - np.abs(j)) / self.k**2
         self.buf = np.full((int(batch), self.w, 2), np.nan)
         self.n = 0
-        self.saf = np.zeros(int(batch))
-        self.sff = np.zeros(int(batch))
+        self.saf = np.zeros((int(batch), 2))  # columns: all windows, bounce-free windows
+        self.sff = np.zeros((int(batch), 2))
 
     def update(self, pos) -> None:
         """Add each track's newest position ``pos`` (B, 2), metres (x, height; NaN: unseen)."""
@@ -152,12 +177,14 @@ class DragStatistic:
             ok = (np.isfinite(win).all((1, 2)) & ((dx > 0).all(1) | (dx < 0).all(1))
                   & (xs > WALL_M).all(1) & (xs < BOX_WIDTH - WALL_M).all(1)
                   & (ys.max(1) - ys.min(1) > FLY_M) & (np.abs(ax) < ACC_CAP))
-        f = np.where(ok, f, 0.0)
-        self.saf += np.where(ok, -ax * f, 0.0)
+            ok = np.stack([ok, ok & (np.diff(vy, axis=1).max(1) < BOUNCE_DV)], -1)
+        f = np.where(ok, f[:, None], 0.0)
+        self.saf += np.where(ok, -ax[:, None] * f, 0.0)
         self.sff += f * f
 
     def summary(self) -> tuple[np.ndarray, np.ndarray]:
-        """The estimate ``D`` (B,) (1/m; NaN while no window counted) and evidence ``S`` (B,)."""
+        """The estimates ``D`` (B, 2) (1/m; NaN while no window counted) and evidence ``S``
+        (B, 2): over all windows, over the bounce-free ones."""
         pos = self.sff > 0
         return np.where(pos, self.saf / np.where(pos, self.sff, 1.0), np.nan), self.sff.copy()
 
@@ -172,11 +199,11 @@ def statistic_track(pos, k: int = K, dt: float = DT) -> tuple[np.ndarray, np.nda
 
     Returns
     -------
-    D, S : ndarray, shape (B, T)
+    D, S : ndarray, shape (B, T, 2)
     """
     pos = np.asarray(pos, dtype=np.float64)
     st = DragStatistic(pos.shape[0], k, dt)
-    D, S = np.empty(pos.shape[:2]), np.empty(pos.shape[:2])
+    D, S = np.empty((*pos.shape[:2], 2)), np.empty((*pos.shape[:2], 2))
     for t in range(pos.shape[1]):
         st.update(pos[:, t])
         D[:, t], S[:, t] = st.summary()
@@ -193,8 +220,10 @@ def fit_blend(mu_n, sd_n, D, S, truth_n, k: int = K) -> tuple[DragBlend, float]:
 
     Parameters
     ----------
-    mu_n, sd_n, D, S : ndarray, shape (N, T)
-        The network's normalised d posterior and the statistic after every frame.
+    mu_n, sd_n : ndarray, shape (N, T)
+        The network's normalised d posterior after every frame.
+    D, S : ndarray, shape (N, T, 2)
+        The statistics after every frame.
     truth_n : ndarray, shape (N,)
         True d, normalised.
 
@@ -211,9 +240,9 @@ def fit_blend(mu_n, sd_n, D, S, truth_n, k: int = K) -> tuple[DragBlend, float]:
     def loss(p):
         return _nll(DragBlend(*p, k=k), *args)
 
-    res = minimize(loss, np.array([1.0, 0.0, math.log(1e-3), math.log(3e-3)]),
-                   method="Nelder-Mead", options={"maxiter": 4000, "xatol": 1e-7,
-                                                  "fatol": 1e-10})
+    start = [1.0, 0.0, math.log(1e-3), math.log(3e-3), math.log(1e-3), math.log(3e-3), 0.0]
+    res = minimize(loss, np.array(start), method="Nelder-Mead",
+                   options={"maxiter": 8000, "xatol": 1e-7, "fatol": 1e-10})
     blend = DragBlend(*(float(v) for v in res.x), k=k)
     return blend, float(res.fun)
 
@@ -250,12 +279,15 @@ def _scores(mu, sd, truth) -> dict:
 
 @dataclass
 class DragFitConfig:
-    """Videos of the blend's fit (train split, ``seed``) and of its check (``seed + 1``)."""
+    """Videos of the blend's fit (train split, ``seed``; a fraction ``perturb["p"]`` of them
+    re-simulated with spin loss and contact dwell, as the network's training) and of its check
+    (``seed + 1``: our physics, and every video perturbed)."""
 
     n_videos: int = 300
     n_val: int = 100
     seed: int = 7
     k: int = K
+    perturb: dict = field(default_factory=lambda: {"spin": 0.3, "dwell": 0.01, "p": 0.5})
 
 
 def fit_drag(checkpoint, out, cfg: DragFitConfig | None = None, threads: int | None = None,
@@ -263,13 +295,14 @@ def fit_drag(checkpoint, out, cfg: DragFitConfig | None = None, threads: int | N
     """Fit the drag evidence of ``checkpoint`` and write the checkpoint with it to ``out``.
 
     The videos are the train split rendered as the checkpoint was trained (size, nuisances,
-    variant), constant parameters, our physics. Returns the record stored under
-    ``drag_evidence`` (the blend, its NLL, validation scores before and after).
+    variant), constant parameters (``DragFitConfig``). Returns the record stored under
+    ``drag_evidence``: the blend, its NLL, and d's scores on the validation videos before and
+    after, on our physics (``val_*``) and perturbed (``val_perturbed_*``).
     """
     import torch
 
     from methods.vid2param.checkpoint import load_checkpoint, save_atomic
-    from methods.vid2param.data import make_split
+    from methods.vid2param.data import make_split, perturb_dataset
     from methods.vid2param.estimator import Vid2Param
 
     cfg = cfg or DragFitConfig()
@@ -281,22 +314,27 @@ def fit_drag(checkpoint, out, cfg: DragFitConfig | None = None, threads: int | N
     size, nuis = tuple(est.frame_size), tr.get("nuisance")
     n_fr = int(tr.get("n_frames", 200))
     variant = tr.get("variant", "interleaved")
-    fit_set = make_split("train", cfg.n_videos, cfg.seed, size, nuis, n_fr, variant=variant)
+    pt = cfg.perturb
+    fit_set = perturb_dataset(make_split("train", cfg.n_videos, cfg.seed, size, nuis, n_fr,
+                                         variant=variant),
+                              pt["spin"], pt["dwell"], seed=cfg.seed, p=pt["p"])
     val_set = make_split("train", cfg.n_val, cfg.seed + 1, size, nuis, n_fr, variant=variant)
+    val_pert = perturb_dataset(val_set, pt["spin"], pt["dwell"], seed=cfg.seed + 1, p=1.0)
     with torch.inference_mode():
         mu, sd, pos, truth = _network_d(est, fit_set)
-        D, S = statistic_track(pos, cfg.k)
-        blend, nll = fit_blend(mu, sd, D, S, truth, cfg.k)
-        vmu, vsd, vpos, vtruth = _network_d(est, val_set)
-    vD, vS = statistic_track(vpos, cfg.k)
-    bmu, bsd = blend.apply(vmu, vsd, vD, vS)
-    record = {**asdict(blend), "nll": nll, "config": asdict(cfg), "from": str(path),
-              "statistic": {"wall_m": WALL_M, "fly_m": FLY_M, "acc_cap": ACC_CAP,
-                            "fit_from": FIT_FROM},
-              "val_network": _scores(vmu, vsd, vtruth), "val_blended": _scores(bmu, bsd, vtruth),
-              "wall_s": time.perf_counter() - t0}
-    log(f"drag evidence: {asdict(blend)}; validation d nMSE network "
-        f"{record['val_network']} -> blended {record['val_blended']}")
+        blend, nll = fit_blend(mu, sd, *statistic_track(pos, cfg.k), truth, cfg.k)
+        record = {**asdict(blend), "nll": nll, "config": asdict(cfg), "from": str(path),
+                  "statistic": {"wall_m": WALL_M, "fly_m": FLY_M, "acc_cap": ACC_CAP,
+                                "bounce_dv": BOUNCE_DV, "fit_from": FIT_FROM}}
+        for name, ds in (("val", val_set), ("val_perturbed", val_pert)):
+            vmu, vsd, vpos, vtruth = _network_d(est, ds)
+            bmu, bsd = blend.apply(vmu, vsd, *statistic_track(vpos, cfg.k))
+            record[name + "_network"] = _scores(vmu, vsd, vtruth)
+            record[name + "_blended"] = _scores(bmu, bsd, vtruth)
+    record["wall_s"] = time.perf_counter() - t0
+    log(f"drag evidence: {asdict(blend)}; validation d nMSE network {record['val_network']} "
+        f"-> blended {record['val_blended']}; perturbed {record['val_perturbed_network']} -> "
+        f"{record['val_perturbed_blended']}")
     ck = dict(load_checkpoint(path))
     ck["drag_evidence"] = record
     save_atomic(ck, out)
@@ -313,7 +351,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=DragFitConfig.seed)
     ap.add_argument("--threads", type=int, default=None)
     a = ap.parse_args(argv)
-    fit_drag(a.checkpoint, Path(a.out), DragFitConfig(a.n_videos, a.n_val, a.seed),
+    fit_drag(a.checkpoint, Path(a.out),
+             DragFitConfig(n_videos=a.n_videos, n_val=a.n_val, seed=a.seed),
              threads=a.threads)
     from methods.vid2param.train import export_card
 

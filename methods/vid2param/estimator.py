@@ -392,8 +392,9 @@ class Vid2Param(Estimator):
             T = pos.shape[-2]
             D, S = statistic_track(pos.reshape(-1, T, 2), self.drag_.k)
             i = PARAMS.index("d")
-            m[..., i], s[..., i] = self.drag_.apply(m[..., i], s[..., i],
-                                                    D.reshape(m.shape[:-1]), S.reshape(m.shape[:-1]))
+            lead = (*m.shape[:-1], 2)
+            m[..., i], s[..., i] = self.drag_.apply(m[..., i], s[..., i], D.reshape(lead),
+                                                    S.reshape(lead))
         return m, s, pos
 
     # -- the interface --------------------------------------------------------------------------

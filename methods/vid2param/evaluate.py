@@ -317,15 +317,16 @@ def main(argv=None) -> int:
         if a.lsq_n > 0:
             rob["lsq"] = evaluate_lsq(pds, a.lsq_lengths, min(a.lsq_n, a.n), seed=0)
         nf = min(a.forecast_n, a.n)
-        lsq = methods.get("lsq", seed=0)
-        fphys = Vid2Param(checkpoint=a.checkpoint, device="cpu", threads=a.threads,
-                          forecast="physics")
-        rob["forecast"] = {
-            name: {kind: {str(t0): forecast_errors(e, d, nf, t0, a.horizon)
-                          for t0 in a.forecast_from}
-                   for kind, d in (("clean", ds), ("perturbed", pds))}
-            for name, e in (("vid2param", fest), ("vid2param-physics", fphys), ("lsq", lsq))
-        }
+        if nf > 0:  # --forecast-n 0: identification only
+            lsq = methods.get("lsq", seed=0)
+            fphys = Vid2Param(checkpoint=a.checkpoint, device="cpu", threads=a.threads,
+                              forecast="physics")
+            rob["forecast"] = {
+                name: {kind: {str(t0): forecast_errors(e, d, nf, t0, a.horizon)
+                              for t0 in a.forecast_from}
+                       for kind, d in (("clean", ds), ("perturbed", pds))}
+                for name, e in (("vid2param", fest), ("vid2param-physics", fphys), ("lsq", lsq))
+            }
         out["robustness"] = rob
     if a.figures:
         name = a.name or Path(str(est.checkpoint_info_["path"])).stem
@@ -337,6 +338,7 @@ def main(argv=None) -> int:
         fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
         with os.fdopen(fd, "w") as fh:
             fh.write(text + "\n")
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; a record is for everyone to read
         os.replace(tmp, path)
     return 0
 
