@@ -129,7 +129,8 @@ torch = pytest.importorskip("torch")
 
 
 @pytest.fixture(scope="module")
-def camera_with_drag(tmp_path_factory):
+def camera_with_and_without_drag(tmp_path_factory):
+    """The shipped camera network with a given drag evidence, and with none."""
     from methods.vid2param import SHIPPED_CHECKPOINTS
     from methods.vid2param.checkpoint import load_checkpoint, save_atomic
 
@@ -137,20 +138,24 @@ def camera_with_drag(tmp_path_factory):
     if not path.exists():
         pytest.skip("no shipped camera checkpoint")
     ck = dict(load_checkpoint(path))
+    folder = tmp_path_factory.mktemp("drag")
     ck["drag_evidence"] = {"scale": 1.01, "bias": -0.001, "log_c": 0.61, "log_b": -13.4,
                            "log_c_free": -0.9, "log_b_free": -11.7, "log_gamma": 0.01, "k": 6}
-    out = tmp_path_factory.mktemp("drag") / "camera_drag.pt"
-    save_atomic(ck, out)
-    return out
+    save_atomic(ck, folder / "with.pt")
+    ck.pop("drag_evidence")
+    save_atomic(ck, folder / "without.pt")
+    return folder / "with.pt", folder / "without.pt"
 
 
-def test_an_estimator_with_drag_evidence_agrees_batched_streamed_and_identified(camera_with_drag):
+def test_an_estimator_with_drag_evidence_agrees_batched_streamed_and_identified(
+        camera_with_and_without_drag):
     from methods.vid2param import Vid2Param
     from sysid_bench.datasets import make_dataset
     from sysid_bench.estimator import Observation
 
-    with_drag = Vid2Param(checkpoint=str(camera_with_drag), n_samples=0, device="cpu")
-    plain = Vid2Param(checkpoint="camera", n_samples=0, device="cpu")
+    path_with, path_without = camera_with_and_without_drag
+    with_drag = Vid2Param(checkpoint=str(path_with), n_samples=0, device="cpu")
+    plain = Vid2Param(checkpoint=str(path_without), n_samples=0, device="cpu")
     ds = make_dataset("test", 3, 5, size=with_drag.frame_size, n_frames=120)
     frames = np.asarray(ds.frames)
     mu, sd = with_drag.normalised_prefixes(frames, [40, 120])
