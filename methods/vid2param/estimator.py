@@ -382,8 +382,7 @@ class Vid2Param(Estimator):
         positions : ndarray, shape (..., T, 2)
             The network's track, metres.
         """
-        names = self.config_.targets
-        pos = BOX_WIDTH * mu[..., [names.index("x"), names.index("y")]]
+        pos = self._positions(mu)
         idx = self._index()
         m, s = mu[..., idx], sd[..., idx] * self.std_scale_
         if drag and self.drag_ is not None:
@@ -604,9 +603,9 @@ class Vid2Param(Estimator):
                 state)
 
     def _positions(self, mu: np.ndarray) -> np.ndarray:
-        """Floor-relative positions (T, 2) (m) of latent means (T, K)."""
+        """Floor-relative positions (..., T, 2) (m) of latent means (..., T, K)."""
         names = self.config_.targets
-        return BOX_WIDTH * mu[:, [names.index("x"), names.index("y")]]
+        return BOX_WIDTH * mu[..., [names.index("x"), names.index("y")]]
 
     def _parameters(self, mu: np.ndarray, sd: np.ndarray,
                     n: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -850,10 +849,13 @@ class Vid2ParamStream(Stream):
         # the network's own track (floor-relative metres) and last posterior, for forecast()
         self.track = np.full((256, 2), np.nan)
         self.last = None
-        drag = self.est.drag_
-        if drag is not None:
+        # the drag evidence's statistic of that track (``Vid2Param._calibrated``), when the
+        # checkpoint has one: the stream's own, not part of ``state``
+        self._drag = None
+        if self.est.drag_ is not None:
             from methods.vid2param.drag import DragStatistic
-        self._drag = None if drag is None else DragStatistic(1, drag.k)
+
+            self._drag = DragStatistic(1, self.est.drag_.k)
 
     def forecast(self, horizon: int, floor: float | None = None) -> Forecast:
         """Positions of the ``horizon`` frames after the last pushed one (metres).
@@ -886,7 +888,8 @@ class Vid2ParamStream(Stream):
 
     @property
     def state(self):
-        """The recurrent state, as ``Vid2ParamNet``'s (``RecurrentState``)."""
+        """The recurrent state, as ``Vid2ParamNet``'s (``RecurrentState``); the track and the
+        drag statistic of the frames pushed stay the stream's."""
         if self._fast is not None:
             return self._fast.torch_state(self.est.device_)
         return self._state
