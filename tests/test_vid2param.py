@@ -796,10 +796,12 @@ def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
                                "--perturb", "null"]), cam)
     assert (tc.steps, tc.init, tc.perturb, tc.nll_only_steps) == (7, None, None, 150)
     # the export's drag evidence: the camera preset's by default, a flag overrides it
-    from methods.vid2param.train import DRAG_VIDEOS, _drag_n
+    from methods.vid2param.train import PRESET_EXPORT, _export_n
 
-    assert _drag_n(a) == 0 and _drag_n(_parse(["--out", "x", "--preset", "camera"])) == DRAG_VIDEOS["camera"]
-    assert _drag_n(_parse(["--out", "x", "--preset", "camera", "--drag-n", "0"])) == 0
+    cam_a = _parse(["--out", "x", "--preset", "camera"])
+    for name in ("drag_n", "physics_cal_n"):
+        assert _export_n(a, name) == 0 and _export_n(cam_a, name) == PRESET_EXPORT["camera"][name]
+    assert _export_n(_parse(["--out", "x", "--preset", "camera", "--drag-n", "0"]), "drag_n") == 0
 
 
 def test_labels_fixed_in_training_are_not_supervised():

@@ -102,3 +102,28 @@ def test_physics_identification_beats_the_network_alone_and_is_seeded():
     for f in ds.frames[0, :60]:
         last = stream.push(f)
     np.testing.assert_allclose(last.mean, pre[0].mean)
+
+
+def test_the_physics_calibration_widens_the_fits_intervals_and_is_stored(tmp_path):
+    from methods.vid2param.calibrate_physics import calibrate_physics
+
+    if not SHIPPED_CHECKPOINTS["camera"].exists():
+        pytest.skip("no shipped camera checkpoint")
+    out = tmp_path / "cam.pt"
+    rec = calibrate_physics("camera", out, n=6, seed=3, log=lambda s: None)
+    f = np.array(rec["std_scale"])
+    assert f.shape == (4,) and (f >= 1.0).all() and rec["lengths"] == [50, 100, 200]
+    # coverage after is the level wherever a factor widened (pooled over the lengths)
+    for k, p in enumerate(rec["targets"]):
+        if f[k] > 1.0:
+            assert rec["coverage90_after"][p] >= 0.9 - 1e-9 > rec["coverage90_before"][p]
+    cal = methods.get("vid2param-physics", checkpoint=str(out), n_samples=0)
+    raw = methods.get("vid2param-physics", checkpoint="camera", n_samples=0)
+    cal._ensure_net()
+    raw._ensure_net()
+    raw.physics_scale_ = np.ones(4)  # the shipped file may hold a calibration of its own
+    np.testing.assert_array_equal(cal.physics_scale_, f)
+    ds = make_dataset("test", 1, 11, size=cal.frame_size, n_frames=80)
+    a, b = cal.identify(ds.observation(0)), raw.identify(ds.observation(0))
+    np.testing.assert_allclose(a.mean, b.mean)
+    np.testing.assert_allclose(a.std, b.std * f, rtol=1e-9)

@@ -84,13 +84,14 @@ def _physical(mu_n: np.ndarray, sd_n: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return _LO + _SPAN * np.clip(mu_n, 0.0, 1.0), _SPAN * sd_n
 
 
-def _std_scale(ck: dict) -> np.ndarray:
-    """The checkpoint's std calibration factors for ``PARAMS`` (ones when it has none)."""
-    cal = ck.get("calibration") or {}
+def _std_scale(ck: dict, key: str = "calibration") -> np.ndarray:
+    """The checkpoint's std calibration factors for ``PARAMS`` under ``key`` (ones when it has
+    none): the network's (``calibration``) or ``vid2param-physics``'s (``physics_calibration``)."""
+    cal = ck.get(key) or {}
     scale = dict(zip(cal.get("targets", []), cal.get("std_scale", [])))
     out = np.array([float(scale.get(p, 1.0)) for p in PARAMS])
     if not (np.isfinite(out).all() and (out > 0).all()):
-        raise ValueError(f"checkpoint: calibration factors must be finite and > 0, got {out}")
+        raise ValueError(f"checkpoint: {key} factors must be finite and > 0, got {out}")
     return out
 
 
@@ -281,12 +282,14 @@ class Vid2Param(Estimator):
             self.net_ = net.to(self.device_)
             self.config_ = net.config
             self.std_scale_ = _std_scale(ck)
+            self.physics_scale_ = _std_scale(ck, "physics_calibration")
             from methods.vid2param.drag import DragBlend  # not at the top: `-m ...drag` runs it
 
             self.drag_ = DragBlend.from_record(ck.get("drag_evidence"))
             self.checkpoint_info_ = {k: ck.get(k) for k in ("train", "git_commit", "val_metrics",
                                                             "source_sha256", "calibration",
-                                                            "drag_evidence")}
+                                                            "drag_evidence",
+                                                            "physics_calibration")}
             self.checkpoint_info_["path"] = str(path)
         return self.net_
 
@@ -443,6 +446,7 @@ class Vid2Param(Estimator):
         self.config_ = net.config
         self.std_scale_ = np.ones(len(PARAMS))  # a new fit is not calibrated
         self.drag_ = None  # nor has it a drag evidence fitted to it
+        self.physics_scale_ = np.ones(len(PARAMS))
         self.checkpoint_info_ = {"path": None, "fit": {"steps": info["step"], "wall_s": info["wall_s"],
                                                        "warm_start": init is not None}}
         return self
@@ -781,8 +785,10 @@ class Vid2ParamPhysics(Vid2Param):
         return Estimator.stream(self)
 
     def _fitted_posterior(self, fit, extras: dict, rng: np.random.Generator) -> Posterior:
-        """The Posterior of a ``StateFit``'s parameter block (its mean and covariance)."""
-        cov = fit.cov[4:8, 4:8]
+        """The Posterior of a ``StateFit``'s parameter block (its mean and covariance, scaled by
+        the checkpoint's ``physics_calibration``)."""
+        f = self.physics_scale_
+        cov = fit.cov[4:8, 4:8] * np.outer(f, f)
         mean, std = fit.theta.copy(), np.sqrt(np.diag(cov))
         samples = None
         if self.n_samples:

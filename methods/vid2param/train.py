@@ -478,7 +478,7 @@ def export_card(path) -> Path:
     info = {k: ck.get(k) for k in ("format", "format_version", "config", "train", "git_commit",
                                     "source_sha256", "torch_version", "val_metrics",
                                     "init_checkpoint", "calibration", "prior_fit",
-                                    "drag_evidence")}
+                                    "drag_evidence", "physics_calibration")}
     info["file_bytes"] = path.stat().st_size
     info["n_parameters"] = int(sum(v.numel() for v in ck["state_dict"].values()))
     text = json.dumps(_jsonable(info), indent=1, sort_keys=True)
@@ -701,12 +701,13 @@ def train(
 
 def export_with_prior(state_path, out_path, calibrate_n: int = 0,
                       prior_steps: int | None = None, threads: int | None = None,
-                      drag_n: int = 0) -> Path:
+                      drag_n: int = 0, physics_cal_n: int = 0) -> Path:
     """``export``, then the last phases of the recipe, each written over the export: (a config
     with ``physics_prior``) the physics prior's noise trained on the exported network
     (``methods.vid2param.fit_prior``, ``prior_steps`` steps, default :data:`PRIOR_STEPS`; 0:
-    none), and with ``drag_n`` > 0 the drag evidence fitted on that many train videos
-    (``methods.vid2param.drag``)."""
+    none); with ``drag_n`` > 0 the drag evidence fitted on that many train videos
+    (``methods.vid2param.drag``); with ``physics_cal_n`` > 0 ``vid2param-physics``'s std
+    factors calibrated on that many (``methods.vid2param.calibrate_physics``)."""
     prior_steps = PRIOR_STEPS if prior_steps is None else int(prior_steps)
     out_path = Path(export(state_path, out_path, calibrate_n=calibrate_n))
     cfg = load_checkpoint(out_path)["config"]
@@ -719,6 +720,11 @@ def export_with_prior(state_path, out_path, calibrate_n: int = 0,
         from methods.vid2param.drag import DragFitConfig, fit_drag
 
         fit_drag(out_path, out_path, DragFitConfig(n_videos=int(drag_n)), threads=threads)
+        export_card(out_path)
+    if physics_cal_n > 0:  # after the drag evidence: the fit's prior includes it
+        from methods.vid2param.calibrate_physics import calibrate_physics
+
+        calibrate_physics(out_path, out_path, int(physics_cal_n), threads=threads)
         export_card(out_path)
     return out_path
 
@@ -741,14 +747,17 @@ PRESET_TRAIN = {
 }
 
 
-#: Train videos of the drag evidence's fit at export, by preset (``methods.vid2param.drag``):
-#: the camera model's d gained 2.4x on its test split; the 28x28 model's d needs no help.
-DRAG_VIDEOS = {"camera": 300}
+#: Train videos of the export's last fits, by preset: the drag evidence
+#: (``methods.vid2param.drag``: the camera model's d gained 2.6x on its test split; the 28x28
+#: model's d, 0.0029, needs none) and ``vid2param-physics``'s std factors
+#: (``methods.vid2param.calibrate_physics``: the camera fit's g intervals held 44%).
+PRESET_EXPORT = {"camera": {"drag_n": 300, "physics_cal_n": 100}}
 
 
-def _drag_n(a: argparse.Namespace) -> int:
-    """``--drag-n``, or the preset's (``DRAG_VIDEOS``)."""
-    return int(a.drag_n) if a.drag_n is not None else DRAG_VIDEOS.get(a.preset, 0)
+def _export_n(a: argparse.Namespace, name: str) -> int:
+    """The flag ``name`` (``drag_n``, ``physics_cal_n``), or the preset's (``PRESET_EXPORT``)."""
+    v = getattr(a, name)
+    return int(v) if v is not None else PRESET_EXPORT.get(a.preset, {}).get(name, 0)
 
 
 def _resolve_init(init: str | None) -> str | None:
@@ -811,7 +820,10 @@ def _parser() -> argparse.ArgumentParser:
                      help="with --export: steps of the physics prior's training (0: none)")
     run.add_argument("--drag-n", type=int, default=None,
                      help="with --export: train videos of the drag evidence's fit (0: none; "
-                          f"default: the preset's, {DRAG_VIDEOS} or 0)")
+                          f"default: the preset's, {PRESET_EXPORT} or 0)")
+    run.add_argument("--physics-cal-n", type=int, default=None,
+                     help="with --export: train videos of vid2param-physics's std calibration "
+                          "(0: none; default: the preset's or 0)")
     run.add_argument("--no-resume", action="store_true",
                      help="start afresh even if state.pt exists")
     run.add_argument("--device", default="auto",
@@ -879,7 +891,8 @@ def main(argv=None) -> int:
         if not a.export:
             raise SystemExit("--export-only needs --export PATH")
         print(export_with_prior(out / "state.pt", a.export, a.calibrate_n, a.prior_steps,
-                                drag_n=_drag_n(a)))
+                                drag_n=_export_n(a, "drag_n"),
+                                physics_cal_n=_export_n(a, "physics_cal_n")))
         return 0
     base = V2PConfig.preset(a.preset).to_dict()
     for name in base:
@@ -894,7 +907,8 @@ def main(argv=None) -> int:
                     max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
     if info["done"] and a.export:
         print(export_with_prior(out / "state.pt", a.export, a.calibrate_n, a.prior_steps,
-                                drag_n=_drag_n(a)))
+                                drag_n=_export_n(a, "drag_n"),
+                                physics_cal_n=_export_n(a, "physics_cal_n")))
     return 0
 
 
