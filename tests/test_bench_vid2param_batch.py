@@ -26,7 +26,8 @@ pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no ship
 #: Current path over the previous one, same run. Chunked encoding alone measured 3.0x when it
 #: was written and 1.66-1.82x three days later on the same 2-core machine (the ratio moves with
 #: the machine); with the channels_last keypoint convolution 2.23-2.75x (146-192 / 65-70
-#: videos/s, the other core busy training). The bound keeps a margin below the lowest seen.
+#: videos/s, the other core busy training) and 2.97-3.10x idle (282-290 / 94-95). The bound
+#: keeps a margin below the lowest seen.
 SPEEDUP = 1.8
 
 
