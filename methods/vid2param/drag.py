@@ -308,8 +308,11 @@ def fit_drag(checkpoint, out, cfg: DragFitConfig | None = None, threads: int | N
     from methods.vid2param.checkpoint import load_checkpoint, save_atomic
     from methods.vid2param.data import make_split, perturb_dataset
     from methods.vid2param.estimator import Vid2Param
+    from sysid_bench._validate import check_positive_int
 
     cfg = cfg or DragFitConfig()
+    for name in ("n_videos", "n_val", "k"):
+        check_positive_int(getattr(cfg, name), name)
     t0 = time.perf_counter()
     est = Vid2Param(checkpoint=str(checkpoint), device="cpu", n_samples=0, threads=threads)
     est._ensure_net()
