@@ -262,7 +262,9 @@ def write_video(path, frames, fps: float = MODEL_FPS, *, codec: str = "libx264",
             st.width, st.height = fr.shape[2], fr.shape[1]
             if codec in ("libx264", "h264"):
                 st.pix_fmt = "yuv420p"
-                st.options = {"crf": str(int(crf)), "preset": "medium"}
+                # one encoder thread: with x264's threads, two writes of the same noisy frames
+                # came out different now and then (1 in 3), and so did every estimate read back
+                st.options = {"crf": str(int(crf)), "preset": "medium", "threads": "1"}
             elif grey and codec in ("ffv1", "png", "rawvideo"):
                 st.pix_fmt = "gray"
             for img in fr:
