@@ -262,9 +262,11 @@ def write_video(path, frames, fps: float = MODEL_FPS, *, codec: str = "libx264",
             st.width, st.height = fr.shape[2], fr.shape[1]
             if codec in ("libx264", "h264"):
                 st.pix_fmt = "yuv420p"
-                # one encoder thread: with x264's threads, two writes of the same noisy frames
-                # came out different now and then (1 in 3), and so did every estimate read back
-                st.options = {"crf": str(int(crf)), "preset": "medium", "threads": "1"}
+                # no macroblock-tree rate control: with it (x264's default, asm on) two writes
+                # of the same noisy camera-like frames came out different every time, one
+                # thread or several, and so did every estimate read back; without it (or
+                # without asm) the bytes repeat
+                st.options = {"crf": str(int(crf)), "preset": "medium", "x264-params": "mbtree=0"}
             elif grey and codec in ("ffv1", "png", "rawvideo"):
                 st.pix_fmt = "gray"
             for img in fr:

@@ -116,10 +116,12 @@ def test_write_video_validates_and_is_atomic(tmp_path):
 
 
 def test_write_video_is_reproducible_on_noisy_frames(tmp_path):
-    # x264 with its own threads wrote noisy frames differently now and then when the machine
-    # was busy (2 or 3 distinct files of 3 writes on the loaded 2-core machine; on an idle one
-    # the race rarely shows); same frames, same bytes
-    frames = (np.random.default_rng(0).random((200, 100, 200)) * 255).astype(np.uint8)
+    # with x264's macroblock-tree rate control, writes of the same camera-like frames (pixel
+    # noise, blur, occluders) differed every time; same frames, same bytes
+    from sysid_bench.datasets import make_dataset
+
+    nuis = {"blur": 0.5, "occlusion": 0.05, "drop": 0.05, "noise": 8.0}
+    frames = np.asarray(make_dataset("test", 1, 5, size=(100, 200), nuisance=nuis).frames[0])
     digests = {write_video(tmp_path / f"v{i}.mp4", frames).read_bytes() for i in range(3)}
     assert len(digests) == 1
 
