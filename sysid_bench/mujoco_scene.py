@@ -69,7 +69,7 @@ MAGNUS = 0.375
 #: blunt-drag coefficient of MuJoCo's ellipsoid model (its default)
 BLUNT = 0.5
 #: bump when what a cached episode holds changes
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: H.264 written without mbtree (video.write_video)
 
 
 @dataclass(frozen=True)
