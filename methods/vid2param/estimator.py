@@ -360,12 +360,16 @@ class Vid2Param(Estimator):
 
     def _sequences(self, frames: np.ndarray, drag: bool = True):
         """Filter (N, T, H, W) frames: ``_calibrated`` of the network's latent sequences."""
+        mu, sd, _ = self._latent(frames)
+        return self._calibrated(mu, sd, drag)
+
+    def _latent(self, frames: np.ndarray):
+        """The network's latent means and stds (N, T, K) after every frame of checked videos
+        (N, T, H, W) (float64), and the recurrent state after the last."""
         net = self._ensure_net()
         with torch.inference_mode():
-            mu, sd, _ = net.filter(torch.as_tensor(frames, device=self.device_))
-            mu = mu.cpu().numpy().astype(np.float64)
-            sd = sd.cpu().numpy().astype(np.float64)
-        return self._calibrated(mu, sd, drag)
+            mu, sd, state = net.filter(torch.as_tensor(frames, device=self.device_))
+        return mu.cpu().numpy().astype(np.float64), sd.cpu().numpy().astype(np.float64), state
 
     def _calibrated(self, mu: np.ndarray, sd: np.ndarray, drag: bool = True):
         """The parameter posteriors of latent sequences.
@@ -598,24 +602,19 @@ class Vid2Param(Estimator):
         return (self._positions(mu), *self._parameters(mu, sd), state)
 
     def _filtered(self, frames):
-        """The network's latent means and stds (T, K) after every frame of one checked video
-        (float64), and the recurrent state after the last."""
-        net = self._ensure_net()
-        with torch.inference_mode():
-            mu, sd, state = net.filter(torch.as_tensor(frames[None], device=self.device_))
-        return (mu[0].cpu().numpy().astype(np.float64), sd[0].cpu().numpy().astype(np.float64),
-                state)
+        """``_latent`` of one checked video (T, H, W): means and stds (T, K), and the state."""
+        mu, sd, state = self._latent(frames[None])
+        return mu[0], sd[0], state
 
     def _positions(self, mu: np.ndarray) -> np.ndarray:
         """Floor-relative positions (..., T, 2) (m) of latent means (..., T, K)."""
         names = self.config_.targets
         return BOX_WIDTH * mu[..., [names.index("x"), names.index("y")]]
 
-    def _parameters(self, mu: np.ndarray, sd: np.ndarray,
-                    n: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Calibrated posterior of ``(e, g, d, r)`` (4,) each, physical units, after frame ``n``
-        (default: the last) of latent sequences (T, K) (``_calibrated``)."""
-        m, s, _ = self._calibrated(mu[:n], sd[:n])
+    def _parameters(self, mu: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Calibrated posterior of ``(e, g, d, r)`` (4,) each, physical units, after the last
+        frame of latent sequences (T, K) (``_calibrated``)."""
+        m, s, _ = self._calibrated(mu, sd)
         return _physical(m[-1], s[-1])
 
     def _forecast_track(self, pos, th_mu, th_sd, horizon: int, dt: float,
@@ -748,7 +747,9 @@ class Vid2ParamPhysics(Vid2Param):
         lengths = _check_lengths(lengths, T)
         t0 = time.perf_counter()
         mu, sd, _ = self._filtered(frames)
-        pos = self._positions(mu)
+        # the parameters after every frame at once (the drag evidence is causal: its value
+        # after n frames is that of the n-frame prefix)
+        th_mu_n, th_sd_n, pos = self._calibrated(mu, sd)
         # a frame without the ball (black, dropped, never found) gets the network's guess of a
         # position, metres wide: unseen for the fit, not a point on the path
         pos[BOX_WIDTH * sd[:, self.config_.targets.index("x")] > UNSEEN_SD_M] = np.nan
@@ -757,7 +758,7 @@ class Vid2ParamPhysics(Vid2Param):
         out = []
         for n in lengths:
             t1, sims = time.perf_counter(), simulations()
-            th_mu, th_sd = self._parameters(mu, sd, n)
+            th_mu, th_sd = _physical(th_mu_n[n - 1], th_sd_n[n - 1])
             fit = fit_track(pos[:n], th_mu, th_sd, dt=float(obs.dt), floor=floor)
             extras = {"wall_s": wall * n / T + time.perf_counter() - t1, "n_frames": n,
                       "n_simulations": simulations() - sims, "network_mean": th_mu,

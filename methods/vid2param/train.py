@@ -709,23 +709,22 @@ def export_with_prior(state_path, out_path, calibrate_n: int = 0,
     (``methods.vid2param.drag``); with ``physics_cal_n`` > 0 ``vid2param-physics``'s std
     factors calibrated on that many (``methods.vid2param.calibrate_physics``)."""
     prior_steps = PRIOR_STEPS if prior_steps is None else int(prior_steps)
-    out_path = Path(export(state_path, out_path, calibrate_n=calibrate_n))
+    # the card is written once, after the last phase
+    out_path = Path(export(state_path, out_path, card=False, calibrate_n=calibrate_n))
     cfg = load_checkpoint(out_path)["config"]
     if cfg.get("physics_prior") and prior_steps > 0:
         from methods.vid2param.fit_prior import PriorFitConfig, fit_prior
 
         fit_prior(out_path, out_path, PriorFitConfig(steps=prior_steps), threads=threads)
-        export_card(out_path)
     if drag_n > 0:
         from methods.vid2param.drag import DragFitConfig, fit_drag
 
         fit_drag(out_path, out_path, DragFitConfig(n_videos=int(drag_n)), threads=threads)
-        export_card(out_path)
     if physics_cal_n > 0:  # after the drag evidence: the fit's prior includes it
         from methods.vid2param.calibrate_physics import calibrate_physics
 
         calibrate_physics(out_path, out_path, int(physics_cal_n), threads=threads)
-        export_card(out_path)
+    export_card(out_path)
     return out_path
 
 

@@ -327,8 +327,9 @@ def _reading(df) -> list[str]:
         return []
     out = []
     last = int(df.n_frames.max())
-    at = df[(df.n_frames == last) & (df.metric == "se")]
-    ctl = at[at.condition.isin(["noise:0", "noise:0.0"])]
+    # the control (clean labels, full physics) at the last length: every metric, and its MSE
+    ctl_at = df[(df.n_frames == last) & df.condition.isin(["noise:0", "noise:0.0"])]
+    ctl = ctl_at[ctl_at.metric == "se"]
     ctl_mse = None
     meaningful = True
 
@@ -348,7 +349,7 @@ def _reading(df) -> list[str]:
                 f"clearly better than guessing the prior mean ({GUESS_MSE:.3f}): at this budget "
                 "the sensitivity comparisons below cannot confirm or refute the paper.")
         else:
-            c0 = df[(df.condition == ctl.condition.iloc[0]) & (df.n_frames == last)]
+            c0 = ctl_at[ctl_at.condition == ctl.condition.iloc[0]]
             per = ", ".join(f"{p} {c0[c0.metric == f'se_{p}'].value.mean():.3g}"
                             for p in PARAMS)
             out.append(f"Control (clean labels, full physics): normalised MSE "
@@ -379,7 +380,6 @@ def _reading(df) -> list[str]:
                    + ", ".join(NOISE_RULE_PARAMS) + f" within 2x the control's MSE; worst "
                    f"{worst:.2f}x).")
     ex = df[df.condition.str.startswith("extrapolation:")]
-    c0 = df[(df.n_frames == last) & df.condition.isin(["noise:0", "noise:0.0"])]
     for cond, g in ex.groupby("condition"):
         p = cond.split(":")[1]
         dist = g[g.metric == "distance"].set_index("case").value
@@ -392,7 +392,7 @@ def _reading(df) -> list[str]:
             holds = far.mean() < 0.5 * stuck
             # a parameter the control itself does not identify at this length (r before the
             # ball rolls) says nothing about extrapolation: every model answers its prior
-            p_ctl = c0[c0.metric == f"se_{p}"].value.mean() if len(c0) else np.nan
+            p_ctl = ctl_at[ctl_at.metric == f"se_{p}"].value.mean() if len(ctl_at) else np.nan
             blind = bool(p_ctl > 0.5 * GUESS_MSE)
             judged = (f"Cannot tell for {p}: the control does not identify {p} after {last} "
                       f"frames either (MSE {p_ctl:.3g}; guessing the prior mean scores "
@@ -404,10 +404,9 @@ def _reading(df) -> list[str]:
                 f"{far.mean():.3g} beyond 0.3 (n={len(far)}), where answering the top of "
                 f"the training range would score {stuck:.3g}. " + judged)
     sim = df[(df.condition == "simplified") & (df.n_frames == last)]
-    ctl = df[(df.condition.isin(["noise:0", "noise:0.0"])) & (df.n_frames == last)]
-    if len(sim) and len(ctl):
+    if len(sim) and len(ctl_at):
         pairs = {p: (sim[sim.metric == f"se_{p}"].value.mean(),
-                     ctl[ctl.metric == f"se_{p}"].value.mean()) for p in ("e", "g")}
+                     ctl_at[ctl_at.metric == f"se_{p}"].value.mean()) for p in ("e", "g")}
         holds = all(a <= max(2 * b, 0.01) for a, b in pairs.values())
         out.append(f"Paper: trained with simpler physics (drag and rolling fixed), g and e are "
                    f"still estimated on full-physics video. Here (MSE @ {last} frames): "
