@@ -386,3 +386,9 @@ def check_estimator(estimator: Estimator) -> None:
     """
     for _, run in estimator_checks(estimator):
         run()
+
+
+# the system contract lives beside the estimator contract (its own module keeps each short)
+from sysid_bench._system_checks import SystemCheckError, check_system, system_checks  # noqa: E402
+
+__all__ += ["check_system", "system_checks", "SystemCheckError"]

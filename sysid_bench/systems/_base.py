@@ -1,0 +1,331 @@
+"""What the suite knows of one dynamical system: the :class:`System` base class.
+
+A system is one module holding a subclass of :class:`System` (as sbibm's tasks hold prior,
+simulator and observation together, and DeepMind's Hamiltonian suite has one module per
+system). The subclass declares its parameters, prior, state, tracked points and default view as
+class attributes, and implements five hooks:
+
+``_simulate(theta, state0, n_frames, dt)``
+    The NumPy simulator: validated float64 ``theta`` (B, T, P) (parameters held from frame t to
+    t+1) and ``state0`` (B, S) in, states (B, T, S) out, frame 0 = ``state0``, events located
+    exactly. This is the one source of the system's physics.
+``sample_state0(n, rng)``
+    Initial states from the system's documented ranges.
+``_observe(states, theta)``
+    States (B, T, S) to the K tracked points' positions (B, T, K, 2) in metres.
+``_render(points, states, theta, size, **nuisance)``
+    Frames (B, T, H, W) uint8; most systems draw discs through :mod:`sysid_bench.systems._draw`.
+``_track(frames)``
+    Frames (T, H, W) to positions (T, K, 2), NaN where a point is not seen.
+
+plus, for the reference checks and NUTS, ``reference(theta, state0, n_frames, dt)`` (an
+event-driven ``scipy.integrate.solve_ivp`` at tight tolerance, one trajectory) and a JAX twin named
+by ``jax_twin = "module:function"`` (imported only when asked for, so JAX loads only for NUTS).
+
+The public methods validate at the boundary (shapes, NaN/inf, the documented envelope) and
+raise ``ValueError`` naming the argument and the system; the hooks receive clean arrays.
+"""
+
+from __future__ import annotations
+
+import abc
+import importlib
+from typing import ClassVar
+
+import numpy as np
+
+from sysid_bench._validate import as_float_array, check_positive_int, check_seed
+
+__all__ = ["System", "SUBRANGES_TRAIN", "SUBRANGES_TEST"]
+
+#: The paper's leak-free interleaved split: each parameter's prior range is cut into 10 equal
+#: sub-ranges numbered 0-9 from the low end; training draws from the even ones, testing from the
+#: odd ones, so no test value is ever seen in training.
+SUBRANGES_TRAIN = (0, 2, 4, 6, 8)
+SUBRANGES_TEST = (1, 3, 5, 7, 9)
+
+#: Accepted seconds between frames (as the ball's ``DT_RANGE``).
+_DT_RANGE = (1e-4, 1.0)
+#: Longest simulation accepted (frames); 100x a video.
+_MAX_FRAMES = 20000
+
+
+class System(abc.ABC):
+    """A dynamical system seen by a camera.
+
+    Class attributes
+    ----------------
+    name : str
+        Registry name.
+    params : tuple of str
+        Parameter names: the order of ``theta`` and of every ``Posterior``.
+    prior : dict of str -> (float, float)
+        Uniform prior range of each parameter (also what splits and metrics are built from).
+    envelope : dict of str -> (float, float)
+        Values ``simulate`` accepts (at least the prior; wider where the physics allows it).
+    state : tuple of str
+        State variable names, the last axis of ``simulate``'s output.
+    state_bounds : dict of str -> (float, float)
+        Values ``simulate`` accepts for each state variable of ``state0``.
+    n_points : int
+        K, the number of tracked points ``observe`` and ``track`` return.
+    extent : (float, float, float, float)
+        ``(x0, x1, y0, y1)`` metres of the default camera's view.
+    size : (int, int)
+        Default frame size ``(H, W)``.
+    noise_m : float
+        Position noise (m) the benchmark adds for the position-input methods.
+    jax_twin : str
+        ``"module:function"`` of the JAX twin (``theta (P,), state0 (S,), n_frames, dt -> (T, S)``),
+        or ``""`` when the system has none.
+    """
+
+    name: ClassVar[str] = ""
+    params: ClassVar[tuple[str, ...]] = ()
+    prior: ClassVar[dict[str, tuple[float, float]]] = {}
+    envelope: ClassVar[dict[str, tuple[float, float]]] = {}
+    state: ClassVar[tuple[str, ...]] = ()
+    state_bounds: ClassVar[dict[str, tuple[float, float]]] = {}
+    n_points: ClassVar[int] = 1
+    extent: ClassVar[tuple[float, float, float, float]] = (0.0, 10.0, 0.0, 10.0)
+    size: ClassVar[tuple[int, int]] = (28, 28)
+    noise_m: ClassVar[float] = 0.01
+    jax_twin: ClassVar[str] = ""
+
+    # ------------------------------------------------------------------------------------------
+    # the prior
+    @property
+    def n_params(self) -> int:
+        """P, the number of parameters."""
+        return len(self.params)
+
+    @property
+    def n_state(self) -> int:
+        """S, the length of the state."""
+        return len(self.state)
+
+    @property
+    def prior_lo(self) -> np.ndarray:
+        """Lower prior bounds, shape (P,)."""
+        return np.array([self.prior[p][0] for p in self.params], dtype=np.float64)
+
+    @property
+    def prior_hi(self) -> np.ndarray:
+        """Upper prior bounds, shape (P,)."""
+        return np.array([self.prior[p][1] for p in self.params], dtype=np.float64)
+
+    def normalise(self, theta) -> np.ndarray:
+        """Parameters (..., P) mapped to [0, 1] by the prior."""
+        lo, hi = self.prior_lo, self.prior_hi
+        return (np.asarray(theta, dtype=np.float64) - lo) / (hi - lo)
+
+    def denormalise(self, u) -> np.ndarray:
+        """Inverse of :meth:`normalise`."""
+        lo, hi = self.prior_lo, self.prior_hi
+        return lo + np.asarray(u, dtype=np.float64) * (hi - lo)
+
+    def subrange_bounds(self, param: str, k: int) -> tuple[float, float]:
+        """Bounds of sub-range ``k`` (0-9 from the low end) of ``param``'s prior range."""
+        if param not in self.params:
+            raise ValueError(f"param: expected one of {self.params} ({self.name}), got {param!r}")
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 0 <= k <= 9:
+            raise ValueError(f"k: expected an integer sub-range in 0..9, got {k!r}")
+        lo, hi = self.prior[param]
+        w = (hi - lo) / 10.0
+        return lo + k * w, lo + (k + 1) * w
+
+    def sample_theta(self, n: int, rng=None, split: str | None = None) -> np.ndarray:
+        """Parameters drawn uniformly from the prior, or from one side of the interleaved split.
+
+        Parameters
+        ----------
+        n : int
+        rng : int, None or numpy.random.Generator
+        split : {None, "train", "test"}
+            ``"train"`` draws each parameter from the even tenths of its range, ``"test"`` from
+            the odd ones (:data:`SUBRANGES_TRAIN`, :data:`SUBRANGES_TEST`); ``None`` from all.
+
+        Returns
+        -------
+        ndarray, shape (n, P)
+        """
+        n = check_positive_int(n, "n")
+        rng = check_seed(rng)
+        p = self.n_params
+        if split is None:
+            u = rng.random((n, p))
+        elif split in ("train", "test"):
+            sub = np.asarray(SUBRANGES_TRAIN if split == "train" else SUBRANGES_TEST)
+            k = rng.choice(sub, size=(n, p))
+            u = (k + rng.random((n, p))) / 10.0
+        else:
+            raise ValueError(f"split: expected None, 'train' or 'test', got {split!r}")
+        return self.denormalise(u)
+
+    # ------------------------------------------------------------------------------------------
+    # validation at the public boundary
+    def check_theta(self, theta, n_frames: int | None = None, name: str = "theta") -> np.ndarray:
+        """Validate parameters: float64 (B, P) or (B, n_frames, P) inside :attr:`envelope`."""
+        p = self.n_params
+        arr = np.asarray(theta) if not isinstance(theta, np.ndarray) else theta
+        if getattr(arr, "ndim", 0) in (2, 3) and arr.shape[-1] != p:
+            raise ValueError(
+                f"{name}: expected the {self.name} system's {p} parameters {self.params} on the "
+                f"last axis, got shape {arr.shape}"
+            )
+        th = as_float_array(theta, name, ndim=(2, 3), last=p)
+        if th.ndim == 3 and n_frames is not None and th.shape[1] != n_frames:
+            raise ValueError(
+                f"{name}: expected (B, n_frames={n_frames}, {p}) for time-varying parameters of "
+                f"the {self.name} system, got shape {th.shape}"
+            )
+        flat = th.reshape(-1, p)
+        lo, hi = flat.min(axis=0), flat.max(axis=0)
+        for i, q in enumerate(self.params):
+            a, b = self.envelope.get(q, self.prior[q])
+            if lo[i] < a or hi[i] > b:
+                raise ValueError(
+                    f"{name}: expected {q} in [{a:g}, {b:g}] for the {self.name} system "
+                    f"(its envelope), got values in [{lo[i]:g}, {hi[i]:g}]"
+                )
+        return th
+
+    def check_state0(self, state0, name: str = "state0") -> np.ndarray:
+        """Validate initial states: float64 (B, S) inside :attr:`state_bounds`."""
+        s = self.n_state
+        arr = np.asarray(state0) if not isinstance(state0, np.ndarray) else state0
+        if getattr(arr, "ndim", 0) == 2 and arr.shape[-1] != s:
+            raise ValueError(
+                f"{name}: expected the {self.name} system's state {self.state} ({s} values) on "
+                f"the last axis, got shape {arr.shape}"
+            )
+        s0 = as_float_array(state0, name, ndim=2, last=s)
+        for i, q in enumerate(self.state):
+            if q not in self.state_bounds:
+                continue
+            a, b = self.state_bounds[q]
+            col = s0[:, i]
+            if col.size and (col.min() < a or col.max() > b):
+                raise ValueError(
+                    f"{name}: expected {q} in [{a:g}, {b:g}] for the {self.name} system, "
+                    f"got values in [{col.min():g}, {col.max():g}]"
+                )
+        self._check_state0_extra(s0, name)
+        return s0
+
+    def _check_state0_extra(self, state0: np.ndarray, name: str) -> None:
+        """Checks beyond per-variable bounds (e.g. an ordering); raise ``ValueError``."""
+
+    @staticmethod
+    def _check_frames_dt(n_frames, dt) -> tuple[int, float]:
+        n = check_positive_int(n_frames, "n_frames")
+        if n > _MAX_FRAMES:
+            raise ValueError(f"n_frames: expected at most {_MAX_FRAMES}, got {n}")
+        if isinstance(dt, bool) or not isinstance(dt, (int, float, np.integer, np.floating)):
+            raise ValueError(f"dt: expected a number of seconds, got {dt!r}")
+        d = float(dt)
+        if not np.isfinite(d) or not _DT_RANGE[0] <= d <= _DT_RANGE[1]:
+            raise ValueError(f"dt: expected seconds in [{_DT_RANGE[0]:g}, {_DT_RANGE[1]:g}], got {dt!r}")
+        return n, d
+
+    # ------------------------------------------------------------------------------------------
+    # the public API
+    def simulate(self, theta, state0, n_frames: int = 200, dt: float = 0.05) -> np.ndarray:
+        """Simulate a batch of trajectories.
+
+        Parameters
+        ----------
+        theta : ndarray, shape (B, P) or (B, n_frames, P)
+            Parameters in :attr:`params` order; a time-varying ``theta[:, t]`` holds from frame
+            t to frame t+1.
+        state0 : ndarray, shape (B, S)
+        n_frames : int
+        dt : float
+            Seconds between frames.
+
+        Returns
+        -------
+        ndarray, shape (B, n_frames, S)
+            States at the frame times; frame 0 is ``state0``.
+        """
+        n_frames, dt = self._check_frames_dt(n_frames, dt)
+        th = self.check_theta(theta, n_frames)
+        s0 = self.check_state0(state0)
+        if th.shape[0] != s0.shape[0]:
+            raise ValueError(
+                f"state0: expected one row per theta row ({th.shape[0]}), got {s0.shape[0]}"
+            )
+        if th.ndim == 2:
+            th = np.broadcast_to(th[:, None, :], (th.shape[0], n_frames, th.shape[1]))
+        out = self._simulate(np.ascontiguousarray(th), np.ascontiguousarray(s0), n_frames, dt)
+        if not np.isfinite(out).all():
+            raise RuntimeError(f"{self.name}: the simulation produced non-finite states")
+        return out
+
+    def observe(self, states, theta) -> np.ndarray:
+        """Positions of the K tracked points, shape (B, T, K, 2), metres, from states (B, T, S)."""
+        st = as_float_array(states, "states", ndim=3, last=self.n_state, allow_nan=True)
+        th = self.check_theta(theta)
+        if th.shape[0] != st.shape[0]:
+            raise ValueError(f"theta: expected one row per video ({st.shape[0]}), got {th.shape[0]}")
+        return self._observe(st, th)
+
+    def render(self, states, theta, size=None, **nuisance) -> np.ndarray:
+        """Frames (B, T, H, W) uint8 of states (B, T, S); nuisances as :func:`_draw.finish`."""
+        st = as_float_array(states, "states", ndim=3, last=self.n_state)
+        th = self.check_theta(theta)
+        if th.shape[0] != st.shape[0]:
+            raise ValueError(f"theta: expected one row per video ({st.shape[0]}), got {th.shape[0]}")
+        from sysid_bench.render import check_size
+
+        size = self.size if size is None else check_size(size)
+        return self._render(self._observe(st, th), st, th, size, **nuisance)
+
+    def track(self, frames) -> np.ndarray:
+        """Positions (T, K, 2) in metres of the K tracked points in frames (T, H, W); NaN = unseen."""
+        fr = np.asarray(frames)
+        if fr.ndim != 3:
+            raise ValueError(f"frames: expected a (T, H, W) array, got shape {fr.shape}")
+        if fr.dtype != np.uint8:
+            fr = as_float_array(fr, "frames", ndim=3)
+            if fr.size and (fr.min() < 0 or fr.max() > 255):
+                raise ValueError(
+                    f"frames: expected values in [0, 255], got [{fr.min():g}, {fr.max():g}]"
+                )
+        return self._track(fr)
+
+    def jax_simulate(self):
+        """The JAX twin: ``f(theta (P,), state0 (S,), n_frames, dt) -> (T, S)`` (imports JAX)."""
+        if not self.jax_twin:
+            raise NotImplementedError(f"the {self.name} system has no JAX twin")
+        module, fn = self.jax_twin.split(":")
+        return getattr(importlib.import_module(module), fn)
+
+    def reference(self, theta, state0, n_frames: int = 200, dt: float = 0.05) -> np.ndarray:
+        """Event-driven ``solve_ivp`` reference of one trajectory: (P,), (S,) -> (n_frames, S)."""
+        raise NotImplementedError(f"the {self.name} system has no solve_ivp reference")
+
+    # ------------------------------------------------------------------------------------------
+    # hooks
+    @abc.abstractmethod
+    def _simulate(self, theta: np.ndarray, state0: np.ndarray, n_frames: int, dt: float) -> np.ndarray:
+        """Validated (B, T, P) and (B, S) to states (B, T, S)."""
+
+    @abc.abstractmethod
+    def sample_state0(self, n: int, rng=None) -> np.ndarray:
+        """Initial states (n, S) from the system's documented ranges."""
+
+    @abc.abstractmethod
+    def _observe(self, states: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """States (B, T, S) and theta (B, P) to points (B, T, K, 2)."""
+
+    @abc.abstractmethod
+    def _render(self, points, states, theta, size, **nuisance) -> np.ndarray:
+        """Points (B, T, K, 2) (and states, theta) to frames (B, T, H, W) uint8."""
+
+    @abc.abstractmethod
+    def _track(self, frames: np.ndarray) -> np.ndarray:
+        """Frames (T, H, W) to points (T, K, 2), NaN where unseen."""
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, params={self.params}, K={self.n_points})"

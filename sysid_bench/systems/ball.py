@@ -1,0 +1,73 @@
+"""The bouncing ball of the Vid2Param paper as a :class:`System`.
+
+A thin wrapper: the physics is :mod:`sysid_bench.physics` (and its JAX twin
+:mod:`sysid_bench.physics_jax`), the look :mod:`sysid_bench.render`, the tracker
+:mod:`sysid_bench.tracking`, all unchanged, with the floor at 0 (the renderer's convention).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sysid_bench import physics
+from sysid_bench.systems._base import System
+
+__all__ = ["Ball"]
+
+
+class Ball(System):
+    """Ball in a 10 m box: parameters e, g, d, r; state [x, y, vx, vy]; K = 1."""
+
+    name = "ball"
+    params = physics.PARAMS
+    prior = dict(physics.PRIOR)
+    envelope = dict(physics.ENVELOPE)
+    state = ("x", "y", "vx", "vy")
+    state_bounds = {
+        "x": (0.0, physics.BOX_WIDTH),
+        "y": (0.0, physics.BOX_WIDTH),
+        "vx": (-physics.V_MAX, physics.V_MAX),
+        "vy": (-physics.V_MAX, physics.V_MAX),
+    }
+    n_points = 1
+    extent = (0.0, physics.BOX_WIDTH, 0.0, physics.BOX_WIDTH)
+    size = (28, 28)
+    noise_m = 0.01
+    jax_twin = "sysid_bench.systems.ball:_jax_simulate"
+
+    def check_theta(self, theta, n_frames=None, name="theta"):
+        th = super().check_theta(theta, n_frames, name)
+        return physics.check_theta(th, n_frames, name)  # g < 0 and the physics' own envelope
+
+    def _simulate(self, theta, state0, n_frames, dt):
+        return physics.simulate(theta, state0, n_frames=n_frames, dt=dt, floor=0.0)
+
+    def sample_state0(self, n, rng=None):
+        return physics.sample_state0(n, rng)
+
+    def _observe(self, states, theta):
+        return states[..., None, :2].copy()
+
+    def _render(self, points, states, theta, size, **nuisance):
+        from sysid_bench.render import render
+
+        return render(states, size=size, **nuisance)
+
+    def _track(self, frames):
+        from sysid_bench.tracking import track
+
+        return track(frames)[:, None, :]
+
+    def reference(self, theta, state0, n_frames=200, dt=0.05):
+        """The ball's reference is its own tested kernel (``tests/test_physics.py`` checks it
+        against an event-located ``solve_ivp``)."""
+        th = self.check_theta(np.asarray(theta, dtype=np.float64)[None])
+        return self.simulate(th, np.asarray(state0, dtype=np.float64)[None], n_frames, dt)[0]
+
+
+def _jax_simulate(theta, state0, n_frames=200, dt=0.05):
+    """JAX twin for one trajectory: (4,), (4,) -> (n_frames, 4)."""
+    from sysid_bench import physics_jax
+
+    states, _bad = physics_jax.simulate_core(theta[None], state0[None], 0.0, int(n_frames), float(dt))
+    return states[0]
