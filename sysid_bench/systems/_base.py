@@ -301,6 +301,24 @@ class System(abc.ABC):
         module, fn = self.jax_twin.split(":")
         return getattr(importlib.import_module(module), fn)
 
+    def state0_from_track(self, positions, dt: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+        """Where a position-only method starts: a rough initial state from a track.
+
+        Parameters
+        ----------
+        positions : ndarray, shape (T, K, 2)
+            Observed points in metres, NaN where unseen (noise of a few cm).
+        dt : float
+
+        Returns
+        -------
+        state0 : ndarray, shape (S,)
+            Estimate of the state at frame 0 (inside :attr:`state_bounds`).
+        scale : ndarray, shape (S,)
+            Half-width of a box around it that holds the true state0 with high probability.
+        """
+        raise NotImplementedError(f"the {self.name} system gives no initial state from a track")
+
     def reference(self, theta, state0, n_frames: int = 200, dt: float = 0.05) -> np.ndarray:
         """Event-driven ``solve_ivp`` reference of one trajectory: (P,), (S,) -> (n_frames, S)."""
         raise NotImplementedError(f"the {self.name} system has no solve_ivp reference")
