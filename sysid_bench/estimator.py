@@ -34,6 +34,7 @@ from sysid_bench.spec import MethodSpec, spec_of
 __all__ = [
     "Observation",
     "Posterior",
+    "Check",
     "Forecast",
     "Estimator",
     "Stream",
@@ -220,6 +221,74 @@ def observed_positions(obs: Observation, *, min_seen: int = 3) -> np.ndarray:
     return pos
 
 
+#: A posterior-mean trajectory fits when its residual RMS is within this factor of the noise the
+#: method assumed (or the chi-square bound below, if larger). Generous on purpose: tracking error
+#: and a method's coarse noise model differ by up to ~1.5x on our own clean cases; a model that
+#: does not explain the observation misses by 10-100x (a hovering ball: 1.7 m against 0.02 m).
+CHECK_FACTOR = 2.0
+
+
+@dataclass(frozen=True)
+class Check:
+    """Does the model explain the observation? (``Posterior.check``)
+
+    Parameters
+    ----------
+    rms_m : float
+        Residual RMS (m) of the posterior-mean trajectory against the observed positions.
+    noise_m : float
+        The observation noise (m) the method assumed.
+    ok : bool
+        ``rms_m`` within what ``noise_m`` explains. A posterior whose check fails never claims
+        precision: its method widens the intervals or says so here.
+    n : int
+        Number of residuals (coordinates of seen points) behind ``rms_m``.
+    note : str
+        What was done about a failed check (e.g. "intervals widened to the prior").
+    """
+
+    rms_m: float
+    noise_m: float
+    ok: bool
+    n: int = 0
+    note: str = ""
+
+    def __post_init__(self) -> None:
+        for name in ("rms_m", "noise_m"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+                raise ValueError(f"{name}: expected a number of metres, got {v!r}")
+            if not (np.isnan(v) or v >= 0):
+                raise ValueError(f"{name}: expected >= 0 m or NaN, got {v!r}")
+        if not isinstance(self.ok, (bool, np.bool_)):
+            raise ValueError(f"ok: expected a bool, got {self.ok!r}")
+
+    @classmethod
+    def from_residuals(cls, residuals, noise_m: float, *, factor: float = CHECK_FACTOR,
+                       note: str = "") -> Check:
+        """The check of residuals (any shape, metres, NaN = unseen) against ``noise_m``.
+
+        Passes when the RMS is at most ``max(factor, sqrt(chi2_0.999(n) / n))`` times
+        ``noise_m``: the chi-square bound keeps a short track's honest fit from failing by chance.
+        No residual at all (nothing seen) fails: nothing explains nothing.
+        """
+        from scipy.stats import chi2
+
+        r = np.asarray(residuals, dtype=np.float64).ravel()
+        r = r[np.isfinite(r)]
+        noise = float(noise_m)
+        if r.size == 0:
+            return cls(float("nan"), noise, False, 0, note or "nothing observed")
+        rms = float(np.sqrt(np.mean(r * r)))
+        bound = max(factor, float(np.sqrt(chi2.ppf(0.999, r.size) / r.size)))
+        return cls(rms, noise, bool(rms <= bound * noise), int(r.size), note)
+
+    def as_dict(self) -> dict[str, Any]:
+        """``{"check_ok": ..., "check_rms_m": ..., "check_noise_m": ...}`` for tables."""
+        return {"check_ok": bool(self.ok), "check_rms_m": float(self.rms_m),
+                "check_noise_m": float(self.noise_m)}
+
+
 @dataclass
 class Posterior:
     """A method's belief about the physical parameters, in physical units, ``PARAMS`` order.
@@ -232,12 +301,16 @@ class Posterior:
     samples : ndarray, shape (S, 4), optional
     extras : dict
         ``n_simulations`` (int), ``wall_s`` (float) and method diagnostics (R-hat, ESS, ...).
+    check : Check, optional
+        Whether the model explains the observation (``None`` only for a method that cannot
+        tell; its ``extras["check_reason"]`` says why).
     """
 
     mean: np.ndarray
     std: np.ndarray
     samples: np.ndarray | None = None
     extras: dict[str, Any] = field(default_factory=dict)
+    check: Check | None = None
 
     def __post_init__(self) -> None:
         self.mean = as_float_array(self.mean, "mean", ndim=1, last=len(PARAMS))
@@ -251,6 +324,8 @@ class Posterior:
             self.samples = as_float_array(self.samples, "samples", ndim=2, last=len(PARAMS))
         if not isinstance(self.extras, dict):
             raise ValueError(f"extras: expected a dict, got {type(self.extras).__name__}")
+        if self.check is not None and not isinstance(self.check, Check):
+            raise ValueError(f"check: expected a Check or None, got {type(self.check).__name__}")
 
     def interval(self, level: float) -> tuple[np.ndarray, np.ndarray]:
         """Central interval holding ``level`` of the mass, per parameter.
