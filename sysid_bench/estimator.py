@@ -21,14 +21,26 @@ import numpy as np
 
 from sysid_bench._validate import (
     as_float_array,
+    check_annotated,
     check_horizon,
+    check_int,
     check_number,
     check_positive_int,
     check_seed,
     check_seed_value,
 )
 from sysid_bench.metrics import central_z
-from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR_LO, PRIOR_MEAN, PRIOR_SPAN, PRIOR_STD
+from sysid_bench.physics import (
+    BOX_WIDTH,
+    ENVELOPE,
+    FLOOR_MAX,
+    PARAMS,
+    PRIOR_LO,
+    PRIOR_MEAN,
+    PRIOR_SPAN,
+    PRIOR_STD,
+    V_MAX,
+)
 from sysid_bench.spec import MethodSpec, spec_of
 
 __all__ = [
@@ -80,6 +92,12 @@ class Observation:
     state0 : ndarray, shape (4,), optional
         Known initial state ``[x, y, vx, vy]`` (the paper's privileged baselines); ``None`` means
         the method must estimate it.
+    system : str
+        The registered system seen (:mod:`sysid_bench.systems`), ``"ball"`` by default. For
+        another system ``positions`` are its K tracked points, shape (T, K, 2) ((T, 2) is read
+        as K = 1 and stored as (T, 1, 2)), ``state0`` is its state (S,), and positions are
+        checked against the system's view instead of the ball's box. The ball keeps (T, 2)
+        ((T, 1, 2) is accepted and stored as (T, 2)).
     """
 
     frames: np.ndarray | None = None
@@ -87,6 +105,7 @@ class Observation:
     dt: float = 0.05
     floor: float | None = None
     state0: np.ndarray | None = None
+    system: str = "ball"
 
     def __post_init__(self) -> None:
         if self.frames is None and self.positions is None:
@@ -111,8 +130,19 @@ class Observation:
                     f"got shape {fr.shape}"
                 )
             self.frames = fr
+        if not (isinstance(self.system, str) and self.system == "ball"):
+            self.system = _system_name(self.system)
+            if self.system != "ball":
+                self._post_init_system()
+                return
         if self.positions is not None:
-            pos = as_float_array(self.positions, "positions", ndim=2, last=2, allow_nan=True)
+            pos = as_float_array(self.positions, "positions", ndim=(2, 3), last=2, allow_nan=True)
+            if pos.ndim == 3:  # the ball's one tracked point as (T, 1, 2)
+                if pos.shape[1] != 1:
+                    raise ValueError(
+                        f"positions: expected (T, 2) or (T, 1, 2) for the ball (K = 1), got shape {pos.shape}"
+                    )
+                pos = pos[:, 0]
             if pos.shape[0] < 1:
                 raise ValueError("positions: expected at least 1 frame, got 0")
             self.positions = pos
@@ -124,12 +154,55 @@ class Observation:
                 )
         self.dt = check_number(self.dt, "dt", lo=DT_RANGE[0], hi=DT_RANGE[1], unit="s")
         if self.floor is not None:
-            self.floor = check_number(self.floor, "floor", unit="m")
+            # the simulator's bound (physics.FLOOR_MAX): every method simulates this floor
+            self.floor = check_number(self.floor, "floor", lo=-FLOOR_MAX, hi=FLOOR_MAX, unit="m")
         if self.positions is not None:
             _check_in_box(self.positions, self.floor, "positions")
         if self.state0 is not None:
             self.state0 = as_float_array(self.state0, "state0", ndim=1, last=4)
             _check_in_box(self.state0[None, :2], self.floor, "state0")
+            v = float(np.abs(self.state0[2:]).max())
+            if v > V_MAX:  # the simulator's bound: methods simulate from this state
+                raise ValueError(f"state0: expected |vx|, |vy| <= {V_MAX:g} m/s (physics.V_MAX), "
+                                 f"got {v:g}")
+
+    def _post_init_system(self) -> None:
+        """Checks of an observation of a system other than the ball (frames already checked)."""
+        from sysid_bench import systems  # local: the ball's observations never need the registry
+
+        sys_ = systems.get(self.system)  # ValueError listing the known systems
+        self.system = sys_.name
+        if self.positions is not None:
+            pos = as_float_array(self.positions, "positions", ndim=(2, 3), last=2, allow_nan=True)
+            if pos.ndim == 2:
+                pos = pos[:, None, :]
+            if pos.shape[1] != sys_.n_points:
+                raise ValueError(
+                    f"positions: expected (T, {sys_.n_points}, 2) for the {sys_.name} system's "
+                    f"{sys_.n_points} tracked points, got shape {pos.shape}"
+                )
+            if pos.shape[0] < 1:
+                raise ValueError("positions: expected at least 1 frame, got 0")
+            if self.frames is not None and self.frames.shape[0] != pos.shape[0]:
+                raise ValueError(
+                    "positions: expected as many rows as frames "
+                    f"({self.frames.shape[0]}), got {pos.shape[0]}"
+                )
+            _check_in_view(pos.reshape(-1, 2), sys_, "positions")
+            self.positions = pos
+        self.dt = check_number(self.dt, "dt", lo=DT_RANGE[0], hi=DT_RANGE[1], unit="s")
+        if self.floor is not None:
+            self.floor = check_number(self.floor, "floor", unit="m")
+        if self.state0 is not None:
+            s0 = as_float_array(self.state0, "state0", ndim=1, last=sys_.n_state)
+            self.state0 = sys_.check_state0(s0[None], "state0")[0]
+
+    @property
+    def points(self) -> np.ndarray | None:
+        """Positions as (T, K, 2) for every system (the ball's (T, 2) with K = 1), or None."""
+        if self.positions is None:
+            return None
+        return self.positions if self.positions.ndim == 3 else self.positions[:, None, :]
 
     @property
     def n_frames(self) -> int:
@@ -153,6 +226,7 @@ class Observation:
             dt=self.dt,
             floor=self.floor,
             state0=self.state0,
+            system=self.system,
         )
 
 
@@ -178,6 +252,42 @@ def _check_in_box(pos: np.ndarray, floor: float | None, name: str) -> None:
     elif y.max() - y.min() > BOX_WIDTH + 2 * m:
         raise ValueError(
             f"{what}: y spanning at most {BOX_WIDTH:g} m, got y in [{y.min():.4g}, {y.max():.4g}]"
+        )
+
+
+def _system_name(system) -> str:
+    """A registered system's name (``ValueError`` with the known ones, and "did you mean")."""
+    from sysid_bench import systems
+
+    return systems.get(system).name
+
+
+def _system_params(system) -> tuple[str, ...]:
+    """Parameter names of a system; the ball's without touching the registry."""
+    if isinstance(system, str) and system == "ball":
+        return PARAMS
+    from sysid_bench import systems
+
+    return tuple(systems.get(system).params)
+
+
+def _check_in_view(pos: np.ndarray, system, name: str) -> None:
+    """Points (N, 2) (NaN = unseen) near a system's view; ``ValueError`` if far outside it.
+
+    The margin is half the view's larger side: a point drawn at the edge of the view, noise and
+    tracking error all pass; a wrong unit (millimetres for metres) or a wrong axis does not.
+    """
+    seen = np.isfinite(pos).all(axis=1)
+    if not seen.any():
+        return
+    x0, x1, y0, y1 = (float(v) for v in system.extent)
+    m = max(BOX_MARGIN, 0.5 * max(x1 - x0, y1 - y0))
+    x, y = pos[seen, 0], pos[seen, 1]
+    if x.min() < x0 - m or x.max() > x1 + m or y.min() < y0 - m or y.max() > y1 + m:
+        raise ValueError(
+            f"{name}: expected points within {m:g} m of the {system.name} system's view "
+            f"x in [{x0:g}, {x1:g}], y in [{y0:g}, {y1:g}] m, got x in [{x.min():.4g}, "
+            f"{x.max():.4g}], y in [{y.min():.4g}, {y.max():.4g}]"
         )
 
 
@@ -311,17 +421,22 @@ class Posterior:
     samples: np.ndarray | None = None
     extras: dict[str, Any] = field(default_factory=dict)
     check: Check | None = None
+    system: str = "ball"
 
     def __post_init__(self) -> None:
-        self.mean = as_float_array(self.mean, "mean", ndim=1, last=len(PARAMS))
-        std = np.asarray(self.std, dtype=np.float64)
-        if std.shape != (len(PARAMS),):
-            raise ValueError(f"std: expected shape ({len(PARAMS)},), got {std.shape}")
-        if np.isnan(std).any() or (std < 0).any():
-            raise ValueError(f"std: expected non-negative values, got {std}")
+        names = _system_params(self.system)
+        if not isinstance(self.system, str):
+            self.system = _system_name(self.system)
+        p = len(names)
+        self.mean = as_float_array(self.mean, "mean", ndim=1, last=p)
+        if self.system == "ball":
+            _check_ball_mean(self.mean)
+        std = _as_std(self.std)
+        if std.shape != (p,):
+            raise ValueError(f"std: expected shape ({p},) ({self.system}: {', '.join(names)}), got {std.shape}")
         self.std = std
         if self.samples is not None:
-            self.samples = as_float_array(self.samples, "samples", ndim=2, last=len(PARAMS))
+            self.samples = as_float_array(self.samples, "samples", ndim=2, last=p)
         if not isinstance(self.extras, dict):
             raise ValueError(f"extras: expected a dict, got {type(self.extras).__name__}")
         if self.check is not None and not isinstance(self.check, Check):
@@ -336,6 +451,7 @@ class Posterior:
         -------
         lo, hi : ndarray, shape (4,)
         """
+        level = check_number(level, "level")
         if not 0 < level < 1:
             raise ValueError(f"level: expected a number in (0, 1), got {level!r}")
         a = (1 - level) / 2
@@ -347,8 +463,9 @@ class Posterior:
 
     def as_dict(self) -> dict[str, float]:
         """``{"e": mean_e, ..., "e_std": std_e, ...}`` for tables."""
-        out = {p: float(m) for p, m in zip(PARAMS, self.mean)}
-        out.update({f"{p}_std": float(s) for p, s in zip(PARAMS, self.std)})
+        names = _system_params(self.system)
+        out = {p: float(m) for p, m in zip(names, self.mean)}
+        out.update({f"{p}_std": float(s) for p, s in zip(names, self.std)})
         return out
 
 
@@ -358,10 +475,10 @@ class Forecast:
 
     Parameters
     ----------
-    mean : ndarray, shape (H, 2)
-        Metres.
-    std : ndarray, shape (H, 2)
-    samples : ndarray, shape (S, H, 2), optional
+    mean : ndarray, shape (H, 2) or (H, K, 2)
+        Metres: (H, 2) for a system with one tracked point (the ball), (H, K, 2) for K > 1.
+    std : ndarray, same shape as ``mean``
+    samples : ndarray, shape (S, *mean.shape), optional
     extras : dict
     """
 
@@ -371,18 +488,20 @@ class Forecast:
     extras: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.mean = as_float_array(self.mean, "mean", ndim=2, last=2)
-        std = np.asarray(self.std, dtype=np.float64)
+        self.mean = as_float_array(self.mean, "mean", ndim=(2, 3), last=2)
+        if self.mean.shape[0] < 1:  # a forecast of nothing answers no question
+            raise ValueError(f"mean: expected a horizon of at least 1 frame, got shape "
+                             f"{self.mean.shape}")
+        std = _as_std(self.std)
         if std.shape != self.mean.shape:
             raise ValueError(f"std: expected shape {self.mean.shape}, got {std.shape}")
-        if np.isnan(std).any() or (std < 0).any():
-            raise ValueError("std: expected non-negative values")
         self.std = std
         if self.samples is not None:
-            s = as_float_array(self.samples, "samples", ndim=3, last=2)
-            if s.shape[1] != self.mean.shape[0]:
+            s = as_float_array(self.samples, "samples", ndim=self.mean.ndim + 1, last=2)
+            if s.shape[1:] != self.mean.shape:
                 raise ValueError(
-                    f"samples: expected horizon {self.mean.shape[0]} on axis 1, got shape {s.shape}"
+                    f"samples: expected shape (S, {', '.join(map(str, self.mean.shape))}) like mean, "
+                    f"got shape {s.shape}"
                 )
             self.samples = s
         if not isinstance(self.extras, dict):
@@ -391,6 +510,39 @@ class Forecast:
     @property
     def horizon(self) -> int:
         return int(self.mean.shape[0])
+
+
+#: How far (in prior widths, per parameter) a ball's posterior mean may lie outside
+#: ``physics.ENVELOPE`` (with ``g < 0``): an unclipped network or an unbounded fit can put a mean a
+#: little past a bound (e just above 1, d just below 0), and the posterior is a result that says
+#: so; e = 5 or g = +100 is no statement about a ball, and is refused where it is made.
+MEAN_MARGIN = 1.0
+
+
+def _check_ball_mean(mean: np.ndarray) -> None:
+    """``ValueError`` naming ``mean`` when a ball parameter lies more than ``MEAN_MARGIN`` prior
+    widths outside ``physics.ENVELOPE`` (``g`` must stay below 0 by the same rule)."""
+    for i, q in enumerate(PARAMS):
+        a, b = ENVELOPE[q]
+        pad = MEAN_MARGIN * float(PRIOR_SPAN[i])
+        lo, hi = a - pad, (min(b, 0.0) if q == "g" else b) + pad
+        if not lo <= mean[i] <= hi:
+            raise ValueError(
+                f"mean: expected {q} within {MEAN_MARGIN:g} prior width of the physical envelope "
+                f"[{a:g}, {b:g}] (physics.ENVELOPE), i.e. in [{lo:.4g}, {hi:.4g}], got {q} = "
+                f"{mean[i]:g}"
+            )
+
+
+def _as_std(std) -> np.ndarray:
+    """A result's standard deviations: real, non-negative; ``inf`` allowed (no information)."""
+    try:
+        arr = np.asarray(std, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"std: expected non-negative numbers, got {std!r} ({exc})") from None
+    if np.isnan(arr).any() or (arr < 0).any():
+        raise ValueError(f"std: expected non-negative values (inf for none), got {arr}")
+    return arr
 
 
 def prior_posterior(n_samples: int = 0, seed=0, **extras) -> Posterior:
@@ -405,9 +557,10 @@ def prior_posterior(n_samples: int = 0, seed=0, **extras) -> Posterior:
         Put into ``Posterior.extras`` (``n_simulations`` defaults to 0, ``wall_s`` to 0.0).
     """
     samples = None
+    n_samples = check_int(n_samples, "n_samples", lo=0)
     if n_samples:
         rng = check_seed(seed)
-        samples = PRIOR_LO + rng.random((int(n_samples), len(PARAMS))) * PRIOR_SPAN
+        samples = PRIOR_LO + rng.random((n_samples, len(PARAMS))) * PRIOR_SPAN
     info = {"n_simulations": 0, "wall_s": 0.0}
     info.update(extras)
     return Posterior(mean=PRIOR_MEAN.copy(), std=PRIOR_STD.copy(), samples=samples, extras=info)
@@ -575,9 +728,17 @@ class Estimator(abc.ABC):
         return LoopStream(self)
 
 
-def _check_obs(obs) -> None:
+def _check_obs(obs, est=None) -> None:
     if not isinstance(obs, Observation):
         raise ValueError(f"obs: expected a sysid_bench.estimator.Observation, got {type(obs).__name__}")
+    # a method built for one system must not read another system's observation as its own
+    want = getattr(est, "system", "ball") if est is not None else obs.system
+    if isinstance(want, str) and want != obs.system:
+        raise ValueError(
+            f"obs: expected an observation of the {want} system for this {getattr(est, 'name', '')} "
+            f"estimator, got one of the {obs.system} system (methods.get(name, system="
+            f"{obs.system!r}) builds the method for it)"
+        )
 
 
 def _validating_init(init):
@@ -593,7 +754,7 @@ def _validating_init(init):
 def _checking_identify(identify):
     @functools.wraps(identify)
     def wrapper(self, obs, *args, **kwargs):
-        _check_obs(obs)
+        _check_obs(obs, self)
         return identify(self, obs, *args, **kwargs)
 
     return wrapper
@@ -602,7 +763,7 @@ def _checking_identify(identify):
 def _checking_forecast(forecast):
     @functools.wraps(forecast)
     def wrapper(self, obs, horizon, *args, **kwargs):
-        _check_obs(obs)
+        _check_obs(obs, self)
         horizon = check_horizon(horizon, MAX_HORIZON)
         return forecast(self, obs, horizon, *args, **kwargs)
 
