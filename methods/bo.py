@@ -74,7 +74,7 @@ class BayesOpt(SimulationMethod):
     scale_cases = {
         "smoke": 1,
         "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4,
-                    "foreign": 2},
+                    "foreign": 2, "systems": 3},
     }
     scale_options = {"smoke": {"n_calls": 12, "n_initial_points": 6}}
     #: cheap budgets for check_estimator (same code path)

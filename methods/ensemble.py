@@ -159,7 +159,7 @@ class Emcee(SimulationMethod):
     scale_cases = {
         "smoke": 1,
         "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4,
-                    "foreign": 2},
+                    "foreign": 2, "systems": 3},
     }
     scale_options = {"smoke": {"n_walkers": 20, "n_steps": 20, "n_burn": 10}}
     #: cheap budgets for check_estimator (same code path)

@@ -412,9 +412,9 @@ class NUTS(SimulationMethod):
     # ~25 s per posterior (~100 under load): only in experiment 5, where it is the reference
     scale_cases = {
         "smoke": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 1,
-                  "foreign": 0},
+                  "foreign": 0, "systems": 1},
         "default": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 3,
-                    "foreign": 0},
+                    "foreign": 0, "systems": 3},
     }
     scale_options = {
         "smoke": {"num_warmup": 30, "num_samples": 30, "n_init": 200},

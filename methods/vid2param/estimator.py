@@ -818,7 +818,8 @@ class Vid2ParamChanging(Vid2Param):
     figure_order = 9
     fit_options = {}
     pretrained = {}
-    scale_cases = {s: {"identification": 0, "forecasting": 0, "calibration": 0, "foreign": 0}
+    scale_cases = {s: {"identification": 0, "forecasting": 0, "calibration": 0, "foreign": 0,
+                       "systems": 0}
                    for s in ("smoke", "default", "paper")}
 
     def forecast(self, obs, horizon):

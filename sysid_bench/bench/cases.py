@@ -191,7 +191,7 @@ SCALES: dict[str, Scale] = {
         name="smoke",
         seed=7,
         n_cases={"identification": 2, "forecasting": 2, "changing": 1, "sensitivity": 2,
-                 "calibration": 2},
+                 "calibration": 2, "systems": 1},
         # expensive methods declare one case and a small budget here (smoke numbers mean nothing)
         lengths=(20, 60, 100),
         forecast_after=(20, 50),
@@ -213,7 +213,7 @@ SCALES: dict[str, Scale] = {
     "default": Scale(
         name="default",
         n_cases={"identification": 20, "forecasting": 20, "changing": 10, "sensitivity": 50,
-                 "calibration": 20},
+                 "calibration": 20, "systems": 10},
         # Measured seconds per cell, one worker at low load (a full default grid without
         # vid2param summed to 690 core-seconds): lsq 0.5-3.4, sindy 0.3-1.4, bo 4-13,
         # emcee 9-25, nuts ~25 per posterior (~100 under a load of 5). The expensive ones declare
@@ -228,7 +228,7 @@ SCALES: dict[str, Scale] = {
     "paper": Scale(
         name="paper",
         n_cases={"identification": 100, "forecasting": 100, "changing": 100, "sensitivity": 100,
-                 "calibration": 100},
+                 "calibration": 100, "systems": 100},
         thin_expensive=False,
         changing_stride=1,
         calibration_inputs=("video", "privileged"),

@@ -1,0 +1,265 @@
+"""Experiment 0: every method on every system, one protocol, one table across systems.
+
+Each registered system gets the same protocol: ``n_cases["systems"]`` test-split cases
+(parameters from the odd tenths of each prior range, initial states from the system's own
+ranges, seeded per system), 200 frames. Position methods see the K tracked points with
+``system.noise_m`` (1 cm) Gaussian noise and no initial state; frame methods see the system's own
+``render`` at its default size. Per case and observed-frame count (50, 100, 200) the rows are
+``se_<p>`` / ``se`` (squared error normalised by the prior range, and their mean), ``cov90``
+(fraction of the parameters whose 90% interval holds the truth), ``check_ok`` (the posterior's
+model check passed), ``wall_s``; after 50 frames a 100-frame forecast adds ``fc_mse`` (position
+MSE normalised by the view's width).
+
+A method that does not run on a system (no model shipped for it, no feature library) raises
+``NotImplementedError`` with a sentence; the report lists it as ``n/a``.
+"""
+
+from __future__ import annotations
+
+import zlib
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from sysid_bench.bench.experiment import Cell, CellOutput, Context, Experiment, ci_summary, fmt_ci
+from sysid_bench.estimator import Observation
+from sysid_bench.metrics import GUESS_MSE
+
+__all__ = ["Systems", "SYSTEM_LENGTHS", "FORECAST_AFTER", "FORECAST_HORIZON", "system_case"]
+
+#: Observed-frame counts of the identification rows.
+SYSTEM_LENGTHS = (50, 100, 200)
+#: The forecast: ``FORECAST_HORIZON`` frames after the first ``FORECAST_AFTER``.
+FORECAST_AFTER = 50
+FORECAST_HORIZON = 100
+_N_FRAMES = 200
+
+
+def _systems() -> list[str]:
+    from sysid_bench import systems
+
+    return systems.available()
+
+
+@lru_cache(maxsize=16)
+def _cases(system: str, n: int, seed: int):
+    """Test cases of ``system``: theta (n, P), states (n, T, S), noisy points (n, T, K, 2)."""
+    from sysid_bench import systems
+
+    sys_ = systems.get(system)
+    # one stream per system, fixed by the scale's seed and the system's name
+    rng = np.random.default_rng([seed, zlib.crc32(system.encode())])
+    theta = sys_.sample_theta(n, rng, "test")
+    try:
+        state0 = sys_.sample_state0(n, rng, theta=theta)
+    except TypeError:  # systems whose initial state does not depend on theta
+        state0 = sys_.sample_state0(n, rng)
+    states = sys_.simulate(theta, state0, n_frames=_N_FRAMES)
+    points = sys_.observe(states, theta)
+    noisy = points + rng.normal(0.0, sys_.noise_m, points.shape)
+    return theta, states, points, noisy
+
+
+def system_case(system: str, i: int, n: int, seed: int, input_kind: str):
+    """Observation (all frames), the true theta (P,) and true points (T, K, 2) of case ``i``."""
+    from sysid_bench import systems
+
+    sys_ = systems.get(system)
+    theta, states, points, noisy = _cases(system, n, seed)
+    if input_kind == "video":
+        frames = sys_.render(states[i : i + 1], theta[i : i + 1], seed=[seed, i])[0]
+        obs = Observation(frames=frames, system=system)
+    else:
+        pos = noisy[i]
+        obs = Observation(positions=pos[:, 0] if system == "ball" else pos, system=system)
+    return obs, theta[i], points[i]
+
+
+def _interval_holds(post, truth, level=0.9) -> np.ndarray:
+    lo, hi = post.interval(level)
+    return (truth >= lo) & (truth <= hi)
+
+
+class Systems(Experiment):
+    name = "systems"
+    title = "0. Across systems"
+    description = (
+        "Every method on every registered system with one protocol: held-out test-split cases "
+        "(odd tenths of each prior range), 200 frames; position methods see the tracked points "
+        "with 1 cm noise and no initial state, frame methods the system's own render. Parameter "
+        "MSE is normalised by each prior range (guessing the prior mean scores "
+        f"{GUESS_MSE:.3f}); coverage is the fraction of parameters whose 90% interval holds the "
+        "truth; forecast MSE is over positions scaled by the view's width, 100 frames after 50; "
+        "`check` is the share of posteriors whose model check passed. Rank orders the methods "
+        "of a system by parameter MSE at 200 frames (forecast-only methods last)."
+    )
+
+    def cells(self, scale, methods):
+        import methods as registry
+
+        out = []
+        for s in _systems():
+            for m in methods:
+                inp = "video" if registry.spec(m).input_kind == "frames" else "positions"
+                n = scale.cases(self.name, m)
+                out += [Cell(self.name, m, inp, s, i) for i in range(n)]
+        return out
+
+    def run(self, cell: Cell, ctx: Context) -> CellOutput:
+        sc = ctx.scale
+        system, i = cell.condition, int(cell.case)
+        obs, truth, points = system_case(system, i, sc.n_cases[self.name], sc.seed, cell.input)
+        est = ctx.estimator(cell.method, system=system)
+        spec = est.spec()
+        out = CellOutput()
+        from sysid_bench import systems
+
+        sys_ = systems.get(system)
+        u_true = sys_.normalise(truth)
+        # the expensive tier (samplers, BO) identifies after all 200 frames only at thinned scales
+        lengths = SYSTEM_LENGTHS[-1:] if sc.thinned(cell.method) else SYSTEM_LENGTHS
+        if spec.identifies:
+            import time
+
+            for n in lengths:
+                t0 = time.perf_counter()
+                try:
+                    post = est.identify(obs.prefix(n))
+                except NotImplementedError:
+                    raise
+                except Exception as exc:  # one frame count failing is a result, not a crash
+                    out.fail(n, exc, i)
+                    continue
+                wall = time.perf_counter() - t0
+                se = (sys_.normalise(post.mean) - u_true) ** 2
+                for p, v in zip(sys_.params, se):
+                    out.add(i, n, f"se_{p}", v)
+                out.add(i, n, "se", se.mean())
+                out.add(i, n, "cov90", _interval_holds(post, truth).mean())
+                out.add(i, n, "wall_s", wall)
+                if post.check is not None:
+                    out.add(i, n, "check_ok", float(post.check.ok))
+        if spec.forecasts:
+            try:
+                fc = est.forecast(obs.prefix(FORECAST_AFTER), FORECAST_HORIZON)
+            except NotImplementedError:
+                if not spec.identifies:
+                    raise
+                return out
+            except Exception as exc:
+                out.fail(FORECAST_AFTER, exc, i)
+                return out
+            k = sys_.n_points
+            mean = np.asarray(fc.mean).reshape(FORECAST_HORIZON, k, 2)
+            want = points[FORECAST_AFTER : FORECAST_AFTER + FORECAST_HORIZON]
+            width = sys_.extent[1] - sys_.extent[0]
+            out.add(i, FORECAST_AFTER, "fc_mse", float(np.mean(((mean - want) / width) ** 2)))
+        return out
+
+    # -- report -----------------------------------------------------------------------------
+    def summary(self, df):
+        """``systems_summary``: one row per (system, method, input)."""
+        import pandas as pd
+
+        last = max(SYSTEM_LENGTHS)
+        recs = []
+        for (s, m, inp), g in df.groupby(["condition", "method", "input"], sort=True):
+            at = g[g.n_frames == last]
+
+            def mean_of(metric, frame=None, g=g, at=at):
+                v = (at if frame is None else g[g.n_frames == frame])
+                v = v[v.metric == metric].value
+                return float(v.mean()) if len(v) else np.nan
+
+            se = ci_summary(at[at.metric == "se"], ["method"])
+            rec = {"system": s, "method": m, "input": inp,
+                   "cases": int(g.case.nunique()),
+                   f"param_mse@{last}": mean_of("se"),
+                   "param_mse_lo": float(se["lo"].iloc[0]) if len(se) else np.nan,
+                   "param_mse_hi": float(se["hi"].iloc[0]) if len(se) else np.nan,
+                   "forecast_mse@50": mean_of("fc_mse", FORECAST_AFTER),
+                   "coverage90": mean_of("cov90"),
+                   "check_pass": mean_of("check_ok"),
+                   "s_per_id": float(at[at.metric == "wall_s"].value.median())
+                   if (at.metric == "wall_s").any() else np.nan}
+            recs.append(rec)
+        t = pd.DataFrame(recs)
+        if t.empty:
+            return t
+        key = f"param_mse@{last}"
+        t["rank"] = (t.groupby("system")[key].rank(method="min", na_option="keep"))
+        t["rank"] = t["rank"].astype("Int64")
+        return t.sort_values(["system", "rank", "method"], na_position="last").reset_index(drop=True)
+
+    def tables(self, df):
+        if df.empty:
+            return {}
+        t = self.summary(df)
+        show = t.copy()
+        last = max(SYSTEM_LENGTHS)
+        show[f"param_mse@{last}"] = [
+            fmt_ci(m, lo, hi) for m, lo, hi in zip(t[f"param_mse@{last}"], t.param_mse_lo,
+                                                   t.param_mse_hi)]
+        show = show.drop(columns=["param_mse_lo", "param_mse_hi"])
+        for c in ("forecast_mse@50", "coverage90", "check_pass", "s_per_id"):
+            show[c] = [("-" if not np.isfinite(v) else f"{v:.3g}") for v in t[c]]
+        return {"systems_summary": t, "systems_summary_display": show}
+
+    def figures(self, df, store, outdir: Path):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        if df.empty:
+            return {}
+        t = self.summary(df)
+        last = max(SYSTEM_LENGTHS)
+        systems_ = sorted(t.system.unique())
+        meths = sorted(t.method.unique())
+        fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+        width = 0.8 / max(len(meths), 1)
+        for j, m in enumerate(meths):
+            g = t[t.method == m].set_index("system")
+            xs = np.arange(len(systems_)) + (j - (len(meths) - 1) / 2) * width
+            for ax, col in zip(axes, (f"param_mse@{last}", "forecast_mse@50")):
+                ys = [g[col].get(s, np.nan) if s in g.index else np.nan for s in systems_]
+                ax.bar(xs, ys, width=width, label=m)
+        for ax, lab in zip(axes, (f"parameter MSE after {last} frames", "forecast MSE (100 after 50)")):
+            ax.set_xticks(np.arange(len(systems_)), systems_)
+            ax.set_yscale("log")
+            ax.set_ylabel(lab)
+        axes[0].axhline(GUESS_MSE, color="k", ls=":", lw=1)
+        axes[1].legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+        fig.tight_layout()
+        outdir.mkdir(parents=True, exist_ok=True)
+        path = outdir / "systems_summary.png"
+        from sysid_bench.bench.figures import save_figure
+
+        save_figure(fig, path)
+        plt.close(fig)
+        return {"Every method on every system: parameter MSE after 200 frames (dotted: guessing) "
+                "and forecast MSE": path}
+
+    def reading(self, df):
+        if df.empty:
+            return []
+        t = self.summary(df)
+        last = max(SYSTEM_LENGTHS)
+        key = f"param_mse@{last}"
+        out = []
+        for s, g in t.groupby("system"):
+            g = g[np.isfinite(g[key])].sort_values(key)
+            if g.empty:
+                continue
+            win = g.iloc[0]
+            ties = g[g.param_mse_lo <= win.param_mse_hi].method.tolist()
+            tie = (f" (not separable from {', '.join(x for x in ties if x != win.method)} by "
+                   "the 95% CIs)") if len(ties) > 1 else ""
+            sent = (f"{s}: {win.method} identifies best ({win[key]:.3g} after {last} frames){tie}")
+            f = g[np.isfinite(g["forecast_mse@50"])].sort_values("forecast_mse@50")
+            if len(f):
+                sent += f"; best forecast {f.iloc[0].method} ({f.iloc[0]['forecast_mse@50']:.3g})"
+            out.append(sent + ".")
+        return out
