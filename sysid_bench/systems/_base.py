@@ -9,8 +9,11 @@ class attributes, and implements five hooks:
     The NumPy simulator: validated float64 ``theta`` (B, T, P) (parameters held from frame t to
     t+1) and ``state0`` (B, S) in, states (B, T, S) out, frame 0 = ``state0``, events located
     exactly. This is the one source of the system's physics.
-``sample_state0(n, rng)``
-    Initial states from the system's documented ranges.
+``sample_state0(n, rng, theta=None)``
+    Initial states from the system's documented ranges. ``theta`` (n, P), optional, is the
+    trajectories' parameters, for a system whose initial state is defined relative to a
+    parameter (the spring's ``x0 = L0 + s0``); other systems ignore it (or omit the keyword:
+    callers pass it only where the signature has it, see :meth:`System.sample_cases`).
 ``_observe(states, theta)``
     States (B, T, S) to the K tracked points' positions (B, T, K, 2) in metres.
 ``_render(points, states, theta, size, **nuisance)``
@@ -30,6 +33,7 @@ from __future__ import annotations
 
 import abc
 import importlib
+import inspect
 from typing import ClassVar
 
 import numpy as np
@@ -215,6 +219,7 @@ class System(abc.ABC):
 
     def _check_state0_extra(self, state0: np.ndarray, name: str) -> None:
         """Checks beyond per-variable bounds (e.g. an ordering); raise ``ValueError``."""
+        return None  # none by default
 
     @staticmethod
     def _check_frames_dt(n_frames, dt) -> tuple[int, float]:
@@ -330,8 +335,21 @@ class System(abc.ABC):
         """Validated (B, T, P) and (B, S) to states (B, T, S)."""
 
     @abc.abstractmethod
-    def sample_state0(self, n: int, rng=None) -> np.ndarray:
-        """Initial states (n, S) from the system's documented ranges."""
+    def sample_state0(self, n: int, rng=None, theta=None) -> np.ndarray:
+        """Initial states (n, S) from the system's documented ranges; ``theta`` (n, P), optional,
+        the trajectories' parameters, where the initial state depends on them."""
+
+    def sample_cases(self, n: int, rng=None, split: str | None = None):
+        """Parameters (n, P) from :meth:`sample_theta`, then initial states (n, S) for them.
+
+        One Generator, in that order; ``theta`` goes to :meth:`sample_state0` where its signature
+        takes it (a subclass written before the keyword existed still works).
+        """
+        rng = check_seed(rng)
+        theta = self.sample_theta(n, rng, split)
+        if "theta" in inspect.signature(self.sample_state0).parameters:
+            return theta, self.sample_state0(n, rng, theta=theta)
+        return theta, self.sample_state0(n, rng)
 
     @abc.abstractmethod
     def _observe(self, states: np.ndarray, theta: np.ndarray) -> np.ndarray:
