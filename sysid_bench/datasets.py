@@ -62,6 +62,7 @@ from typing import Any
 import numpy as np
 
 from sysid_bench import __version__, physics
+from sysid_bench._io import atomic_write
 from sysid_bench._validate import check_positive_int
 from sysid_bench.estimator import Observation
 from sysid_bench.render import check_size, render
@@ -425,12 +426,7 @@ def make_dataset(
 # ---------------------------------------------------------------------------------------------
 # disk
 def _write_json(path: Path, obj: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1, sort_keys=True)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    atomic_write(path, json.dumps(obj, indent=1, sort_keys=True))
 
 
 def _read_json(path: Path) -> dict | None:

@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -61,7 +60,14 @@ from pathlib import Path
 import numpy as np
 
 from sysid_bench import physics
-from sysid_bench._validate import check_positive_int
+from sysid_bench._io import atomic_write
+from sysid_bench._validate import (
+    SEED_MAX,
+    arg_number,
+    check_flag,
+    check_int_array,
+    check_positive_int,
+)
 
 __all__ = [
     "Scene",
@@ -94,6 +100,11 @@ _DECISION_TOL = 0.01
 
 # ---------------------------------------------------------------------------------------------
 # the scene
+#: Largest catch radius, m: half the box's height. Beyond it an effector that never moves from
+#: mid-height catches every ball, and a success rate says nothing about the policy.
+CATCH_RADIUS_MAX = physics.BOX_WIDTH / 2
+
+
 @dataclass(frozen=True)
 class Scene:
     """The task's fixed geometry and rules (all public to the controller).
@@ -103,9 +114,11 @@ class Scene:
     x_catch : float
         The effector's vertical line, metres, in (0, 10).
     catch_radius : float
-        Largest effector-to-ball-centre distance at the crossing that counts as a catch, m.
+        Largest effector-to-ball-centre distance at the crossing that counts as a catch, m, in
+        ``(0, CATCH_RADIUS_MAX]``.
     speed : float
-        The effector's speed limit, m/s (``inf`` allowed: no limit).
+        The effector's speed limit, m/s, in ``(0, physics.V_MAX]``, or ``inf``: no limit (an
+        analysis option of the API; the command line takes finite speeds only).
     t_min : float
         The scored crossing is the first after this flight time, s.
     t_max : float
@@ -148,8 +161,10 @@ class Scene:
                 raise ValueError(f"{name}: expected a number in ({lo:g}, {hi:g}), got {v!r}")
             object.__setattr__(self, name, v)
 
-        num("catch_radius", 0.0)
-        num("speed", 0.0, inf_ok=True)
+        # beyond half the box's height an effector parked mid-way catches every ball
+        num("catch_radius", 0.0, CATCH_RADIUS_MAX + 1e-12)
+        # faster than any ball may start (physics.V_MAX) is "no limit": say so with inf
+        num("speed", 0.0, physics.V_MAX + 1e-12, inf_ok=True)
         num("x_catch", 0.0, physics.BOX_WIDTH)
         num("dt", 0.0)
         num("t_min", 0.0)
@@ -896,8 +911,11 @@ def evaluate(policy, n_throws: int = 200, seed: int = 0, **options):
         raise ValueError(f"n_throws: expected an int >= 1, got {n_throws!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
-    progress = bool(options.pop("progress", False))
-    record = {int(i) for i in options.pop("record", ())}
+    progress = check_flag(options.pop("progress", False), "progress")
+    record = list(options.pop("record", ()))
+    # a throw index that is not thrown would keep no trace without a word
+    record = (set() if not record else
+              {int(i) for i in check_int_array(record, "record", lo=0, hi=int(n_throws) - 1)})
     scene = Scene(**{k: options.pop(k) for k in list(options) if k in _SCENE_FIELDS})
     if isinstance(policy, Policy):
         if options:
@@ -953,16 +971,6 @@ def summarise(df) -> dict:
 
 # ---------------------------------------------------------------------------------------------
 # files, the report section, the command line
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def _slug(name: str) -> str:
@@ -1000,10 +1008,10 @@ def write_results(df, out_dir, command: str = "") -> tuple[Path, Path]:
     tab = Path(out_dir) / "tables"
     base = tab / f"intercept_{_slug(df.attrs.get('policy', 'policy'))}"
     csv, js = base.with_suffix(".csv"), base.with_suffix(".json")
-    _atomic_write(csv, df.to_csv(index=False))
+    atomic_write(csv, df.to_csv(index=False))
     meta = {"summary": summarise(df), "scene": df.attrs.get("scene"), "command": command,
             "traces": {str(k): thin_trace(v) for k, v in df.attrs.get("traces", {}).items()}}
-    _atomic_write(js, json.dumps(meta, default=float))
+    atomic_write(js, json.dumps(meta, default=float))
     return csv, js
 
 
@@ -1138,7 +1146,7 @@ def report_section(out_dir) -> list[str]:
                      "mean step ms": s.get("mean_step_ms", float("nan")), "errors": s["errors"],
                      "seed": s["seed"], "note": s.get("note", "")})
     t = pd.DataFrame(rows)
-    _atomic_write(out / "tables" / "intercept_summary.csv", t.to_csv(index=False))
+    atomic_write(out / "tables" / "intercept_summary.csv", t.to_csv(index=False))
     from sysid_bench.report import markdown_table
 
     md += ["**intercept_summary** (`tables/intercept_summary.csv`; per-throw rows in "
@@ -1165,12 +1173,17 @@ def add_arguments(p):
     p.add_argument("--policy", required=True,
                    help="oracle, random-1hz, random-2hz, react, kalman, vid2param, "
                         "vid2param-physics, or a registered method (lsq, ...)")
-    p.add_argument("--throws", type=int, default=200, help="number of throws (default 200)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the throws (default 0)")
+    p.add_argument("--throws", type=arg_number(1, 10**6, integer=True), default=200,
+                   help="number of throws (default 200)")
+    p.add_argument("--seed", type=arg_number(0, SEED_MAX, integer=True), default=0,
+                   help="seed of the throws (default 0)")
     p.add_argument("--out", default="reports", help="output directory (default reports/)")
-    p.add_argument("--speed", type=float, default=None, help="effector speed limit, m/s")
-    p.add_argument("--catch-radius", type=float, default=None, help="catch radius, m")
-    p.add_argument("--draw", type=int, default=0, help="throw whose trace is kept for the figure")
+    p.add_argument("--speed", type=arg_number(0, physics.V_MAX, lo_open=True, unit="m/s"),
+                   default=None, help=f"effector speed limit, m/s (0 < speed <= {physics.V_MAX:g})")
+    p.add_argument("--catch-radius", type=arg_number(0, CATCH_RADIUS_MAX, lo_open=True, unit="m"),
+                   default=None, help=f"catch radius, m (0 < r <= {CATCH_RADIUS_MAX:g})")
+    p.add_argument("--draw", type=arg_number(0, None, integer=True), default=0,
+                   help="throw whose trace is kept for the figure (0 to --throws - 1)")
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="a scene field or policy option (JSON value), e.g. every=3; repeatable")
     p.add_argument("--no-progress", action="store_true")
@@ -1189,6 +1202,9 @@ def run(args) -> int:
             raise ValueError(f"--option: expected KEY=VALUE, got {kv!r}")
         k, v = kv.split("=", 1)
         opts[k.strip().replace("-", "_")] = _option_value(v)
+    if args.draw >= args.throws:
+        raise ValueError(f"draw: expected a throw in [0, {args.throws - 1}] (--throws "
+                         f"{args.throws}), got {args.draw}")
     if args.speed is not None:
         opts["speed"] = args.speed
     if args.catch_radius is not None:

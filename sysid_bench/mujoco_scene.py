@@ -53,6 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sysid_bench._io import atomic_write
 from sysid_bench.physics import BOX_WIDTH, PRIOR, sample_state0
 from sysid_bench.render import RADIUS_FRACTION
 
@@ -509,9 +510,7 @@ def make_video(cache_dir, case: int, seed: int = 0, n_frames: int = 200, size: i
             "info": ep.info, "sim_s": t_sim, "wall_s": time.perf_counter() - t0,
             "ball_type": asdict(BALL_TYPES[ball])}
     meta = json.loads(json.dumps(meta))  # the same types as when read back from the cache
-    tmp = jpath.with_name(f".{jpath.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(meta))
-    os.replace(tmp, jpath)
+    atomic_write(jpath, json.dumps(meta))
     return vpath, meta
 
 

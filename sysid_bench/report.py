@@ -19,11 +19,12 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import json
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from sysid_bench._io import atomic_write
 
 __all__ = ["render", "markdown_table", "main", "add_arguments", "run"]
 
@@ -55,24 +56,16 @@ def markdown_table(df, index: bool = False, floatfmt: str = ".4g") -> str:
     return "\n".join(lines)
 
 
-def _atomic_write(path: Path, data: bytes | str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data.encode() if isinstance(data, str) else data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def _write_table(df, base: Path, csv: bool = True) -> None:
     import io
 
     if csv:
-        _atomic_write(base.with_suffix(".csv"), df.to_csv(index=False))
+        atomic_write(base.with_suffix(".csv"), df.to_csv(index=False))
     buf = io.BytesIO()
     df.astype({c: str for c in df.columns if df[c].dtype == object}).to_parquet(buf, index=False)
-    _atomic_write(base.with_suffix(".parquet"), buf.getvalue())
+    atomic_write(base.with_suffix(".parquet"), buf.getvalue())
 
 
 def _run_summary(store) -> tuple[list[str], dict]:
@@ -261,7 +254,7 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
         md += [f"- {s}" for s in readings] or ["_Nothing to compare yet._"]
         md.append("")
         path = out / "REPORT.md"
-        _atomic_write(path, "\n".join(md))
+        atomic_write(path, "\n".join(md))
         return path
     finally:
         store.close()
@@ -293,9 +286,9 @@ def measure_online(scale: str, out, methods=None) -> Path | None:
     df = online_cost(wanted, n_videos=n, n_frames=frames, seed=0)
     tables = Path(out) / "tables"
     tables.mkdir(parents=True, exist_ok=True)
-    _atomic_write(tables / "online_cost.csv", df.to_csv(index=False))
+    atomic_write(tables / "online_cost.csv", df.to_csv(index=False))
     path = tables / "online_cost.md"
-    _atomic_write(path, online_cost_markdown(df))
+    atomic_write(path, online_cost_markdown(df))
     return path
 
 

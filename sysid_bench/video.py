@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sysid_bench._io import atomic_write
 from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
 from sysid_bench.render import RADIUS_FRACTION, view_geometry
 
@@ -255,8 +256,8 @@ def write_video(path, frames, fps: float = MODEL_FPS, *, codec: str = "libx264",
     path = Path(path)
     rate = Fraction(float(fps)).limit_denominator(1001)
     grey = fr.ndim == 3
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-    try:
+
+    def encode(tmp: Path) -> None:
         with av.open(str(tmp), mode="w") as out:
             st = out.add_stream(codec, rate=rate)
             st.width, st.height = fr.shape[2], fr.shape[1]
@@ -275,10 +276,8 @@ def write_video(path, frames, fps: float = MODEL_FPS, *, codec: str = "libx264",
                     out.mux(pkt)
             for pkt in st.encode():
                 out.mux(pkt)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+
+    atomic_write(path, encode)
     return path
 
 
@@ -401,8 +400,12 @@ def geometry_from_options(size, *, px_per_m=None, floor_row=None, wall_col=None,
             if v is not None and not math.isfinite(float(v)):
                 raise ValueError(f"{name}: expected a finite number, got {v!r}")
         s = (w - 2 * radius) / BOX_WIDTH if px_per_m is None else float(px_per_m)
-        if s <= 0:
-            raise ValueError(f"px_per_m: expected a number > 0, got {px_per_m!r}")
+        # the box must be wider than two balls, or every position maps far outside it (a scale
+        # of 1e-6 px/m put each tracked ball ~1e6 m away, clipped, and answered the prior)
+        if s * BOX_WIDTH < 4 * radius:
+            raise ValueError(f"px_per_m: expected at least {4 * radius / BOX_WIDTH:.3g} (the "
+                             f"{BOX_WIDTH:g} m box at least two balls of {radius:.3g} px wide), "
+                             f"got {px_per_m!r}")
         geo = Geometry((h, w), 0.0 if wall_col is None else float(wall_col),
                        float(h) if floor_row is None else float(floor_row), (s, s), radius,
                        source=f"options px_per_m={s:g} floor_row="
@@ -943,10 +946,14 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="the floor's corners with the left and right walls, px")
     g.add_argument("--ball-radius-px", type=float, default=None,
                    help="ball radius in px (default: measured, or the renderer's)")
-    p.add_argument("--every", type=int, default=None,
+    from sysid_bench._validate import SEED_MAX, arg_number
+    from sysid_bench.estimator import MAX_HORIZON
+
+    p.add_argument("--every", type=arg_number(1, None, integer=True), default=None,
                    help="frames between estimates of a non-streaming method")
-    p.add_argument("--horizon", type=int, default=20, help="frames forecast (default 20)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--horizon", type=arg_number(1, MAX_HORIZON, integer=True), default=20,
+                   help=f"frames forecast, 1 to {MAX_HORIZON} (default 20)")
+    p.add_argument("--seed", type=arg_number(0, SEED_MAX, integer=True), default=0)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(fn=run)
     return p

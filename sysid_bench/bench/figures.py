@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import matplotlib
+
+from sysid_bench._io import atomic_write
 
 matplotlib.use("Agg")  # reports are rendered on machines with no display
 
@@ -13,21 +14,14 @@ __all__ = ["save_figure", "method_color"]
 
 
 def save_figure(fig, path) -> Path:
-    """Save ``fig`` as PNG at ``path`` atomically (temp file + ``os.replace``) and close it."""
+    """Save ``fig`` as PNG at ``path`` atomically (:func:`sysid_bench._io.atomic_write`) and close it."""
     import matplotlib.pyplot as plt
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         fig.tight_layout()
-        fig.savefig(tmp, format="png", dpi=110)
-        os.replace(tmp, path)
+        return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
     finally:
         plt.close(fig)
-        if tmp.exists():
-            tmp.unlink()
-    return path
 
 
 def method_color(method: str) -> str:

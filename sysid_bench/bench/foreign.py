@@ -22,11 +22,11 @@ so (the physics is MuJoCo's either way).
 from __future__ import annotations
 
 import contextlib
-import os
 from pathlib import Path
 
 import numpy as np
 
+from sysid_bench._io import atomic_write
 from sysid_bench.bench.experiment import (
     Cell,
     CellOutput,
@@ -123,9 +123,8 @@ def case_observation(path: Path, size):
         return obs, pos, trk
     clip = video.read_video(path)
     obs, pos, trk, _ = video.observe(clip.frames, size, dt=1.0 / clip.fps)
-    tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp.npz")
-    np.savez(tmp, pixels=trk.pixels, radius=trk.radius, shape=np.array(clip.frames.shape))
-    os.replace(tmp, cache)
+    atomic_write(cache, lambda tmp: np.savez(tmp, pixels=trk.pixels, radius=trk.radius,
+                                             shape=np.array(clip.frames.shape)))
     return obs, pos, trk
 
 

@@ -27,13 +27,13 @@ Rows per case and frame count: ``se_<p>``, ``se``; ``train_wall_s`` at case -1.
 from __future__ import annotations
 
 import json
-import os
 import pickle
 import time
 from pathlib import Path
 
 import numpy as np
 
+from sysid_bench._io import atomic_write
 from sysid_bench.bench.cases import observation, train_set
 from sysid_bench.bench.experiment import (
     Cell,
@@ -100,13 +100,7 @@ def _train_spec(condition: str) -> tuple[str, dict]:
 
 
 def _atomic_pickle(obj, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    atomic_write(path, pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
 
 
 def trained_model(ctx: Context, method: str, condition: str):
@@ -149,12 +143,9 @@ def trained_model(ctx: Context, method: str, condition: str):
     est.fit(train)
     wall = time.perf_counter() - t0
     _atomic_pickle(est, path)
-    tmp = info.with_name(f".{info.name}.tmp")
-    tmp.write_text(json.dumps({"train_wall_s": wall, "fingerprint": fp, "condition": condition,
-                               "variant": variant,
-                               "options": opts, "n_train": sens["n_train"],
-                               "fit_options": fit_options}))
-    os.replace(tmp, info)
+    atomic_write(info, json.dumps({"train_wall_s": wall, "fingerprint": fp, "condition": condition,
+                                   "variant": variant, "options": opts, "n_train": sens["n_train"],
+                                   "fit_options": fit_options}))
     return est, wall
 
 
