@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 import methods
+from sysid_bench._io import atomic_write
 from sysid_bench.estimator import Observation
 from sysid_bench.metrics import normalised_param_se
 from sysid_bench.physics import sample_state0, sample_theta, simulate
@@ -88,8 +89,7 @@ def main(argv=None) -> int:
                   f"| {np.mean([r['track_rmse_m'] for r in rs]):.4f} "
                   f"| {np.mean([r['found'] for r in rs]) / 200:.3f} |")
     if a.out:
-        Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.out).write_text(json.dumps({"seed": a.seed, "n": a.n, "records": recs}, indent=1))
+        atomic_write(a.out, json.dumps({"seed": a.seed, "n": a.n, "records": recs}, indent=1))
     return 0
 
 
