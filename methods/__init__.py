@@ -28,7 +28,15 @@ from sysid_bench.estimator import Estimator
 from sysid_bench.spec import MethodSpec
 
 __all__ = ["available", "references", "get", "get_class", "register", "unregister", "spec",
-           "Registration", "MethodSpec"]
+           "Registration", "MethodSpec", "NotAvailable"]
+
+
+class NotAvailable(NotImplementedError, ValueError):
+    """A method that does not run on the system asked for (the harness records "n/a").
+
+    Both a ``NotImplementedError`` (the suite's "n/a" convention, which the benchmarks record)
+    and a ``ValueError`` (a bad ``system`` argument for this method), so either catch holds it.
+    """
 
 
 @dataclass(frozen=True)
@@ -41,20 +49,30 @@ class Registration:
     entry_point: str
     requires: tuple[str, ...] = ()
     reference: bool = False
+    #: ``"module:Class"`` of the method on the systems other than the ball (the class takes a
+    #: ``system`` hyperparameter); ``""``: the method runs on the ball only (n/a elsewhere)
+    on_systems: str = ""
 
 
 _REGISTRY: dict[str, Registration] = {}
 
 
-def register(name: str, entry_point: str, requires=(), reference: bool = False) -> None:
-    """Add a method. ``entry_point`` is ``"package.module:ClassName"``; nothing is imported."""
+def register(name: str, entry_point: str, requires=(), reference: bool = False,
+             on_systems: str = "") -> None:
+    """Add a method. ``entry_point`` is ``"package.module:ClassName"``; nothing is imported.
+
+    ``on_systems`` is the ``"module:Class"`` that runs the method on the other registered
+    systems (see :func:`get`); leave it empty for a ball-only method.
+    """
     if not isinstance(name, str) or not name:
         raise ValueError(f"name: expected a non-empty str, got {name!r}")
     if not isinstance(entry_point, str) or entry_point.count(":") != 1:
         raise ValueError(f"entry_point: expected 'module:Class', got {entry_point!r}")
+    if not isinstance(on_systems, str) or (on_systems and on_systems.count(":") != 1):
+        raise ValueError(f"on_systems: expected '' or 'module:Class', got {on_systems!r}")
     if name in _REGISTRY:
         raise ValueError(f"name: {name!r} is already registered ({_REGISTRY[name].entry_point})")
-    _REGISTRY[name] = Registration(name, entry_point, tuple(requires), bool(reference))
+    _REGISTRY[name] = Registration(name, entry_point, tuple(requires), bool(reference), on_systems)
 
 
 def unregister(name: str) -> None:
@@ -67,13 +85,18 @@ def unregister(name: str) -> None:
 register("vid2param", "methods.vid2param:Vid2Param", requires=("torch",))
 register("vid2param-physics", "methods.vid2param:Vid2ParamPhysics", requires=("torch",))
 register("vid2param-changing", "methods.vid2param:Vid2ParamChanging", requires=("torch",))
-register("nuts", "methods.nuts:NUTS", requires=("jax", "numpyro"))
-register("emcee", "methods.ensemble:Emcee", requires=("emcee",))
-register("lsq", "methods.lsq:LSQ")
-register("bo", "methods.bo:BayesOpt", requires=("skopt",))
-register("sindy", "methods.sindy:SINDy", requires=("pysindy",))
-register("dmd", "methods.dmd:DMD", requires=("pydmd",))
-register("prior", "methods.prior:PriorOnly", reference=True)
+register("nuts", "methods.nuts:NUTS", requires=("jax", "numpyro"),
+         on_systems="methods._system_nuts:SystemNUTS")
+register("emcee", "methods.ensemble:Emcee", requires=("emcee",),
+         on_systems="methods._system_fit:SystemEmcee")
+register("lsq", "methods.lsq:LSQ", on_systems="methods._system_fit:SystemLSQ")
+register("bo", "methods.bo:BayesOpt", requires=("skopt",),
+         on_systems="methods._system_fit:SystemBO")
+register("sindy", "methods.sindy:SINDy", requires=("pysindy",),
+         on_systems="methods._system_sindy:SystemSINDy")
+register("dmd", "methods.dmd:DMD", requires=("pydmd",), on_systems="methods._system_fit:SystemDMD")
+register("prior", "methods.prior:PriorOnly", reference=True,
+         on_systems="methods._system_fit:SystemPrior")
 
 
 def available(include_reference: bool = False) -> list[str]:
@@ -101,30 +124,73 @@ def _unknown(name) -> ValueError:
     return ValueError(f"name: unknown method {name!r}; known methods: {', '.join(known)}.{hint}")
 
 
-def get_class(name: str) -> type[Estimator]:
-    """Import and return the class registered under ``name``."""
-    if name not in _REGISTRY:
-        raise _unknown(name)
-    spec = _REGISTRY[name]
-    module_name, cls_name = spec.entry_point.split(":")
+def _import_class(spec: Registration, entry_point: str) -> type[Estimator]:
+    module_name, cls_name = entry_point.split(":")
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
+        missing = getattr(exc, "name", None) or ""
+        if missing and (module_name == missing or module_name.startswith(missing + ".")):
+            # the registered module itself is not there: a wrong entry point, not a dependency
+            raise ValueError(
+                f"entry_point: method {spec.name!r} is registered as {entry_point!r}, but there "
+                f"is no module {missing!r}"
+            ) from exc
         need = ", ".join(spec.requires) or "its dependencies"
         raise ImportError(
-            f"method {name!r} needs {need}; install with `pip install -e .[all]` ({exc})"
+            f"method {spec.name!r} needs {need}; install with `pip install -e .[all]` ({exc})"
         ) from exc
     cls = getattr(module, cls_name, None)
     if not (isinstance(cls, type) and issubclass(cls, Estimator)):
-        raise TypeError(f"{spec.entry_point} is not an Estimator subclass")
-    if cls.name != name:
-        raise ValueError(f"name: {spec.entry_point} declares name {cls.name!r}, registered as {name!r}")
+        raise ValueError(f"entry_point: {entry_point!r} (method {spec.name!r}) is not an "
+                         "Estimator subclass")
+    if cls.name != spec.name:
+        raise ValueError(f"name: {entry_point} declares name {cls.name!r}, registered as {spec.name!r}")
     return cls
 
 
-def get(name: str, **options) -> Estimator:
-    """A ready-to-use estimator; ``options`` are its keyword hyperparameters."""
-    cls = get_class(name)
+def get_class(name: str, system: str = "ball") -> type[Estimator]:
+    """Import and return the class registered under ``name`` (for ``system``).
+
+    Raises
+    ------
+    ValueError
+        An unknown method or system, or a method that does not run on ``system`` (n/a).
+    """
+    if name not in _REGISTRY:
+        raise _unknown(name)
+    spec = _REGISTRY[name]
+    if isinstance(system, str) and system == "ball":
+        return _import_class(spec, spec.entry_point)
+    from sysid_bench import systems
+
+    sys_name = systems.get(system).name  # ValueError listing the known systems
+    if sys_name == "ball":
+        return _import_class(spec, spec.entry_point)
+    if not spec.on_systems:
+        raise NotAvailable(
+            f"system: {name!r} is n/a on the {sys_name} system: no model is shipped for it "
+            f"({name} runs on the ball only)"
+        )
+    return _import_class(spec, spec.on_systems)
+
+
+def get(name: str, system: str = "ball", **options) -> Estimator:
+    """A ready-to-use estimator for ``system``; ``options`` are its keyword hyperparameters.
+
+    ``system`` is a registered system name (:func:`sysid_bench.systems.available`). The ball
+    gets the method's own class; another system the class registered as ``on_systems`` (the
+    simulation methods' generic path, :mod:`methods._system_fit`), built with ``system=``.
+    A method with none (Vid2Param: no model shipped for that system) raises
+    :class:`NotAvailable` (a ``ValueError`` and a ``NotImplementedError``, so recorded as n/a).
+    """
+    cls = get_class(name, system)
+    if not (isinstance(system, str) and system == "ball"):
+        from sysid_bench import systems
+
+        sys_name = systems.get(system).name
+        if sys_name != "ball":
+            options = {**options, "system": sys_name}
     try:
         return cls(**options)
     except TypeError as exc:

@@ -129,10 +129,15 @@ class DMD(Estimator):
         if not isinstance(obs, Observation):
             raise ValueError(f"obs: expected a sysid_bench.estimator.Observation, got {type(obs).__name__}")
         pos = observed_positions(obs, min_seen=3)
+        return self._forecast_series(pos, horizon, t0, "positions" if obs.positions is not None else "frames")
+
+    def _forecast_series(self, pos: np.ndarray, horizon: int, t0: float, input_kind: str) -> Forecast:
+        """Forecast of a series ``pos`` (T, C) of C coordinates (the ball's C = 2; a system's
+        2K): mean/std (horizon, C). A frame counts as seen when all its coordinates are."""
         seen = np.flatnonzero(np.isfinite(pos).all(axis=1))
         first, last = int(seen[0]), int(seen[-1])
         frames = np.arange(first, last + 1)
-        X = np.stack([np.interp(frames, seen, pos[seen, k]) for k in (0, 1)])  # (2, n)
+        X = np.stack([np.interp(frames, seen, pos[seen, k]) for k in range(pos.shape[1])])  # (C, n)
         n = X.shape[1]
         skip = pos.shape[0] - 1 - last  # unseen frames at the end are still "observed" time
         rec, rms = self._run(X, skip + horizon)
@@ -154,13 +159,13 @@ class DMD(Estimator):
         if not np.isfinite(mean).all():  # an exploding mode: no forecast worth the name
             mean = np.where(np.isfinite(mean), mean, X[:, -1][None, :])
             s = np.full(horizon, np.inf)
-        std = np.repeat(s[:, None], 2, axis=1)
+        std = np.repeat(s[:, None], X.shape[0], axis=1)
         extras = {
             "n_simulations": 0,
             "wall_s": time.perf_counter() - t0,
             "delays": min(self._delays(n), n),
             "insample_rms": rms,
             "backtest_rms": float(err[-1]) if err.size else None,
-            "input": "positions" if obs.positions is not None else "frames",
+            "input": input_kind,
         }
         return Forecast(mean=mean, std=std, samples=None, extras=extras)
