@@ -777,15 +777,22 @@ def make_policy(name: str, **options) -> Policy:
 # ---------------------------------------------------------------------------------------------
 # evaluation
 def wilson_interval(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion ``k / n`` (95% by default)."""
+    """Wilson score interval of a binomial proportion ``k / n`` (95% by default).
+
+    ``scipy.stats.binomtest(k, n).proportion_ci(method="wilson")`` at the confidence level of
+    the two-sided normal quantile ``z``. ``n = 0`` gives ``(nan, nan)``.
+    """
+    from scipy import stats
+
     if n <= 0:
         return (float("nan"), float("nan"))
-    p = k / n
-    den = 1 + z * z / n
-    c = (p + z * z / (2 * n)) / den
-    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    # at k = 0 or n the exact end is 0 or 1; the closed form rounds it off by 1e-16
-    return (0.0 if k == 0 else max(0.0, c - h), 1.0 if k == n else min(1.0, c + h))
+    if not 0 <= k <= n:
+        raise ValueError(f"k: expected a count in [0, n={n}], got {k}")
+    if not z > 0:
+        raise ValueError(f"z: expected a positive normal quantile, got {z!r}")
+    level = 1.0 - 2.0 * stats.norm.sf(z)
+    ci = stats.binomtest(int(k), int(n)).proportion_ci(confidence_level=level, method="wilson")
+    return (float(ci.low), float(ci.high))
 
 
 def _effector(p, target, span, speed):

@@ -133,7 +133,7 @@ def gaussian_nll(truth, mean, std, normalise: bool = True) -> np.ndarray:
 
 
 def bootstrap_ci(values, level: float = 0.95, n_boot: int = 2000, seed=0) -> tuple[float, float, float]:
-    """Mean of ``values`` with a percentile-bootstrap confidence interval.
+    """Mean of ``values`` with a percentile-bootstrap confidence interval (``scipy.stats.bootstrap``).
 
     The result depends on the values, not their order: they are sorted first (a table's rows
     arrive in the order its cells finished; issue 14), so the same cases and ``seed`` give the
@@ -155,9 +155,23 @@ def bootstrap_ci(values, level: float = 0.95, n_boot: int = 2000, seed=0) -> tup
     v = np.sort(v[np.isfinite(v)])
     if v.size == 0:
         return (np.nan, np.nan, np.nan)
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level: expected a probability in (0, 1), got {level!r}")
+    if int(n_boot) != n_boot or n_boot < 1:
+        raise ValueError(f"n_boot: expected a positive integer, got {n_boot!r}")
     rng = check_seed(seed)
-    idx = rng.integers(0, v.size, size=(n_boot, v.size))
-    means = v[idx].mean(axis=1)
-    a = (1 - level) / 2
-    lo, hi = np.quantile(means, [a, 1 - a])
-    return float(v.mean()), float(lo), float(hi)
+    if v.size == 1:  # one value: every resample is that value (scipy refuses a sample of one)
+        return float(v[0]), float(v[0]), float(v[0])
+    from scipy import stats
+
+    res = stats.bootstrap((v,), np.mean, n_resamples=int(n_boot), vectorized=True, axis=-1,
+                          confidence_level=level, method="percentile", **_rng_kw(stats, rng))
+    ci = res.confidence_interval
+    return float(v.mean()), float(ci.low), float(ci.high)
+
+
+def _rng_kw(stats, rng) -> dict:
+    """The generator as scipy.stats.bootstrap takes it (``rng`` from 1.15, ``random_state`` before)."""
+    import inspect
+
+    return {"rng" if "rng" in inspect.signature(stats.bootstrap).parameters else "random_state": rng}

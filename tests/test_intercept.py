@@ -256,6 +256,26 @@ def test_wilson_interval():
     assert ic.wilson_interval(0, 10)[0] == 0.0 and ic.wilson_interval(10, 10)[1] == 1.0
 
 
+@pytest.mark.parametrize("k, n, lo, hi", [
+    # Newcombe (1998), Statistics in Medicine 17:857, Table I, method 3 (score, no correction)
+    (81, 263, 0.2553, 0.3662), (15, 148, 0.0624, 0.1605), (0, 20, 0.0, 0.1611),
+    (1, 29, 0.0061, 0.1718),
+    # docs/intercept.md: 186 catches of 200 throws, 88.6-95.8%
+    (186, 200, 0.8859, 0.9578),
+])
+def test_wilson_interval_known_values(k, n, lo, hi):
+    got = ic.wilson_interval(k, n)
+    np.testing.assert_allclose(got, (lo, hi), atol=6e-5)
+
+
+def test_wilson_interval_bad_input():
+    assert all(np.isnan(ic.wilson_interval(0, 0)))
+    with pytest.raises(ValueError, match=r"k: expected a count in \[0, n=10\], got 11"):
+        ic.wilson_interval(11, 10)
+    with pytest.raises(ValueError, match="z: expected a positive"):
+        ic.wilson_interval(1, 10, z=0.0)
+
+
 def test_vid2param_policy_starts_its_path_at_the_fitted_position_now():
     # a crossing due before the forecast's first step must be visible to the last replan, so
     # the policy hands the forecast's fitted position now (camera frame) to the crossing search

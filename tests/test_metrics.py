@@ -62,6 +62,29 @@ def test_bootstrap_ci_brackets_mean():
     assert M.bootstrap_ci(np.arange(100.0), seed=1) == (m, lo, hi)
 
 
+def test_bootstrap_ci_is_the_percentile_bootstrap():
+    # the plain percentile bootstrap written out with the same generator: scipy.stats.bootstrap
+    # draws the same resamples, so the interval (and every table built on it) is unchanged
+    v = np.random.default_rng(5).gamma(2.0, size=40)
+    ref_v = np.sort(v)
+    idx = np.random.default_rng(11).integers(0, v.size, size=(500, v.size))
+    ref = np.quantile(ref_v[idx].mean(axis=1), [0.05, 0.95])
+    m, lo, hi = M.bootstrap_ci(v, level=0.9, n_boot=500, seed=11)
+    assert m == pytest.approx(v.mean(), rel=1e-12)
+    np.testing.assert_allclose((lo, hi), ref, rtol=1e-12)
+    # known value: for many values the interval approaches mean +- 1.96 standard errors
+    w = np.random.default_rng(0).normal(3.0, 2.0, size=4000)
+    m, lo, hi = M.bootstrap_ci(w, seed=0)
+    se = w.std() / np.sqrt(w.size)
+    np.testing.assert_allclose((lo, hi), (m - 1.96 * se, m + 1.96 * se), atol=0.15 * se)
+    # one value; NaN left out
+    assert M.bootstrap_ci([2.0, np.nan]) == (2.0, 2.0, 2.0)
+    with pytest.raises(ValueError, match="level: expected a probability"):
+        M.bootstrap_ci(v, level=95)
+    with pytest.raises(ValueError, match="n_boot: expected a positive integer"):
+        M.bootstrap_ci(v, n_boot=0)
+
+
 def test_metric_bad_input():
     with pytest.raises(ValueError, match="theta_est"):
         M.param_mse(np.zeros((2, 4)), np.zeros((3, 4)))
