@@ -51,6 +51,7 @@ __all__ = [
     "Estimator",
     "Stream",
     "LoopStream",
+    "POSITION_NOW",
     "observed_positions",
     "prior_posterior",
     "MethodSpec",
@@ -566,8 +567,21 @@ def prior_posterior(n_samples: int = 0, seed=0, **extras) -> Posterior:
     return Posterior(mean=PRIOR_MEAN.copy(), std=PRIOR_STD.copy(), samples=samples, extras=info)
 
 
+#: Key of a stream forecast's ``extras``: where the stream's fit puts the ball at the latest
+#: frame pushed, shape (2,), metres in the stream's own frame (see :meth:`Stream.forecast`).
+POSITION_NOW = "position_now_m"
+
+
 class Stream(abc.ABC):
-    """Online identification: push one frame at a time, read the posterior after each."""
+    """Online identification: push one frame at a time, read the posterior after each.
+
+    Beside ``reset`` and ``push`` a stream tells how many frames it holds (``n_frames``) and
+    where it puts the ball now (:meth:`position`); a stream of a method that forecasts also
+    forecasts from the frames it holds (:meth:`forecast`). A method whose stream is recurrent
+    (a push costs the same at every frame) declares ``online`` (:mod:`sysid_bench.spec`);
+    :func:`sysid_bench.testing.check_estimator` checks all of this. The interception policy
+    and the online-cost table read streams only through it.
+    """
 
     @abc.abstractmethod
     def reset(self) -> None:
@@ -576,6 +590,41 @@ class Stream(abc.ABC):
     @abc.abstractmethod
     def push(self, frame: np.ndarray) -> Posterior:
         """Add one frame of shape (H, W) and return the posterior given all frames so far."""
+
+    @property
+    def n_frames(self) -> int:
+        """Frames pushed since the last ``reset``."""
+        raise NotImplementedError(f"{type(self).__name__} does not count its frames")
+
+    def position(self) -> np.ndarray:
+        """The stream's position of the ball at the latest frame pushed.
+
+        Returns
+        -------
+        ndarray, shape (2,)
+            ``(x, y)`` in metres, in the stream's own frame (for a model that infers the floor
+            from the bounces, heights above that floor); NaN where the ball is not known.
+        """
+        raise NotImplementedError(f"{type(self).__name__} does not report a position")
+
+    def forecast(self, horizon: int, floor: float | None = None) -> Forecast:
+        """Positions of the ``horizon`` frames after the latest one pushed.
+
+        Parameters
+        ----------
+        horizon : int
+            Frames to predict, in ``[1, MAX_HORIZON]``.
+        floor : float, optional
+            Offset added to the forecast heights, which are in the stream's own frame (that of
+            :meth:`position`); 0 when None.
+
+        Returns
+        -------
+        Forecast
+            ``mean`` and ``std`` of shape (horizon, 2); ``extras[POSITION_NOW]`` (2,) is where
+            the forecast's fit puts the ball at the latest frame, in the same frame.
+        """
+        raise NotImplementedError(f"{type(self).__name__} does not forecast")
 
 
 class LoopStream(Stream):
@@ -592,6 +641,31 @@ class LoopStream(Stream):
 
     def reset(self) -> None:
         self._frames = []
+
+    @property
+    def n_frames(self) -> int:
+        return len(self._frames)
+
+    def position(self) -> np.ndarray:
+        """The ball tracked in the latest frame (:func:`sysid_bench.tracking.track`; a method
+        re-identifying from scratch keeps no filtered state), NaN before the first frame."""
+        if not self._frames:
+            return np.full(2, np.nan)
+        from sysid_bench.tracking import track  # local: as in observed_positions
+
+        return track(self._frames[-1][None], floor=0.0 if self.floor is None else self.floor)[0]
+
+    def forecast(self, horizon: int, floor: float | None = None) -> Forecast:
+        """The estimator's forecast on every frame pushed, heights shifted by ``floor``;
+        ``extras[POSITION_NOW]`` is :meth:`position`."""
+        if not self._frames:
+            raise ValueError("forecast: push at least one frame first")
+        obs = Observation(frames=np.stack(self._frames), dt=self.dt, floor=self.floor)
+        fc = self.estimator.forecast(obs, horizon)
+        off = np.array([0.0, 0.0 if floor is None else float(floor)])
+        now = self.position() + off
+        return Forecast(mean=fc.mean + off, std=fc.std, samples=None if fc.samples is None
+                        else fc.samples + off, extras={**fc.extras, POSITION_NOW: now})
 
     def push(self, frame: np.ndarray) -> Posterior:
         fr = np.asarray(frame)
@@ -635,6 +709,7 @@ class Estimator(abc.ABC):
     identifies: bool = True
     forecasts: bool = False
     streams: bool = False
+    online: bool = False
     trains: bool = False
     cost: int = 10
     scale_cases: dict = MappingProxyType({})
@@ -643,6 +718,8 @@ class Estimator(abc.ABC):
     pretrained: dict = MappingProxyType({})
     threads_param: str | None = None
     inline: bool = False
+    online_cost: bool = False
+    policies: dict = MappingProxyType({})
     color: str | None = None
     figure_order: int | None = None
     reference_posterior: bool = False

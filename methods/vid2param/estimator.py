@@ -169,8 +169,14 @@ class Vid2Param(Estimator):
     input_kind = "frames"
     forecasts = True
     streams = True  # identify_prefixes: one pass of the LSTM for every prefix
+    online = True  # stream(): one LSTM step per push
     trains = True
     cost = 1
+    online_cost = True
+    #: interception policies on the camera model's stream (``sysid-bench intercept``)
+    policies = {"vid2param": {"checkpoint": "camera", "n_samples": 32},
+                "vid2param-physics": {"checkpoint": "camera", "n_samples": 32,
+                                      "forecast": "physics"}}
     # milliseconds of LSTM per cell: run in the runner's process, so workers never import torch
     inline = True
     #: workers = cores, so the benchmark gives the checkpoint one thread (the run's --threads)
@@ -729,6 +735,8 @@ class Vid2ParamPhysics(Vid2Param):
     name = "vid2param-physics"
     default_forecast = "physics"
     streams = False
+    online = False  # its stream re-fits every prefix
+    policies = {}
     trains = False
     figure_order = 8
     fit_options = {}
@@ -814,6 +822,8 @@ class Vid2ParamChanging(Vid2Param):
     name = "vid2param-changing"
     default_checkpoint = "changing"
     forecasts = False
+    online_cost = False
+    policies = {}
     trains = False
     figure_order = 9
     fit_options = {}
@@ -893,6 +903,14 @@ class Vid2ParamStream(Stream):
         mean, std, samples, extras = self.est._forecast_track(
             self.track[: self.n], *_physical(*self.last), horizon, DT)
         return self.est._as_forecast(mean, std, samples, extras, floor, t0, n_frames=self.n)
+
+    @property
+    def n_frames(self) -> int:
+        return self.n
+
+    def position(self) -> np.ndarray:
+        """The network's position of the ball at the latest frame (metres, its own frame)."""
+        return self.track[self.n - 1].copy() if self.n else np.full(2, np.nan)
 
     @property
     def state(self):

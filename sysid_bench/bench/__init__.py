@@ -18,15 +18,17 @@ from __future__ import annotations
 
 from sysid_bench.bench.calibration import Calibration
 from sysid_bench.bench.changing import Changing
+from sysid_bench.bench.experiment import EXPERIMENTS
 from sysid_bench.bench.forecasting import Forecasting
 from sysid_bench.bench.foreign import Foreign
 from sysid_bench.bench.identification import Identification
 from sysid_bench.bench.sensitivity import Sensitivity
 
-#: name -> experiment, in report order
-EXPERIMENTS = {
-    e.name: e for e in (Identification(), Forecasting(), Changing(), Sensitivity(), Calibration(),
-                     Foreign())
-}
+#: name -> experiment, in report order (the dict lives in .experiment, which runs a cell by
+#: name without importing this package's modules back)
+EXPERIMENTS.update(
+    (e.name, e) for e in (Identification(), Forecasting(), Changing(), Sensitivity(), Calibration(),
+                       Foreign())
+)
 
 __all__ = ["EXPERIMENTS"]

@@ -25,6 +25,7 @@ from sysid_bench.metrics import bootstrap_ci
 from sysid_bench.physics import PRIOR_LO, PRIOR_SPAN
 
 __all__ = [
+    "EXPERIMENTS",
     "Cell",
     "CellOutput",
     "Context",
@@ -41,6 +42,12 @@ __all__ = [
 
 LO = PRIOR_LO
 SPAN = PRIOR_SPAN
+
+#: name -> experiment, in report order. Filled by ``sysid_bench/bench/__init__.py`` (Python runs
+#: a package's ``__init__`` before any of its modules, so every process that imports this module,
+#: a worker unpickling :func:`execute` included, has it filled); kept here, below the experiment
+#: modules, so that :func:`execute` finds an experiment without importing the package above it.
+EXPERIMENTS: dict[str, Experiment] = {}
 
 
 def normalise(theta: np.ndarray) -> np.ndarray:
@@ -163,8 +170,6 @@ def execute(cell: Cell, scale: Scale, run_dir: str, threads: int = 1) -> dict:
         ``cell`` (Cell), ``status`` ("ok", "error", "n/a"), ``error`` (str or None),
         ``wall_s``, ``rows`` (list of Row), ``artifacts`` (dict).
     """
-    from sysid_bench.bench import EXPERIMENTS  # local: experiment modules import this one
-
     t0 = time.perf_counter()
     status, error, out = "ok", None, CellOutput()
     try:

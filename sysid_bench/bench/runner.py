@@ -37,6 +37,7 @@ from pathlib import Path
 from sysid_bench._validate import check_positive_int
 from sysid_bench.bench.cases import Scale, get_scale, unknown_name
 from sysid_bench.bench.experiment import Cell, execute
+from sysid_bench.bench.fingerprint import method_fingerprint
 from sysid_bench.bench.store import Store, lock_run_dir
 
 __all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "provenance",
@@ -44,8 +45,6 @@ __all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "prove
 
 STORE_NAME = "results.sqlite"
 #: sources (from the repository root) every simulation-based method is built on
-_SHARED_SOURCES = ("sysid_bench/simulator.py", "methods/_tracks.py", "methods/_weights.py",
-                   "methods/_simulation.py")
 _VERSIONED = ("numpy", "scipy", "pandas", "pyarrow", "torch", "jax", "numpyro", "emcee",
               "pysindy", "pydmd", "scikit-optimize", "scikit-learn", "dask", "distributed",
               "matplotlib")
@@ -112,44 +111,6 @@ def build_grid(scale: Scale, methods: list[str], experiments: list[str]) -> list
     for e in experiments:
         cells += EXPERIMENTS[e].cells(scale, methods)
     return cells
-
-
-def method_fingerprint(name: str) -> str:
-    """Hash of what decides a method's numbers: its module (or package, with its checkpoint
-    files), the shared harness modules the baselines are built on, and its declarations
-    (options and caps per scale, tier).
-
-    A store's cells of a method whose fingerprint changed are computed again by the next run,
-    so a retrained checkpoint or a fixed method never mixes with its old results.
-    """
-    import hashlib
-    import importlib.util
-
-    import methods
-
-    spec = methods.spec(name)
-    mod = spec.entry_point.split(":")[0]
-    found = importlib.util.find_spec(mod)
-    files: list[Path] = []
-    if found is not None and found.origin:
-        origin = Path(found.origin)
-        if found.submodule_search_locations:  # a package: all its sources and weights
-            root = origin.parent
-            files = sorted(p for p in root.rglob("*")
-                           if p.is_file() and p.suffix in (".py", ".pt", ".json", ".npz")
-                           and "__pycache__" not in p.parts and not p.name.endswith("_test.json"))
-        else:
-            files = [origin]
-    for shared in _SHARED_SOURCES:
-        f = Path(__file__).resolve().parents[2] / shared
-        if f.is_file():
-            files.append(f)
-    h = hashlib.sha256()
-    for f in files:
-        h.update(f.name.encode())
-        h.update(f.read_bytes())
-    h.update(spec.to_json().encode())
-    return h.hexdigest()[:16]
 
 
 def experiment_fingerprint(name: str) -> str:

@@ -1,0 +1,307 @@
+"""NUTS on any registered system: the reference posterior, through the system's JAX twin.
+
+The model is :mod:`methods._system_fit`'s: the K tracked points are the twin's states seen
+through the system's observation, plus independent Gaussian noise of a fixed ``sigma`` per
+coordinate (default ``1.2 * system.noise_m``); a uniform prior on the prior box and, when
+``Observation.state0`` is not given, on the initial-state box that ``state0_from_track`` gives
+(intersected with the system's ``state_bounds``). NUTS samples the logits of the unit
+coordinates (an unconstrained space; the uniform prior there has density
+``sigmoid(x) sigmoid(-x)``).
+
+How it runs, as the ball's ``nuts`` (:mod:`methods.nuts`, whose Laplace step it reuses):
+
+1. the cross-entropy search and least-squares refinement of :mod:`methods._system_fit` (batched
+   NumPy simulations) find the basin;
+2. L-BFGS and Newton steps on the JAX potential (exact gradients, forward mode through the
+   twin) give the mode and the Laplace covariance ``L L^T`` in logit coordinates;
+3. NumPyro's NUTS (windowed adaptation) samples ``z`` with ``x = x_mode + L z``, one jitted
+   ``lax.scan`` per (system, frame bucket, known or sampled start, budgets), reused across
+   observations.
+
+The points seen through JAX: the system's ``jax_observe(states (T, S), theta (P,)) -> (T, K, 2)``
+when it has one; else its NumPy ``_observe`` when that traces under JAX; else, when the
+observation is an affine map of the state that does not depend on theta (checked numerically on
+random states), that map. A system with none of these is n/a for NUTS (a sentence says so).
+
+``extras``: split R-hat and ESS per parameter, divergences, mean tree size, step size, the RMS
+residual of the mode's trajectory (``map_rms_m``), ``converged`` (R-hat < 1.05 and ESS >= 50 on
+every parameter, fewer than 2% divergences, ``map_rms_m`` <= 3 sigma) and ``warning``.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache, partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from numpyro.diagnostics import effective_sample_size, split_gelman_rubin
+from numpyro.infer.hmc import hmc
+
+from methods._simulation import Stopwatch, make_rng
+from methods._system_fit import SystemFit, SystemFitMethod, _system, refine, search, sq_error
+from methods.nuts import NUTS, _bucket, _laplace, _logit, _Potential
+from sysid_bench._validate import check_positive_int
+from sysid_bench.estimator import Observation
+
+__all__ = ["SystemNUTS", "jax_observer"]
+
+_EPS = 1e-6
+
+
+# ------------------------------------------------------------------------------------------
+# the points through JAX
+def jax_observer(system):
+    """``f(states (T, S), theta (P,)) -> points (T, K, 2)`` in JAX for ``system``.
+
+    Raises
+    ------
+    NotImplementedError
+        The system's observation cannot be written in JAX from what it declares (n/a).
+    """
+    return _jax_observer(system.name)
+
+
+@lru_cache(maxsize=32)
+def _jax_observer(name):
+    system = _system(name)
+    fn = getattr(system, "jax_observe", None)
+    if callable(fn):
+        return fn
+    S, P, K = system.n_state, system.n_params, system.n_points
+
+    def numpy_hook(st, th):
+        return system._observe(st[None], th[None])[0]
+
+    try:
+        out = jax.eval_shape(numpy_hook, jax.ShapeDtypeStruct((3, S), jnp.float64),
+                             jax.ShapeDtypeStruct((P,), jnp.float64))
+        if tuple(out.shape) == (3, K, 2):
+            return numpy_hook
+    except Exception:  # noqa: BLE001 - any failure to trace means: not array-API code
+        pass
+    # an affine map of the state, the same for every theta (a block's or a puck's centre)
+    rng = np.random.default_rng(0)
+    n = 4 * (S + 1)
+    theta = system.sample_theta(n, rng)
+    x = rng.normal(size=(n, S))
+    y = system._observe(x[:, None, :], theta)[:, 0].reshape(n, -1)
+    A, *_ = np.linalg.lstsq(np.column_stack([x, np.ones(n)]), y, rcond=None)
+    y2 = system._observe(x[:, None, :], theta[::-1].copy())[:, 0].reshape(n, -1)
+    fit = np.column_stack([x, np.ones(n)]) @ A
+    if np.abs(fit - y).max() < 1e-9 and np.abs(y2 - y).max() < 1e-12:
+        M, b = jnp.asarray(A[:S]), jnp.asarray(A[S])
+
+        def affine(st, th):
+            return (st @ M + b).reshape(st.shape[0], K, 2)
+
+        return affine
+    raise NotImplementedError(
+        f"nuts is n/a on the {name} system: its observation is neither given in JAX "
+        "(System.jax_observe) nor traceable by JAX nor an affine map of the state"
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# the likelihood, with forward-mode derivatives
+def _loglik_value(v, data, cfg):
+    name, n_frames, dt, P = cfg
+    obs, mask, sigma = data
+    system = _system(name)
+    states = system.jax_simulate()(v[:P], v[P:], n_frames, dt)
+    pts = _jax_observer(name)(states, v[:P])
+    m = mask[..., None]
+    diff = jnp.where(m, pts - jnp.where(m, obs, 0.0), 0.0)
+    ll = -0.5 * jnp.sum(diff * diff) / sigma**2
+    return jnp.where(jnp.isfinite(ll), ll, -jnp.inf)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _loglik(v, data, cfg):
+    """Log-likelihood of v = (theta (P,), state0 (S,)); derivatives in forward mode (one
+    vectorised ``jvp`` per coordinate: D <= ~8 through a scan of 200 frames is cheaper forward)."""
+    return _loglik_value(v, data, cfg)
+
+
+@_loglik.defjvp
+def _loglik_jvp(cfg, primals, tangents):
+    v, data = primals
+    dv, _ = tangents
+    f = lambda w: _loglik_value(w, data, cfg)  # noqa: E731
+    val, grad = jax.vmap(lambda t: jax.jvp(f, (v,), (t,)), out_axes=(None, 0))(jnp.eye(v.size))
+    return val, jnp.dot(grad, dv)
+
+
+def _physical(x, data, free, P):
+    """Logits x (..., D) -> theta (..., P), state0 (..., S)."""
+    s0_fixed, plo, pspan, slo, sspan = data[3:8]
+    u = jax.nn.sigmoid(x)
+    theta = plo + pspan * u[..., :P]
+    if free:
+        return theta, slo + sspan * u[..., P:]
+    return theta, jnp.broadcast_to(s0_fixed, theta.shape[:-1] + s0_fixed.shape)
+
+
+def _potential(z, data, *, cfg, free):
+    """Minus the log posterior density of the whitened coordinates z (D,)."""
+    P = cfg[3]
+    x_ref, chol = data[8], data[9]
+    x = x_ref + chol @ z
+    theta, s0 = _physical(x, data, free, P)
+    ll = _loglik(jnp.concatenate((theta, s0)), data[:3], cfg)
+    return -(ll + jnp.sum(jax.nn.log_sigmoid(x) + jax.nn.log_sigmoid(-x)))
+
+
+@lru_cache(maxsize=16)
+def _compiled(cfg, free, num_warmup, num_samples, dense_mass, target_accept, max_tree_depth):
+    """Jitted potential (value, gradient) and one jitted NUTS chain for a configuration."""
+    pe = partial(_potential, cfg=cfg, free=free)
+    init_kernel, sample_kernel = hmc(potential_fn_gen=lambda data: partial(pe, data=data),
+                                     algo="NUTS")
+
+    @jax.jit
+    def chain(rng_key, z0, data):
+        state = init_kernel(z0, num_warmup, dense_mass=dense_mass,
+                            target_accept_prob=target_accept, max_tree_depth=max_tree_depth,
+                            model_args=(data,), rng_key=rng_key)
+
+        def body(state, _):
+            state = sample_kernel(state, model_args=(data,))
+            return state, (state.z, state.num_steps, state.diverging)
+
+        state, (zs, steps, div) = lax.scan(body, state, None, length=num_warmup + num_samples)
+        return zs[num_warmup:], steps, div[num_warmup:], state.adapt_state.step_size
+
+    return jax.jit(jax.value_and_grad(lambda z, data: pe(z, data=data))), chain
+
+
+class SystemNUTS(SystemFitMethod):
+    """NumPyro's NUTS on a system's JAX twin; hyperparameters as the ball's ``nuts`` (with
+    ``system`` and ``max_opt_evals``, the refinement's budget, added)."""
+
+    _declared_by = NUTS
+
+    def __init__(self, *, system: str = "spring", num_warmup: int = 200, num_samples: int = 300,
+                 num_chains: int = 1, sigma: float | None = None, n_init: int = 1000,
+                 search_rounds: int = 4, n_starts: int = 3, max_opt_evals: int = 60,
+                 dense_mass: bool = False, target_accept: float = 0.85, max_tree_depth: int = 6,
+                 n_forecast: int = 200, frame_bucket: int = 50, seed: int = 0):
+        self.system = system
+        self.num_warmup = num_warmup
+        self.num_samples = num_samples
+        self.num_chains = num_chains
+        self.sigma = sigma
+        self.n_init = n_init
+        self.search_rounds = search_rounds
+        self.n_starts = n_starts
+        self.max_opt_evals = max_opt_evals
+        self.dense_mass = dense_mass
+        self.target_accept = target_accept
+        self.max_tree_depth = max_tree_depth
+        self.n_forecast = n_forecast
+        self.frame_bucket = frame_bucket
+        self.seed = seed
+
+    def _validate(self) -> None:
+        super()._validate()
+        for k in ("num_warmup", "num_samples", "num_chains", "n_init", "search_rounds",
+                  "n_starts", "max_opt_evals", "max_tree_depth", "frame_bucket"):
+            check_positive_int(getattr(self, k), k)
+        try:
+            ta = float(self.target_accept)
+        except (TypeError, ValueError):
+            ta = np.nan
+        if not 0.0 < ta < 1.0:
+            raise ValueError(f"target_accept: expected a probability in (0, 1), got {self.target_accept!r}")
+        if not isinstance(self.dense_mass, (bool, np.bool_)):
+            raise ValueError(f"dense_mass: expected True or False, got {self.dense_mass!r}")
+
+    def _fit(self, obs: Observation) -> SystemFit:
+        sw = Stopwatch()
+        prob = self._problem(obs)
+        system = prob.system
+        if not system.jax_twin:
+            raise NotImplementedError(f"nuts is n/a on the {system.name} system: it has no JAX twin")
+        jax_observer(system)  # n/a early, before any work
+        P, D, free = prob.P, prob.ndim, prob.free
+        T = prob.n_sim_frames
+        Tb = _bucket(T, int(self.frame_bucket))
+        rng = make_rng(self.seed, 0)
+
+        # 1. the basin: search and least squares on batched NumPy simulations
+        starts, info = search(prob, rng, int(self.n_init), int(self.search_rounds),
+                              int(self.n_starts))
+        u_opt, _, opt = refine(prob, starts, int(self.max_opt_evals))
+
+        # 2. the mode and curvature of the potential in logit coordinates
+        obs_pad = np.zeros((Tb,) + prob.obs.shape[1:])
+        mask = np.zeros((Tb,) + prob.mask.shape[1:], bool)
+        obs_pad[:T] = np.where(prob.mask[..., None], prob.obs, 0.0)
+        mask[:T] = prob.mask
+        base = (jnp.asarray(obs_pad), jnp.asarray(mask), jnp.asarray(prob.sigma, jnp.float64),
+                jnp.asarray(prob.track.state0), jnp.asarray(prob.plo), jnp.asarray(prob.pspan),
+                jnp.asarray(prob.slo), jnp.asarray(np.maximum(prob.sspan, 1e-12)))
+        cfg = (system.name, Tb, float(prob.track.dt), P)
+        pe_vg, chain = _compiled(cfg, free, int(self.num_warmup), int(self.num_samples),
+                                 bool(self.dense_mass), float(self.target_accept),
+                                 int(self.max_tree_depth))
+        pot = _Potential(pe_vg, base, D)
+        x0 = _logit(np.clip(u_opt, _EPS, 1 - _EPS))
+        x_map, cov, lap = _laplace(pot, [x0])
+        chol = np.linalg.cholesky(cov)
+
+        # 3. NUTS in whitened coordinates, chains one after another
+        nc = int(self.num_chains)
+        data = base + (jnp.asarray(x_map), jnp.asarray(chol))
+        keys = jax.random.split(jax.random.PRNGKey(int(self.seed)), nc)
+        zs, steps, divs, sizes = [], [], [], []
+        for c in range(nc):
+            z0 = np.zeros(D) if c == 0 else 0.5 * rng.standard_normal(D)
+            zc, st, dv, ss = chain(keys[c], jnp.asarray(z0), data)
+            zs.append(np.asarray(zc))
+            steps.append(np.asarray(st))
+            divs.append(np.asarray(dv))
+            sizes.append(float(ss))
+        z = np.stack(zs)
+        steps, div = np.stack(steps), np.stack(divs)
+        x = x_map + z @ chol.T
+        th, s0 = (np.asarray(a) for a in _physical(jnp.asarray(x), data, free, P))
+        rhat = np.asarray(split_gelman_rubin(th))
+        ess = np.asarray(effective_sample_size(th))
+        flat, s0_flat = th.reshape(-1, P), s0.reshape(-1, prob.S)
+        n_div = int(div.sum())
+        problems = []
+        if not np.all(rhat < 1.05):
+            problems.append(f"R-hat {np.round(rhat, 3).tolist()} not all < 1.05")
+        if not np.all(ess >= 50):
+            problems.append(f"ESS {np.round(ess, 1).tolist()} not all >= 50")
+        if n_div / div.size >= 0.02:
+            problems.append(f"{n_div} divergent transitions ({100 * n_div / div.size:.1f}%)")
+        th_map, s0_map = (np.asarray(a) for a in _physical(jnp.asarray(x_map), data, free, P))
+        check = prob.check(flat.mean(0), s0_flat.mean(0))
+        map_pts = prob.points(_unit(prob, th_map, s0_map))
+        rms = float(np.sqrt(sq_error(map_pts, prob.obs, prob.mask)[0] / max(prob.n_coords, 1)))
+        if rms > 3.0 * prob.sigma:
+            problems.append(f"the mode misses the track by {rms:.3g} m RMS "
+                            f"(> 3 sigma = {3 * prob.sigma:.3g} m)")
+        prob.sim.n_simulations += pot.n + int(steps.sum()) + nc
+        extras = {
+            "n_simulations": int(prob.sim.n_simulations), "wall_s": sw(),
+            "rhat": dict(zip(system.params, rhat.tolist())),
+            "ess": dict(zip(system.params, ess.tolist())),
+            "divergences": n_div, "mean_tree_size": float(steps[:, int(self.num_warmup):].mean()),
+            "step_size": float(np.mean(sizes)), "converged": not problems,
+            "warning": "; ".join(problems), "map_rms_m": rms, "sigma": prob.sigma,
+            "state0_sampled": free, **info, **opt, **lap, **prob.track.describe(),
+        }
+        post = self._posterior(prob, flat.mean(0), flat.std(0, ddof=1), flat, extras, check)
+        return SystemFit(post, flat, s0_flat, None, prob, sw)
+
+
+def _unit(prob, theta, state0):
+    """Physical theta (P,) and state0 (S,) -> unit coordinates (1, D) of ``prob``."""
+    u = (theta - prob.plo) / prob.pspan
+    if prob.free:
+        u = np.concatenate([u, (state0 - prob.slo) / np.maximum(prob.sspan, 1e-12)])
+    return u[None]
