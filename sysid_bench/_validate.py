@@ -41,9 +41,9 @@ def as_float_array(
         arr = np.asarray(value)
     except Exception as exc:  # ragged lists and the like
         raise ValueError(f"{name}: expected a numeric array, got {type(value).__name__} ({exc})") from exc
-    if arr.dtype == object or not (
-        np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.bool_)
-    ):
+    if arr.dtype == object or not np.issubdtype(arr.dtype, np.number):
+        # bool arrays too: True/False read as 1/0 metres or parameters is a mask passed where
+        # values belong, never a measurement
         raise ValueError(f"{name}: expected a real numeric array, got dtype {arr.dtype}")
     if np.iscomplexobj(arr):
         raise ValueError(f"{name}: expected a real array, got complex dtype {arr.dtype}")
@@ -73,15 +73,68 @@ def check_positive_int(value, name: str, *, minimum: int = 1) -> int:
     return int(value)
 
 
+def _is_real(value) -> bool:
+    """A real number that is not a bool (``True`` is an int to Python, never a number here) and
+    not a string (``float("0.05")`` works, but a string is a value nobody parsed)."""
+    return (not isinstance(value, (bool, np.bool_))
+            and isinstance(value, (int, float, np.integer, np.floating)))
+
+
 def check_positive_float(value, name: str) -> float:
-    """Return ``value`` as float, raising unless it is finite and > 0."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name}: expected a positive number, got {value!r}") from exc
+    """Return ``value`` as float, raising unless it is a real number (not str, not bool),
+    finite and > 0."""
+    if not _is_real(value):
+        raise ValueError(f"{name}: expected a positive number, got {type(value).__name__} {value!r}")
+    v = float(value)
     if not np.isfinite(v) or v <= 0:
         raise ValueError(f"{name}: expected a finite number > 0, got {value!r}")
     return v
+
+
+def check_int(value, name: str, *, lo: int | None = None, hi: int | None = None) -> int:
+    """``value`` as an int in ``[lo, hi]``; floats (even ``2.0``), strings and bools are refused."""
+    rng = ("" if lo is None and hi is None else
+           f" in [{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]")
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name}: expected an integer{rng}, got {type(value).__name__} {value!r}")
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        raise ValueError(f"{name}: expected an integer{rng}, got {value}")
+    return int(value)
+
+
+def check_int_array(value, name: str, *, lo: int | None = None, hi: int | None = None,
+                    ndim: int = 1) -> np.ndarray:
+    """``value`` as an int64 array of ``ndim`` dimensions with values in ``[lo, hi]``.
+
+    Integer-valued floats are refused like any float (``[0.5]`` and ``[2.0]`` alike): an index
+    list that arrives as floats was computed, and its rounding is the caller's to decide.
+    """
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:  # ragged lists
+        raise ValueError(f"{name}: expected integers, got {type(value).__name__} ({exc})") from exc
+    if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"{name}: expected integers, got dtype {arr.dtype} ({value!r})")
+    if arr.ndim != ndim:
+        raise ValueError(f"{name}: expected a {ndim}-D sequence of integers, got shape {arr.shape}")
+    if arr.size == 0:
+        raise ValueError(f"{name}: expected at least one integer, got none")
+    if (lo is not None and arr.min() < lo) or (hi is not None and arr.max() > hi):
+        rng = f"[{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]"
+        raise ValueError(f"{name}: expected integers in {rng}, got values in "
+                         f"[{arr.min()}, {arr.max()}]")
+    return arr.astype(np.int64)
+
+
+def check_flag(value, name: str) -> bool:
+    """``value`` as a bool; only ``True``/``False`` (and NumPy's) are flags.
+
+    ``bool("no")`` is True, so a string taken as a flag would silently mean the opposite of
+    what it says: strings, numbers and None are refused.
+    """
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name}: expected True or False, got {type(value).__name__} {value!r}")
+    return bool(value)
 
 
 def check_seed(seed) -> np.random.Generator:
@@ -103,7 +156,7 @@ def check_number(value, name: str, *, lo: float | None = None, hi: float | None 
     u = f" {unit}" if unit else ""
     rng = ("" if lo is None and hi is None else
            f" in [{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]{u}")
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+    if not _is_real(value):
         raise ValueError(f"{name}: expected a real number{rng}, got {type(value).__name__} {value!r}")
     v = float(value)
     if not np.isfinite(v) or (lo is not None and v < lo) or (hi is not None and v > hi):
@@ -123,10 +176,74 @@ def check_horizon(horizon, maximum: int) -> int:
     return int(horizon)
 
 
-def check_seed_value(seed, name: str = "seed"):
-    """A hyperparameter seed: an int >= 0, None or a ``numpy.random.Generator``; returned as is."""
-    if seed is None or isinstance(seed, np.random.Generator):
+#: Largest hyperparameter seed: NumPy takes any, but JAX keys and torch generators take 32 or 64
+#: bits, and a seed that only some methods accept is a value one boundary takes and another
+#: refuses (2**70 reached numpyro as an ``OverflowError``).
+SEED_MAX = 2**32 - 1
+
+
+def check_seed_value(seed, name: str = "seed", *, generator: bool = True):
+    """A hyperparameter seed, returned as is: an int in ``[0, SEED_MAX]``, None or (where the
+    method can use one, ``generator=True``) a ``numpy.random.Generator``."""
+    if seed is None or (generator and isinstance(seed, np.random.Generator)):
         return seed
-    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"{name}: expected an int >= 0, None or numpy.random.Generator, got {seed!r}")
+    what = f"an int in [0, 2**32 - 1]{', None or numpy.random.Generator' if generator else ' or None'}"
+    if (isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer))
+            or not 0 <= seed <= SEED_MAX):
+        raise ValueError(f"{name}: expected {what}, got {type(seed).__name__} {seed!r}")
     return seed
+
+
+def check_annotated(value, name: str, annotation) -> None:
+    """Check a hyperparameter against its constructor annotation (a string, as
+    ``from __future__ import annotations`` leaves them): ``bool`` a flag, ``int`` an integer,
+    ``float`` a real number, ``str`` a string, each optionally ``| None``.
+
+    Ranges are each method's own (its ``_validate``); this is the type every method shares, so a
+    new method's ``sigma='0.02'`` or ``progress='no'`` is refused without a line of its own.
+    Other annotations (or none) are not checked here.
+    """
+    ann = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", "")
+    parts = [a.strip() for a in ann.split("|")]
+    if "None" in parts:
+        if value is None:
+            return
+        parts.remove("None")
+    if len(parts) != 1:
+        return
+    kind = parts[0]
+    if kind == "bool":
+        check_flag(value, name)
+    elif kind == "int":
+        check_int(value, name)
+    elif kind == "float":
+        check_number(value, name)
+    elif kind == "str" and not isinstance(value, str):
+        raise ValueError(f"{name}: expected a string, got {type(value).__name__} {value!r}")
+
+
+def arg_number(lo: float | None = None, hi: float | None = None, *, integer: bool = False,
+               lo_open: bool = False, unit: str = ""):
+    """An ``argparse`` ``type=`` function: a finite number (an integer with ``integer=True``)
+    in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``), else ``argparse.ArgumentTypeError`` naming
+    the range, which argparse prints as one line with the option's name and exits 2.
+    """
+    import argparse
+
+    u = f" {unit}" if unit else ""
+    left = "(" if lo_open else "["
+    rng = f"{left}{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]{u}"
+    what = "an integer" if integer else "a finite number"
+
+    def parse(text: str):
+        try:
+            v = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what} in {rng}, got {text!r}") from None
+        if (not np.isfinite(v) or (lo is not None and (v <= lo if lo_open else v < lo))
+                or (hi is not None and v > hi)):
+            raise argparse.ArgumentTypeError(f"expected {what} in {rng}, got {text!r}")
+        return v
+
+    parse.__name__ = "integer" if integer else "number"  # argparse names the type in errors
+    return parse

@@ -24,15 +24,22 @@ groups below are :data:`options`) and ``run(args) -> int`` (the exit status), an
     "identify": ("sysid_bench.video", "identify a ball's physics in a video file"),
 
 Only the chosen subcommand's module is imported, so ``sysid-bench list`` never loads torch.
-A ``ValueError`` from ``run`` is printed as one ``error:`` line with exit status 2.
+A ``ValueError`` from ``run`` is printed as one ``error:`` line with exit status 2; an
+``OSError`` (an output that cannot be written, a full disk, a scheduler that does not answer) as
+one ``error:`` line naming the path, exit status 1. The same holds for the delegated ``train``
+and ``evaluate``. Numeric options take their ranges in argparse (``_validate.arg_number``), so
+an out-of-range value is refused before anything runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import sys
 from types import SimpleNamespace
+
+from sysid_bench._validate import SEED_MAX, arg_number
 
 __all__ = ["main", "SUBCOMMANDS", "options"]
 
@@ -61,16 +68,18 @@ def _out(p, default: str | None = None, help: str | None = None) -> None:
 
 
 def _seed(p, default: int = 0) -> None:
-    p.add_argument("--seed", type=int, default=default, help=f"random seed (default {default})")
+    p.add_argument("--seed", type=arg_number(0, SEED_MAX, integer=True), default=default,
+                   help=f"random seed (default {default})")
 
 
 def _threads(p) -> None:
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--threads", type=arg_number(1, 1024, integer=True), default=1,
                    help="threads per cell (default 1: one process per core is the parallelism)")
 
 
 def _scheduler(p) -> None:
-    p.add_argument("--workers", type=int, default=None, help="local processes (default: cores)")
+    p.add_argument("--workers", type=arg_number(0, 4096, integer=True), default=None,
+                   help="local processes (default: cores; 0 runs every cell in this process)")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address (instead of local processes)")
 
 
@@ -193,19 +202,34 @@ def _parser(chosen: str | None) -> argparse.ArgumentParser:
     return p
 
 
+def os_error_line(exc: OSError) -> str:
+    """One line for an ``OSError``: the path and the reason (``disk full`` for ENOSPC), not the
+    traceback that only repeats them."""
+    msg = str(exc)
+    if exc.filename is not None and exc.strerror:
+        target = exc.filename if exc.filename2 is None else f"{exc.filename} -> {exc.filename2}"
+        msg = f"{target}: {exc.strerror}"
+    if exc.errno == errno.ENOSPC and "disk full" not in msg:
+        msg = f"disk full: {msg}"
+    return msg
+
+
 def main(argv=None) -> int:
     """Run ``sysid-bench`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
     chosen = next((a for a in argv if not a.startswith("-")), None)
-    if chosen in _DELEGATED:  # its own parser handles the rest, --help included
-        rest = argv[argv.index(chosen) + 1:]
-        return _functions(chosen)[1](SimpleNamespace(argv=rest))
-    args = _parser(chosen if chosen in SUBCOMMANDS else None).parse_args(argv)
     try:
+        if chosen in _DELEGATED:  # its own parser handles the rest, --help included
+            rest = argv[argv.index(chosen) + 1:]
+            return _functions(chosen)[1](SimpleNamespace(argv=rest))
+        args = _parser(chosen if chosen in SUBCOMMANDS else None).parse_args(argv)
         return args.fn(args)
     except ValueError as exc:  # unknown names, store format/config mismatch: one clear line
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # an unwritable --out / --run-dir, a full disk, no scheduler
+        print(f"error: {os_error_line(exc)}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from sysid_bench._validate import (
     check_annotated,
     check_horizon,
     check_int,
+    check_int_array,
     check_number,
     check_positive_int,
     check_seed,
@@ -516,17 +517,19 @@ class Forecast:
 #: How far (in prior widths, per parameter) a ball's posterior mean may lie outside
 #: ``physics.ENVELOPE`` (with ``g < 0``): an unclipped network or an unbounded fit can put a mean a
 #: little past a bound (e just above 1, d just below 0), and the posterior is a result that says
-#: so; e = 5 or g = +100 is no statement about a ball, and is refused where it is made.
+#: so; e = 5, d = -1 or g = +100 is no statement about a ball, and is refused where it is made.
+#: ``g`` gets no margin above 0.
 MEAN_MARGIN = 1.0
 
 
 def _check_ball_mean(mean: np.ndarray) -> None:
     """``ValueError`` naming ``mean`` when a ball parameter lies more than ``MEAN_MARGIN`` prior
-    widths outside ``physics.ENVELOPE`` (``g`` must stay below 0 by the same rule)."""
+    widths outside ``physics.ENVELOPE``, or ``g`` above 0."""
     for i, q in enumerate(PARAMS):
         a, b = ENVELOPE[q]
         pad = MEAN_MARGIN * float(PRIOR_SPAN[i])
-        lo, hi = a - pad, (min(b, 0.0) if q == "g" else b) + pad
+        # g above 0 is a ball falling up, however little: no margin there
+        lo, hi = a - pad, (0.0 if q == "g" else b + pad)
         if not lo <= mean[i] <= hi:
             raise ValueError(
                 f"mean: expected {q} within {MEAN_MARGIN:g} prior width of the physical envelope "
@@ -742,14 +745,26 @@ class Estimator(abc.ABC):
             cls.identify = _checking_identify(cls.__dict__["identify"])
         if "forecast" in cls.__dict__:
             cls.forecast = _checking_forecast(cls.__dict__["forecast"])
+        if "fit" in cls.__dict__:
+            cls.fit = _checking_fit(cls.__dict__["fit"])
+        if "identify_prefixes" in cls.__dict__:
+            cls.identify_prefixes = _checking_prefixes(cls.__dict__["identify_prefixes"])
 
     def _validate(self) -> None:
         """Check the stored hyperparameters; ``ValueError`` naming the first bad one.
 
-        Subclasses extend it (call ``super()._validate()``); it runs after ``__init__`` and
-        ``set_params``, so a bad value fails where it is given.
+        Subclasses extend it (call ``super()._validate()``) with ranges; the base checks every
+        hyperparameter's type against its constructor annotation (``bool`` a real flag, ``int``
+        no float, ``float`` no string or bool; :func:`sysid_bench._validate.check_annotated`)
+        and the seed. It runs after ``__init__`` and ``set_params`` (which keeps nothing it
+        refused), so a bad value fails where it is given, and again at ``identify``,
+        ``forecast`` and ``fit``, so a value set on the instance directly fails before use.
         """
-        if "seed" in self._param_names():
+        params = self.get_params()
+        for name, ann in _annotations(type(self)).items():
+            if name != "seed" and name in params:
+                check_annotated(params[name], name, ann)
+        if "seed" in params:
             check_seed_value(self.seed, "seed")
 
     # -- hyperparameters (scikit-learn style) -------------------------------------------------
@@ -767,12 +782,20 @@ class Estimator(abc.ABC):
         return {k: getattr(self, k) for k in self._param_names()}
 
     def set_params(self, **params) -> Estimator:
+        """Set hyperparameters; a refused value (``ValueError``) leaves every one as it was."""
         names = self._param_names()
-        for k, v in params.items():
+        for k in params:
             if k not in names:
                 raise ValueError(f"{k}: not a hyperparameter of {self.name}; known: {names}")
+        old = {k: getattr(self, k) for k in params}
+        for k, v in params.items():
             setattr(self, k, v)
-        self._validate()
+        try:
+            self._validate()
+        except BaseException:
+            for k, v in old.items():
+                setattr(self, k, v)
+            raise
         return self
 
     def __repr__(self) -> str:
@@ -782,6 +805,7 @@ class Estimator(abc.ABC):
     # -- the interface ----------------------------------------------------------------------
     def fit(self, train=None) -> Estimator:
         """Train on a dataset; methods that do not learn return ``self`` unchanged."""
+        _check_train(train)
         return self
 
     @abc.abstractmethod
@@ -790,10 +814,7 @@ class Estimator(abc.ABC):
 
     def identify_prefixes(self, obs: Observation, lengths) -> list[Posterior]:
         """Posteriors after each of ``lengths`` frames. Default: one ``identify`` per prefix."""
-        lengths = [check_positive_int(int(n), "lengths") for n in np.atleast_1d(lengths)]
-        for n in lengths:
-            if n > obs.n_frames:
-                raise ValueError(f"lengths: expected values <= {obs.n_frames}, got {n}")
+        lengths = _check_lengths(obs, lengths)
         return [self.identify(obs.prefix(n)) for n in lengths]
 
     def forecast(self, obs: Observation, horizon: int) -> Forecast:
@@ -818,6 +839,57 @@ def _check_obs(obs, est=None) -> None:
         )
 
 
+def _annotations(cls) -> dict[str, Any]:
+    """Constructor annotations of ``cls``'s hyperparameters (``name -> annotation``)."""
+    got = _ANNOTATIONS.get(cls)
+    if got is None:
+        sig = inspect.signature(cls.__init__)
+        got = _ANNOTATIONS[cls] = {p.name: p.annotation for p in sig.parameters.values()
+                                   if p.name != "self" and p.annotation is not p.empty}
+    return got
+
+
+_ANNOTATIONS: dict[type, dict[str, Any]] = {}
+
+
+def _check_obs_fields(obs: Observation) -> None:
+    """The Observation's fields still of the types it stored (O(1)): a field assigned after it
+    was made (``obs.positions = "abc"``) fails here, naming it, not as an AttributeError inside a
+    method."""
+    for name, ndims in (("frames", (3,)), ("positions", (2, 3)), ("state0", (1,))):
+        v = getattr(obs, name)
+        if v is not None and not (isinstance(v, np.ndarray) and v.ndim in ndims
+                                  and np.issubdtype(v.dtype, np.number)):
+            raise ValueError(
+                f"obs.{name}: expected a numeric array of {' or '.join(map(str, ndims))} "
+                f"dimensions as Observation stores it, got {type(v).__name__} {str(v)[:40]!r} "
+                "(changed after the Observation was made? build a new one)"
+            )
+    if not (isinstance(obs.dt, float) and DT_RANGE[0] <= obs.dt <= DT_RANGE[1]):
+        raise ValueError(f"obs.dt: expected seconds in {DT_RANGE}, got {obs.dt!r} (changed after "
+                         "the Observation was made? build a new one)")
+    if obs.floor is not None and not (isinstance(obs.floor, float) and abs(obs.floor) <= FLOOR_MAX):
+        raise ValueError(f"obs.floor: expected None or metres within +-{FLOOR_MAX:g}, got "
+                         f"{obs.floor!r} (changed after the Observation was made? build a new one)")
+
+
+def _check_train(train) -> None:
+    """``fit``'s ``train``: None (keep the model as it is) or a ``sysid_bench.datasets.Dataset``."""
+    from sysid_bench.datasets import Dataset  # local: datasets imports estimator's neighbours
+
+    if train is not None and not isinstance(train, Dataset):
+        raise ValueError(
+            f"train: expected None or a sysid_bench.datasets.Dataset (make_dataset / "
+            f"load_dataset), got {type(train).__name__}"
+        )
+
+
+def _check_lengths(obs: Observation, lengths) -> list[int]:
+    """``identify_prefixes``' ``lengths`` as ints in ``[1, obs.n_frames]``."""
+    arr = check_int_array(np.atleast_1d(lengths), "lengths", lo=1, hi=obs.n_frames)
+    return [int(n) for n in arr]
+
+
 def _validating_init(init):
     @functools.wraps(init)
     def __init__(self, *args, **kwargs):
@@ -832,7 +904,31 @@ def _checking_identify(identify):
     @functools.wraps(identify)
     def wrapper(self, obs, *args, **kwargs):
         _check_obs(obs, self)
+        _check_obs_fields(obs)
+        self._validate()
         return identify(self, obs, *args, **kwargs)
+
+    return wrapper
+
+
+def _checking_fit(fit):
+    @functools.wraps(fit)
+    def wrapper(self, train=None, *args, **kwargs):
+        _check_train(train)
+        self._validate()
+        return fit(self, train, *args, **kwargs)
+
+    return wrapper
+
+
+def _checking_prefixes(identify_prefixes):
+    @functools.wraps(identify_prefixes)
+    def wrapper(self, obs, lengths, *args, **kwargs):
+        _check_obs(obs, self)
+        _check_obs_fields(obs)
+        lengths = _check_lengths(obs, lengths)
+        self._validate()
+        return identify_prefixes(self, obs, lengths, *args, **kwargs)
 
     return wrapper
 
@@ -841,7 +937,9 @@ def _checking_forecast(forecast):
     @functools.wraps(forecast)
     def wrapper(self, obs, horizon, *args, **kwargs):
         _check_obs(obs, self)
+        _check_obs_fields(obs)
         horizon = check_horizon(horizon, MAX_HORIZON)
+        self._validate()
         return forecast(self, obs, horizon, *args, **kwargs)
 
     return wrapper

@@ -27,6 +27,7 @@ import numpy as np
 
 from sysid_bench._validate import (
     as_float_array,
+    check_int_array,
     check_positive_float,
     check_positive_int,
     check_seed,
@@ -45,6 +46,7 @@ __all__ = [
     "V_MAX",
     "DT_MAX",
     "FLOOR_MAX",
+    "MAX_FRAMES",
     "DRAG_STEP",
     "CONTACTS_MAX",
     "simulate",
@@ -110,6 +112,9 @@ DT_MAX = 1.0
 CONTACTS_MAX = 24
 #: Largest floor height magnitude, m: keeps ~1e-13 m resolution inside the box.
 FLOOR_MAX = 1000.0
+#: Most frames one ``simulate`` call makes: 14 hours at 20 frames/s, 32 MB per ball. Beyond it
+#: a typo (``10**9``) would be a ``MemoryError`` from NumPy instead of an error naming it.
+MAX_FRAMES = 1_000_000
 #: Largest drag per RK4 step, ``d * v_bound * dt / SUBSTEPS``, where
 #: ``v_bound = sqrt(vx0^2 + vy0^2 + 2 |g| (y0 - floor))`` bounds the speed (energy never grows).
 #: RK4 is stable for drag up to ~1.39 per step (eigenvalue 2 d |v|); 0.5 keeps a margin. The
@@ -147,6 +152,8 @@ def check_theta(theta, n_frames: int | None = None, name: str = "theta") -> np.n
         raise ValueError(
             f"{name}: expected (B, n_frames={n_frames}, 4) for time-varying parameters, got shape {th.shape}"
         )
+    if th.shape[0] == 0:  # an empty batch: nothing to check (simulate answers (0, T, 4))
+        return th
     # one min and one max per parameter: cheap next to any simulation
     flat = th.reshape(-1, len(PARAMS))
     lo, hi = flat.min(axis=0), flat.max(axis=0)
@@ -218,9 +225,7 @@ def sample_theta(n: int, rng=None, subranges=None) -> np.ndarray:
     if subranges is None:
         u = rng.random((n, len(PARAMS)))
     else:
-        sub = np.asarray(subranges)
-        if sub.ndim != 1 or sub.size == 0 or (sub < 0).any() or (sub > 9).any():
-            raise ValueError(f"subranges: expected integers in 0..9, got {subranges!r}")
+        sub = check_int_array(subranges, "subranges", lo=0, hi=9)
         k = rng.choice(sub, size=(n, len(PARAMS)))
         u = (k + rng.random((n, len(PARAMS)))) / 10.0
     return _LO + u * (_HI - _LO)
@@ -246,12 +251,12 @@ def sample_state0(n: int, rng=None, floor=0.0) -> np.ndarray:
 
 def normalise_theta(theta) -> np.ndarray:
     """Map parameters to [0, 1] by ``PRIOR`` (any leading shape, last axis 4)."""
-    return (np.asarray(theta, dtype=np.float64) - _LO) / (_HI - _LO)
+    return (as_float_array(theta, "theta", last=len(PARAMS), allow_nan=True) - _LO) / (_HI - _LO)
 
 
 def denormalise_theta(u) -> np.ndarray:
     """Inverse of ``normalise_theta``."""
-    return _LO + np.asarray(u, dtype=np.float64) * (_HI - _LO)
+    return _LO + as_float_array(u, "u", last=len(PARAMS), allow_nan=True) * (_HI - _LO)
 
 
 # --------------------------------------------------------------------------------------------
@@ -566,6 +571,9 @@ def _check_finite(out, th, s0, fl, dt) -> None:
 def _check_inputs(theta, state0, n_frames, dt, floor):
     """Validate ``simulate``'s arguments; returns (theta, state0, floor (B,), n_frames, dt)."""
     n_frames = check_positive_int(n_frames, "n_frames")
+    if n_frames > MAX_FRAMES:
+        raise ValueError(f"n_frames: expected at most {MAX_FRAMES} frames per simulation "
+                         f"(physics.MAX_FRAMES), got {n_frames}")
     dt = check_dt(dt)
     th = check_theta(theta, n_frames)
     s0 = as_float_array(state0, "state0", ndim=2, last=4)

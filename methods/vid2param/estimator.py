@@ -8,6 +8,7 @@ space and reads the positions from the position dimensions: no frame is decoded.
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -15,7 +16,12 @@ import numpy as np
 import torch
 
 from methods.vid2param.checkpoint import build_net, load_checkpoint
-from sysid_bench._validate import check_horizon, check_positive_float, check_positive_int
+from sysid_bench._validate import (
+    check_horizon,
+    check_positive_float,
+    check_positive_int,
+    check_seed_value,
+)
 from sysid_bench.bench.cases import get_scale
 from sysid_bench.estimator import MAX_HORIZON, Estimator, Forecast, Observation, Posterior, Stream
 from sysid_bench.physics import BOX_WIDTH, DT, PARAMS, PRIOR
@@ -237,9 +243,19 @@ class Vid2Param(Estimator):
         return {**params, "forecast": self.forecast_kind}
 
     def set_params(self, **params) -> Vid2Param:
+        """As ``Estimator.set_params`` (a refused value changes nothing); a new ``checkpoint`` or
+        ``device`` drops the loaded network, so the next use loads the one now named."""
+        old = (self.forecast_kind, self.checkpoint, self.device)
         if "forecast" in params:
             self.forecast_kind = params.pop("forecast")
-        return super().set_params(**params)
+        try:
+            super().set_params(**params)
+        except BaseException:
+            self.forecast_kind = old[0]
+            raise
+        if (self.checkpoint, self.device) != old[1:]:
+            self.net_ = None
+        return self
 
     @property
     def forecast_mode(self) -> str:
@@ -264,6 +280,11 @@ class Vid2Param(Estimator):
         if not isinstance(self.device, str):
             raise ValueError(f"device: expected a string such as 'auto', 'cpu' or 'cuda', "
                              f"got {self.device!r}")
+        if self.checkpoint is not None and not isinstance(self.checkpoint, (str, os.PathLike)):
+            raise ValueError(f"checkpoint: expected None, a shipped name or a path, got "
+                             f"{type(self.checkpoint).__name__} {self.checkpoint!r}")
+        # samples and training are keyed by int(seed): a Generator has no such value
+        check_seed_value(self.seed, "seed", generator=False)
 
     # -- loading --------------------------------------------------------------------------------
     def _checkpoint_path(self) -> Path:

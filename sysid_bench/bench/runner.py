@@ -260,11 +260,24 @@ def run(
     exps = resolve_experiments(experiments)
     meths, skipped = resolve_methods(methods)
     threads = check_positive_int(threads, "threads")
-    inline = default_inline(meths) if inline is None else list(inline)
+    inline = default_inline(meths) if inline is None else _check_inline(inline, meths, skipped)
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(sc.name)
     with lock_run_dir(run_dir):  # one writing run per run dir; RunDirBusyError otherwise
         return _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline,
                            progress, argv, max_cells, retry_errors, threads)
+
+
+def _check_inline(inline, meths, skipped) -> list[str]:
+    """``inline`` as a list of names among the methods of this run (or skipped from it); a name
+    that is not one (``--inline bogus``) would otherwise be ignored without a word."""
+    if isinstance(inline, str):
+        inline = [inline]
+    inline = list(inline)
+    bad = [m for m in inline if m not in meths and m not in skipped]
+    if bad:
+        raise ValueError(f"inline: expected names among the methods of this run "
+                         f"({', '.join(meths)}), got {', '.join(map(repr, bad))}")
+    return inline
 
 
 def _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline, progress, argv,

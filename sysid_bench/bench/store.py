@@ -28,6 +28,7 @@ Layout
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import json
 import os
@@ -44,6 +45,8 @@ __all__ = [
     "STORE_FORMAT",
     "StoreFormatError",
     "StoreConfigError",
+    "StoreCorruptError",
+    "StoreDiskFullError",
     "RunDirBusyError",
     "lock_run_dir",
     "LOCK_NAME",
@@ -98,6 +101,74 @@ class StoreConfigError(ValueError):
 
 class RunDirBusyError(ValueError):
     """Another run holds the run directory's lock."""
+
+
+class StoreCorruptError(ValueError):
+    """The file is damaged (truncated, overwritten): SQLite cannot read it, or its integrity
+    check fails. The message names the file and what to do."""
+
+
+class StoreDiskFullError(OSError):
+    """The disk filled while writing the store (``errno`` ENOSPC). The cells stored before it are
+    kept (each cell is one transaction); the run resumes once there is room."""
+
+
+def _corrupt(path: Path, why: str) -> StoreCorruptError:
+    why = " ".join(why.replace("*", " ").split())[:200]  # SQLite's report spans lines
+    return StoreCorruptError(
+        f"path: the results store {str(path)!r} is corrupt ({why}); its results cannot be "
+        "trusted. Move it aside (or delete it) and re-run into an empty --run-dir, which "
+        "computes every cell again"
+    )
+
+
+def _disk_full(path: Path) -> StoreDiskFullError:
+    err = StoreDiskFullError(
+        f"disk full writing the results store {str(path)!r}: the cells stored so far are kept; "
+        "free space (or move the run dir to a disk with room) and run the same command again"
+    )
+    err.errno = errno.ENOSPC
+    return err
+
+
+@contextlib.contextmanager
+def _sqlite_errors(path: Path):
+    """Turn SQLite's errors about the file into errors naming it: a damaged file
+    (:class:`StoreCorruptError`), a full disk (:class:`StoreDiskFullError`)."""
+    try:
+        yield
+    except sqlite3.OperationalError as exc:
+        if getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL or "disk is full" in str(exc):
+            raise _disk_full(path) from exc
+        raise
+    except sqlite3.DatabaseError as exc:  # "file is not a database", "disk image is malformed"
+        code = getattr(exc, "sqlite_errorcode", None)
+        if type(exc) is sqlite3.DatabaseError or code in (sqlite3.SQLITE_CORRUPT,
+                                                          sqlite3.SQLITE_NOTADB):
+            raise _corrupt(path, str(exc)) from exc
+        raise
+
+
+def _transaction(con: sqlite3.Connection):
+    """``BEGIN IMMEDIATE`` ... ``COMMIT`` as a context manager that rolls back on any error,
+    without masking it: after a full disk SQLite may already have rolled the transaction back,
+    and a second ROLLBACK ("cannot rollback - no transaction is active") would hide why."""
+
+    @contextlib.contextmanager
+    def tx():
+        con.execute("BEGIN IMMEDIATE")
+        try:
+            yield
+            con.execute("COMMIT")
+        except BaseException:
+            if con.in_transaction:
+                try:
+                    con.execute("ROLLBACK")
+                except sqlite3.Error:
+                    pass  # the error that brought us here is the one to report
+            raise
+
+    return tx()
 
 
 #: The lock file a run holds in its run directory (``fcntl.flock``, exclusive) while it runs.
@@ -204,8 +275,27 @@ class Store:
         if grid_config is None and not self.path.is_file():
             raise FileNotFoundError(f"path: expected an existing results store, got {str(path)!r}")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._con = _connect(self.path)
-        self._check_or_init(grid_config)
+        existed = self.path.is_file() and self.path.stat().st_size > 0
+        self._con = None
+        try:
+            with _sqlite_errors(self.path):
+                self._con = _connect(self.path)
+                if existed:
+                    self._check_integrity()
+                self._check_or_init(grid_config)
+        except BaseException:
+            if self._con is not None:
+                self._con.close()
+            raise
+
+    def _check_integrity(self) -> None:
+        """SQLite's own check of every page and index of the file (``PRAGMA integrity_check``,
+        first problem only), before anything is read or written: a store with garbage in its
+        middle otherwise opens, reads its ``cells`` table, and a run reports every cell "already
+        stored" from a damaged file. Milliseconds per MB."""
+        row = self._con.execute("PRAGMA integrity_check(1)").fetchone()
+        if row is None or row[0] != "ok":
+            raise _corrupt(self.path, f"integrity check: {row[0] if row else 'no answer'}")
 
     # -- setup ------------------------------------------------------------------------------
     def _check_or_init(self, grid_config: Mapping | None) -> None:
@@ -228,8 +318,7 @@ class Store:
         if grid_config is None:
             return
         want = json.dumps(grid_config, sort_keys=True)
-        con.execute("BEGIN IMMEDIATE")
-        try:
+        with _transaction(con):
             have = con.execute("SELECT value FROM meta WHERE key='grid_config'").fetchone()
             if have is None:
                 con.executemany(
@@ -246,10 +335,6 @@ class Store:
                     f"asks for {want}; its cases would differ, so results would mix. Use another "
                     "--run-dir (or delete that store)"
                 )
-            con.execute("COMMIT")
-        except BaseException:
-            con.execute("ROLLBACK")
-            raise
 
     def close(self) -> None:
         self._con.close()
@@ -269,10 +354,11 @@ class Store:
     def record_invocation(self, info: Mapping) -> int:
         """Append what this run was started with (config, commit, versions); returns its id."""
         info = {"host": socket.gethostname(), "pid": os.getpid(), **info}
-        cur = self._con.execute(
-            "INSERT INTO invocations (started, info) VALUES (?, ?)",
-            (time.time(), json.dumps(info, sort_keys=True, default=str)),
-        )
+        with _sqlite_errors(self.path):
+            cur = self._con.execute(
+                "INSERT INTO invocations (started, info) VALUES (?, ?)",
+                (time.time(), json.dumps(info, sort_keys=True, default=str)),
+            )
         return int(cur.lastrowid)
 
     def invocations(self) -> list[dict]:
@@ -328,11 +414,9 @@ class Store:
             for r in rows
         ]
         con = self._con
-        con.execute("BEGIN IMMEDIATE")
-        try:
+        with _sqlite_errors(self.path), _transaction(con):
             if con.execute("SELECT 1 FROM cells WHERE cell_id=?", (cell_id,)).fetchone():
-                con.execute("ROLLBACK")
-                return False
+                return False  # (an empty transaction, committed)
             con.executemany(
                 f"INSERT INTO results VALUES ({', '.join('?' * len(RESULT_COLUMNS))})", payload
             )
@@ -345,10 +429,6 @@ class Store:
                 (cell_id, *k, str(key["case"]), status, error, wall_s, time.time(), invocation,
                  fingerprint),
             )
-            con.execute("COMMIT")
-        except BaseException:
-            con.execute("ROLLBACK")
-            raise
         return True
 
     def stale_cells(self, fingerprints: Mapping[tuple[str, str], str]) -> list[str]:
@@ -375,18 +455,13 @@ class Store:
             Cells dropped.
         """
         con = self._con
-        con.execute("BEGIN IMMEDIATE")
-        try:
+        with _sqlite_errors(self.path), _transaction(con):
             if ids is None:
                 ids = [r[0] for r in
                        con.execute("SELECT cell_id FROM cells WHERE status=?", (status,))]
             ids = list(ids)
             for table in ("results", "artifacts", "cells"):
                 con.executemany(f"DELETE FROM {table} WHERE cell_id=?", [(i,) for i in ids])
-            con.execute("COMMIT")
-        except BaseException:
-            con.execute("ROLLBACK")
-            raise
         return len(ids)
 
     # -- reading ----------------------------------------------------------------------------
