@@ -12,8 +12,11 @@ an unknown-name error are answered without importing; the runner, the report and
 import the modules they run or draw anyway.
 
 >>> import methods
->>> methods.available()
-['vid2param', 'nuts', 'emcee', 'lsq', 'bo', 'sindy', 'dmd']
+>>> methods.available()  # doctest: +NORMALIZE_WHITESPACE
+['vid2param', 'vid2param-physics', 'vid2param-changing', 'nuts', 'emcee', 'lsq', 'bo',
+ 'sindy', 'dmd']
+>>> methods.references()
+['prior']
 >>> est = methods.get("lsq", n_samples=500)          # doctest: +SKIP
 """
 

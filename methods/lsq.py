@@ -63,6 +63,7 @@ class LSQ(SimulationMethod):
     min_frames = 3
     forecasts = True
     cost = 8
+    online_cost = True  # a row of the online-cost table (re-identifies every prefix)
     figure_order = 3
     #: cheap budgets for check_estimator (same code path)
     contract_options = {"n_samples": 200}

@@ -41,8 +41,9 @@ Policies (:func:`make_policy`)
 ``kalman``         tracked positions, a constant-acceleration Kalman filter per axis with bounce
                    and wall detection, ballistic prediction with bounce reflection (the suite's
                    simulator with the filter's gravity, restitution and floor, no drag).
-``vid2param``, ``vid2param-physics``  the camera checkpoint's stream, forecasting in latent
-                   space or through the physics with posterior samples.
+declared policies   an online method's stream (:class:`StreamPolicy`), as the method declares
+                   them (``policies``): Vid2Param's ``vid2param`` and ``vid2param-physics``,
+                   its camera checkpoint forecasting in latent space or through the physics.
 any registered identifying method (``lsq``, ``nuts``, ...)  re-identifies on all frames so far
                    every ``every`` frames and forecasts with its ``forecast``.
 
@@ -664,34 +665,46 @@ class Identify(_ForecastTarget):
         return self._aim(t, track(frame[None])[0], fc.mean, fc.std)
 
 
-class Vid2ParamPolicy(_ForecastTarget):
-    """Vid2Param's camera checkpoint: its stream sees every frame, its forecast sets the target.
+class StreamPolicy(_ForecastTarget):
+    """A method's online stream sees every frame; its forecast sets the target.
+
+    For the methods that declare ``online`` (a recurrent stream) and ``forecasts``; their
+    ``policies`` declaration names the policies and their hyperparameters (Vid2Param:
+    ``vid2param`` and ``vid2param-physics``, the camera checkpoint forecasting in latent space or
+    through the physics). Reads the stream through its contract only
+    (:class:`sysid_bench.estimator.Stream`): ``position`` and ``forecast``.
 
     Parameters
     ----------
-    forecast : str
-        ``"latent"`` (the paper's rollout of the prior) or ``"physics"`` (posterior samples
-        through the simulator), passed to ``methods.get("vid2param", forecast=...)``; the
-        stream's ``forecast`` gives the prediction from the frames pushed so far.
+    method : str
+        Registered method (``methods.get(method, **options)``).
+    name : str, optional
+        The policy's name in tables (default ``method``).
     every : int, optional
         Replan every this many frames (default 5: a forecast fits the state and rolls out the
         particles, tens of milliseconds; the pushes in between cost about one).
     start : int
         First frame count to forecast from.
-    checkpoint, n_samples, threads, **options
-        As for ``methods.get("vid2param", ...)``.
+    threads : int or None
+        The method's thread count (into its declared ``threads_param``, if it has one).
+    **options
+        The method's hyperparameters.
     """
 
-    def __init__(self, forecast: str = "latent", every: int | None = None, start: int = 4,
-                 checkpoint: str = "camera", n_samples: int = 32, threads: int | None = 1,
-                 **options):
+    def __init__(self, method: str, name: str | None = None, every: int | None = None,
+                 start: int = 4, threads: int | None = 1, **options):
         import methods
 
-        self.name = "vid2param" if forecast == "latent" else f"vid2param-{forecast}"
+        spec = methods.spec(method)
+        if not (spec.online and spec.forecasts):
+            raise ValueError(f"method: expected a method whose stream is online and forecasts, "
+                             f"got {method!r}")
+        self.name = name or method
         self.every_opt = None if every is None else check_positive_int(every, "every")
         self.start = check_positive_int(start, "start")
-        base = dict(checkpoint=checkpoint, n_samples=n_samples, threads=threads, **options)
-        self.est = methods.get("vid2param", forecast=forecast, **base)
+        if spec.threads_param is not None and spec.threads_param not in options:
+            options[spec.threads_param] = threads
+        self.est = methods.get(method, **options)
         self.stream = self.est.stream()
 
     def reset(self, scene, rng, throw=None):
@@ -702,25 +715,26 @@ class Vid2ParamPolicy(_ForecastTarget):
         self.every = self.every_opt or 5
 
     def act(self, frame, k):
+        from sysid_bench.estimator import POSITION_NOW
         from sysid_bench.tracking import track
 
         self.stream.push(frame)
         self.frames.append(frame)
-        # The network's heights are above the floor it infers from the bounces; the effector
-        # works in the camera's frame, where the floor sits at an unknown height. The gap
-        # between the tracked ball (camera frame) and the network's height is that floor.
+        # A model that infers the floor from the bounces gives heights above that floor; the
+        # effector works in the camera's frame, where the floor sits at an unknown height. The
+        # gap between the tracked ball (camera frame) and the stream's height is that floor.
         seen = track(frame[None])[0]
         if np.isfinite(seen).all():
-            self.floor_gap.append(seen[1] - self.stream.track[self.stream.n - 1, 1])
+            self.floor_gap.append(seen[1] - self.stream.position()[1])
         n = len(self.frames)
         if n < self.start or (n - self.start) % self.every:
             return self.target
         floor = float(np.median(self.floor_gap)) if self.floor_gap else 0.0
         fc = self.stream.forecast(self._horizon(k), floor=floor)
         # the forecast's fitted position now starts the path, so a crossing due before its
-        # first step is still seen (as the Identify policies do); the fit, not the network's
-        # raw position, since the camera model misreads the odd dropped frame by a metre
-        now = fc.extras.get("position_now_m")
+        # first step is still seen (as the Identify policies do); the fit, not the stream's
+        # raw position, since a camera model misreads the odd dropped frame by a metre
+        now = fc.extras.get(POSITION_NOW)
         return self._aim(k * self.scene.dt, now, fc.mean, fc.std)
 
 
@@ -731,19 +745,33 @@ POLICIES = {
     "random-2hz": lambda **o: RandomTargets(2.0, **o),
     "react": lambda **o: React(**o),
     "kalman": lambda **o: Kalman(**o),
-    "vid2param": lambda **o: Vid2ParamPolicy(forecast="latent", **o),
-    "vid2param-physics": lambda **o: Vid2ParamPolicy(forecast="physics", **o),
 }
 
 
+def _stream_policies() -> dict[str, tuple[str, dict]]:
+    """``{policy: (method, hyperparameters)}`` declared by the registered methods (``policies``:
+    online methods that forecast). Reads every method's declarations (imports its module)."""
+    import methods
+
+    out: dict[str, tuple[str, dict]] = {}
+    for m in methods.available():
+        try:
+            sp = methods.spec(m)
+        except ImportError:  # a method whose packages are not installed offers no policy
+            continue
+        for pol, opts in sp.policies.items():
+            out.setdefault(pol, (m, dict(opts)))
+    return out
+
+
 def _is_policy(name) -> bool:
-    """A built-in policy, or a registered method that forecasts (its forecast sets the target).
-    Reads one method's declarations (importing its module) only when asked about it."""
+    """A built-in policy, one declared by an online method, or a registered method that
+    forecasts (its forecast sets the target)."""
     import methods
 
     if not isinstance(name, str):
         return False
-    if name in POLICIES:
+    if name in POLICIES or name in _stream_policies():
         return True
     return name in methods.available() and methods.spec(name).forecasts
 
@@ -752,7 +780,10 @@ def known_policies() -> list[str]:
     """Every policy name :func:`make_policy` accepts (imports every registered method)."""
     import methods
 
-    return list(POLICIES) + [m for m in methods.available() if m not in POLICIES and _is_policy(m)]
+    declared = list(_stream_policies())
+    return list(POLICIES) + declared + [m for m in methods.available()
+                                        if m not in POLICIES and m not in declared
+                                        and _is_policy(m)]
 
 
 def make_policy(name: str, **options) -> Policy:
@@ -769,6 +800,10 @@ def make_policy(name: str, **options) -> Policy:
     try:
         if name in POLICIES:
             return POLICIES[name](**options)
+        declared = _stream_policies()
+        if name in declared:
+            method, base = declared[name]
+            return StreamPolicy(method, name=name, **{**base, **options})
         return Identify(name, **options)
     except TypeError as exc:
         raise ValueError(f"options: policy {name!r} does not take {sorted(options)} ({exc})") from exc
@@ -1022,9 +1057,22 @@ def write_results(df, out_dir, command: str = "") -> tuple[Path, Path]:
     return csv, js
 
 
-#: Order of the policies in tables and figures; a drawn throw prefers the first with a trace.
-_ORDER = ("vid2param", "vid2param-physics", "lsq", "kalman", "react", "random-2hz",
-          "random-1hz", "oracle")
+#: Order of the built-in policies in tables and figures, after those of the methods.
+_BUILTIN_ORDER = ("kalman", "react", "random-2hz", "random-1hz", "oracle")
+
+
+def _order_key(policy: str) -> tuple:
+    """Tables and figures list the methods' policies first, in registry order (names only:
+    nothing is imported), then other declared policies by name, then the built-ins; a drawn
+    throw prefers the first with a trace."""
+    import methods
+
+    reg = methods.available(include_reference=True)
+    if policy in reg:
+        return (0, reg.index(policy), policy)
+    if policy in _BUILTIN_ORDER:
+        return (2, _BUILTIN_ORDER.index(policy), policy)
+    return (1, 0, policy)
 
 
 def _load_results(out_dir):
@@ -1037,8 +1085,7 @@ def _load_results(out_dir):
             continue
         if "summary" in meta:
             res[meta["summary"]["policy"]] = meta
-    key = {p: i for i, p in enumerate(_ORDER)}
-    return dict(sorted(res.items(), key=lambda kv: (key.get(kv[0], len(_ORDER)), kv[0])))
+    return dict(sorted(res.items(), key=lambda kv: _order_key(kv[0])))
 
 
 def intercept_figure(results: dict, path, draw: str | None = None) -> Path | None:
@@ -1050,7 +1097,7 @@ def intercept_figure(results: dict, path, draw: str | None = None) -> Path | Non
         policy -> the JSON written by :func:`write_results`.
     path : path of the PNG.
     draw : str, optional
-        Policy whose recorded throw to draw; default the first of ``_ORDER`` with a trace.
+        Policy whose recorded throw to draw; default the first in table order with a trace.
     """
     import matplotlib
 
@@ -1154,7 +1201,7 @@ def report_section(out_dir) -> list[str]:
                      "seed": s["seed"], "note": s.get("note", "")})
     t = pd.DataFrame(rows)
     atomic_write(out / "tables" / "intercept_summary.csv", t.to_csv(index=False))
-    from sysid_bench.report import markdown_table
+    from sysid_bench._markdown import markdown_table
 
     md += ["**intercept_summary** (`tables/intercept_summary.csv`; per-throw rows in "
            "`tables/intercept_<policy>.csv`)", "", markdown_table(t, floatfmt=".3g"), ""]
@@ -1178,8 +1225,8 @@ def add_arguments(p):
     """The ``intercept`` options on a ``sysid-bench`` subcommand parser
     (``sysid_bench.cli.SUBCOMMANDS``)."""
     p.add_argument("--policy", required=True,
-                   help="oracle, random-1hz, random-2hz, react, kalman, vid2param, "
-                        "vid2param-physics, or a registered method (lsq, ...)")
+                   help="oracle, random-1hz, random-2hz, react, kalman, a policy an online "
+                        "method declares, or a registered method that forecasts (lsq, ...)")
     p.add_argument("--throws", type=arg_number(1, 10**6, integer=True), default=200,
                    help="number of throws (default 200)")
     p.add_argument("--seed", type=arg_number(0, SEED_MAX, integer=True), default=0,

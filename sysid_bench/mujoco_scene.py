@@ -487,7 +487,7 @@ def make_video(cache_dir, case: int, seed: int = 0, n_frames: int = 200, size: i
         ``ball``, ``target``, ``measured`` (e, g, d, r; r None if the ball never rolled),
         ``states`` (T x 4 list), ``renderer``, ``info``, ``wall_s``.
     """
-    from sysid_bench.video import write_video
+    from sysid_bench.footage import write_video
 
     cache = Path(cache_dir)
     cache.mkdir(parents=True, exist_ok=True)

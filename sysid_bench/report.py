@@ -25,37 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from sysid_bench._io import atomic_write
+from sysid_bench._markdown import markdown_table
 
 __all__ = ["render", "markdown_table", "main", "add_arguments", "run"]
-
-
-def markdown_table(df, index: bool = False, floatfmt: str = ".4g") -> str:
-    """A GitHub-flavoured markdown table of ``df`` (no tabulate dependency).
-
-    Parameters
-    ----------
-    df : pandas.DataFrame
-    index : bool
-        Include the index as the first column(s).
-    floatfmt : str
-        Format spec of float cells.
-    """
-    if index:
-        df = df.reset_index()
-    cols = [str(c) for c in df.columns]
-
-    def cell(v) -> str:
-        if isinstance(v, (float, np.floating)):
-            return "-" if not np.isfinite(v) else format(float(v), floatfmt)
-        s = "" if v is None else str(v)
-        return s.replace("|", "\\|").replace("\n", " ")
-
-    rows = [[cell(v) for v in r] for r in df.itertuples(index=False, name=None)]
-    lines = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    return "\n".join(lines)
-
-
 
 
 def _write_table(df, base: Path, csv: bool = True) -> None:
@@ -276,11 +248,13 @@ def _online_section(out: Path) -> list[str]:
 
 def measure_online(scale: str, out, methods=None) -> Path | None:
     """Measure ``sysid_bench.bench.online.online_cost`` at ``scale``'s size into
-    ``out/tables/online_cost.{csv,md}``; None when Vid2Param is not among ``methods``."""
-    from sysid_bench.bench.online import ONLINE_METHODS, online_cost, online_cost_markdown
+    ``out/tables/online_cost.{csv,md}``; None when no method with an online stream (declared
+    ``online``) is among ``methods``: the table compares against one."""
+    import methods as registry
+    from sysid_bench.bench.online import online_cost, online_cost_markdown, online_methods
 
-    wanted = [m for m in ONLINE_METHODS if methods is None or m in methods]
-    if "vid2param" not in wanted:
+    wanted = [m for m in online_methods() if methods is None or m in methods]
+    if not any(registry.spec(m).online for m in wanted):
         return None
     n, frames = ONLINE_VIDEOS.get(scale, ONLINE_VIDEOS["default"])
     df = online_cost(wanted, n_videos=n, n_frames=frames, seed=0)

@@ -9,16 +9,34 @@ kept on the class so that the one file of a method holds everything about it.
 
 Declarations
 ------------
+Two kinds, kept apart as scikit-learn keeps its estimator tags apart from the benchmark's
+settings: what a method *is* (:class:`Traits`, ``spec.traits``: what it takes and
+what it can answer, checked by :func:`sysid_bench.testing.check_estimator`) and how the
+benchmark *schedules* it (:class:`Schedule`, ``spec.schedule``: caps, options per scale,
+threads, colour, order). ``spec.<field>`` reads either (the flat names the harness reads).
+
+What a method is (:class:`Traits`):
+
 =====================  ==========  =====================================================================
 attribute              default     meaning
 =====================  ==========  =====================================================================
-``name``               (required)  registry name
 ``input_kind``         positions   ``"positions"`` (tracked or given) or ``"frames"`` (pixels)
 ``min_frames``         1           fewest frames ``identify`` accepts
 ``identifies``         True        ``identify`` returns a Posterior (else raises NotImplementedError)
 ``forecasts``          False       ``forecast`` returns a Forecast (else raises NotImplementedError)
 ``streams``            False       ``identify_prefixes`` does one pass over all prefixes
+``online``             False       ``stream()`` is recurrent: a ``push`` costs the same at every frame
+                                   (not the re-identifying ``LoopStream``); the stream tells its
+                                   position now and, if the method forecasts, forecasts itself
 ``trains``             False       ``fit`` learns from a training set (sensitivity experiment)
+``reference_posterior`` False      the posterior calibration compares every other method with
+=====================  ==========  =====================================================================
+
+How the benchmark schedules it (:class:`Schedule`):
+
+=====================  ==========  =====================================================================
+attribute              default     meaning
+=====================  ==========  =====================================================================
 ``cost``               10          relative cost of one cell: the runner starts costly cells first;
                                    ``>= EXPENSIVE_COST`` is the expensive tier (fewer frame counts)
 ``scale_cases``        {}          per scale: most test videos (an int, or a dict per experiment)
@@ -28,33 +46,42 @@ attribute              default     meaning
                                    sensitivity models, loaded instead of training one
 ``threads_param``      None        the hyperparameter setting the method's own thread count, if any
 ``inline``             False       cells run in a thread of the runner's process (cheap, heavy import)
+``online_cost``        False       a row of the online-cost table by default (report section 7)
+``policies``           {}          interception policies built on the method's online stream:
+                                   ``{policy name: hyperparameters}`` (``sysid-bench intercept``)
 ``color``              None        matplotlib colour in every figure (None: from ``figure_order``)
 ``figure_order``       None        place in figures: slot in the tab10 palette (None: by name)
-``reference_posterior`` False      the posterior calibration compares every other method with
 ``contract_options``   {}          cheap hyperparameters for ``check_estimator`` (same code path)
 =====================  ==========  =====================================================================
+
+``name`` (required) is the registry name.
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field
 from types import MappingProxyType
 
-__all__ = ["MethodSpec", "EXPENSIVE_COST", "INPUT_KINDS", "CAPABILITIES", "spec_of"]
+__all__ = ["MethodSpec", "Traits", "Schedule", "EXPENSIVE_COST", "INPUT_KINDS",
+           "CAPABILITIES", "spec_of"]
 
 #: Cells of a method with at least this ``cost`` are the expensive tier: in scales that thin
 #: them (smoke, default) they are evaluated at fewer frame counts (see ``Scale``).
 EXPENSIVE_COST = 20
 INPUT_KINDS = ("positions", "frames")
-CAPABILITIES = ("identifies", "forecasts", "streams", "trains")
-#: class attributes collected into a MethodSpec, in its field order
-DECLARED = (
-    "name", "input_kind", "min_frames", *CAPABILITIES, "cost", "scale_cases", "scale_options",
-    "fit_options", "pretrained", "threads_param", "inline", "color", "figure_order", "reference_posterior",
-    "contract_options",
+#: the yes/no capabilities (``spec.capabilities`` lists those a method has)
+CAPABILITIES = ("identifies", "forecasts", "streams", "online", "trains")
+#: what a method is
+TRAIT_FIELDS = ("input_kind", "min_frames", *CAPABILITIES, "reference_posterior")
+#: how the benchmark schedules it
+SCHEDULE_FIELDS = (
+    "cost", "scale_cases", "scale_options", "fit_options", "pretrained", "threads_param",
+    "inline", "online_cost", "policies", "color", "figure_order", "contract_options",
 )
+#: class attributes collected into a MethodSpec
+DECLARED = ("name", *TRAIT_FIELDS, *SCHEDULE_FIELDS)
 
 
 def _frozen(d) -> Mapping:
@@ -69,22 +96,29 @@ def _plain(x):
     return x
 
 
-@dataclass(frozen=True, eq=False)
-class MethodSpec:
-    """A method's declarations, checked (see the module docstring for each field).
+@dataclass(frozen=True)
+class Traits:
+    """What a method is: the input it takes and what it can answer (see the module docstring).
 
-    Built by :func:`spec_of` from the class; ``entry_point`` is filled in by the registry.
+    No defaults here: they are the class attributes of ``sysid_bench.estimator.Estimator``,
+    the one place a method's declarations start from (:func:`spec_of` reads every field from
+    the class).
     """
 
-    # no defaults here: they are the class attributes of sysid_bench.estimator.Estimator, the
-    # one place a method's declarations start from (spec_of reads every field from the class)
-    name: str
     input_kind: str
     min_frames: int
     identifies: bool
     forecasts: bool
     streams: bool
+    online: bool
     trains: bool
+    reference_posterior: bool
+
+
+@dataclass(frozen=True, eq=False)
+class Schedule:
+    """How the benchmark runs a method (see the module docstring); no defaults here either."""
+
     cost: int
     scale_cases: Mapping
     scale_options: Mapping
@@ -92,21 +126,50 @@ class MethodSpec:
     pretrained: Mapping
     threads_param: str | None
     inline: bool
+    online_cost: bool
+    policies: Mapping
     color: str | None
     figure_order: int | None
-    reference_posterior: bool
     contract_options: Mapping
+
+
+@dataclass(frozen=True, eq=False)
+class MethodSpec:
+    """A method's declarations, checked: its name, what it is (``traits``) and how the
+    benchmark schedules it (``schedule``).
+
+    Built by :func:`spec_of` from the class; ``entry_point`` is filled in by the registry.
+    Every field of either part reads as ``spec.<field>`` too (``spec.forecasts``,
+    ``spec.cost``).
+    """
+
+    name: str
+    traits: Traits
+    schedule: Schedule
     entry_point: str | None = None
+    #: the declarations' defaults (those of the base class that first declares each), which
+    #: ``repr`` leaves out; not part of the record
+    _defaults: Mapping = field(default_factory=lambda: MappingProxyType({}), repr=False,
+                               compare=False)
+
+    def __getattr__(self, attr: str):
+        # only called for names that are not attributes of the record itself
+        if attr in TRAIT_FIELDS:
+            return getattr(self.traits, attr)
+        if attr in SCHEDULE_FIELDS:
+            return getattr(self.schedule, attr)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {attr!r}")
+
+    @property
+    def capabilities(self) -> tuple[str, ...]:
+        """The declared yes/no capabilities, e.g. ``("identifies", "forecasts")`` (the full
+        record of what the method is: ``traits``)."""
+        return tuple(c for c in CAPABILITIES if getattr(self.traits, c))
 
     @property
     def expensive(self) -> bool:
         """The expensive tier (``cost >= EXPENSIVE_COST``)."""
         return self.cost >= EXPENSIVE_COST
-
-    @property
-    def capabilities(self) -> tuple[str, ...]:
-        """The declared capabilities, e.g. ``("identifies", "forecasts")``."""
-        return tuple(c for c in CAPABILITIES if getattr(self, c))
 
     def cases_cap(self, scale: str, experiment: str) -> int | None:
         """Most test videos of ``experiment`` at ``scale`` (None: no cap)."""
@@ -134,8 +197,10 @@ class MethodSpec:
         return None if got is None else _plain(got)
 
     def as_dict(self) -> dict:
-        """Plain, JSON-ready copy (part of the method's fingerprint in a results store)."""
-        return _plain({f.name: getattr(self, f.name) for f in fields(self)})
+        """Plain, JSON-ready flat copy, every declaration by name (part of the method's
+        fingerprint in a results store)."""
+        return _plain({"name": self.name, **{a: getattr(self, a) for a in DECLARED[1:]},
+                       "entry_point": self.entry_point})
 
     def to_json(self) -> str:
         return json.dumps(self.as_dict(), sort_keys=True, default=str)
@@ -146,11 +211,8 @@ class MethodSpec:
     __hash__ = None  # holds mappings
 
     def __repr__(self) -> str:
-        from sysid_bench.estimator import Estimator  # the declarations' defaults
-
         d = self.as_dict()
-        default = {a: _plain(getattr(Estimator, a)) for a in DECLARED}
-        diff = {k: v for k, v in d.items() if k == "name" or default.get(k) != v}
+        diff = {k: v for k, v in d.items() if k == "name" or self._defaults.get(k) != v}
         return "MethodSpec(" + ", ".join(f"{k}={v!r}" for k, v in diff.items()) + ")"
 
 
@@ -194,7 +256,7 @@ def spec_of(cls, entry_point: str | None = None) -> MethodSpec:
         raise _bad(cls, "name", "the method's registry name (a non-empty str)", name)
     if vals["input_kind"] not in INPUT_KINDS:
         raise _bad(cls, "input_kind", f"one of {INPUT_KINDS}", vals["input_kind"])
-    for a in (*CAPABILITIES, "inline", "reference_posterior"):
+    for a in (*CAPABILITIES, "inline", "online_cost", "reference_posterior"):
         if not isinstance(vals[a], bool):
             raise _bad(cls, a, "True or False", vals[a])
     for a in ("min_frames", "cost"):
@@ -226,4 +288,33 @@ def spec_of(cls, entry_point: str | None = None) -> MethodSpec:
     if not isinstance(co, Mapping) or set(co) - set(params):
         raise _bad(cls, "contract_options", f"a dict of hyperparameters among {params}", co)
     vals["contract_options"] = _frozen(co)
-    return MethodSpec(**vals, entry_point=entry_point)
+    pol = vals["policies"]
+    if not isinstance(pol, Mapping) or not all(isinstance(k, str) and k for k in pol):
+        raise _bad(cls, "policies", "a dict {policy name: hyperparameters}", pol)
+    for k, v in pol.items():
+        if not isinstance(v, Mapping) or set(v) - set(params):
+            raise _bad(cls, f"policies[{k!r}]", f"a dict of hyperparameters among {params}", v)
+    if pol and not (vals["online"] and vals["forecasts"]):
+        raise _bad(cls, "policies", "{} for a method that is not online or does not forecast "
+                   "(a policy forecasts from the method's stream)", pol)
+    vals["policies"] = _frozen(pol)
+    return MethodSpec(
+        name=name,
+        traits=Traits(**{a: vals[a] for a in TRAIT_FIELDS}),
+        schedule=Schedule(**{a: vals[a] for a in SCHEDULE_FIELDS}),
+        entry_point=entry_point,
+        _defaults=_frozen(_base_defaults(cls)),
+    )
+
+
+def _base_defaults(cls) -> dict:
+    """Each declaration's value on the most basic class of ``cls`` that sets it (the
+    ``Estimator`` base: the defaults), read from the class itself so that this module needs
+    no import of the estimator module (which imports this one)."""
+    out = {}
+    for a in DECLARED:
+        for klass in reversed(cls.__mro__):
+            if a in vars(klass):
+                out[a] = _plain(vars(klass)[a])
+                break
+    return out

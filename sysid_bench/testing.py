@@ -28,8 +28,10 @@ import numpy as np
 
 from sysid_bench.estimator import (
     MAX_HORIZON,
+    POSITION_NOW,
     Estimator,
     Forecast,
+    LoopStream,
     Observation,
     Posterior,
     Stream,
@@ -236,23 +238,23 @@ def check_not_implemented_has_reason(est: Estimator, ctx: dict) -> None:
 
 def check_identify(est: Estimator, ctx: dict) -> None:
     """A Posterior of shape (4,) in physical units, PARAMS order, with the required extras."""
-    post = est.identify(ctx["obs"])
-    _check_posterior(post, "identify")
-    ctx["post"] = post
+    _check_posterior(est.identify(ctx["obs"]), "identify")
 
 
 def check_same_seed_same_answer(est: Estimator, ctx: dict) -> None:
-    """A clone with the same hyperparameters gives the same posterior and forecast."""
+    """Two clones with the same hyperparameters give the same posterior and forecast."""
     obs = ctx["obs"]
+    a, b = _clone(est).fit(None), _clone(est).fit(None)
     if ctx["spec"].identifies:
-        _equal(ctx["post"], _clone(est).fit(None).identify(obs), "identify of a clone")
+        _equal(a.identify(obs), b.identify(obs), "identify of a clone")
     if ctx["spec"].forecasts:
-        _equal(ctx["forecast"], _clone(est).fit(None).forecast(obs, HORIZON), "forecast of a clone")
+        _equal(a.forecast(obs, HORIZON), b.forecast(obs, HORIZON), "forecast of a clone")
 
 
 def check_pickle_round_trip(est: Estimator, ctx: dict) -> None:
     """A pickled and loaded estimator keeps its hyperparameters and gives the same answer."""
-    other = pickle.loads(pickle.dumps(est))
+    mine = _clone(est).fit(None)
+    other = pickle.loads(pickle.dumps(mine))
     if type(other) is not type(est):
         _fail(f"unpickled a {type(other).__name__}")
     back = other.get_params()
@@ -260,9 +262,11 @@ def check_pickle_round_trip(est: Estimator, ctx: dict) -> None:
         if not _same(back[k], v):
             _fail(f"{k}: {v!r} came back as {back[k]!r}")
     if ctx["spec"].identifies:
-        _equal(ctx["post"], other.identify(ctx["obs"]), "identify after a pickle round trip")
+        _equal(mine.identify(ctx["obs"]), other.identify(ctx["obs"]),
+               "identify after a pickle round trip")
     elif ctx["spec"].forecasts:
-        _equal(ctx["forecast"], other.forecast(ctx["obs"], HORIZON), "forecast after a pickle round trip")
+        _equal(mine.forecast(ctx["obs"], HORIZON), other.forecast(ctx["obs"], HORIZON),
+               "forecast after a pickle round trip")
 
 
 def check_clone(est: Estimator, ctx: dict) -> None:
@@ -278,7 +282,6 @@ def check_forecast(est: Estimator, ctx: dict) -> None:
     """A Forecast of shape (horizon, 2) in metres, continuing the track."""
     fc = est.forecast(ctx["obs"], HORIZON)
     _check_forecast(fc, HORIZON, ctx["obs"], f"forecast(obs, {HORIZON})")
-    ctx["forecast"] = fc
 
 
 def check_min_frames(est: Estimator, ctx: dict) -> None:
@@ -302,8 +305,8 @@ def check_min_frames(est: Estimator, ctx: dict) -> None:
                   f"{type(exc).__name__}: {exc}")
 
 
-def check_prefixes_and_stream(est: Estimator, ctx: dict) -> None:
-    """``identify_prefixes`` gives one posterior per length; a stream answers after each frame."""
+def check_prefixes(est: Estimator, ctx: dict) -> None:
+    """``identify_prefixes`` gives one posterior per length."""
     obs = ctx["obs"]
     lengths = [20, obs.n_frames]
     posts = est.identify_prefixes(obs, lengths)
@@ -311,12 +314,47 @@ def check_prefixes_and_stream(est: Estimator, ctx: dict) -> None:
         _fail(f"identify_prefixes(obs, {lengths}) gave {len(posts)} posteriors")
     for n, p in zip(lengths, posts):
         _check_posterior(p, f"identify_prefixes at {n} frames")
+
+
+def check_stream(est: Estimator, ctx: dict) -> None:
+    """The :class:`~sysid_bench.estimator.Stream` contract: a posterior after each frame, the
+    frame count, the position now (2,) and, for a method that forecasts, a forecast with the
+    fitted position now; ``online`` declared exactly when the stream is the method's own."""
+    spec, obs = ctx["spec"], ctx["obs"]
     stream = est.stream()
     if not isinstance(stream, Stream):
         _fail(f"stream() returned a {type(stream).__name__}, not a Stream")
+    own = not isinstance(stream, LoopStream)
+    if spec.online != own:
+        _fail(f"declares online = {spec.online} but stream() is "
+              + ("its own" if own else "the re-identifying LoopStream"))
     stream.reset()
-    for k, frame in enumerate(obs.frames[:5]):
+    if stream.n_frames != 0:
+        _fail(f"n_frames after reset: expected 0, got {stream.n_frames}")
+    n = max(5, spec.min_frames)
+    for k, frame in enumerate(obs.frames[:n]):
         _check_posterior(stream.push(frame), f"stream.push of frame {k}")
+        if stream.n_frames != k + 1:
+            _fail(f"n_frames after {k + 1} pushes: got {stream.n_frames}")
+    pos = np.asarray(stream.position())
+    if pos.shape != (2,) or not np.isfinite(pos).all() or np.abs(pos - BOX_WIDTH / 2).max() > BOX_WIDTH:
+        _fail(f"position() after {n} frames of a ball in view: expected finite metres (2,), "
+              f"got {pos!r}")
+    if spec.forecasts:
+        fc = stream.forecast(HORIZON)
+        if not isinstance(fc, Forecast) or fc.mean.shape != (HORIZON, 2):
+            _fail("stream.forecast: expected a Forecast of shape (horizon, 2)")
+        now = np.asarray(fc.extras.get(POSITION_NOW, np.nan), dtype=float)
+        if now.shape != (2,) or not np.isfinite(now).all():
+            _fail(f"stream.forecast: expected extras[{POSITION_NOW!r}] of shape (2,), got {now!r}")
+        lifted = stream.forecast(HORIZON, floor=1.0)
+        if not np.allclose(lifted.mean[:, 1], fc.mean[:, 1] + 1.0, atol=1e-6):
+            _fail("stream.forecast(floor=1): expected the heights shifted by 1 m")
+    _expect_value_error(lambda: stream.push(np.zeros((3, 3, 3))), "frame",
+                        "stream.push of a (3, 3, 3) array")
+    stream.reset()
+    if stream.n_frames != 0:
+        _fail(f"n_frames after a second reset: expected 0, got {stream.n_frames}")
 
 
 def check_frames_only_input(est: Estimator, ctx: dict) -> None:
@@ -331,10 +369,10 @@ def check_frames_only_input(est: Estimator, ctx: dict) -> None:
 
 
 def estimator_checks(estimator: Estimator) -> Iterator[tuple[str, Callable[[], None]]]:
-    """The checks that apply to ``estimator``, in order, as ``(name, run)`` pairs.
+    """The checks that apply to ``estimator``, as ``(name, run)`` pairs.
 
-    Later checks use what earlier ones computed (the posterior, the forecast), so run them in
-    the order given.
+    Each check builds what it needs (a fresh clone where it compares answers), so they may run
+    in any order, alone or together.
     """
     if not isinstance(estimator, Estimator):
         raise ValueError(f"estimator: expected an Estimator instance, got {type(estimator).__name__}")
@@ -350,7 +388,7 @@ def estimator_checks(estimator: Estimator) -> Iterator[tuple[str, Callable[[], N
         chosen.append(check_forecast)
     chosen += [check_same_seed_same_answer, check_pickle_round_trip, check_min_frames]
     if spec.identifies:
-        chosen.append(check_prefixes_and_stream)
+        chosen += [check_prefixes, check_stream]
     chosen.append(check_frames_only_input)
     for fn in chosen:
         def run(fn=fn):

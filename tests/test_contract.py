@@ -68,3 +68,53 @@ def test_a_broken_method_fails_with_the_check_name():
 def test_check_estimator_wants_an_instance():
     with pytest.raises(ValueError, match="estimator"):
         check_estimator(methods.get_class("prior"))
+
+
+@pytest.mark.parametrize("name", ["prior", "lsq", "dmd"])
+def test_checks_do_not_depend_on_their_order(name):
+    # each check builds what it needs: reversed, shuffled, or one alone, they all pass
+    import random
+
+    est = methods.get(name, **methods.spec(name).contract_options)
+    checks = list(estimator_checks(est))
+    for order in (checks[::-1], random.Random(3).sample(checks, len(checks))):
+        for _, run in order:
+            run()
+    for check_name, _ in checks:  # each alone, on a fresh estimator
+        fresh = methods.get(name, **methods.spec(name).contract_options)
+        dict(estimator_checks(fresh))[check_name]()
+
+
+def test_the_stream_contract_is_checked():
+    from sysid_bench.estimator import Estimator, LoopStream, prior_posterior
+
+    class Claims(Estimator):
+        """Declares an online stream but has the default one."""
+
+        name = "claims"
+        online = True
+
+        def __init__(self, *, seed: int = 0):
+            self.seed = seed
+
+        def identify(self, obs):
+            return prior_posterior()
+
+    # (local classes do not pickle: run the one check)
+    with pytest.raises(EstimatorCheckError, match="check_stream .*declares online = True"):
+        dict(estimator_checks(Claims()))["check_stream"]()
+
+    class Miscounts(LoopStream):
+        @property
+        def n_frames(self):
+            return 0
+
+    class Counts(Claims):
+        name = "counts"
+        online = False
+
+        def stream(self):
+            return Miscounts(self)
+
+    with pytest.raises(EstimatorCheckError, match="check_stream .*n_frames after 1 pushes"):
+        dict(estimator_checks(Counts()))["check_stream"]()

@@ -103,3 +103,13 @@ def test_reading_a_declaration_imports_only_that_method():
             "print(s.cost, 'torch' in sys.modules, 'jax' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["8", "False", "False"]
+
+
+def test_the_registry_docstring_lists_what_is_registered():
+    # the module's doctest shows methods.available(): it must stay what the registry holds
+    import doctest
+
+    import methods
+
+    res = doctest.testmod(methods, verbose=False, report=False)
+    assert res.attempted >= 2 and res.failed == 0, res

@@ -155,7 +155,7 @@ class Scale:
 
         A store refuses to mix cells computed under another grid config. What a method declares
         (options, caps, tier) is part of that method's fingerprint instead
-        (:func:`sysid_bench.bench.runner.method_fingerprint`).
+        (:func:`sysid_bench.bench.fingerprint.method_fingerprint`).
         """
         d = asdict(self)
         for k in ("n_cases", "name"):

@@ -5,7 +5,7 @@ finite contact time, friction that spins the ball up at each bounce and lets it 
 fluid drag with Magnus lift) for rubber, tennis and ping-pong balls, rendered by MuJoCo's own
 renderer in the suite's framing, written as H.264 files and generated once per run directory
 (``<run_dir>/foreign_videos``, seeded by the scale's seed). Every method reads them as a user's
-file would be read (:func:`sysid_bench.video.read_video`, the ball found by background
+file would be read (:func:`sysid_bench.footage.read_video`, the ball found by background
 subtraction; Vid2Param sees frames re-drawn at the track, position methods the track).
 
 Rows per case and frame count: ``se_<p>`` (squared error against what the engine measurably
@@ -96,7 +96,7 @@ def case_video(run_dir, scale, case: int):
 
 
 def case_observation(path: Path, size):
-    """:func:`sysid_bench.video.observe` of a case's file; the track is cached beside it.
+    """:func:`sysid_bench.footage.observe` of a case's file; the track is cached beside it.
 
     Every method reads the same file, so the ball is found once per case (the tracker is
     deterministic; the cache is keyed by the file's size and the tracker's source).
@@ -104,7 +104,7 @@ def case_observation(path: Path, size):
     import hashlib
     import inspect
 
-    from sysid_bench import video
+    from sysid_bench import footage as video
     from sysid_bench.estimator import Observation
 
     key = hashlib.sha256(inspect.getsource(video).encode()

@@ -1,14 +1,16 @@
 """Online cost: a posterior after every frame of a video, method by method.
 
 The paper's speed claim is about online use: a robot wants the parameters after each new frame.
-A streaming method (Vid2Param) pays a constant cost per frame; a batch method (lsq, sindy) must
-re-identify on every prefix of the video seen so far, from its ``min_frames`` on, and pays for
-all of them. This module measures both on the same videos, in one process, methods interleaved
-video by video so that the machine's load falls on all of them alike: compare the ratios, not
-the absolute seconds.
+A method with an online stream (declared ``online``: Vid2Param) pays a constant cost per frame;
+a batch method (lsq, sindy) must re-identify on every prefix of the video seen so far, from its
+``min_frames`` on, and pays for all of them. This module measures both on the same videos, in
+one process, methods interleaved video by video so that the machine's load falls on all of them
+alike: compare the ratios, not the absolute seconds. The default rows are the methods that
+declare ``online_cost``.
 
-Every method sees video only: Vid2Param its frames, position methods ``Observation(frames=...)``
-(they track the ball themselves, as in the report's ``video`` input), floor height given.
+Every method sees video only: frame methods their frames, position methods
+``Observation(frames=...)`` (they track the ball themselves, as in the report's ``video``
+input), floor height given.
 """
 
 from __future__ import annotations
@@ -21,18 +23,29 @@ from tqdm.auto import tqdm
 
 from sysid_bench._validate import check_positive_int
 
-__all__ = ["online_cost", "online_cost_markdown", "ONLINE_METHODS"]
+__all__ = ["online_cost", "online_cost_markdown", "online_methods"]
 
-#: The default table: Vid2Param's stream, the physics fitted to its track on every prefix
-#: (vid2param-physics) and the cheap position methods that identify.
-ONLINE_METHODS = ("vid2param", "vid2param-physics", "lsq", "sindy", "dmd")
+
+def online_methods() -> list[str]:
+    """The default rows: registered methods that declare ``online_cost``, in registry order
+    (reads every method's declarations; a method whose packages are missing is left out)."""
+    import methods
+
+    out = []
+    for m in methods.available():
+        try:
+            if methods.spec(m).online_cost:
+                out.append(m)
+        except ImportError:
+            continue
+    return out
 
 
 def _clock() -> tuple[float, float]:
     return time.perf_counter(), time.process_time()
 
 
-def _run_vid2param(est, frames: np.ndarray, draw_samples: bool) -> int:
+def _run_stream(est, frames: np.ndarray, draw_samples: bool) -> int:
     """Push every frame through one stream; returns the number of posteriors."""
     stream = est.stream()
     for f in frames:
@@ -52,18 +65,18 @@ def _run_batch(est, obs, first: int) -> int:
     return T - first + 1
 
 
-def online_cost(methods=ONLINE_METHODS, n_videos: int = 3, seed: int = 0, *,
+def online_cost(methods=None, n_videos: int = 3, seed: int = 0, *,
                 n_frames: int = 200, samples: bool = True, progress: bool = False,
                 options: dict | None = None) -> pd.DataFrame:
     """Cost of a posterior after every frame of ``n_videos`` test videos, per method.
 
     Parameters
     ----------
-    methods : sequence of str
-        Registered method names. ``"vid2param"`` runs its stream (one ``push`` per frame);
-        every other method re-runs ``identify`` on each prefix from its ``min_frames`` on. A
-        method that identifies no parameters (``NotImplementedError``, e.g. DMD) gets a row
-        marked ``n/a``.
+    methods : sequence of str, optional
+        Registered method names (default :func:`online_methods`). A method that declares
+        ``online`` runs its stream (one ``push`` per frame); every other method re-runs
+        ``identify`` on each prefix from its ``min_frames`` on. A method that identifies no
+        parameters (``NotImplementedError``, e.g. DMD) gets a row marked ``n/a``.
     n_videos : int
         Test videos (``make_dataset("test", n_videos, seed, n_frames=n_frames)``).
     seed : int
@@ -71,8 +84,8 @@ def online_cost(methods=ONLINE_METHODS, n_videos: int = 3, seed: int = 0, *,
     n_frames : int
         Frames per video T.
     samples : bool
-        Also time Vid2Param with every posterior's samples drawn (``vid2param+samples``): its
-        posteriors draw their ``n_samples`` samples only when read.
+        Also time each online stream with every posterior's samples drawn (``<name>+samples``):
+        a posterior may draw its samples only when read (Vid2Param's do).
     progress : bool
         Show a tqdm bar over videos.
     options : dict, optional
@@ -85,13 +98,13 @@ def online_cost(methods=ONLINE_METHODS, n_videos: int = 3, seed: int = 0, *,
         ``first_frame`` (the first frame with a posterior), ``posteriors`` (per video),
         ``total_s`` and ``cpu_s`` (median over videos of the wall-clock and process CPU seconds
         for the whole video), ``per_frame_s`` (``total_s / n_frames``), ``ratio`` and
-        ``ratio_cpu`` (``total_s`` and ``cpu_s`` over Vid2Param's stream; NaN without it),
-        ``status`` (``ok`` or ``n/a: <why>``).
+        ``ratio_cpu`` (``total_s`` and ``cpu_s`` over the first online stream's, whose name
+        is ``df.attrs["baseline"]``; NaN without one), ``status`` (``ok`` or ``n/a: <why>``).
     """
     import methods as registry
     from sysid_bench.datasets import make_dataset
 
-    names = list(methods)
+    names = online_methods() if methods is None else list(methods)
     if not names:
         raise ValueError("methods: expected at least one method name, got none")
     known = registry.available(include_reference=True)
@@ -105,13 +118,14 @@ def online_cost(methods=ONLINE_METHODS, n_videos: int = 3, seed: int = 0, *,
 
     runs: list[tuple[str, str, int]] = []  # (row label, method, first frame)
     ests = {}
+    online = {m for m in names if registry.spec(m).online}
     for m in names:
         est = registry.get(m, **options.get(m, {}))
         ests[m] = est
-        if m == "vid2param":
-            runs.append(("vid2param", m, 1))
+        if m in online:
+            runs.append((m, m, 1))
             if samples:
-                runs.append(("vid2param+samples", m, 1))
+                runs.append((f"{m}+samples", m, 1))
         else:
             runs.append((m, m, max(1, int(getattr(est, "min_frames", 1)))))
     # one-time costs (loading the checkpoint, compiling the simulator) are not online costs:
@@ -119,8 +133,8 @@ def online_cost(methods=ONLINE_METHODS, n_videos: int = 3, seed: int = 0, *,
     warm = data.observation(0)
     for _label, m, first in runs:
         try:
-            if m == "vid2param":
-                _run_vid2param(ests[m], warm.frames[:5], True)
+            if m in online:
+                _run_stream(ests[m], warm.frames[:5], True)
             else:
                 _run_batch(ests[m], type(warm)(frames=warm.frames[:first + 2], dt=warm.dt,
                                                floor=warm.floor), first + 2)
@@ -137,8 +151,8 @@ def online_cost(methods=ONLINE_METHODS, n_videos: int = 3, seed: int = 0, *,
                 continue
             w0, c0 = _clock()
             try:
-                if m == "vid2param":
-                    count[label] = _run_vid2param(ests[m], obs.frames, label.endswith("+samples"))
+                if m in online:
+                    count[label] = _run_stream(ests[m], obs.frames, label.endswith("+samples"))
                 else:
                     count[label] = _run_batch(ests[m], obs, first)
             except NotImplementedError as exc:
@@ -154,7 +168,7 @@ def online_cost(methods=ONLINE_METHODS, n_videos: int = 3, seed: int = 0, *,
         total = float(np.median(wall[label])) if ok else np.nan
         rows.append({
             "method": label,
-            "mode": "stream" if m == "vid2param" else "every prefix",
+            "mode": "stream" if m in online else "every prefix",
             "first_frame": first,
             "posteriors": count.get(label, 0) if ok else 0,
             "total_s": total,
@@ -163,12 +177,15 @@ def online_cost(methods=ONLINE_METHODS, n_videos: int = 3, seed: int = 0, *,
             "status": status[label],
         })
     df = pd.DataFrame(rows)
-    base = df.loc[df["method"] == "vid2param"]
+    # the ratios are over the first online stream (without samples drawn)
+    baseline = next((m for m in names if m in online), None)
+    base = df.loc[df["method"] == baseline]
     ref_w = float(base["total_s"].iloc[0]) if len(base) else np.nan
     ref_c = float(base["cpu_s"].iloc[0]) if len(base) else np.nan
     df["ratio"] = df["total_s"] / ref_w
     df["ratio_cpu"] = df["cpu_s"] / ref_c
-    df.attrs.update({"n_videos": n_videos, "seed": int(seed), "n_frames": n_frames})
+    df.attrs.update({"n_videos": n_videos, "seed": int(seed), "n_frames": n_frames,
+                     "baseline": baseline})
     return df
 
 
@@ -176,13 +193,14 @@ def online_cost_markdown(df: pd.DataFrame) -> str:
     """The ``online_cost`` table as Markdown, with a sentence saying what it measures."""
     T = df.attrs.get("n_frames", "T")
     n = df.attrs.get("n_videos", "?")
+    base = df.attrs.get("baseline") or "stream"
     lines = [
         f"A posterior after every frame of a {T}-frame video (median of {n} test videos, one "
         "process, methods interleaved video by video). `stream`: one push per frame; `every "
         "prefix`: identify re-run on frames 1..t for every t from the method's first frame. "
-        "`x vid2param`: total time over Vid2Param's stream, measured in the same run.",
+        f"`x {base}`: total time over {base}'s stream, measured in the same run.",
         "",
-        "| method | mode | first frame | posteriors | total s | per frame ms | x vid2param |",
+        f"| method | mode | first frame | posteriors | total s | per frame ms | x {base} |",
         "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in df.itertuples():

@@ -113,7 +113,7 @@ def trained_model(ctx: Context, method: str, condition: str):
     (Estimator, train_wall_s)
     """
     import methods
-    from sysid_bench.bench.runner import method_fingerprint
+    from sysid_bench.bench.fingerprint import method_fingerprint
 
     sens = ctx.scale.sensitivity
     base = base_condition(condition)
