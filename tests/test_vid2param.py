@@ -545,8 +545,18 @@ def test_export_calibrates_the_stds_and_the_estimator_applies_them(tiny_ckpt, ti
     tg = targets_from_dataset(tiny_data, net.config.targets)
     z = (np.abs(mu.numpy()[:, [9, 23], : len(f)] - tg[:, [9, 23]]) / (sd.numpy()[:, [9, 23], : len(f)] * f))
     np.testing.assert_allclose((z.reshape(-1, len(f)) <= 1.6448536).mean(0), 0.9, atol=0.13)
+    # the older format (a "calibration" key, converted on load) and today's (a stage)
+    ck.pop("stages", None)
     ck["calibration"] = {"std_scale": [2.0] * len(f), "targets": list(net.config.targets)}
     save_atomic(ck, tmp_path / "cal.pt")
+    state = ck.pop("calibration")
+    staged = {**ck, "stages": [{"name": "std_scale", "state": state}]}
+    save_atomic(staged, tmp_path / "staged.pt")
+    with pytest.raises(ValueError, match="staged_both.pt.*calibration"):
+        save_atomic({**staged, "calibration": staged["stages"][0]["state"]},
+                    tmp_path / "staged_both.pt")
+        Vid2Param(checkpoint=tmp_path / "staged_both.pt", device="cpu").identify(
+            tiny_data.observation(0))
     obs = tiny_data.observation(0)
     plain = Vid2Param(checkpoint=tiny_ckpt, device="cpu", n_samples=0).identify(obs)
     cal_est = Vid2Param(checkpoint=tmp_path / "cal.pt", device="cpu", n_samples=0)
@@ -556,6 +566,10 @@ def test_export_calibrates_the_stds_and_the_estimator_applies_them(tiny_ckpt, ti
     s = cal_est.stream()
     last = [s.push(fr) for fr in obs.frames][-1]
     np.testing.assert_allclose(last.std, cal.std, rtol=1e-4)
+    staged_post = Vid2Param(checkpoint=tmp_path / "staged.pt", device="cpu",
+                            n_samples=0).identify(obs)
+    np.testing.assert_array_equal(staged_post.std, cal.std)
+    np.testing.assert_array_equal(staged_post.mean, cal.mean)
     ck["calibration"] = {"std_scale": [float("nan")] * len(f), "targets": list(net.config.targets)}
     save_atomic(ck, tmp_path / "bad.pt")
     with pytest.raises(ValueError, match="calibration"):
@@ -563,10 +577,12 @@ def test_export_calibrates_the_stds_and_the_estimator_applies_them(tiny_ckpt, ti
 
 
 def test_export_with_calibration_writes_it_to_the_card(tiny_ckpt, tmp_path):
-    out = export(tiny_ckpt.parent / "state.pt", tmp_path / "c.pt", calibrate_n=3)
+    out = export(tiny_ckpt.parent / "state.pt", tmp_path / "c.pt", stages=[("std_scale", {"n": 3})])
     card = json.loads(out.with_suffix(".json").read_text())
-    assert card["calibration"]["n"] == 3 and card["calibration"]["split"] == "train"
-    assert len(card["calibration"]["std_scale"]) == len(TINY.targets)
+    assert [s["name"] for s in card["stages"]] == ["std_scale"]
+    rec = card["stages"][0]["state"]
+    assert rec["n"] == 3 and rec["split"] == "train"
+    assert len(rec["std_scale"]) == len(TINY.targets)
     est = Vid2Param(checkpoint=out, device="cpu", n_samples=0)
     est._ensure_net()
     assert est.std_scale_.shape == (4,)
@@ -795,13 +811,20 @@ def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
     tc = _train_config(_parse(["--out", "x", "--preset", "camera", "--steps", "7", "--init", "none",
                                "--perturb", "null"]), cam)
     assert (tc.steps, tc.init, tc.perturb, tc.nll_only_steps) == (7, None, None, 150)
-    # the export's drag evidence: the camera preset's by default, a flag overrides it
-    from methods.vid2param.train import PRESET_EXPORT, _export_n
+    # the export's stages: the preset's by default (the camera's drag evidence), --stages
+    # overrides them, with options
+    from methods.vid2param.stages import PRESET_STAGES
+    from methods.vid2param.train import _stages
 
+    assert _stages(a) == [(n, o) for n, o in PRESET_STAGES["28x28"]]
     cam_a = _parse(["--out", "x", "--preset", "camera"])
-    for name in ("drag_n", "physics_cal_n"):
-        assert _export_n(a, name) == 0 and _export_n(cam_a, name) == PRESET_EXPORT["camera"][name]
-    assert _export_n(_parse(["--out", "x", "--preset", "camera", "--drag-n", "0"]), "drag_n") == 0
+    assert [n for n, _ in _stages(cam_a)] == ["prior_noise", "drag_evidence", "physics_calibration"]
+    assert _stages(_parse(["--out", "x", "--preset", "camera", "--stages",
+                           "drag_evidence:n_videos=30,seed=2"])) == [
+        ("drag_evidence", {"n_videos": 30, "seed": 2})]
+    assert _stages(_parse(["--out", "x", "--stages"])) == []
+    with pytest.raises(ValueError, match="unknown stage 'dragg'"):
+        _stages(_parse(["--out", "x", "--stages", "dragg"]))
 
 
 def test_labels_fixed_in_training_are_not_supervised():

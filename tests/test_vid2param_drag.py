@@ -177,16 +177,22 @@ def test_an_estimator_with_drag_evidence_agrees_batched_streamed_and_identified(
 
 def test_fit_drag_writes_a_checkpoint_the_estimator_uses(tmp_path):
     from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param
-    from methods.vid2param.drag import DragFitConfig, fit_drag
+    from methods.vid2param.checkpoint import load_checkpoint
+    from methods.vid2param.train import fit_stages
 
     if not SHIPPED_CHECKPOINTS["camera"].exists():
         pytest.skip("no shipped camera checkpoint")
     out = tmp_path / "c.pt"
-    rec = fit_drag("camera", out, DragFitConfig(n_videos=24, n_val=8, seed=3), log=lambda s: None)
+    opts = {"n_videos": 24, "n_val": 8, "seed": 3}
+    fit_stages("camera", out, [("drag_evidence", opts)], log=lambda s: None)
+    ck = load_checkpoint(out)
+    assert [s["name"] for s in ck["stages"]] == ["drag_evidence"]
+    rec = ck["stages"][0]["state"]
+    assert rec["from"] == "camera"  # a name, not a machine path
     assert set(rec["val_network"]) == set(rec["val_blended"]) == {"50", "100", "200"}
     est = Vid2Param(checkpoint=str(out), n_samples=0, device="cpu")
     est._ensure_net()
     assert est.drag_ == DragBlend.from_record(rec)
-    again = fit_drag("camera", tmp_path / "d.pt", DragFitConfig(n_videos=24, n_val=8, seed=3),
-                     log=lambda s: None)
+    fit_stages("camera", tmp_path / "d.pt", [("drag_evidence", opts)], log=lambda s: None)
+    again = load_checkpoint(tmp_path / "d.pt")["stages"][0]["state"]
     assert again["scale"] == rec["scale"] and again["log_c"] == rec["log_c"]  # seeded

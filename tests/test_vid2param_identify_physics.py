@@ -105,12 +105,18 @@ def test_physics_identification_beats_the_network_alone_and_is_seeded():
 
 
 def test_the_physics_calibration_widens_the_fits_intervals_and_is_stored(tmp_path):
-    from methods.vid2param.calibrate_physics import calibrate_physics
+    from methods.vid2param.checkpoint import load_checkpoint
+    from methods.vid2param.train import fit_stages
 
     if not SHIPPED_CHECKPOINTS["camera"].exists():
         pytest.skip("no shipped camera checkpoint")
     out = tmp_path / "cam.pt"
-    rec = calibrate_physics("camera", out, n=6, seed=3, log=lambda s: None)
+    # the camera's network stages kept as shipped, the calibration refitted after them
+    fit_stages("camera", out, ["prior_noise:keep=true", "drag_evidence:keep=true",
+                               ("physics_calibration", {"n": 6, "seed": 3})], log=lambda s: None)
+    stages = load_checkpoint(out)["stages"]
+    assert [s["name"] for s in stages] == ["prior_noise", "drag_evidence", "physics_calibration"]
+    rec = stages[2]["state"]
     f = np.array(rec["std_scale"])
     assert f.shape == (4,) and (f >= 1.0).all() and rec["lengths"] == [50, 100, 200]
     # coverage after is the level wherever a factor widened (pooled over the lengths)

@@ -9,22 +9,21 @@ network's own stds are (``train.calibrate``), the fit's stds get one factor per 
 that 90% intervals hold 90% of the truths on fresh train-split videos, pooled over 50, 100 and
 200 frames (``r`` over the videos that roll), never below 1. The means do not move.
 
-``python -m methods.vid2param.calibrate_physics --checkpoint camera --out PATH`` writes the
-factors into a copy of the checkpoint (``physics_calibration``); ``python -m
-methods.vid2param.train --preset camera`` does so at export.
+This is the ``physics_calibration`` stage (``methods.vid2param.stages``): ``python -m
+methods.vid2param.train --preset camera --export F`` fits it after the network and the stages
+before it (the fit's prior is their posterior).
 """
 
 from __future__ import annotations
 
-import argparse
 import time
-from pathlib import Path
 
 import numpy as np
 
-from sysid_bench.physics import PARAMS
+from methods.vid2param.inference import HI, LO, UNSEEN_SD_M, physical
+from sysid_bench.physics import BOX_WIDTH, DT, PARAMS
 
-__all__ = ["calibrate_physics", "main", "LENGTHS", "SEED"]
+__all__ = ["calibrate_physics_stage", "LENGTHS", "SEED"]
 
 #: Prefix lengths pooled.
 LENGTHS = (50, 100, 200)
@@ -34,53 +33,49 @@ SEED = 424243
 _Z90 = 1.6448536269514722
 
 
-def calibrate_physics(checkpoint, out, n: int = 100, seed: int = SEED,
-                      threads: int | None = None, log=print) -> dict:
-    """Fit ``vid2param-physics``'s std factors for ``checkpoint`` and write it to ``out``.
+def calibrate_physics_stage(ctx, n: int = 100, seed: int = SEED) -> dict:
+    """Fit ``vid2param-physics``'s std factors after the stages of ``ctx`` (an
+    ``inference.FitContext``).
 
     Parameters
     ----------
-    checkpoint : str or path
-        Shipped name or path.
-    out : path
-        The checkpoint with ``physics_calibration`` (may be the same file).
     n : int
         Train-split videos (rendered as the checkpoint was trained, our physics).
+    seed : int
 
     Returns
     -------
     dict
-        The record stored: ``std_scale`` (``PARAMS`` order) and the 90% coverage per
+        The stage's state: ``std_scale`` (``PARAMS`` order) and the 90% coverage per
         parameter before and after, pooled.
     """
-    import methods
-    from methods.vid2param.checkpoint import load_checkpoint, save_atomic
-    from methods.vid2param.data import make_split, rolls_mask
-    from sysid_bench.estimator import Observation
+    from methods.vid2param.data import rolls_mask
+    from methods.vid2param.rollout import fit_track
 
     t0 = time.perf_counter()
-    est = methods.get("vid2param-physics", checkpoint=str(checkpoint), device="cpu",
-                      n_samples=0, threads=threads)
-    est._ensure_net()
-    path = Path(est.checkpoint_info_["path"])
-    tr = est.checkpoint_info_.get("train") or {}
-    n_fr = int(tr.get("n_frames", 200))
-    lengths = [L for L in LENGTHS if L <= n_fr]
-    ds = make_split("train", int(n), int(seed), tuple(est.frame_size), tr.get("nuisance"), n_fr,
-                    variant=tr.get("variant", "interleaved"))
-    est.physics_scale_ = np.ones(len(PARAMS))  # the uncalibrated fit
+    # (videos shorter than the shortest: their full length)
+    lengths = [L for L in LENGTHS if L <= ctx.n_frames] or [ctx.n_frames]
+    ds = ctx.split(n, seed)
     theta = np.asarray(ds.theta)
     truth = theta[:, -1] if theta.ndim == 3 else theta
     z = np.empty((len(truth), len(lengths), len(PARAMS)))
     frames = np.asarray(ds.frames)
+    i_x = list(ctx.net.config.targets).index("x")
+    floor = ctx.floor_prior()
     for i in range(len(truth)):
-        posts = est.identify_prefixes(Observation(frames=frames[i]), lengths)
-        z[i] = [(p.mean - truth[i]) / p.std for p in posts]
+        # as Vid2ParamPhysics.identify_prefixes, uncalibrated: the fit's Laplace posterior
+        m, s, pos, sd = ctx.parameters(frames[i][None])
+        m, s, pos = m[0], s[0], pos[0]
+        pos[BOX_WIDTH * sd[0, :, i_x] > UNSEEN_SD_M] = np.nan
+        for j, L in enumerate(lengths):
+            fit = fit_track(pos[:L], *physical(m[L - 1], s[L - 1]), dt=DT, floor=floor)
+            std = np.sqrt(np.diag(fit.cov[4:8, 4:8]))
+            z[i, j] = (np.clip(fit.theta, LO, HI) - truth[i]) / std
     z = np.abs(z)
     rolls = rolls_mask(ds.states, ds.floor)
     q = np.quantile(z.reshape(-1, len(PARAMS)), 0.9, axis=0, method="higher")  # >= 90% in
     i_r = PARAMS.index("r")
-    if rolls.any():  # elsewhere r's interval is prior-wide by design (as train.calibrate)
+    if rolls.any():  # elsewhere r's interval is prior-wide by design (as stages.calibrate)
         q[i_r] = np.quantile(z[rolls, :, i_r], 0.9, method="higher")
     # only widened: the Laplace posterior is what the track holds if the model were right, and
     # a narrower one on train videos (d: 0.80 on the camera model's) did not hold on test videos
@@ -96,30 +91,6 @@ def calibrate_physics(checkpoint, out, n: int = 100, seed: int = SEED,
               "split": "train", "level": 0.9, "lengths": lengths,
               "coverage90_before": coverage(np.ones(len(PARAMS))),
               "coverage90_after": coverage(scale), "wall_s": time.perf_counter() - t0}
-    log(f"vid2param-physics calibration: factors {dict(zip(PARAMS, np.round(scale, 3)))}, "
-        f"coverage {record['coverage90_before']} -> {record['coverage90_after']}")
-    ck = dict(load_checkpoint(path))
-    ck["physics_calibration"] = record
-    save_atomic(ck, out)
+    ctx.log(f"vid2param-physics calibration: factors {dict(zip(PARAMS, np.round(scale, 3)))}, "
+            f"coverage {record['coverage90_before']} -> {record['coverage90_after']}")
     return record
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m methods.vid2param.calibrate_physics",
-                                 description=__doc__.splitlines()[0])
-    ap.add_argument("--checkpoint", default="camera", help="shipped name or path")
-    ap.add_argument("--out", required=True, help="checkpoint file to write (may be the same)")
-    ap.add_argument("--n", type=int, default=100, help="train-split videos")
-    ap.add_argument("--seed", type=int, default=SEED)
-    ap.add_argument("--threads", type=int, default=None)
-    a = ap.parse_args(argv)
-    calibrate_physics(a.checkpoint, Path(a.out), a.n, a.seed, threads=a.threads)
-    from methods.vid2param.train import export_card
-
-    export_card(a.out)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
-

@@ -19,22 +19,60 @@ Writes are atomic (temporary file in the same folder, then ``os.replace``).
 from __future__ import annotations
 
 import hashlib
-import os
 import subprocess
-import tempfile
 import zipfile
 from pathlib import Path
 
 import torch
 
 from methods.vid2param.model import V2PConfig, Vid2ParamNet
+from sysid_bench._io import atomic_write
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "RENAMED", "save_atomic", "load_checkpoint", "build_net",
-           "upgrade_state_dict", "upgrade_optimizer_state", "git_info"]
+           "upgrade_state_dict", "upgrade_optimizer_state", "git_info", "SHIPPED_CHECKPOINTS",
+           "SHIPPED_CHECKPOINT", "SENSITIVITY_CONDITIONS", "CONDITION_CHECKPOINTS",
+           "checkpoint_path", "condition_checkpoint"]
 
 FORMAT = "vid2param-checkpoint"
 FORMAT_VERSION = 1
 _HERE = Path(__file__).resolve().parent
+_CKPT_DIR = _HERE / "checkpoints"
+#: Shipped checkpoints by name: ``checkpoint="28x28"`` (also ``None``, the default) is the
+#: paper's simulated-video model; ``"camera"`` takes 100x50 (W x H) camera-like video (motion
+#: blur, black-out occlusions, dropped frames, pixel noise, a randomised floor height).
+SHIPPED_CHECKPOINTS = {
+    "28x28": _CKPT_DIR / "v2p_28x28.pt",
+    "camera": _CKPT_DIR / "v2p_camera_100x50.pt",
+    # the 28x28 model fine-tuned on videos whose parameters change every 50 frames
+    "changing": _CKPT_DIR / "v2p_28x28_changing.pt",
+}
+#: The sensitivity experiment's conditions at the benchmark's default scale
+#: (``sysid_bench.bench.cases``; a test checks the two agree), one model each, one recipe and
+#: budget for all (``methods/vid2param/README.md``): ``checkpoint="sensitivity/<condition>"``
+#: with ``:`` written ``_``.
+SENSITIVITY_CONDITIONS = ("extrapolation:e", "extrapolation:g", "extrapolation:d",
+                          "extrapolation:r", "noise:0", "noise:0.1", "noise:0.25", "noise:0.5",
+                          "simplified")
+
+
+def condition_checkpoint(condition: str) -> str:
+    """Checkpoint name of a sensitivity condition's model, e.g. ``"sensitivity/noise_0.1"``."""
+    return "sensitivity/" + condition.replace(":", "_")
+
+
+#: Where each condition model lives (whether or not this checkout has it).
+CONDITION_CHECKPOINTS = {condition_checkpoint(c): _CKPT_DIR / f"{condition_checkpoint(c)}.pt"
+                         for c in SENSITIVITY_CONDITIONS}
+SHIPPED_CHECKPOINTS.update({k: p for k, p in CONDITION_CHECKPOINTS.items() if p.exists()})
+#: The shipped 28x28 checkpoint (``checkpoint=None``).
+SHIPPED_CHECKPOINT = SHIPPED_CHECKPOINTS["28x28"]
+
+
+def checkpoint_path(checkpoint) -> Path:
+    """A shipped checkpoint's name (``SHIPPED_CHECKPOINTS``) as its path; a path as given."""
+    if isinstance(checkpoint, str) and checkpoint in SHIPPED_CHECKPOINTS:
+        return SHIPPED_CHECKPOINTS[checkpoint]
+    return Path(checkpoint)
 #: Weight names of checkpoints written before the network was composed of named parts -> today's
 #: (a name ending in "." renames every weight it begins).
 RENAMED = {
@@ -57,22 +95,9 @@ RENAMED = {
 
 
 def save_atomic(obj: dict, path) -> Path:
-    """``torch.save`` to a temporary file next to ``path``, then rename over it."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            torch.save(obj, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes it private
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    """``torch.save`` to a temporary file next to ``path``, then rename over it
+    (``sysid_bench._io.atomic_write``)."""
+    return atomic_write(path, lambda tmp: torch.save(obj, tmp))
 
 
 def load_checkpoint(path, *, expect_resumable: bool = False) -> dict:

@@ -3,7 +3,7 @@
 One recipe and one budget for every condition: ``V2PConfig()`` trained from scratch with
 ``TrainConfig()``'s defaults (4000 steps of 32 videos x 200 frames, the first 600 on the NLL
 alone: what ``python -m methods.vid2param.train --out DIR`` runs), only the training data
-differ (``sysid_bench.bench.sensitivity``):
+differ (as the benchmark's sensitivity experiment trains them; a test checks the two agree):
 
 ``noise:<level>``      the interleaved train split, labels with Gaussian noise of ``level`` x
                        the range (``noise:0`` is the control)
@@ -27,22 +27,29 @@ import argparse
 import sys
 from pathlib import Path
 
-from methods.vid2param.estimator import (
+from methods.vid2param.checkpoint import (
     CONDITION_CHECKPOINTS,
     SENSITIVITY_CONDITIONS,
     condition_checkpoint,
 )
 
-__all__ = ["train_condition", "condition_data", "main"]
+__all__ = ["train_condition", "condition_data", "main", "CONDITION_STAGES"]
+
+#: The stages fitted after each condition's network (those of the shipped condition models).
+CONDITION_STAGES = (("prior_noise", {"steps": 150}),)
 
 
 def condition_data(condition: str) -> tuple[str, dict]:
-    """``(variant, variant_options)`` of the training data of ``condition``."""
-    from sysid_bench.bench.sensitivity import _train_spec
-
+    """``(variant, variant_options)`` of the training data of ``condition`` (a
+    ``sysid_bench.datasets`` variant)."""
     if condition not in SENSITIVITY_CONDITIONS:
         raise ValueError(f"condition: expected one of {SENSITIVITY_CONDITIONS}, got {condition!r}")
-    return _train_spec(condition)
+    kind, _, arg = condition.partition(":")
+    if kind == "extrapolation":
+        return "extrapolation", {"param": arg}
+    if kind == "noise":
+        return "noisy", {"label_noise": float(arg)}
+    return "simplified", {}
 
 
 def train_condition(condition: str, out, threads: int = 1, device: str = "auto",
@@ -52,7 +59,7 @@ def train_condition(condition: str, out, threads: int = 1, device: str = "auto",
     or None when stopped early by ``max_minutes`` (resumable). ``steps``: the recipe's length
     (``TrainConfig.recipe``; default ``TrainConfig().steps``), the same for every condition."""
     from methods.vid2param.model import V2PConfig
-    from methods.vid2param.train import TrainConfig, export_with_prior, train
+    from methods.vid2param.train import TrainConfig, export, train
 
     variant, opts = condition_data(condition)
     run = Path(out) / condition_checkpoint(condition).split("/", 1)[1]
@@ -63,8 +70,8 @@ def train_condition(condition: str, out, threads: int = 1, device: str = "auto",
         return None
     dest = CONDITION_CHECKPOINTS[condition_checkpoint(condition)]
     dest.parent.mkdir(parents=True, exist_ok=True)
-    # the recipe's last phase, as `train --export` ends: the physics prior's noise
-    return export_with_prior(run / "state.pt", dest, threads=int(threads))
+    # the recipe's last phase, as the shipped condition models: the physics prior's noise
+    return export(run / "state.pt", dest, stages=CONDITION_STAGES)
 
 
 def main(argv=None) -> int:

@@ -24,25 +24,24 @@ re-simulated with spin and contact dwell as in the network's training, the netwo
 the physics prior is, ``fit_prior``). The blended d is not fed back into the recurrence: the
 network runs exactly as trained, and a checkpoint without a fitted blend answers as before.
 
-``python -m methods.vid2param.drag --checkpoint camera --out PATH`` fits the blend and writes
-it into a copy of the checkpoint (``drag_evidence``); ``python -m methods.vid2param.train
---preset camera`` does so at export.
+The blend is the ``drag_evidence`` stage (``methods.vid2param.stages``); ``python -m
+methods.vid2param.train --preset camera --export F`` fits it after the network, and
+``python -m methods.vid2param.train --refit camera --stages ... --export F`` refits a
+checkpoint's stages.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from sysid_bench.physics import BOX_WIDTH, DT, PRIOR
 
 __all__ = ["DragBlend", "DragStatistic", "DragFitConfig", "statistic_track", "fit_blend",
-           "fit_drag", "main", "K", "WALL_M", "FLY_M", "ACC_CAP", "BOUNCE_DV"]
+           "fit_drag_stage", "K", "WALL_M", "FLY_M", "ACC_CAP", "BOUNCE_DV"]
 
 #: Frames between the three positions of a window's second difference (window 2 K + 1).
 #: Chosen on validation tracks of the camera model (train split; K = 4, 6, 8: model card).
@@ -251,16 +250,17 @@ def fit_blend(mu_n, sd_n, D, S, truth_n, k: int = K) -> tuple[DragBlend, float]:
     return blend, float(res.fun)
 
 
-def _network_d(est, ds) -> tuple[np.ndarray, ...]:
-    """The network's normalised d posterior (N, T) each, its track (N, T, 2) m and true d
-    (N,) normalised, for the videos of ``ds`` (the drag evidence off)."""
+def _network_d(ctx, ds) -> tuple[np.ndarray, ...]:
+    """The normalised d posterior (N, T) each of the network and the stages before this one
+    (``ctx``, an ``inference.FitContext``), its track (N, T, 2) m and true d (N,) normalised,
+    for the videos of ``ds``."""
     from sysid_bench.physics import PARAMS
 
     i_d = PARAMS.index("d")
     frames = np.asarray(ds.frames)
     mus, sds, pos = [], [], []
     for i in range(0, len(frames), 100):
-        mu, sd, p = est._sequences(frames[i:i + 100], drag=False)
+        mu, sd, p, _ = ctx.parameters(frames[i:i + 100])
         mus.append(mu[..., i_d])
         sds.append(sd[..., i_d])
         pos.append(p)
@@ -294,78 +294,41 @@ class DragFitConfig:
     perturb: dict = field(default_factory=lambda: {"spin": 0.3, "dwell": 0.01, "p": 0.5})
 
 
-def fit_drag(checkpoint, out, cfg: DragFitConfig | None = None, threads: int | None = None,
-             log=print) -> dict:
-    """Fit the drag evidence of ``checkpoint`` and write the checkpoint with it to ``out``.
+def fit_drag_stage(ctx, cfg: DragFitConfig | None = None) -> dict:
+    """Fit the drag evidence after the stages of ``ctx`` (an ``inference.FitContext``).
 
     The videos are the train split rendered as the checkpoint was trained (size, nuisances,
-    variant), constant parameters (``DragFitConfig``). Returns the record stored under
-    ``drag_evidence``: the blend, its NLL, and d's scores on the validation videos before and
-    after, on our physics (``val_*``) and perturbed (``val_perturbed_*``).
+    variant), constant parameters (``DragFitConfig``). Returns the stage's state: the blend,
+    its NLL, and d's scores on the validation videos before and after, on our physics
+    (``val_*``) and perturbed (``val_perturbed_*``).
     """
     import torch
 
-    from methods.vid2param.checkpoint import load_checkpoint, save_atomic
-    from methods.vid2param.data import make_split, perturb_dataset
-    from methods.vid2param.estimator import Vid2Param
+    from methods.vid2param.data import perturb_dataset
     from sysid_bench._validate import check_positive_int
 
     cfg = cfg or DragFitConfig()
     for name in ("n_videos", "n_val", "k"):
         check_positive_int(getattr(cfg, name), name)
     t0 = time.perf_counter()
-    est = Vid2Param(checkpoint=str(checkpoint), device="cpu", n_samples=0, threads=threads)
-    est._ensure_net()
-    path = Path(est.checkpoint_info_["path"])
-    tr = est.checkpoint_info_.get("train") or {}
-    size, nuis = tuple(est.frame_size), tr.get("nuisance")
-    n_fr = int(tr.get("n_frames", 200))
-    variant = tr.get("variant", "interleaved")
     pt = cfg.perturb
-    fit_set = perturb_dataset(make_split("train", cfg.n_videos, cfg.seed, size, nuis, n_fr,
-                                         variant=variant),
-                              pt["spin"], pt["dwell"], seed=cfg.seed, p=pt["p"])
-    val_set = make_split("train", cfg.n_val, cfg.seed + 1, size, nuis, n_fr, variant=variant)
+    fit_set = perturb_dataset(ctx.split(cfg.n_videos, cfg.seed), pt["spin"], pt["dwell"],
+                              seed=cfg.seed, p=pt["p"])
+    val_set = ctx.split(cfg.n_val, cfg.seed + 1)
     val_pert = perturb_dataset(val_set, pt["spin"], pt["dwell"], seed=cfg.seed + 1, p=1.0)
     with torch.inference_mode():
-        mu, sd, pos, truth = _network_d(est, fit_set)
+        mu, sd, pos, truth = _network_d(ctx, fit_set)
         blend, nll = fit_blend(mu, sd, *statistic_track(pos, cfg.k), truth, cfg.k)
-        record = {**asdict(blend), "nll": nll, "config": asdict(cfg), "from": str(path),
+        record = {**asdict(blend), "nll": nll, "config": asdict(cfg), "from": ctx.source,
                   "statistic": {"wall_m": WALL_M, "fly_m": FLY_M, "acc_cap": ACC_CAP,
                                 "bounce_dv": BOUNCE_DV, "fit_from": FIT_FROM}}
         for name, ds in (("val", val_set), ("val_perturbed", val_pert)):
-            vmu, vsd, vpos, vtruth = _network_d(est, ds)
+            vmu, vsd, vpos, vtruth = _network_d(ctx, ds)
             bmu, bsd = blend.apply(vmu, vsd, *statistic_track(vpos, cfg.k))
             record[name + "_network"] = _scores(vmu, vsd, vtruth)
             record[name + "_blended"] = _scores(bmu, bsd, vtruth)
     record["wall_s"] = time.perf_counter() - t0
-    log(f"drag evidence: {asdict(blend)}; validation d nMSE network {record['val_network']} "
-        f"-> blended {record['val_blended']}; perturbed {record['val_perturbed_network']} -> "
-        f"{record['val_perturbed_blended']}")
-    ck = dict(load_checkpoint(path))
-    ck["drag_evidence"] = record
-    save_atomic(ck, out)
+    ctx.log(f"drag evidence: {asdict(blend)}; validation d nMSE network {record['val_network']} "
+            f"-> blended {record['val_blended']}; perturbed {record['val_perturbed_network']} -> "
+            f"{record['val_perturbed_blended']}")
     return record
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m methods.vid2param.drag",
-                                 description=__doc__.splitlines()[0])
-    ap.add_argument("--checkpoint", default="camera", help="shipped name or path")
-    ap.add_argument("--out", required=True, help="checkpoint file to write (may be the same)")
-    ap.add_argument("--n-videos", type=int, default=DragFitConfig.n_videos)
-    ap.add_argument("--n-val", type=int, default=DragFitConfig.n_val)
-    ap.add_argument("--seed", type=int, default=DragFitConfig.seed)
-    ap.add_argument("--threads", type=int, default=None)
-    a = ap.parse_args(argv)
-    fit_drag(a.checkpoint, Path(a.out),
-             DragFitConfig(n_videos=a.n_videos, n_val=a.n_val, seed=a.seed),
-             threads=a.threads)
-    from methods.vid2param.train import export_card
-
-    export_card(a.out)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -15,65 +15,63 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from methods.vid2param.checkpoint import build_net, load_checkpoint
+from methods.vid2param.checkpoint import (
+    CONDITION_CHECKPOINTS,
+    SENSITIVITY_CONDITIONS,
+    SHIPPED_CHECKPOINT,
+    SHIPPED_CHECKPOINTS,
+    build_net,
+    checkpoint_path,
+    condition_checkpoint,
+    load_checkpoint,
+)
+from methods.vid2param.inference import (
+    HI,
+    LO,
+    SPAN,
+    UNSEEN_SD_M,
+    floor_prior,
+    latent_pass,
+    param_index,
+    physical,
+    positions,
+    resolve_device,
+)
+from methods.vid2param.stages import Pipeline
 from sysid_bench._validate import (
     check_horizon,
     check_positive_float,
     check_positive_int,
     check_seed_value,
 )
-from sysid_bench.bench.cases import get_scale
 from sysid_bench.estimator import MAX_HORIZON, Estimator, Forecast, Observation, Posterior, Stream
-from sysid_bench.physics import BOX_WIDTH, DT, PARAMS, PRIOR
+from sysid_bench.physics import BOX_WIDTH, DT, PARAMS
 
-__all__ = ["Vid2Param", "Vid2ParamChanging", "Vid2ParamStream", "SHIPPED_CHECKPOINT", "SHIPPED_CHECKPOINTS"]
+__all__ = ["Vid2Param", "Vid2ParamChanging", "Vid2ParamStream", "SHIPPED_CHECKPOINT",
+           "SHIPPED_CHECKPOINTS", "CONDITION_CHECKPOINTS", "SENSITIVITY_CONDITIONS",
+           "checkpoint_path", "condition_checkpoint", "describe_checkpoints", "UNSEEN_SD_M"]
 
-_CKPT_DIR = Path(__file__).resolve().parent / "checkpoints"
-#: Shipped checkpoints by name: ``checkpoint="28x28"`` (also ``None``, the default) is the
-#: paper's simulated-video model; ``"camera"`` takes 100x50 (W x H) camera-like video (motion
-#: blur, black-out occlusions, dropped frames, pixel noise, a randomised floor height).
-SHIPPED_CHECKPOINTS = {
-    "28x28": _CKPT_DIR / "v2p_28x28.pt",
-    "camera": _CKPT_DIR / "v2p_camera_100x50.pt",
-    # the 28x28 model fine-tuned on videos whose parameters change every 50 frames
-    "changing": _CKPT_DIR / "v2p_28x28_changing.pt",
-}
-#: The sensitivity experiment's conditions at the default scale (its scale says which), one model
-#: each, one recipe and budget for all (``methods/vid2param/README.md``; ``--scale paper``
-#: trains them afresh):
-#: ``checkpoint="sensitivity/<condition>"`` with ``:`` written ``_``.
-SENSITIVITY_CONDITIONS = tuple(get_scale("default").sensitivity_conditions())
+_LO, _HI, _SPAN, _physical = LO, HI, SPAN, physical
 
+def describe_checkpoints() -> dict[str, str]:
+    """Each shipped checkpoint's stages in one line (``sysid-bench list --checkpoints``):
+    ``{name: "network -> std_scale (...) -> prior_noise (...)"}``."""
+    out = {}
+    for name, path in SHIPPED_CHECKPOINTS.items():
+        if not path.exists():
+            out[name] = "missing"
+            continue
+        ck = load_checkpoint(path)
+        fmt = "stages" if "stages" in ck else "older format, converted on load"
+        out[name] = f"{Pipeline.from_checkpoint(ck, name, build_net(ck, path)).describe()} [{fmt}]"
+    return out
 
-def checkpoint_path(checkpoint) -> Path:
-    """A shipped checkpoint's name (``SHIPPED_CHECKPOINTS``) as its path; a path as given."""
-    if isinstance(checkpoint, str) and checkpoint in SHIPPED_CHECKPOINTS:
-        return SHIPPED_CHECKPOINTS[checkpoint]
-    return Path(checkpoint)
-
-
-def condition_checkpoint(condition: str) -> str:
-    """Checkpoint name of a sensitivity condition's model, e.g. ``"sensitivity/noise_0.1"``."""
-    return "sensitivity/" + condition.replace(":", "_")
-
-
-#: Where each condition model lives (whether or not this checkout has it).
-CONDITION_CHECKPOINTS = {condition_checkpoint(c): _CKPT_DIR / f"{condition_checkpoint(c)}.pt"
-                         for c in SENSITIVITY_CONDITIONS}
-SHIPPED_CHECKPOINTS.update({k: p for k, p in CONDITION_CHECKPOINTS.items() if p.exists()})
-#: The shipped 28x28 checkpoint (``checkpoint=None``).
-SHIPPED_CHECKPOINT = SHIPPED_CHECKPOINTS["28x28"]
 
 #: Forecast kinds (the ``forecast`` option).
 FORECASTS = {
     "latent": "unroll the prior in latent space (physics step of the latent state + residual)",
     "physics": "simulate posterior samples of state and parameters with sysid_bench.physics",
 }
-
-_LO = np.array([PRIOR[p][0] for p in PARAMS])
-_HI = np.array([PRIOR[p][1] for p in PARAMS])
-_SPAN = _HI - _LO
-
 
 def _check_lengths(lengths, T: int) -> list[int]:
     """Prefix lengths as positive ints, each at most the video's ``T`` frames."""
@@ -82,23 +80,6 @@ def _check_lengths(lengths, T: int) -> list[int]:
         if n > T:
             raise ValueError(f"lengths: expected values <= {T}, got {n}")
     return lengths
-
-
-def _physical(mu_n: np.ndarray, sd_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised posterior mean and (calibrated) std of (e, g, d, r), (4,) each, in physical
-    units; the mean clipped to the prior."""
-    return _LO + _SPAN * np.clip(mu_n, 0.0, 1.0), _SPAN * sd_n
-
-
-def _std_scale(ck: dict, key: str = "calibration") -> np.ndarray:
-    """The checkpoint's std calibration factors for ``PARAMS`` under ``key`` (ones when it has
-    none): the network's (``calibration``) or ``vid2param-physics``'s (``physics_calibration``)."""
-    cal = ck.get(key) or {}
-    scale = dict(zip(cal.get("targets", []), cal.get("std_scale", [])))
-    out = np.array([float(scale.get(p, 1.0)) for p in PARAMS])
-    if not (np.isfinite(out).all() and (out > 0).all()):
-        raise ValueError(f"checkpoint: {key} factors must be finite and > 0, got {out}")
-    return out
 
 
 def _check_frames_array(frames, expected_hw, name: str, ndim: int) -> np.ndarray:
@@ -237,6 +218,12 @@ class Vid2Param(Estimator):
         self.warm_start = warm_start
         self.forecast_kind = forecast
 
+    @classmethod
+    def describe_checkpoints(cls) -> dict[str, str]:
+        """The shipped checkpoints' stage lists, one line each (:func:`describe_checkpoints`;
+        what ``sysid-bench list --checkpoints`` prints, reached through the methods registry)."""
+        return describe_checkpoints()
+
     # ``forecast`` names a method too: the hyperparameter is stored as ``forecast_kind``
     def get_params(self) -> dict:
         params = {k: getattr(self, k) for k in self._param_names() if k != "forecast"}
@@ -292,8 +279,6 @@ class Vid2Param(Estimator):
 
     def _ensure_net(self):
         if getattr(self, "net_", None) is None:
-            from methods.vid2param.train import resolve_device
-
             path = self._checkpoint_path()
             shipped = self.checkpoint is None or self.checkpoint in SHIPPED_CHECKPOINTS
             if shipped and not path.exists():
@@ -303,22 +288,41 @@ class Vid2Param(Estimator):
                 )
             ck = load_checkpoint(path)
             net = build_net(ck, path)
+            # the stages after the network (converted from the older format's keys)
+            pipeline = Pipeline.from_checkpoint(ck, path, net)
             if self.threads is not None:
                 torch.set_num_threads(check_positive_int(self.threads, "threads"))
             self.device_ = resolve_device(self.device)
             self.net_ = net.to(self.device_)
             self.config_ = net.config
-            self.std_scale_ = _std_scale(ck)
-            self.physics_scale_ = _std_scale(ck, "physics_calibration")
-            from methods.vid2param.drag import DragBlend  # not at the top: `-m ...drag` runs it
-
-            self.drag_ = DragBlend.from_record(ck.get("drag_evidence"))
+            self._set_pipeline(pipeline)
             self.checkpoint_info_ = {k: ck.get(k) for k in ("train", "git_commit", "val_metrics",
-                                                            "source_sha256", "calibration",
-                                                            "drag_evidence",
-                                                            "physics_calibration")}
+                                                            "source_sha256")}
+            self.checkpoint_info_["stages"] = pipeline.names
+            # each stage's state also under the older format's key (``drag_evidence``, ...)
+            self.checkpoint_info_.update({s.legacy_key: s.state for s in pipeline.stages
+                                          if s.legacy_key})
             self.checkpoint_info_["path"] = str(path)
         return self.net_
+
+    def _set_pipeline(self, pipeline: Pipeline) -> None:
+        """Use ``pipeline``'s stages after the network."""
+        self.pipeline_ = pipeline
+        cal = pipeline.get("physics_calibration")
+        # vid2param-physics's factors (a plain attribute: the calibration's fit sets it)
+        self.physics_scale_ = np.ones(len(PARAMS)) if cal is None else cal.factors.copy()
+
+    @property
+    def std_scale_(self) -> np.ndarray:
+        """The ``std_scale`` stage's factors (``PARAMS`` order; ones without one)."""
+        st = self.pipeline_.get("std_scale")
+        return np.ones(len(PARAMS)) if st is None else st.factors
+
+    @property
+    def drag_(self):
+        """The ``drag_evidence`` stage's ``DragBlend`` (None without one)."""
+        st = self.pipeline_.get("drag_evidence")
+        return None if st is None else st.blend
 
     @property
     def frame_size(self) -> tuple[int, int]:
@@ -326,11 +330,7 @@ class Vid2Param(Estimator):
         return tuple(self._ensure_net().config.frame_size)
 
     def _index(self) -> list[int]:
-        names = self.config_.targets
-        missing = [p for p in PARAMS if p not in names]
-        if missing:
-            raise ValueError(f"checkpoint: its latent space carries no {missing}")
-        return [names.index(p) for p in PARAMS]
+        return param_index(self.config_.targets)
 
     def _rng(self, salt: int = 0) -> np.random.Generator:
         return np.random.default_rng([int(self.seed), salt])
@@ -385,50 +385,33 @@ class Vid2Param(Estimator):
         mu, sd, _ = self._sequences(frames)
         return mu, sd, time.perf_counter() - t0
 
-    def _sequences(self, frames: np.ndarray, drag: bool = True):
+    def _sequences(self, frames: np.ndarray):
         """Filter (N, T, H, W) frames: ``_calibrated`` of the network's latent sequences."""
         mu, sd, _ = self._latent(frames)
-        return self._calibrated(mu, sd, drag)
+        return self._calibrated(mu, sd)
 
     def _latent(self, frames: np.ndarray):
         """The network's latent means and stds (N, T, K) after every frame of checked videos
         (N, T, H, W) (float64), and the recurrent state after the last."""
-        net = self._ensure_net()
-        with torch.inference_mode():
-            mu, sd, state = net.filter(torch.as_tensor(frames, device=self.device_))
-        return mu.cpu().numpy().astype(np.float64), sd.cpu().numpy().astype(np.float64), state
+        return latent_pass(self._ensure_net(), frames, self.device_)
 
-    def _calibrated(self, mu: np.ndarray, sd: np.ndarray, drag: bool = True):
-        """The parameter posteriors of latent sequences.
+    def _calibrated(self, mu: np.ndarray, sd: np.ndarray):
+        """The parameter posteriors of latent sequences: the network's, through every stage
+        (``pipeline_``, ``methods.vid2param.stages``).
 
         Parameters
         ----------
         mu, sd : ndarray, shape (..., T, K)
             The network's latent means and stds after every frame.
-        drag : bool
-            Blend the drag evidence into d (``methods.vid2param.drag``) when the checkpoint
-            has it.
 
         Returns
         -------
         mu, sd : ndarray, shape (..., T, 4)
-            Normalised, std-calibrated, ``PARAMS`` order.
+            Normalised, ``PARAMS`` order.
         positions : ndarray, shape (..., T, 2)
             The network's track, metres.
         """
-        pos = self._positions(mu)
-        idx = self._index()
-        m, s = mu[..., idx], sd[..., idx] * self.std_scale_
-        if drag and self.drag_ is not None:
-            from methods.vid2param.drag import statistic_track
-
-            T = pos.shape[-2]
-            D, S = statistic_track(pos.reshape(-1, T, 2), self.drag_.k)
-            i = PARAMS.index("d")
-            lead = (*m.shape[:-1], 2)
-            m[..., i], s[..., i] = self.drag_.apply(m[..., i], s[..., i], D.reshape(lead),
-                                                    S.reshape(lead))
-        return m, s, pos
+        return self.pipeline_.apply(mu, sd, self.config_.targets)
 
     # -- the interface --------------------------------------------------------------------------
     def fit(self, train=None) -> Vid2Param:
@@ -445,8 +428,9 @@ class Vid2Param(Estimator):
         if train is None:
             self._ensure_net()
             return self
+        # training code, imported only to train (loading and answering never import it)
         from methods.vid2param.model import V2PConfig
-        from methods.vid2param.train import TrainConfig, resolve_device
+        from methods.vid2param.train import TrainConfig
         from methods.vid2param.train import train as run_training
 
         frames = np.asarray(train.frames)
@@ -475,9 +459,8 @@ class Vid2Param(Estimator):
         self.device_ = resolve_device(self.device)
         self.net_ = net.to(self.device_)
         self.config_ = net.config
-        self.std_scale_ = np.ones(len(PARAMS))  # a new fit is not calibrated
-        self.drag_ = None  # nor has it a drag evidence fitted to it
-        self.physics_scale_ = np.ones(len(PARAMS))
+        # a new fit has no stages fitted to it (``python -m methods.vid2param.train`` fits them)
+        self._set_pipeline(Pipeline())
         self.checkpoint_info_ = {"path": None, "fit": {"steps": info["step"], "wall_s": info["wall_s"],
                                                        "warm_start": init is not None}}
         return self
@@ -635,8 +618,7 @@ class Vid2Param(Estimator):
 
     def _positions(self, mu: np.ndarray) -> np.ndarray:
         """Floor-relative positions (..., T, 2) (m) of latent means (..., T, K)."""
-        names = self.config_.targets
-        return BOX_WIDTH * mu[..., [names.index("x"), names.index("y")]]
+        return positions(mu, self.config_.targets)
 
     def _parameters(self, mu: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Calibrated posterior of ``(e, g, d, r)`` (4,) each, physical units, after the last
@@ -704,9 +686,7 @@ class Vid2Param(Estimator):
         the track's zero (5 mm).
         """
         self._ensure_net()
-        nuis = (self.checkpoint_info_.get("train") or {}).get("nuisance") or {}
-        spread = float(nuis.get("floor_offset", 0.0)) / np.sqrt(12.0)
-        return 0.0, max(spread, 0.005)
+        return floor_prior(self.checkpoint_info_.get("train"))
 
     def _forecast_learned_prior(self, frames, horizon: int):
         """The latent rollout of a checkpoint without a physics prior (older ones): the learned
@@ -731,12 +711,6 @@ class Vid2Param(Estimator):
         """A streaming session: ``push`` one frame at a time, constant cost per frame."""
         self._ensure_net()
         return Vid2ParamStream(self)
-
-
-#: A frame whose network position std in x exceeds this (m) is taken as unseen by
-#: ``vid2param-physics``'s fit. Measured on test-split videos: seen frames 0.01 m (28x28) and at
-#: most 0.85 m (camera, blurred or occluded); black frames at least 2.5 m (28x28), 1.07 m (camera).
-UNSEEN_SD_M = 1.0
 
 
 class Vid2ParamPhysics(Vid2Param):
@@ -888,13 +862,9 @@ class Vid2ParamStream(Stream):
         # the network's own track (floor-relative metres) and last posterior, for forecast()
         self.track = np.full((256, 2), np.nan)
         self.last = None
-        # the drag evidence's statistic of that track (``Vid2Param._calibrated``), when the
-        # checkpoint has one: the stream's own, not part of ``state``
-        self._drag = None
-        if self.est.drag_ is not None:
-            from methods.vid2param.drag import DragStatistic
-
-            self._drag = DragStatistic(1, self.est.drag_.k)
+        # the stages' streaming states (the drag statistic of the track, ...): the stream's
+        # own, not part of ``state``
+        self._stages = self.est.pipeline_.start(1)
 
     def forecast(self, horizon: int, floor: float | None = None) -> Forecast:
         """Positions of the ``horizon`` frames after the last pushed one (metres).
@@ -955,7 +925,7 @@ class Vid2ParamStream(Stream):
         if self._fast is not None:
             mu, sd = self._fast.step(fr)
             mu_n = mu[self._idx_np].astype(np.float64)
-            sd_n = sd[self._idx_np].astype(np.float64) * self.est.std_scale_
+            sd_n = sd[self._idx_np].astype(np.float64)
             xy = mu[self._xy_np]
         else:
             with torch.inference_mode():
@@ -964,16 +934,15 @@ class Vid2ParamStream(Stream):
                 mu, sd = self.net.enc_step(fx, self.net.read(self._state))
                 self._state = self.net.step_rnn(mu, self._state)
                 mu_n = mu[0, self.idx].cpu().numpy().astype(np.float64)
-                sd_n = sd[0, self.idx].cpu().numpy().astype(np.float64) * self.est.std_scale_
+                sd_n = sd[0, self.idx].cpu().numpy().astype(np.float64)
                 xy = mu[0, self._xy_np].cpu().numpy()
         if self.n >= len(self.track):  # the network's own track, for forecast()
             self.track = np.concatenate([self.track, np.full_like(self.track, np.nan)])
         self.track[self.n] = BOX_WIDTH * xy
-        if self._drag is not None:  # as Vid2Param._calibrated, one frame on
-            self._drag.update(self.track[self.n][None])
-            D, S = self._drag.summary()
-            i = PARAMS.index("d")
-            (mu_n[i],), (sd_n[i],) = self.est.drag_.apply(mu_n[i:i + 1], sd_n[i:i + 1], D, S)
+        # the stages, one frame on (as ``Vid2Param._calibrated`` over a whole video)
+        m, s = self.est.pipeline_.step(self._stages, mu_n[None], sd_n[None],
+                                       self.track[self.n][None])
+        mu_n, sd_n = m[0], s[0]
         self.last = (mu_n, sd_n)
         self.n += 1
         wall = time.perf_counter() - t0

@@ -23,9 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -34,8 +32,9 @@ from tqdm.auto import tqdm
 
 from methods.vid2param.data import perturb_dataset, rolls_mask
 from methods.vid2param.estimator import Vid2Param
-from sysid_bench.bench.forecasting import forecast_interval
+from sysid_bench._io import atomic_write
 from sysid_bench.datasets import make_dataset
+from sysid_bench.metrics import central_z
 from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
 
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
@@ -69,6 +68,27 @@ def _scores(mu, sd, truth, rolls, long_rolls=None) -> dict:
         out[f"nmse_r_rolling_{LONG_ROLL}"] = float(err[long_rolls, 3].mean())
         out[f"n_rolling_{LONG_ROLL}"] = int(long_rolls.sum())
     return out
+
+
+def forecast_interval(fc, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """Central ``level`` interval of a Forecast, (H, 2) each: sample quantiles, else Gaussian
+    (as the benchmark's forecasting experiment reads one)."""
+    a = (1 - level) / 2
+    if fc.samples is not None and len(fc.samples) >= 2:
+        return tuple(np.quantile(fc.samples, [a, 1 - a], axis=0))
+    z = float(central_z(level))
+    return fc.mean - z * fc.std, fc.mean + z * fc.std
+
+
+def save_figure(fig, path) -> Path:
+    """Save ``fig`` as PNG at ``path`` atomically and close it."""
+    import matplotlib.pyplot as plt
+
+    try:
+        fig.tight_layout()
+        return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+    finally:
+        plt.close(fig)
 
 
 def evaluate_vid2param(est, ds, lengths) -> dict:
@@ -203,8 +223,6 @@ def figures(out: dict, ds, fest, outdir, name: str, n_examples: int = 3) -> list
     import matplotlib.pyplot as plt
 
     import methods
-    from sysid_bench.bench.figures import save_figure
-
     outdir = Path(outdir)
     paths = []
     # 1. normalised MSE against frames seen, Vid2Param's curve and lsq's points
@@ -334,12 +352,7 @@ def main(argv=None) -> int:
     text = json.dumps(out, indent=1)
     print(text)
     if a.json:
-        path = Path(a.json)
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text + "\n")
-        os.chmod(tmp, 0o644)  # mkstemp makes it private; a record is for everyone to read
-        os.replace(tmp, path)
+        atomic_write(a.json, text + "\n")
     return 0
 
 

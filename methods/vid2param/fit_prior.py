@@ -12,29 +12,28 @@ Two stages: Adam on the interval score of the 90% band of the particles' mixture
 noise's level and its gain on the backtest), then ``calibrate``: the noise is rescaled so that
 the training videos with a backtest below the median and those above each get 90% coverage.
 
-``python -m methods.vid2param.fit_prior --checkpoint 28x28 --out PATH`` writes a checkpoint
-with ``config.physics_prior = True``; the record of the run is stored under ``prior_fit``.
+This is the ``prior_noise`` stage (``methods.vid2param.stages``): ``python -m
+methods.vid2param.train ... --export F`` fits it after the network (its noise weights and the
+record of the run are the stage's state).
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from methods.vid2param.checkpoint import load_checkpoint, save_atomic, upgrade_state_dict
+from methods.vid2param.checkpoint import upgrade_state_dict
 from methods.vid2param.data import make_split, perturb_dataset
 from methods.vid2param.model import V2PConfig, Vid2ParamNet
 from methods.vid2param.rollout import backtest_error, fit_state, sample_trajectories
 from sysid_bench._validate import check_positive_int
 
-__all__ = ["PriorFitConfig", "with_physics_prior", "fit_prior", "main"]
+__all__ = ["PriorFitConfig", "with_physics_prior", "fit_prior_stage"]
 
 #: Largest NLL of one coordinate and frame that counts (a 6-sigma miss).
 NLL_CLIP = 18.0
@@ -97,11 +96,10 @@ def with_physics_prior(ck: dict) -> Vid2ParamNet:
     return net
 
 
-def _pool(est, n: int, seed: int, cfg: PriorFitConfig, desc: str) -> dict:
-    """Filter ``n`` videos to a random prefix each and draw their posterior particles."""
-    size = tuple(est.frame_size)
-    tr = est.checkpoint_info_.get("train") or {}
-    ds = make_split("train", n, seed, size, tr.get("nuisance"), 200)
+def _pool(ctx, n: int, seed: int, cfg: PriorFitConfig, desc: str) -> dict:
+    """Filter ``n`` videos to a random prefix each (the network and the stages before, ``ctx``)
+    and draw their posterior particles."""
+    ds = make_split("train", n, seed, ctx.frame_size, ctx.train.get("nuisance"), 200)
     p = cfg.perturb
     ds = perturb_dataset(ds, p["spin"], p["dwell"], seed=seed, p=p["p"])
     rng = np.random.default_rng([seed, 5])
@@ -111,9 +109,9 @@ def _pool(est, n: int, seed: int, cfg: PriorFitConfig, desc: str) -> dict:
     for i in tqdm(range(n), desc=desc, mininterval=10):
         t0 = int(rng.integers(lo, hi + 1))
         frames = np.asarray(ds.frames[i, :t0])
-        pos, th_mu, th_sd, _ = est._track(frames)
-        fit = fit_state(pos, th_mu, th_sd, floor=est.floor_prior())
-        out["skill"].append(backtest_error(pos, th_mu, th_sd, floor=est.floor_prior()))
+        pos, th_mu, th_sd = ctx.track(frames)
+        fit = fit_state(pos, th_mu, th_sd, floor=ctx.floor_prior())
+        out["skill"].append(backtest_error(pos, th_mu, th_sd, floor=ctx.floor_prior()))
         # the rollout runs above each draw's floor, as the truths (floor-relative) are
         states, theta, _ = sample_trajectories(fit, t0, 0, cfg.particles, rng)
         out["phys"].append(states[:, 0])
@@ -260,35 +258,32 @@ def calibrate(net, pool, cfg: PriorFitConfig, level: float = 0.9, log=print) -> 
     return rec
 
 
-def fit_prior(checkpoint, out, cfg: PriorFitConfig | None = None, threads: int | None = None,
-              log=print) -> dict:
-    """Train the physics prior of ``checkpoint`` and write the result to ``out``.
+def fit_prior_stage(ctx, cfg: PriorFitConfig | None = None, log=None):
+    """Train the physics prior of ``ctx.net`` (an ``inference.FitContext``) afresh.
 
     Returns
     -------
-    dict
-        The record stored in the checkpoint as ``prior_fit``: settings, validation metrics of
-        the untrained prior (physics alone) and of the trained one, wall time.
+    record : dict
+        Settings, validation metrics of the untrained prior (physics alone) and of the trained
+        one, wall time.
+    net : Vid2ParamNet
+        The network with ``config.physics_prior`` and the trained prior (its other weights
+        those of ``ctx.net``).
     """
-    import methods
-
     cfg = cfg or PriorFitConfig()
+    log = log or ctx.log
     check_positive_int(cfg.steps, "steps")
-    if threads is not None:
-        torch.set_num_threads(check_positive_int(threads, "threads"))
     t_start = time.perf_counter()
-    est = methods.get("vid2param", checkpoint=checkpoint)
-    path = est._checkpoint_path()
-    ck = load_checkpoint(path)
-    net = with_physics_prior(ck)
-    est._ensure_net()
-    est.net_ = net  # the estimator filters with the same weights; its prior is trained below
+    net = with_physics_prior({"config": ctx.net.config.to_dict(),
+                              "state_dict": ctx.net.state_dict()})
+    net.eval()
+    ctx.net = net  # the tracks are filtered with the same weights; its prior is trained below
     for p in net.parameters():
         p.requires_grad_(False)
     for p in net.phys_prior.parameters():
         p.requires_grad_(True)
-    train = _pool(est, cfg.n_videos, cfg.seed * 1000 + 101, cfg, "prior: training videos")
-    val = _pool(est, cfg.n_val, cfg.seed * 1000 + 202, cfg, "prior: validation videos")
+    train = _pool(ctx, cfg.n_videos, cfg.seed * 1000 + 101, cfg, "prior: training videos")
+    val = _pool(ctx, cfg.n_val, cfg.seed * 1000 + 202, cfg, "prior: validation videos")
     before = _coverage(net, val, cfg, seed=1)
     log(f"starting noise (validation): {before}")
     opt = torch.optim.Adam(net.phys_prior.parameters(), lr=cfg.lr)
@@ -313,39 +308,12 @@ def fit_prior(checkpoint, out, cfg: PriorFitConfig | None = None, threads: int |
     calibrated = _coverage(net, val, cfg, seed=1)
     calibrated["by_skill"] = _coverage_by_skill(net, val, cfg, calibration["split_m"])
     log(f"calibrated (validation): {calibrated}")
+    for p in net.parameters():
+        p.requires_grad_(False)
     record = {"config": asdict(cfg), "val_noise0": before, "val_trained": after,
               "calibration": calibration, "val_calibrated": calibrated,
               "noise_per_frame": torch.exp(net.phys_prior.log_noise).tolist(),
               "bounce_noise": torch.exp(net.phys_prior.log_bounce).tolist(),
               "skill_gain": net.phys_prior.skill_gain.tolist(),
-              "wall_s": time.perf_counter() - t_start, "from": str(path)}
-    ck = dict(ck)
-    ck["config"] = net.config.to_dict()
-    ck["state_dict"] = net.state_dict()
-    ck["prior_fit"] = record
-    save_atomic(ck, out)
-    return record
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m methods.vid2param.fit_prior",
-                                 description=__doc__.splitlines()[0])
-    ap.add_argument("--checkpoint", default="28x28", help="shipped name or path")
-    ap.add_argument("--out", required=True, help="checkpoint file to write")
-    ap.add_argument("--steps", type=int, default=PriorFitConfig.steps)
-    ap.add_argument("--n-videos", type=int, default=PriorFitConfig.n_videos)
-    ap.add_argument("--n-val", type=int, default=PriorFitConfig.n_val)
-    ap.add_argument("--seed", type=int, default=PriorFitConfig.seed)
-    ap.add_argument("--perturb-p", type=float, default=None,
-                    help="fraction of videos that deviate from our physics (default 0.5)")
-    ap.add_argument("--threads", type=int, default=None)
-    a = ap.parse_args(argv)
-    cfg = PriorFitConfig(steps=a.steps, n_videos=a.n_videos, n_val=a.n_val, seed=a.seed)
-    if a.perturb_p is not None:
-        cfg.perturb = {**cfg.perturb, "p": a.perturb_p}
-    fit_prior(a.checkpoint, Path(a.out), cfg, threads=a.threads)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+              "wall_s": time.perf_counter() - t_start, "from": ctx.source}
+    return record, net

@@ -21,10 +21,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import re
 import sys
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -36,6 +34,8 @@ from tqdm.auto import tqdm
 from methods.vid2param.checkpoint import (
     FORMAT,
     FORMAT_VERSION,
+    build_net,
+    checkpoint_path,
     git_info,
     load_checkpoint,
     save_atomic,
@@ -50,17 +50,20 @@ from methods.vid2param.data import (
     rolls_mask,
     targets_from_dataset,
 )
+from methods.vid2param.inference import FitContext, resolve_device
 from methods.vid2param.model import PRESETS, V2PConfig, Vid2ParamNet, count_parameters
 from methods.vid2param.parts import ROLL_STATS
-from sysid_bench._validate import SEED_MAX, arg_number
+from methods.vid2param.stages import (
+    LEGACY_KEYS,
+    PRESET_STAGES,
+    STAGES,
+    Pipeline,
+    calibrate,
+)
+from sysid_bench._io import atomic_write
 
-__all__ = ["TrainConfig", "train", "evaluate", "export", "export_with_prior", "calibrate", "resolve_device",
-           "load_matching", "main"]
-
-#: Seed of the calibration videos: fresh draws of the train split (the training chunks use
-#: ``chunk_seed(data_seed, k)``), so calibration sees neither the test sub-ranges nor the
-#: evaluation's videos.
-CALIBRATION_SEED = 424242
+__all__ = ["TrainConfig", "train", "evaluate", "export", "fit_stages", "parse_stages",
+           "calibrate", "resolve_device", "load_matching", "main"]
 
 
 @dataclass
@@ -198,16 +201,6 @@ class TrainConfig:
         d = asdict(self)
         d["size"] = list(self.size)
         return d
-
-
-def resolve_device(device: str = "auto") -> torch.device:
-    """``"auto"``: CUDA when available, else CPU; otherwise the named device."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        return torch.device(device)
-    except (RuntimeError, TypeError) as exc:
-        raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}") from exc
 
 
 def init_record(path) -> dict:
@@ -396,44 +389,6 @@ def evaluate(net: Vid2ParamNet, ds, lengths=(10, 25, 50, 100, 150, 200), batch: 
     return out
 
 
-@torch.no_grad()
-def calibrate(net: Vid2ParamNet, ds, lengths=(50, 100, 150, 200), batch: int = 100,
-              level: float = 0.9) -> np.ndarray:
-    """Per-dimension factors for the encoder's stds so that ``level`` intervals hold ``level``
-    of the truths on ``ds`` (pooled over ``lengths``): the networks come out overconfident on
-    some parameters (90% intervals holding 72-80% of d's truths), a factor fixes that after
-    training without touching the means. ``r`` is calibrated on the videos where the ball
-    rolls (``rolls_mask``) only: elsewhere nothing in the video tells r and its interval is
-    meant to stay prior-wide; pooled, those wide intervals shrank the factor (0.86) and left
-    rolling videos' intervals holding 79% of the truths.
-
-    Parameters
-    ----------
-    net : Vid2ParamNet
-    ds : Dataset-like (frames, states, theta/labels, floor), calibration videos
-    lengths : prefix lengths pooled
-
-    Returns
-    -------
-    ndarray, shape (K,)
-        Factors for the supervised dimensions, ``config.targets`` order.
-    """
-    from scipy.stats import norm
-
-    names = net.config.targets
-    frames = np.asarray(ds.frames)
-    lengths = [int(L) for L in lengths if L <= frames.shape[1]] or [frames.shape[1]]
-    mu, sd = _prefix_posteriors(net, frames, lengths, batch)
-    tg = targets_from_dataset(ds, names)[:, [L - 1 for L in lengths]]
-    z = np.abs(mu - tg) / sd  # (N, L, K)
-    q = np.quantile(z.reshape(-1, len(names)), level, axis=0)
-    rolls = rolls_mask(ds.states, ds.floor)
-    if "r" in names and rolls.any():
-        i = names.index("r")
-        q[i] = np.quantile(z[rolls, :, i], level)
-    return (q / norm.ppf(0.5 + level / 2)).astype(np.float64)
-
-
 def _summary(m: dict) -> str:
     L = max(m["nmse"])
     s = " ".join(f"{p}={v:.4f}" for p, v in m["nmse"][L].items())
@@ -463,6 +418,8 @@ def _state_dict(net, opt, mc, tc, step, wall, history, final=False, init=None) -
 
 
 def _jsonable(o):
+    if isinstance(o, torch.Tensor):
+        return o.tolist()
     if isinstance(o, dict):
         return {str(k): _jsonable(v) for k, v in o.items()}
     if isinstance(o, (list, tuple)):
@@ -478,57 +435,125 @@ def export_card(path) -> Path:
     ck = load_checkpoint(path)
     info = {k: ck.get(k) for k in ("format", "format_version", "config", "train", "git_commit",
                                     "source_sha256", "torch_version", "val_metrics",
-                                    "init_checkpoint", "calibration", "prior_fit",
-                                    "drag_evidence", "physics_calibration")}
+                                    "init_checkpoint", "stages", *LEGACY_KEYS) if k in ck}
     info["file_bytes"] = path.stat().st_size
     info["n_parameters"] = int(sum(v.numel() for v in ck["state_dict"].values()))
     text = json.dumps(_jsonable(info), indent=1, sort_keys=True)
-    jp = path.with_suffix(".json")
-    fd, tmp = tempfile.mkstemp(prefix=jp.name + ".", suffix=".tmp", dir=jp.parent)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text + "\n")
-    os.chmod(tmp, 0o644)  # mkstemp makes it private; a card is for everyone to read
-    os.replace(tmp, jp)
-    return jp
+    return atomic_write(path.with_suffix(".json"), text + "\n")
 
 
-def export(state_path, out_path, card: bool = True, calibrate_n: int = 0) -> Path:
-    """Write a shipped checkpoint (no optimizer state) and a JSON card from a training state.
+def export(state_path, out_path, card: bool = True, stages=()) -> Path:
+    """Write a shipped checkpoint (no optimizer state) and a JSON card from a training state,
+    then fit ``stages`` after its network (:func:`fit_stages`).
 
     Parameters
     ----------
     state_path : path of ``state.pt`` written by :func:`train`
     out_path : path of the ``.pt`` to write; the card goes next to it as ``.json``.
-    calibrate_n : int
-        With n > 0, fit std factors (:func:`calibrate`) on n fresh clean videos of the train
-        split (``CALIBRATION_SEED``, the run's size and nuisances) after their last frame, and
-        store them as ``calibration``; the estimator applies them.
+    stages : sequence of (name, options)
+        The stages to fit, in order (``stages.PRESET_STAGES``; :func:`parse_stages`).
     """
     ck = load_checkpoint(state_path)
     ck.pop("optimizer", None)
-    if calibrate_n > 0:
-        from methods.vid2param.checkpoint import build_net
-
-        tr = ck["train"]
-        n_fr = int(tr.get("n_frames", 200))
-        ds = make_split("train", int(calibrate_n), CALIBRATION_SEED, tuple(tr["size"]),
-                        tr.get("nuisance"), n_fr)
-        # at the full length, where the benchmark reports: measured on the shipped 28x28 model,
-        # factors pooled over 50-200 frames (e 1.22) left e's 90% intervals holding 74% of the
-        # test truths at 200 frames; earlier prefixes were already within 80-97%
-        factors = calibrate(build_net(ck, state_path), ds, lengths=(n_fr,))
-        ck["calibration"] = {"std_scale": factors.tolist(), "targets": list(ck["config"]["targets"]),
-                             "n": int(calibrate_n), "seed": CALIBRATION_SEED, "split": "train",
-                             "level": 0.9, "lengths": [n_fr]}
     out_path = Path(out_path)
     init = (ck.get("train") or {}).get("init")
     if init and "init_checkpoint" not in ck and Path(init).exists():
         # states written before the record was taken at the start: identify the file now
         ck["init_checkpoint"] = init_record(init)
+    ck["stages"] = []  # the network alone until the stages are fitted
+    for key in LEGACY_KEYS:
+        ck.pop(key, None)
     save_atomic(ck, out_path)
+    if stages:
+        return fit_stages(out_path, out_path, stages, card=card)
     if card:
         export_card(out_path)
     return out_path
+
+
+def parse_stages(specs) -> list[tuple[str, dict]]:
+    """Stage specs as ``[(name, options)]``: each a ``(name, options)`` pair or a string
+    ``"name"`` / ``"name:key=value,key=value"`` (values read as JSON where they parse)."""
+    out = []
+    for spec in specs:
+        if isinstance(spec, str):
+            name, _, rest = spec.partition(":")
+            opts = {}
+            for item in filter(None, rest.split(",")):
+                key, eq, val = item.partition("=")
+                if not eq:
+                    raise ValueError(f"stages: expected name:key=value,..., got {spec!r}")
+                try:
+                    opts[key.strip()] = json.loads(val)
+                except json.JSONDecodeError:
+                    opts[key.strip()] = val
+            spec = (name, opts)
+        name, opts = spec
+        if name not in STAGES:
+            raise ValueError(f"stages: unknown stage {name!r} (known stages: "
+                             f"{', '.join(sorted(STAGES))})")
+        out.append((name, dict(opts)))
+    return out
+
+
+def fit_stages(checkpoint, out, stages, threads: int | None = None, card: bool = True,
+               log=print) -> Path:
+    """Fit ``stages`` in order after the network of ``checkpoint`` and write ``out``.
+
+    Each stage is fitted on train videos with the network frozen and the stages before it in
+    place (``inference.FitContext``); the checkpoint is written after each stage (a run
+    stopped midway keeps the stages fitted so far) with ``checkpoint["stages"]`` in order, and
+    its card once at the end. The checkpoint's own stages are replaced, except those given
+    with the option ``keep=True``, which are taken as the checkpoint has them (refitting only
+    the later ones: ``["prior_noise:keep=true", "drag_evidence:keep=true",
+    "physics_calibration"]``).
+
+    Parameters
+    ----------
+    checkpoint : str or path
+        A shipped checkpoint's name or a path.
+    out : path
+        The checkpoint to write (may be the same file).
+    stages : sequence
+        ``(name, options)`` pairs or ``"name:key=value"`` strings (:func:`parse_stages`).
+    """
+    stages = parse_stages(stages)
+    path = checkpoint_path(checkpoint)
+    ck = dict(load_checkpoint(path))
+    net = build_net(ck, path)
+    old = Pipeline.from_checkpoint(ck, path, net)
+    Pipeline.check([n for n, _ in stages], net.config, str(path))
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+    source = checkpoint if isinstance(checkpoint, str) and not Path(checkpoint).exists() \
+        else Path(path).name  # a name, not a machine path, in the records
+    pipeline = Pipeline()
+    ctx = FitContext(net=net, pipeline=pipeline, train=ck.get("train") or {}, source=source,
+                     log=log)
+    for key in LEGACY_KEYS:
+        ck.pop(key, None)
+    for name, opts in stages:
+        if opts.pop("keep", False):
+            stage = old.get(name)
+            if stage is None:
+                raise ValueError(f"stages: {name!r} is to be kept, but checkpoint {str(path)!r} "
+                                 f"has no such stage (it has {old.names})")
+            log(f"stage {name}: kept as fitted")
+        else:
+            log(f"stage {name}: fitting ({opts or 'defaults'})")
+            stage = STAGES[name].fit(ctx, **opts)
+        stage.bind(ctx.net)
+        pipeline.stages.append(stage)
+        ck["config"] = ctx.net.config.to_dict()
+        ck["state_dict"] = {k: v.detach().cpu().clone() for k, v in ctx.net.state_dict().items()}
+        ck["stages"] = pipeline.records()
+        save_atomic(ck, out)
+    if not stages:
+        ck["stages"] = []
+        save_atomic(ck, out)
+    if card:
+        export_card(out)
+    return Path(out)
 
 
 def train(
@@ -700,37 +725,6 @@ def train(
     return net.cpu(), {"step": step, "wall_s": wall(), "val_history": history, "done": done}
 
 
-def export_with_prior(state_path, out_path, calibrate_n: int = 0,
-                      prior_steps: int | None = None, threads: int | None = None,
-                      drag_n: int = 0, physics_cal_n: int = 0) -> Path:
-    """``export``, then the last phases of the recipe, each written over the export: (a config
-    with ``physics_prior``) the physics prior's noise trained on the exported network
-    (``methods.vid2param.fit_prior``, ``prior_steps`` steps, default :data:`PRIOR_STEPS`; 0:
-    none); with ``drag_n`` > 0 the drag evidence fitted on that many train videos
-    (``methods.vid2param.drag``); with ``physics_cal_n`` > 0 ``vid2param-physics``'s std
-    factors calibrated on that many (``methods.vid2param.calibrate_physics``)."""
-    prior_steps = PRIOR_STEPS if prior_steps is None else int(prior_steps)
-    # the card is written once, after the last phase
-    out_path = Path(export(state_path, out_path, card=False, calibrate_n=calibrate_n))
-    cfg = load_checkpoint(out_path)["config"]
-    if cfg.get("physics_prior") and prior_steps > 0:
-        from methods.vid2param.fit_prior import PriorFitConfig, fit_prior
-
-        fit_prior(out_path, out_path, PriorFitConfig(steps=prior_steps), threads=threads)
-    if drag_n > 0:
-        from methods.vid2param.drag import DragFitConfig, fit_drag
-
-        fit_drag(out_path, out_path, DragFitConfig(n_videos=int(drag_n)), threads=threads)
-    if physics_cal_n > 0:  # after the drag evidence: the fit's prior includes it
-        from methods.vid2param.calibrate_physics import calibrate_physics
-
-        calibrate_physics(out_path, out_path, int(physics_cal_n), threads=threads)
-    export_card(out_path)
-    return out_path
-
-
-#: Steps of the physics prior's training at export (``fit_prior``'s default).
-PRIOR_STEPS = 150
 #: TrainConfig values a preset's recipe takes instead of the defaults (a flag given overrides
 #: them). The camera preset trains on the shipped camera model's nuisances. It starts from the shipped 28x28 model's weights (``init`` names a
 #: shipped checkpoint or a path): from scratch, its run had learnt none of e, g, d after 2250
@@ -747,25 +741,10 @@ PRESET_TRAIN = {
 }
 
 
-#: Train videos of the export's last fits, by preset: the drag evidence
-#: (``methods.vid2param.drag``: the camera model's d gained 2.6x on its test split; the 28x28
-#: model's d, 0.0029, needs none) and ``vid2param-physics``'s std factors
-#: (``methods.vid2param.calibrate_physics``: the camera fit's g intervals held 44%).
-PRESET_EXPORT = {"camera": {"drag_n": 300, "physics_cal_n": 100}}
-
-
-def _export_n(a: argparse.Namespace, name: str) -> int:
-    """The flag ``name`` (``drag_n``, ``physics_cal_n``), or the preset's (``PRESET_EXPORT``)."""
-    v = getattr(a, name)
-    return int(v) if v is not None else PRESET_EXPORT.get(a.preset, {}).get(name, 0)
-
-
 def _resolve_init(init: str | None) -> str | None:
     """A shipped checkpoint's name (``"28x28"``, ``"camera"``) as its path; a path as given."""
     if init is None or init.lower() == "none":  # "none": from scratch, whatever the preset
         return None
-    from methods.vid2param.estimator import checkpoint_path
-
     return str(checkpoint_path(init))
 
 
@@ -804,67 +783,42 @@ def _field_help(cls) -> dict[str, str]:
     return out
 
 
-#: Ranges of the numeric flags, ``(lo, hi, lo_open)``; a flag not named here takes ``[0, inf)``.
-#: Checked by argparse (``_arg_type``), so ``--steps -1`` is refused before anything is built.
-_FLAG_RANGES = {
-    "steps": (1, None, False), "batch": (1, None, False), "chunk": (1, None, False),
-    "n_frames": (2, None, False), "min_obs": (1, None, False), "val_every": (1, None, False),
-    "threads": (1, None, False), "lr": (0, None, True), "clip": (0, None, True),
-    "ckpt_every": (0, None, True), "rec_frac": (0, 1, True), "p_full": (0, 1, False),
-    "p_blank": (0, 1, False), "early_aux_grad": (0, 1, False), "seed": (0, SEED_MAX, False),
-    "data_seed": (0, SEED_MAX, False), "val_seed": (0, SEED_MAX, False),
-    "max_minutes": (0, None, True), "latent": (1, None, False), "hidden": (1, None, False),
-    "feat": (1, None, False), "keypoints": (1, None, False), "pool": (1, None, False),
-    "channels": (1, None, False), "size": (4, None, False),
-}
-
-
-def _arg_type(name: str, kind: type):
-    """The argparse ``type=`` of flag ``name``: a number of ``kind`` in its :data:`_FLAG_RANGES`
-    range (default ``>= 0``); a non-numeric kind is its own type."""
-    if kind not in (int, float):
-        return kind
-    lo, hi, lo_open = _FLAG_RANGES.get(name, (0, None, False))
-    return arg_number(lo, hi, integer=kind is int, lo_open=lo_open)
-
-
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m methods.vid2param.train", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     tc = TrainConfig()
     tc_help, mc_help = _field_help(TrainConfig), _field_help(V2PConfig)
     run = p.add_argument_group("run (what to do with the recipe)")
-    run.add_argument("--out", required=True, help="folder for the resumable state.pt")
-    run.add_argument("--export", help="write a shipped checkpoint (+ .json card) here at the end")
+    run.add_argument("--out", help="folder for the resumable state.pt (not with --refit)")
+    run.add_argument("--export", help="write a shipped checkpoint (+ .json card) here at the end: "
+                                      "the network, then every stage of --stages fitted in order")
     run.add_argument("--export-only", action="store_true",
                      help="only export <out>/state.pt to --export, no training")
-    run.add_argument("--calibrate-n", type=int, default=0,
-                     help="with --export: fit the stds' calibration on this many fresh train videos")
-    run.add_argument("--prior-steps", type=int, default=PRIOR_STEPS,
-                     help="with --export: steps of the physics prior's training (0: none)")
-    run.add_argument("--drag-n", type=int, default=None,
-                     help="with --export: train videos of the drag evidence's fit (0: none; "
-                          f"default: the preset's, {PRESET_EXPORT} or 0)")
-    run.add_argument("--physics-cal-n", type=int, default=None,
-                     help="with --export: train videos of vid2param-physics's std calibration "
-                          "(0: none; default: the preset's or 0)")
+    run.add_argument("--refit", metavar="CHECKPOINT", default=None,
+                     help="no training: fit --stages afresh after this checkpoint's network (a "
+                          "shipped name or a path) and write --export")
+    run.add_argument("--stages", nargs="*", default=None, metavar="NAME[:KEY=VALUE,...]",
+                     help="the stages fitted after the network, in order (methods.vid2param."
+                          "stages: " + ", ".join(
+                              f"{k}: {' '.join(n for n, _ in v)}" for k, v in PRESET_STAGES.items())
+                          + "; default: the preset's); e.g. drag_evidence:n_videos=300")
     run.add_argument("--no-resume", action="store_true",
                      help="start afresh even if state.pt exists")
     run.add_argument("--device", default="auto",
                      help="auto (CUDA when present, else CPU), cpu or cuda[:N]")
-    run.add_argument("--max-minutes", type=_arg_type("max_minutes", float), default=None,
+    run.add_argument("--max-minutes", type=float, default=None,
                      help="stop (resumable) after this much wall-clock time")
-    run.add_argument("--stop-at", type=_arg_type("stop_at", int), default=None,
+    run.add_argument("--stop-at", type=int, default=None,
                      help="stop (resumable) after this step")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     rec = p.add_argument_group("recipe (TrainConfig fields; defaults are the shipped recipe)")
     for name, val in asdict(tc).items():
         if name in _OWN_FLAGS:
             continue
-        rec.add_argument("--" + name.replace("_", "-"), type=_arg_type(name, type(val)),
+        rec.add_argument("--" + name.replace("_", "-"), type=type(val),
                          default=None,
                          help=f"{tc_help.get(name, name)} (default: {val}, or the preset's)")
-    rec.add_argument("--size", type=_arg_type("size", int), nargs=2, default=None,
+    rec.add_argument("--size", type=int, nargs=2, default=None,
                      metavar=("H", "W"),
                      help="frame size (default: the preset's)")
     rec.add_argument("--nuisance", type=json.loads, default=argparse.SUPPRESS,
@@ -880,12 +834,12 @@ def _parser() -> argparse.ArgumentParser:
     model.add_argument("--preset", default="28x28", choices=sorted(PRESETS),
                        help="model configuration (V2PConfig.preset) and its data settings")
     for name in ("latent", "hidden", "feat", "keypoints", "pool"):
-        model.add_argument("--" + name, type=_arg_type(name, int), default=None,
+        model.add_argument("--" + name, type=int, default=None,
                            help=mc_help.get(name))
     for name in ("alpha", "beta", "gamma", "gamma_prior", "aux_grad", "kp_threshold"):
         model.add_argument("--" + name.replace("_", "-"), type=float, default=None,
                            help=mc_help.get(name))
-    model.add_argument("--channels", type=_arg_type("channels", int), nargs="+", default=None,
+    model.add_argument("--channels", type=int, nargs="+", default=None,
                        help=mc_help.get("channels"))
     for name in ("kp_visibility", "roll_features", "physics_prior"):
         model.add_argument("--" + name.replace("_", "-"), action=argparse.BooleanOptionalAction,
@@ -913,15 +867,27 @@ def _train_config(a: argparse.Namespace, mc: V2PConfig) -> TrainConfig:
     return TrainConfig(**recipe, size=tuple(mc.frame_size), variant_options=a.variant_options)
 
 
+def _stages(a: argparse.Namespace) -> list[tuple[str, dict]]:
+    """The stages of parsed flags ``a``: ``--stages``, else the preset's (``PRESET_STAGES``)."""
+    if a.stages is not None:
+        return parse_stages(a.stages)
+    return parse_stages(PRESET_STAGES.get(a.preset, ()))
+
+
 def main(argv=None) -> int:
     a = _parse(argv)
+    if a.refit is not None:
+        if not a.export:
+            raise SystemExit("--refit needs --export PATH")
+        print(fit_stages(a.refit, a.export, _stages(a), threads=a.threads))
+        return 0
+    if a.out is None:
+        raise SystemExit("--out is required (the run's folder), except with --refit")
     out = Path(a.out)
     if a.export_only:
         if not a.export:
             raise SystemExit("--export-only needs --export PATH")
-        print(export_with_prior(out / "state.pt", a.export, a.calibrate_n, a.prior_steps,
-                                drag_n=_export_n(a, "drag_n"),
-                                physics_cal_n=_export_n(a, "physics_cal_n")))
+        print(export(out / "state.pt", a.export, stages=_stages(a)))
         return 0
     base = V2PConfig.preset(a.preset).to_dict()
     for name in base:
@@ -935,9 +901,7 @@ def main(argv=None) -> int:
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
                     max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
     if info["done"] and a.export:
-        print(export_with_prior(out / "state.pt", a.export, a.calibrate_n, a.prior_steps,
-                                drag_n=_export_n(a, "drag_n"),
-                                physics_cal_n=_export_n(a, "physics_cal_n")))
+        print(export(out / "state.pt", a.export, stages=_stages(a)))
     return 0
 
 
