@@ -13,6 +13,7 @@ from __future__ import annotations
 import abc
 import functools
 import inspect
+import sys
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
@@ -875,9 +876,10 @@ def _check_obs_fields(obs: Observation) -> None:
 
 def _check_train(train) -> None:
     """``fit``'s ``train``: None (keep the model as it is) or a ``sysid_bench.datasets.Dataset``."""
-    from sysid_bench.datasets import Dataset  # local: datasets imports estimator's neighbours
-
-    if train is not None and not isinstance(train, Dataset):
+    # datasets sits above this module (it makes Observations), so it is not imported here: a
+    # Dataset can only exist once its module is loaded, so the class is looked up there
+    dataset_cls = getattr(sys.modules.get("sysid_bench.datasets"), "Dataset", None)
+    if train is not None and not (dataset_cls is not None and isinstance(train, dataset_cls)):
         raise ValueError(
             f"train: expected None or a sysid_bench.datasets.Dataset (make_dataset / "
             f"load_dataset), got {type(train).__name__}"
