@@ -208,3 +208,18 @@ def test_the_driver_fits_every_stage_in_order_on_a_tiny_network(tmp_path):
     fit_stages(out, tmp_path / "h.pt", ["std_scale:keep=true"], log=lambda s: None)
     with pytest.raises(ValueError, match=r"'drag_evidence' is to be kept, but checkpoint .*h\.pt"):
         fit_stages(tmp_path / "h.pt", tmp_path / "i.pt", ["drag_evidence:keep=true"])
+
+
+def test_the_sensitivity_conditions_agree_with_the_benchmarks():
+    # methods import no benchmark code, so the condition list and each condition's training
+    # data are written in methods/vid2param; the benchmark (a test may import it) must agree
+    from methods.vid2param.checkpoint import SENSITIVITY_CONDITIONS
+    from methods.vid2param.conditions import condition_data
+    from sysid_bench.bench.cases import get_scale
+    from sysid_bench.bench.sensitivity import _train_spec
+
+    assert list(SENSITIVITY_CONDITIONS) == get_scale("default").sensitivity_conditions()
+    for c in SENSITIVITY_CONDITIONS:
+        assert condition_data(c) == _train_spec(c)
+    with pytest.raises(ValueError, match="condition: expected one of"):
+        condition_data("noise:0.3")
