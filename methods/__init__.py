@@ -31,7 +31,7 @@ from sysid_bench.estimator import Estimator
 from sysid_bench.spec import MethodSpec
 
 __all__ = ["available", "references", "get", "get_class", "register", "unregister", "spec",
-           "Registration", "MethodSpec", "NotAvailable"]
+           "commands", "Registration", "MethodSpec", "NotAvailable"]
 
 
 class NotAvailable(NotImplementedError, ValueError):
@@ -100,6 +100,22 @@ register("sindy", "methods.sindy:SINDy", requires=("pysindy",),
 register("dmd", "methods.dmd:DMD", requires=("pydmd",), on_systems="methods._system_fit:SystemDMD")
 register("prior", "methods.prior:PriorOnly", reference=True,
          on_systems="methods._system_fit:SystemPrior")
+
+
+#: Commands the methods ship, run by ``sysid-bench NAME ...`` with the rest of the command line:
+#: ``name -> ("module:function", help)``; the function takes ``argv`` and returns an exit status.
+_COMMANDS: dict[str, tuple[str, str]] = {
+    "train": ("methods.vid2param.train:main",
+              "train a Vid2Param checkpoint (python -m methods.vid2param.train)"),
+    "evaluate": ("methods.vid2param.evaluate:main",
+                 "evaluate Vid2Param checkpoints (python -m methods.vid2param.evaluate)"),
+}
+
+
+def commands() -> dict[str, tuple[str, str]]:
+    """The command-line tools the methods ship, ``name -> ("module:function", help)`` (nothing
+    is imported)."""
+    return dict(_COMMANDS)
 
 
 def available(include_reference: bool = False) -> list[str]:

@@ -9,8 +9,7 @@ Examples
     sysid-bench run --scale default --scheduler tcp://10.0.0.5:8786
     sysid-bench report                          # run default scale, write reports/
     sysid-bench report --from-store runs/default/results.sqlite
-    sysid-bench train --help                    # Vid2Param training (methods.vid2param.train)
-    sysid-bench evaluate --help                 # Vid2Param evaluation (methods.vid2param.evaluate)
+    sysid-bench train --help                    # a command a method ships (methods.commands())
 
 ``python -m sysid_bench`` is the same command; ``python -m sysid_bench.report`` is
 ``sysid-bench report``.
@@ -101,11 +100,35 @@ options = SimpleNamespace(scale=_scale, methods=_methods, experiments=_experimen
 
 # -- built-in subcommands ----------------------------------------------------------------------
 def list_arguments(p) -> None:
-    pass
+    p.add_argument("--checkpoints", action="store_true",
+                   help="the shipped checkpoints of the methods that ship some, with what each "
+                        "holds (a method's describe_checkpoints()), one line each")
+
+
+def _list_checkpoints() -> int:
+    """Each method's shipped checkpoints, one line each (methods sharing them print once)."""
+    import methods
+
+    seen = set()
+    for name in methods.available(include_reference=True):
+        try:
+            describe = getattr(methods.get_class(name), "describe_checkpoints", None)
+        except ImportError:
+            continue
+        key = getattr(describe, "__func__", describe)
+        if describe is None or key in seen:
+            continue
+        seen.add(key)
+        for ckpt, line in describe().items():
+            print(f"{name} {ckpt}: {line}")
+    return 0
 
 
 def list_run(args) -> int:
     import methods
+
+    if getattr(args, "checkpoints", False):
+        return _list_checkpoints()
     from sysid_bench.bench import EXPERIMENTS
     from sysid_bench.bench.cases import SCALES
 
@@ -155,37 +178,43 @@ def _delegate_arguments(p) -> None:
     p.add_argument("argv", nargs=argparse.REMAINDER, help="the delegated command's own options")
 
 
-def train_run(args) -> int:
-    from methods.vid2param.train import main as train_main
+def _delegated(entry: str):
+    """``run`` of a delegated command: its ``main(argv)`` (``"module:function"``) gets the rest
+    of the command line."""
+    def run(args) -> int:
+        module, func = entry.split(":")
+        return int(getattr(importlib.import_module(module), func)(args.argv) or 0)
 
-    return int(train_main(args.argv) or 0)
-
-
-def evaluate_run(args) -> int:
-    from methods.vid2param.evaluate import main as evaluate_main
-
-    return int(evaluate_main(args.argv) or 0)
+    return run
 
 
 #: name -> (module, help). The module's ``<name>_arguments``/``<name>_run`` (built-ins, here)
-#: or ``add_arguments``/``run`` (a module of its own) define the subcommand.
+#: or ``add_arguments``/``run`` (a module of its own) define the subcommand. The commands the
+#: methods ship (``methods.commands()``: training, evaluation) are added to these, delegated.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "list": ("sysid_bench.cli", "methods (with their declarations), experiments and scales"),
     "run": ("sysid_bench.cli", "run (or resume) a benchmark into a results store"),
     "report": ("sysid_bench.report", "run a scale (resuming its store) and write reports/"),
-    "train": ("sysid_bench.cli", "train a Vid2Param checkpoint (python -m methods.vid2param.train)"),
-    "evaluate": ("sysid_bench.cli", "evaluate Vid2Param checkpoints (python -m methods.vid2param.evaluate)"),
     "identify": ("sysid_bench.video", "identify a ball's e, g, d, r frame by frame from a video file"),
     "intercept": ("sysid_bench.intercept", "the interception task: a policy's success rate over seeded throws"),
 }
-_DELEGATED = {"train", "evaluate"}
+
+
+def _delegated_commands() -> dict[str, tuple[str, str]]:
+    """The methods' commands, ``name -> ("module:function", help)``, that no built-in shadows
+    (reading them imports no method's module)."""
+    import methods
+
+    return {k: v for k, v in methods.commands().items() if k not in SUBCOMMANDS}
 
 
 def _functions(name: str):
+    delegated = _delegated_commands()
+    if name in delegated:
+        return _delegate_arguments, _delegated(delegated[name][0])
     module = importlib.import_module(SUBCOMMANDS[name][0])
     if module.__name__ == __name__:
-        add = _delegate_arguments if name in _DELEGATED else getattr(module, f"{name}_arguments")
-        return add, getattr(module, f"{name}_run")
+        return getattr(module, f"{name}_arguments"), getattr(module, f"{name}_run")
     return module.add_arguments, module.run
 
 
@@ -193,7 +222,7 @@ def _parser(chosen: str | None) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sysid-bench",
                                 description="One command line for everything a user runs.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, (_, help) in SUBCOMMANDS.items():
+    for name, (_, help) in {**SUBCOMMANDS, **_delegated_commands()}.items():
         sp = sub.add_parser(name, help=help, description=help)
         if name == chosen:  # only the chosen one's module is imported
             add, run = _functions(name)
@@ -219,10 +248,12 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     chosen = next((a for a in argv if not a.startswith("-")), None)
     try:
-        if chosen in _DELEGATED:  # its own parser handles the rest, --help included
+        delegated = _delegated_commands()
+        if chosen in delegated:  # its own parser handles the rest, --help included
             rest = argv[argv.index(chosen) + 1:]
             return _functions(chosen)[1](SimpleNamespace(argv=rest))
-        args = _parser(chosen if chosen in SUBCOMMANDS else None).parse_args(argv)
+        known = chosen in SUBCOMMANDS or chosen in delegated
+        args = _parser(chosen if known else None).parse_args(argv)
         return args.fn(args)
     except ValueError as exc:  # unknown names, store format/config mismatch: one clear line
         print(f"error: {exc}", file=sys.stderr)
