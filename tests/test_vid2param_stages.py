@@ -56,8 +56,18 @@ def test_describe_checkpoints_gives_one_line_each():
     lines = methods.get_class("vid2param").describe_checkpoints()
     assert set(lines) == set(SHIPPED_CHECKPOINTS)
     for name, line in lines.items():
-        assert "\n" not in line and line.startswith("network")
+        assert "\n" not in line and line.startswith("network (")
         assert [p.split()[0] for p in line.split(" [")[0].split(" -> ")[1:]] == EXPECTED[name]
+    assert "rolling statistic 'fit'" in lines["camera"]
+
+
+def test_sysid_bench_list_checkpoints_prints_one_line_each(capsys):
+    from sysid_bench.cli import main
+
+    assert main(["list", "--checkpoints"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == len(SHIPPED_CHECKPOINTS)  # the three vid2param classes print once
+    assert any(ln.startswith("vid2param camera: network (50x100") for ln in out)
 
 
 def _staged_copy(src, dst):

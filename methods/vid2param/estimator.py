@@ -38,6 +38,7 @@ from methods.vid2param.inference import (
     resolve_device,
 )
 from methods.vid2param.stages import Pipeline
+from methods.vid2param.stages import describe as describe_stages
 from sysid_bench._validate import (
     check_horizon,
     check_positive_float,
@@ -62,8 +63,7 @@ def describe_checkpoints() -> dict[str, str]:
             out[name] = "missing"
             continue
         ck = load_checkpoint(path)
-        fmt = "stages" if "stages" in ck else "older format, converted on load"
-        out[name] = f"{Pipeline.from_checkpoint(ck, name, build_net(ck, path)).describe()} [{fmt}]"
+        out[name] = describe_stages(ck, name, build_net(ck, path))
     return out
 
 

@@ -414,10 +414,16 @@ class Pipeline:
             mu, sd = stage.step(carry, mu, sd, pos)
         return mu, sd
 
-    def describe(self) -> str:
-        """``network -> stage (summary) -> ...`` in one line."""
-        parts = ["network"] + [f"{s.name} {s.summary()}".strip() for s in self.stages]
-        return " -> ".join(parts)
+    def describe(self, config=None) -> str:
+        """``network (...) -> stage (summary) -> ...`` in one line; with the network's
+        ``config``, its frame size and rolling statistic (part of the network, not a stage)."""
+        net = "network"
+        if config is not None:
+            h, w = config.frame_size
+            roll = f"rolling statistic {config.roll_stat!r}" if config.roll_features else \
+                "no rolling statistic"
+            net = f"network ({h}x{w}, {roll})"
+        return " -> ".join([net] + [f"{s.name} {s.summary()}".strip() for s in self.stages])
 
 
 def legacy_stages(ck: dict, net) -> list[dict]:
@@ -439,7 +445,8 @@ def legacy_stages(ck: dict, net) -> list[dict]:
 
 def describe(ck: dict, source, net) -> str:
     """One line: the checkpoint's network and its stages in order."""
-    return Pipeline.from_checkpoint(ck, source, net).describe()
+    fmt = "stages" if "stages" in ck else "older format, converted on load"
+    return f"{Pipeline.from_checkpoint(ck, source, net).describe(net.config)} [{fmt}]"
 
 
 def calibrate(net, ds, lengths=(50, 100, 150, 200), batch: int = 100,

@@ -61,6 +61,7 @@ from methods.vid2param.stages import (
     calibrate,
 )
 from sysid_bench._io import atomic_write
+from sysid_bench._validate import SEED_MAX, arg_number
 
 __all__ = ["TrainConfig", "train", "evaluate", "export", "fit_stages", "parse_stages",
            "calibrate", "resolve_device", "load_matching", "main"]
@@ -783,6 +784,30 @@ def _field_help(cls) -> dict[str, str]:
     return out
 
 
+#: Ranges of the numeric flags, ``(lo, hi, lo_open)``; a flag not named here takes ``[0, inf)``.
+#: Checked by argparse (``_arg_type``), so ``--steps -1`` is refused before anything is built.
+_FLAG_RANGES = {
+    "steps": (1, None, False), "batch": (1, None, False), "chunk": (1, None, False),
+    "n_frames": (2, None, False), "min_obs": (1, None, False), "val_every": (1, None, False),
+    "threads": (1, None, False), "lr": (0, None, True), "clip": (0, None, True),
+    "ckpt_every": (0, None, True), "rec_frac": (0, 1, True), "p_full": (0, 1, False),
+    "p_blank": (0, 1, False), "early_aux_grad": (0, 1, False), "seed": (0, SEED_MAX, False),
+    "data_seed": (0, SEED_MAX, False), "val_seed": (0, SEED_MAX, False),
+    "max_minutes": (0, None, True), "latent": (1, None, False), "hidden": (1, None, False),
+    "feat": (1, None, False), "keypoints": (1, None, False), "pool": (1, None, False),
+    "channels": (1, None, False), "size": (4, None, False),
+}
+
+
+def _arg_type(name: str, kind: type):
+    """The argparse ``type=`` of flag ``name``: a number of ``kind`` in its :data:`_FLAG_RANGES`
+    range (default ``>= 0``); a non-numeric kind is its own type."""
+    if kind not in (int, float):
+        return kind
+    lo, hi, lo_open = _FLAG_RANGES.get(name, (0, None, False))
+    return arg_number(lo, hi, integer=kind is int, lo_open=lo_open)
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m methods.vid2param.train", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -806,19 +831,19 @@ def _parser() -> argparse.ArgumentParser:
                      help="start afresh even if state.pt exists")
     run.add_argument("--device", default="auto",
                      help="auto (CUDA when present, else CPU), cpu or cuda[:N]")
-    run.add_argument("--max-minutes", type=float, default=None,
+    run.add_argument("--max-minutes", type=_arg_type("max_minutes", float), default=None,
                      help="stop (resumable) after this much wall-clock time")
-    run.add_argument("--stop-at", type=int, default=None,
+    run.add_argument("--stop-at", type=_arg_type("stop_at", int), default=None,
                      help="stop (resumable) after this step")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     rec = p.add_argument_group("recipe (TrainConfig fields; defaults are the shipped recipe)")
     for name, val in asdict(tc).items():
         if name in _OWN_FLAGS:
             continue
-        rec.add_argument("--" + name.replace("_", "-"), type=type(val),
+        rec.add_argument("--" + name.replace("_", "-"), type=_arg_type(name, type(val)),
                          default=None,
                          help=f"{tc_help.get(name, name)} (default: {val}, or the preset's)")
-    rec.add_argument("--size", type=int, nargs=2, default=None,
+    rec.add_argument("--size", type=_arg_type("size", int), nargs=2, default=None,
                      metavar=("H", "W"),
                      help="frame size (default: the preset's)")
     rec.add_argument("--nuisance", type=json.loads, default=argparse.SUPPRESS,
@@ -834,12 +859,12 @@ def _parser() -> argparse.ArgumentParser:
     model.add_argument("--preset", default="28x28", choices=sorted(PRESETS),
                        help="model configuration (V2PConfig.preset) and its data settings")
     for name in ("latent", "hidden", "feat", "keypoints", "pool"):
-        model.add_argument("--" + name, type=int, default=None,
+        model.add_argument("--" + name, type=_arg_type(name, int), default=None,
                            help=mc_help.get(name))
     for name in ("alpha", "beta", "gamma", "gamma_prior", "aux_grad", "kp_threshold"):
         model.add_argument("--" + name.replace("_", "-"), type=float, default=None,
                            help=mc_help.get(name))
-    model.add_argument("--channels", type=int, nargs="+", default=None,
+    model.add_argument("--channels", type=_arg_type("channels", int), nargs="+", default=None,
                        help=mc_help.get("channels"))
     for name in ("kp_visibility", "roll_features", "physics_prior"):
         model.add_argument("--" + name.replace("_", "-"), action=argparse.BooleanOptionalAction,
