@@ -75,7 +75,11 @@ def check_positive_int(value, name: str, *, minimum: int = 1) -> int:
 
 def _is_real(value) -> bool:
     """A real number that is not a bool (``True`` is an int to Python, never a number here) and
-    not a string (``float("0.05")`` works, but a string is a value nobody parsed)."""
+    not a string (``float("0.05")`` works, but a string is a value nobody parsed). A 0-d NumPy
+    array of a real dtype (a scalar read from an ``.npz``) is a number."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        return value.dtype != np.bool_ and (np.issubdtype(value.dtype, np.integer)
+                                            or np.issubdtype(value.dtype, np.floating))
     return (not isinstance(value, (bool, np.bool_))
             and isinstance(value, (int, float, np.integer, np.floating)))
 

@@ -67,6 +67,7 @@ from sysid_bench._validate import (
     arg_number,
     check_flag,
     check_int_array,
+    check_number,
     check_positive_int,
 )
 
@@ -170,8 +171,7 @@ class Scene:
         num("dt", 0.0)
         num("t_min", 0.0)
         num("t_max", self.t_min)
-        if not (isinstance(self.min_swing, (int, float)) and 0 <= self.min_swing < math.inf):
-            raise ValueError(f"min_swing: expected a number >= 0, got {self.min_swing!r}")
+        object.__setattr__(self, "min_swing", check_number(self.min_swing, "min_swing", lo=0.0))
         try:
             lo, hi = (float(v) for v in self.effector_range)
         except (TypeError, ValueError) as exc:

@@ -70,6 +70,11 @@ def test_types_are_checked_alike_at_every_boundary():
         ("dmd", {"stabilize": "no"}, "stabilize"),
     ]:
         _refused(lambda name=name, opts=opts: methods.get(name, **opts), bad)
+    from sysid_bench.bench.runner import run
+    from sysid_bench.intercept import Scene
+
+    _refused(lambda: run(scale="smoke", methods=["prior"], progress="no"), "progress")
+    _refused(lambda: Scene(min_swing=True), "min_swing")
     # a hyperparameter changed on the instance is checked where it is used
     est = methods.get("lsq", n_samples=100)
     est.sigma = "0.02"

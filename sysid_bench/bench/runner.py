@@ -34,7 +34,7 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolE
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
-from sysid_bench._validate import check_positive_int
+from sysid_bench._validate import check_flag, check_int, check_positive_int
 from sysid_bench.bench.cases import Scale, get_scale, unknown_name
 from sysid_bench.bench.experiment import Cell, execute
 from sysid_bench.bench.fingerprint import method_fingerprint
@@ -260,6 +260,10 @@ def run(
     exps = resolve_experiments(experiments)
     meths, skipped = resolve_methods(methods)
     threads = check_positive_int(threads, "threads")
+    progress = check_flag(progress, "progress")
+    retry_errors = check_flag(retry_errors, "retry_errors")
+    if workers is not None:
+        check_int(workers, "workers", lo=0)
     inline = default_inline(meths) if inline is None else _check_inline(inline, meths, skipped)
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(sc.name)
     with lock_run_dir(run_dir):  # one writing run per run dir; RunDirBusyError otherwise
