@@ -49,6 +49,8 @@ attribute              default     meaning
 ``online_cost``        False       a row of the online-cost table by default (report section 7)
 ``policies``           {}          interception policies built on the method's online stream:
                                    ``{policy name: hyperparameters}`` (``sysid-bench intercept``)
+``claims``             ""          the paper's claims are about this method: a few words on the model
+                                   for the readings (``""``: a baseline)
 ``color``              None        matplotlib colour in every figure (None: from ``figure_order``)
 ``figure_order``       None        place in figures: slot in the tab10 palette (None: by name)
 ``contract_options``   {}          cheap hyperparameters for ``check_estimator`` (same code path)
@@ -78,7 +80,7 @@ TRAIT_FIELDS = ("input_kind", "min_frames", *CAPABILITIES, "reference_posterior"
 #: how the benchmark schedules it
 SCHEDULE_FIELDS = (
     "cost", "scale_cases", "scale_options", "fit_options", "pretrained", "threads_param",
-    "inline", "online_cost", "policies", "color", "figure_order", "contract_options",
+    "inline", "online_cost", "policies", "claims", "color", "figure_order", "contract_options",
 )
 #: class attributes collected into a MethodSpec
 DECLARED = ("name", *TRAIT_FIELDS, *SCHEDULE_FIELDS)
@@ -128,6 +130,7 @@ class Schedule:
     inline: bool
     online_cost: bool
     policies: Mapping
+    claims: str
     color: str | None
     figure_order: int | None
     contract_options: Mapping
@@ -268,6 +271,8 @@ def spec_of(cls, entry_point: str | None = None) -> MethodSpec:
         or vals["figure_order"] < 0
     ):
         raise _bad(cls, "figure_order", "None or an int >= 0", vals["figure_order"])
+    if not isinstance(vals["claims"], str):
+        raise _bad(cls, "claims", "a str ('' for a baseline)", vals["claims"])
     if vals["color"] is not None and not isinstance(vals["color"], str):
         raise _bad(cls, "color", "None or a matplotlib colour string", vals["color"])
     tp = vals["threads_param"]

@@ -160,6 +160,7 @@ class Vid2Param(Estimator):
     trains = True
     cost = 1
     online_cost = True
+    claims = "trained on constant parameters; forecasts by rolling out its latent prior"
     #: interception policies on the camera model's stream (``sysid-bench intercept``)
     policies = {"vid2param": {"checkpoint": "camera", "n_samples": 32},
                 "vid2param-physics": {"checkpoint": "camera", "n_samples": 32,
@@ -732,6 +733,7 @@ class Vid2ParamPhysics(Vid2Param):
     streams = False
     online = False  # its stream re-fits every prefix
     policies = {}
+    claims = "the same network's posterior drawn and simulated with the known physics"
     trains = False
     figure_order = 8
     fit_options = {}
@@ -819,6 +821,7 @@ class Vid2ParamChanging(Vid2Param):
     forecasts = False
     online_cost = False
     policies = {}
+    claims = "trained on parameters that change every 50 frames"
     trains = False
     figure_order = 9
     fit_options = {}

@@ -28,6 +28,7 @@ from sysid_bench.bench.experiment import (
     ci_summary,
     fmt_ci,
     normalise,
+    paper_methods,
     streams,
     timed_prefixes,
 )
@@ -187,17 +188,17 @@ class Changing(Experiment):
         figs["Error over the video with changing parameters"] = _save(fig, outdir / "changing_mse.png")
         return figs
 
-    #: The Vid2Param models the reading names, with what they were trained on.
-    MODELS = {"vid2param": "trained on constant parameters",
-              "vid2param-changing": "trained on parameters that change every 50 frames"}
-
     def reading(self, df):
-        """The paper's claim, per Vid2Param model, and whether it holds: by the stated rule, at
-        least half of the changes followed before the next one."""
-        if df.empty or not set(self.MODELS) & set(df.method):
+        """The paper's claim, per model of the paper (the methods that declare ``claims``, named
+        with what they declare), and whether it holds: by the stated rule, at least half of the
+        changes followed before the next one."""
+        import methods
+
+        models = {m: methods.spec(m).claims for m in paper_methods(df.method.unique())}
+        if df.empty or not models:
             return []
         lines = []
-        for model, what in self.MODELS.items():
+        for model, what in models.items():
             g = df[df.method == model]
             if g.empty:
                 continue
@@ -217,7 +218,7 @@ class Changing(Experiment):
                          + "; ".join(parts) + f". The claim {verdict} for it (rule: at least half "
                          "of the changes followed before the next one).")
         others = []
-        for m, h in df[~df.method.isin(list(self.MODELS))].groupby("method"):
+        for m, h in df[~df.method.isin(list(models))].groupby("method"):
             tot = h[h.metric.str.startswith("followed_")].value
             if len(tot):
                 others.append(f"{m} {tot.mean():.0%}")

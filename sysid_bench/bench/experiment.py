@@ -33,6 +33,7 @@ __all__ = [
     "execute",
     "timed_prefixes",
     "streams",
+    "paper_methods",
     "normalise",
     "ci_summary",
     "fmt_ci",
@@ -185,6 +186,25 @@ def execute(cell: Cell, scale: Scale, run_dir: str, threads: int = 1) -> dict:
         error = msgs[:4000]
     return {"cell": cell, "status": status, "error": error, "wall_s": time.perf_counter() - t0,
             "rows": out.rows if status == "ok" else [], "artifacts": out.artifacts if status == "ok" else {}}
+
+
+def paper_methods(names) -> list[str]:
+    """The methods among ``names`` that the paper's claims are about (they declare ``claims``),
+    in registry order: the readings compare them with the baselines. A method that cannot be
+    imported here counts as a baseline."""
+    import methods
+
+    names = set(names)
+    out = []
+    for m in methods.available(include_reference=True):
+        if m not in names:
+            continue
+        try:
+            if methods.spec(m).claims:
+                out.append(m)
+        except ImportError:
+            continue
+    return out
 
 
 def streams(est: Estimator) -> bool:

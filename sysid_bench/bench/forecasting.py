@@ -32,6 +32,7 @@ from sysid_bench.bench.experiment import (
     Experiment,
     ci_summary,
     fmt_ci,
+    paper_methods,
 )
 from sysid_bench.bench.identification import _save, case_cells
 from sysid_bench.metrics import central_z, position_mse
@@ -212,13 +213,16 @@ class Forecasting(Experiment):
         out = []
         s = ci_summary(df[df.metric == "pos_mse"], ["method", "input", "n_frames"]).set_index(
             ["method", "input", "n_frames"])
-        v2p = ("vid2param", "video")
+        # the paper's methods (they declare ``claims``); the first, from video, is the one the
+        # baselines are compared with
+        paper = paper_methods(df.method.unique())
+        v2p = (paper[0] if paper else None, "video")
         afters = sorted(df.n_frames.unique())
-        others = {k[0] for k in s.index if not k[0].startswith("vid2param")} - {"prior"}
+        others = {k[0] for k in s.index if k[0] not in paper} - {"prior"}
         if others and any((*v2p, t) in s.index for t in afters):
             better = []
             for (m, inp) in sorted({k[:2] for k in s.index}):
-                if m.startswith("vid2param") or m == "prior":
+                if m in paper or m == "prior":
                     continue
                 ts = [t for t in afters if (m, inp, t) in s.index and (*v2p, t) in s.index]
                 low = [t for t in ts if s.loc[(m, inp, t), "mean"] < s.loc[(*v2p, t), "mean"]]
@@ -232,16 +236,16 @@ class Forecasting(Experiment):
             if better:
                 out.append("Paper: Vid2Param outperforms the parametric and non-parametric "
                            "baselines in forward prediction. Not here: lower mean position MSE "
-                           "than vid2param (video) for " + "; ".join(better) + ".")
+                           f"than {v2p[0]} (video) for " + "; ".join(better) + ".")
             else:
                 out.append("Paper: Vid2Param outperforms the baselines in forward prediction: "
                            "holds here, none of " + ", ".join(sorted(others)) + " has a lower "
                            "mean position MSE after any prefix.")
         if any((*v2p, t) in s.index for t in afters):
-            for m in sorted({k[0] for k in s.index if k[0].startswith("vid2param")}):
+            for m in sorted(paper):
                 out += _certainty_reading(df, m)
         cal = []
-        for m in sorted({k[0] for k in s.index if k[0].startswith("vid2param")}):
+        for m in sorted(paper):
             cv = _per_prefix(df, "cov90", m)
             if len(cv):
                 ok = bool(((cv >= 0.8) & (cv <= 0.95)).all())
@@ -251,23 +255,30 @@ class Forecasting(Experiment):
             out.append("Calibration: share of the true positions inside the 90% band: "
                        + "; ".join(cal) + ".")
         lsq = ("lsq", "video")
-        rows = []
-        for m in ("vid2param", "vid2param-physics"):
+        rows, how = [], []
+        for m in paper:
             ts = [t for t in afters if (m, "video", t) in s.index and (*lsq, t) in s.index]
             if ts:
                 rows.append(f"{m} " + ", ".join(
                     f"{s.loc[(m, 'video', t), 'mean'] / s.loc[(*lsq, t), 'mean']:.2f}x after {t}"
                     for t in ts))
+                how.append(f"{m}: {_claims(m)}")
         if rows:
             out.append("Learning the dynamics or simulating them: position MSE relative to lsq on "
-                       "the same videos (latent rollout: vid2param; posterior draws through our "
-                       "simulator: vid2param-physics): " + "; ".join(rows) + ".")
+                       "the same videos (" + "; ".join(how) + "): " + "; ".join(rows) + ".")
         if any(k[0] == "dmd" for k in s.index):
             d = s.xs("dmd", level="method")
             out.append("DMD (the paper scaled its error down 1000x, 50x and 5x to plot it): here "
                        + ", ".join(f"{r['mean']:.3g} after {t} ({i})" for (i, t), r in d.iterrows())
                        + ", unscaled.")
         return out
+
+
+def _claims(method: str) -> str:
+    """What ``method`` declares about itself for the readings (``claims``)."""
+    import methods
+
+    return methods.spec(method).claims
 
 
 def _per_prefix(df, metric: str, method: str):

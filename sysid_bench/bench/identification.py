@@ -21,6 +21,7 @@ from sysid_bench.bench.experiment import (
     Experiment,
     ci_summary,
     fmt_ci,
+    paper_methods,
     timed_prefixes,
 )
 from sysid_bench.metrics import GUESS_MSE, normalised_param_se
@@ -114,14 +115,16 @@ class Identification(Experiment):
         w = df[df.metric == "wall_s"]
         med = w.groupby(["method", "input", "n_frames"]).value.median().unstack("n_frames")
         sp = []
-        ref = med.loc[("vid2param", "video"), last] if ("vid2param", "video") in med.index else None
+        # speeds relative to the paper's method (the first that declares ``claims``), from video
+        head = next(iter(paper_methods(df.method.unique())), None)
+        ref = med.loc[(head, "video"), last] if (head, "video") in med.index else None
         for (m, inp), row in med.iterrows():
             rec = {"method": m, "input": inp}
             for n in [n for n in (20, 50, 100, 200) if n in med.columns]:
                 rec[f"s @ {n}"] = _g(row[n])
             rec[f"s/frame @ {last}"] = _g(row[last] / last)
             if ref:
-                rec[f"x vid2param @ {last}"] = _g(row[last] / ref)
+                rec[f"x {head} @ {last}"] = _g(row[last] / ref)
             sp.append(rec)
         speed = pd.DataFrame(sp)
         return {
@@ -182,15 +185,17 @@ class Identification(Experiment):
         out = []
         s = self._summary(df, "se").set_index(["method", "input", "n_frames"])
         last = int(df.n_frames.max())
-        v2p = ("vid2param", "video")
+        # the paper's method (the first that declares ``claims``), from video
+        head = next(iter(paper_methods(df.method.unique())), None)
+        v2p = (head, "video")
         if (*v2p, last) in s.index:
             a = s.loc[(*v2p, last)]
             if a["hi"] >= GUESS_MSE:
                 out.append(
-                    f"Vid2param (video) does not beat guessing the prior mean: "
+                    f"{head} (video) does not beat guessing the prior mean: "
                     f"{fmt_ci(a['mean'], a['lo'], a['hi'])} at {last} frames vs {GUESS_MSE:.3f}; "
-                    "every comparison with it below reflects the checkpoint this run used "
-                    "(see its training card in methods/vid2param/checkpoints/).")
+                    "every comparison with it below reflects the model this run used "
+                    "(see its model card).")
         for base in ("lsq", "bo"):
             if (*v2p, last) in s.index and (base, "privileged", last) in s.index:
                 a, b = s.loc[(*v2p, last)], s.loc[(base, "privileged", last)]
@@ -204,9 +209,9 @@ class Identification(Experiment):
                     verdict += f" only in that both are at the guessing level ({GUESS_MSE:.3f})"
                 out.append(
                     f"Paper: Vid2Param from video is similar to or better than {base} with true "
-                    f"positions and initial state. Here at {last} frames vid2param (video) scores "
+                    f"positions and initial state. Here at {last} frames {head} (video) scores "
                     f"{fmt_ci(a['mean'], a['lo'], a['hi'])} vs {base} (privileged) "
-                    f"{fmt_ci(b['mean'], b['lo'], b['hi'])}: the claim {verdict}; vid2param's mean "
+                    f"{fmt_ci(b['mean'], b['lo'], b['hi'])}: the claim {verdict}; {head}'s mean "
                     f"is within or below {base}'s CI at {wins} of {len(frames)} frame counts."
                 )
         w = df[(df.metric == "wall_s") & (df.n_frames == last)].groupby(["method", "input"]).value.median()
@@ -216,7 +221,7 @@ class Identification(Experiment):
             if slower:
                 out.append(
                     f"Speed at {last} frames, median seconds per identification relative to "
-                    f"vid2param ({w[v2p]:.3g} s): " + ", ".join(slower) + "."
+                    f"{head} ({w[v2p]:.3g} s): " + ", ".join(slower) + "."
                 )
         if (*v2p, last) in s.index:
             se = {p: self._summary(df, f"se_{p}").set_index(["method", "input", "n_frames"])
@@ -229,7 +234,7 @@ class Identification(Experiment):
                 parts.append(f"{p}: {vals}")
             out.append(
                 "Paper: g and d are inferred after a few frames, e after the first bounce, r has "
-                f"the highest error until late. Vid2param per-parameter MSE here (guess = "
+                f"the highest error until late. {head} per-parameter MSE here (guess = "
                 f"{GUESS_MSE:.3f}): " + "; ".join(parts) + "."
             )
         return out
