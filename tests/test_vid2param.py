@@ -805,7 +805,7 @@ def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
     # a preset's recipe, with its shipped init resolved; a flag given overrides the preset
     cam = V2PConfig.preset("camera")
     tc = _train_config(_parse(["--out", "x", "--preset", "camera"]), cam)
-    assert tc.init == str(SHIPPED_CHECKPOINTS["28x28"]) and tc.size == (50, 100)
+    assert tc.init == "28x28" and tc.size == (50, 100)  # the shipped name: no machine path
     assert {k: getattr(tc, k) for k in PRESET_TRAIN["camera"] if k != "init"} == {
         k: v for k, v in PRESET_TRAIN["camera"].items() if k != "init"}
     tc = _train_config(_parse(["--out", "x", "--preset", "camera", "--steps", "7", "--init", "none",

@@ -316,7 +316,8 @@ def main(argv=None) -> int:
     if a.nuisance is None:
         a.nuisance = (est.checkpoint_info_.get("train") or {}).get("nuisance")
     ds = make_dataset("test", a.n, a.seed, variant=a.variant, size=size, nuisance=a.nuisance)
-    out = {"checkpoint": str(est.checkpoint_info_["path"]), "split": "test", "n": a.n,
+    # the checkpoint as named (a shipped name, or the path given): no machine path in records
+    out = {"checkpoint": str(a.checkpoint or Vid2Param.default_checkpoint), "split": "test", "n": a.n,
            "seed": a.seed, "variant": a.variant, "nuisance": a.nuisance, "size": list(size),
            "vid2param": evaluate_vid2param(est, ds, a.lengths)}
     if a.lsq_n > 0:

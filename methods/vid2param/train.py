@@ -210,10 +210,10 @@ def init_record(path) -> dict:
     may be replaced later (a shipped checkpoint refined in place)."""
     import hashlib
 
-    src = load_checkpoint(path)
+    src = load_checkpoint(checkpoint_path(path))
     return {
-        "path": str(path),
-        "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(),
+        "path": str(path),  # a shipped checkpoint's name as given, no machine path
+        "sha256": hashlib.sha256(checkpoint_path(path).read_bytes()).hexdigest(),
         **{k: src.get(k) for k in ("config", "train", "git_commit", "val_metrics")},
     }
 
@@ -458,7 +458,7 @@ def export(state_path, out_path, card: bool = True, stages=()) -> Path:
     ck.pop("optimizer", None)
     out_path = Path(out_path)
     init = (ck.get("train") or {}).get("init")
-    if init and "init_checkpoint" not in ck and Path(init).exists():
+    if init and "init_checkpoint" not in ck and checkpoint_path(init).exists():
         # states written before the record was taken at the start: identify the file now
         ck["init_checkpoint"] = init_record(init)
     ck["stages"] = []  # the network alone until the stages are fitted
@@ -643,7 +643,7 @@ def train(
         net.load_state_dict(init_net.state_dict())
     elif tc.init:
         init_ck = init_record(tc.init)
-        loaded, skipped = load_matching(net, tc.init)
+        loaded, skipped = load_matching(net, checkpoint_path(tc.init))
         log(f"init from {tc.init}: {len(loaded)} tensors copied, fresh: {skipped}")
     log(f"Vid2Param: {count_parameters(net)} parameters, device {dev}, threads "
         f"{torch.get_num_threads()}, steps {start}->{tc.steps}, batch {tc.batch}")
@@ -743,10 +743,11 @@ PRESET_TRAIN = {
 
 
 def _resolve_init(init: str | None) -> str | None:
-    """A shipped checkpoint's name (``"28x28"``, ``"camera"``) as its path; a path as given."""
+    """``init`` as recorded: a shipped checkpoint's name (``"28x28"``, ``"camera"``) as given,
+    so that records name no machine path (``train`` finds its file); a path as given."""
     if init is None or init.lower() == "none":  # "none": from scratch, whatever the preset
         return None
-    return str(checkpoint_path(init))
+    return str(init)
 
 
 #: TrainConfig fields whose flags are not the generic ``--name VALUE`` (JSON, two values, a path)
@@ -836,7 +837,10 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--stop-at", type=_arg_type("stop_at", int), default=None,
                      help="stop (resumable) after this step")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
-    rec = p.add_argument_group("recipe (TrainConfig fields; defaults are the shipped recipe)")
+    rec = p.add_argument_group(
+        "recipe (TrainConfig fields; defaults: the from-scratch recipe, one command, as the "
+        "sensitivity models were trained; the shipped 28x28 model is a chain of fine-tunes, "
+        "methods/vid2param/README.md)")
     for name, val in asdict(tc).items():
         if name in _OWN_FLAGS:
             continue
