@@ -791,7 +791,6 @@ def test_training_forecast_keeps_fed_back_positions_inside_the_box(monkeypatch):
 def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
     from dataclasses import asdict
 
-    from methods.vid2param.estimator import SHIPPED_CHECKPOINTS
     from methods.vid2param.train import _OWN_FLAGS, PRESET_TRAIN, _parse, _parser, _train_config
 
     actions = {a.dest: a for a in _parser()._actions if a.dest != "help"}
