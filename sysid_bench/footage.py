@@ -484,8 +484,14 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
     # over a twentieth of a ball or more, the ball is followed again against it.
     found = np.isfinite(pix).all(axis=1)
     if found.sum() >= 3:
-        c = np.clip(pix[found].astype(int), 0, [w - 1, h - 1])
-        sign = np.sign(fr[np.flatnonzero(found), c[:, 1], c[:, 0]] - bg[c[:, 1], c[:, 0]])
+        # the ball's sign at its centre and at 0.6 radii up, down, left and right of it: a lit,
+        # shaded ball can be brighter than the scene at its top and darker at its bottom
+        r_f = 0.6 * radii[found]
+        offs = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], dtype=np.float64)
+        pts = pix[found][:, None, :] + offs[None] * r_f[:, None, None]  # (N, 5, 2)
+        c = np.clip(pts.astype(int), 0, [w - 1, h - 1])
+        tt = np.broadcast_to(np.flatnonzero(found)[:, None], c.shape[:2])
+        sign = np.sign(fr[tt, c[..., 1], c[..., 0]] - bg[c[..., 1], c[..., 0]])
         if abs(sign.mean()) > 0.8:
             idx = np.unique(np.linspace(0, t_n - 1, min(t_n, 150)).astype(int))
             q = np.percentile(fr[idx], 10 if sign.mean() > 0 else 90, axis=0).astype(np.float32)
@@ -554,14 +560,28 @@ def _follow(fr, bg, thr, max_gap, progress):
         # centre and size: the ball's pixels segmented by |difference| and filled to their hull,
         # each weighted by the fraction of it the ball covers (tracking.ball_centre): a lit top
         # that barely differs from the wall counts as much as the dark bottom. The expected
-        # radius is the recent balls'; on (re)acquisition the blob's own, refined once from the
-        # covered area (a shaded ball's blob may be only the part that differs most).
+        # radius is the recent balls'; on (re)acquisition the blob's (and its pieces') own,
+        # then the covered area's.
         found_r = radii[np.isfinite(radii)][-20:]
-        r_exp = float(np.median(found_r)) if found_r.size else math.sqrt(area[k] / math.pi)
-        centre, cov = ball_centre(signed, thr, cen[k], r_exp)
-        if not found_r.size and cov > 0:
-            r_exp = math.sqrt(cov / math.pi)
-            centre, cov = ball_centre(signed, thr, centre, r_exp)
+        if found_r.size:
+            r_exp, centre = float(np.median(found_r)), cen[k]
+        else:
+            # a shaded ball can fall apart where its shading crosses the wall's grey: blobs
+            # within two of the chosen blob's radii are its other pieces
+            own = math.sqrt(area[k] / math.pi)
+            part = np.hypot(*(cen - cen[k]).T) <= 2.0 * own + 1.0
+            r_exp = math.sqrt(area[part].sum() / math.pi)
+            centre = (cen[part] * area[part, None]).sum(axis=0) / area[part].sum()
+        for _ in range(3):  # re-centred, the search window takes in the whole ball
+            new, cov = ball_centre(signed, thr, centre, r_exp)
+            if cov <= 0:
+                break
+            moved = float(np.hypot(*(new - centre)))
+            centre = new
+            if not found_r.size:
+                r_exp = math.sqrt(cov / math.pi)
+            if moved < 0.01:
+                break
         # the suite's one rule (tracking.ball_seen), as tracking.track applies it; a disc wider
         # than half the frame's smaller side is no ball in flight
         if (cov <= 0 or r_exp > min(h, w) / 4
