@@ -35,10 +35,7 @@ class SystemCheckError(AssertionError):
 
 
 def _cases(system: System, n: int = _B, seed: int = 0, split=None):
-    rng = np.random.default_rng(seed)
-    theta = system.sample_theta(n, rng, split)
-    state0 = system.sample_state0(n, rng)
-    return theta, state0
+    return system.sample_cases(n, np.random.default_rng(seed), split)
 
 
 def check_system_declarations(system: System) -> None:

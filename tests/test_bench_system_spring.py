@@ -1,0 +1,47 @@
+"""The spring's simulator speed: 2000 trajectories x 200 frames against a solve_ivp loop.
+
+Run with ``pytest tests/test_bench_system_spring.py --benchmark-only``. The loop of the
+``solve_ivp`` reference is timed on ``N_REF`` trajectories and scaled per trajectory to 2000;
+the ratio, measured in the same process on the same cases, is stored in the benchmark's
+``extra_info`` and printed. The design asks >= 1000x; the assertion keeps a 2x margin for a
+loaded machine (>= 500x).
+"""
+
+import time
+
+import numpy as np
+import pytest
+
+from sysid_bench import systems
+
+B = 2000
+N_REF = 10
+
+
+@pytest.fixture(scope="module")
+def cases():
+    spring = systems.get("spring")
+    theta, state0 = spring.sample_cases(B, np.random.default_rng(0))
+    spring.simulate(theta[:2], state0[:2], 5)  # numba compile (or cache load) outside the timing
+    return spring, theta, state0
+
+
+@pytest.mark.benchmark(group="system-spring")
+def test_bench_spring_simulate_2000x200(benchmark, cases):
+    spring, theta, state0 = cases
+    out = benchmark.pedantic(spring.simulate, args=(theta, state0), rounds=7, iterations=1,
+                             warmup_rounds=1)
+    assert out.shape == (B, 200, 2)
+    t0 = time.perf_counter()
+    for i in range(N_REF):
+        spring.reference(theta[i], state0[i])
+    ref_s = (time.perf_counter() - t0) / N_REF * B
+    sim_s = benchmark.stats.stats.median
+    ratio = ref_s / sim_s
+    benchmark.extra_info.update(
+        {"reference_loop_s_scaled": ref_s, "reference_trajectories_timed": N_REF,
+         "simulate_median_s": sim_s, "speedup": ratio}
+    )
+    print(f"\nspring simulate {sim_s * 1e3:.1f} ms, solve_ivp loop {ref_s:.1f} s "
+          f"(scaled from {N_REF}), speed-up {ratio:.0f}x")
+    assert ratio >= 500, f"speed-up {ratio:.0f}x, design target >= 1000x (asserted with 2x margin)"
