@@ -67,6 +67,7 @@ __all__ = [
 #: ``sigma`` default: the system's ``noise_m`` times this (tracking error on top of the noise).
 SIGMA_FACTOR = 1.2
 _FD_STEP = 1e-6  # forward-difference step in the unit coordinates
+_REFUSED = 1e4  # whitened residual of a point the system refused to simulate
 _U_EPS = 1e-9
 
 
@@ -190,9 +191,30 @@ class CountingSystemSimulator:
         return out
 
     def points(self, theta, state0, n_frames: int, dt: float) -> np.ndarray:
-        """The K tracked points (B, n_frames, K, 2) of the simulated trajectories."""
+        """The K tracked points (B, n_frames, K, 2) of the simulated trajectories.
+
+        A row the system refuses to simulate (``ValueError``: outside what its model is for,
+        e.g. the spring's block reaching the wall) is NaN: a search or a sampler only proposes
+        it, so it scores as impossible instead of failing the batch. The batch is split in
+        halves until the refused rows are alone.
+        """
         theta = np.asarray(theta, dtype=np.float64)
-        return self.system.observe(self(theta, state0, n_frames, dt), theta)
+        state0 = np.asarray(state0, dtype=np.float64)
+        out = np.full((theta.shape[0], n_frames, self.system.n_points, 2), np.nan)
+        self._fill(out, theta, state0, np.arange(theta.shape[0]), n_frames, dt)
+        return out
+
+    def _fill(self, out, theta, state0, rows, n_frames, dt) -> None:
+        try:
+            st = self(theta[rows], state0[rows], n_frames, dt)
+        except ValueError:
+            if rows.size == 1:
+                return
+            half = rows.size // 2
+            self._fill(out, theta, state0, rows[:half], n_frames, dt)
+            self._fill(out, theta, state0, rows[half:], n_frames, dt)
+            return
+        out[rows] = self.system.observe(st, theta[rows])
 
 
 def sq_error(pts: np.ndarray, obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -249,8 +271,9 @@ class Problem:
         return self.sim.points(theta, np.ascontiguousarray(s0), n, self.track.dt)
 
     def sse(self, u: np.ndarray) -> np.ndarray:
-        """Sum of squared errors (B,) of u (B, D)."""
-        return sq_error(self.points(u), self.obs, self.mask)
+        """Sum of squared errors (B,) of u (B, D); inf where the system refused to simulate."""
+        out = sq_error(self.points(u), self.obs, self.mask)
+        return np.where(np.isfinite(out), out, np.inf)
 
     def loglik(self, sse: np.ndarray, sigma: float | None = None) -> np.ndarray:
         """Gaussian log-likelihood of sums of squared errors (up to the normaliser)."""
@@ -270,7 +293,8 @@ class Problem:
         """Whitened residuals (B, n_coords) of u (B, D)."""
         pts = self.points(u)
         r = (pts[:, self.mask] - self.obs[self.mask]) / self.sigma
-        return r.reshape(pts.shape[0], -1)
+        # a refused simulation: far worse than any trajectory, still finite for the optimiser
+        return np.nan_to_num(r.reshape(pts.shape[0], -1), nan=_REFUSED)
 
     def rms(self, u: np.ndarray) -> float:
         """RMS point residual (m) of one u (D,)."""
@@ -401,6 +425,10 @@ def forecast_points(sim, system, theta, state0, n_frames: int, dt: float, horizo
         (horizon, 2) for one tracked point, (horizon, K, 2) for K > 1; samples (N, ...).
     """
     pts = sim.points(theta, np.ascontiguousarray(state0), n_frames + horizon, dt)[:, n_frames:]
+    ok = np.isfinite(pts).all(axis=(1, 2, 3))  # draws the system refused to run on are dropped
+    if not ok.any():
+        raise RuntimeError(f"the {system.name} system refused every forecast draw")
+    pts = pts[ok]
     if system.n_points == 1:
         pts = pts[:, :, 0]
     ex = dict(extras)
@@ -527,7 +555,7 @@ class SystemLSQ(SystemFitMethod):
     contract_options = {"n_samples": 200, "max_opt_evals": 20}
 
     def __init__(self, *, system: str = "spring", n_samples: int = 2000, search_rounds: int = 4,
-                 n_starts: int = 3, max_opt_evals: int = 100, sigma: float | None = None,
+                 n_starts: int = 5, max_opt_evals: int = 100, sigma: float | None = None,
                  min_ess: int = 20, n_forecast: int = 64, seed: int = 0):
         self.system = system
         self.n_samples = n_samples
@@ -618,7 +646,7 @@ class SystemBO(SystemFitMethod):
         P, n_sur = prob.P, int(self.n_surrogate)
 
         def objective(u):
-            sse = prob.sse(np.asarray(u, dtype=np.float64)[None])[0]
+            sse = min(prob.sse(np.asarray(u, dtype=np.float64)[None])[0], 1e6)  # refused: 1e6
             return float(np.log(max(sse / max(prob.n_coords, 1), 1e-12)))
 
         info = {"ok": True, "message": ""}
@@ -685,8 +713,8 @@ class SystemEmcee(SystemFitMethod):
     _declared_by = _emcee_class()
 
     def __init__(self, *, system: str = "spring", n_walkers: int = 32, n_steps: int = 120,
-                 n_burn: int = 40, sigma: float | None = None, n_init: int = 1000,
-                 search_rounds: int = 3, n_starts: int = 2, max_opt_evals: int = 60,
+                 n_burn: int = 40, sigma: float | None = None, n_init: int = 2000,
+                 search_rounds: int = 4, n_starts: int = 5, max_opt_evals: int = 100,
                  n_forecast: int = 64, progress: bool = False, seed: int = 0):
         self.system = system
         self.n_walkers = n_walkers
@@ -794,10 +822,12 @@ class SystemDMD(_dmd_class()):
         system = _system(self.system)
         track = prepare_system(obs, system, self.min_frames)
         pos = track.positions.reshape(track.n_frames, -1)  # (T, 2K)
-        fc = self._forecast_series(pos, horizon, t0, track.input_kind)
+        mean, std, info = self._forecast_series(pos, horizon)
         K = system.n_points
         shape = (horizon, 2) if K == 1 else (horizon, K, 2)
-        return Forecast(mean=fc.mean.reshape(shape), std=fc.std.reshape(shape), extras=fc.extras)
+        extras = {"n_simulations": 0, "wall_s": time.perf_counter() - t0, **info,
+                  "input": track.input_kind}
+        return Forecast(mean=mean.reshape(shape), std=std.reshape(shape), extras=extras)
 
 
 class SystemPrior(Estimator):

@@ -130,11 +130,25 @@ class DMD(Estimator):
         if not isinstance(obs, Observation):
             raise ValueError(f"obs: expected a sysid_bench.estimator.Observation, got {type(obs).__name__}")
         pos = observed_positions(obs, min_seen=3)
-        return self._forecast_series(pos, horizon, t0, "positions" if obs.positions is not None else "frames")
+        mean, std, info = self._forecast_series(pos, horizon)
+        extras = {
+            "n_simulations": 0,
+            "wall_s": time.perf_counter() - t0,
+            **info,
+            "input": "positions" if obs.positions is not None else "frames",
+        }
+        return Forecast(mean=mean, std=std, samples=None, extras=extras)
 
-    def _forecast_series(self, pos: np.ndarray, horizon: int, t0: float, input_kind: str) -> Forecast:
+    def _forecast_series(self, pos: np.ndarray, horizon: int):
         """Forecast of a series ``pos`` (T, C) of C coordinates (the ball's C = 2; a system's
-        2K): mean/std (horizon, C). A frame counts as seen when all its coordinates are."""
+        2K). A frame counts as seen when all its coordinates are.
+
+        Returns
+        -------
+        mean, std : ndarray, shape (horizon, C)
+        info : dict
+            ``delays``, ``insample_rms`` and ``backtest_rms`` (m).
+        """
         seen = np.flatnonzero(np.isfinite(pos).all(axis=1))
         first, last = int(seen[0]), int(seen[-1])
         frames = np.arange(first, last + 1)
@@ -161,12 +175,9 @@ class DMD(Estimator):
             mean = np.where(np.isfinite(mean), mean, X[:, -1][None, :])
             s = np.full(horizon, np.inf)
         std = np.repeat(s[:, None], X.shape[0], axis=1)
-        extras = {
-            "n_simulations": 0,
-            "wall_s": time.perf_counter() - t0,
+        info = {
             "delays": min(self._delays(n), n),
             "insample_rms": rms,
             "backtest_rms": float(err[-1]) if err.size else None,
-            "input": input_kind,
         }
-        return Forecast(mean=mean, std=std, samples=None, extras=extras)
+        return mean, std, info

@@ -1,0 +1,306 @@
+"""``sindy`` on the systems other than the ball: one feature library per system, or n/a.
+
+SINDy regresses a state's derivatives on a library of candidate features (pysindy, STLSQ). What
+the library is, how the state is read from the tracked points and how the coefficients map to
+the physical parameters is the system's; this module holds one :class:`Library` per system it
+knows (the ball has its own hybrid :mod:`methods.sindy`):
+
+``pendulum``
+    State ``(theta, omega)`` with ``theta = atan2(x, -y)`` (unwrapped) and ``L`` the mean
+    distance of the bob from the pivot. ``omega' = (g / L) sin(theta) - b omega - mu sign(omega)``:
+    library ``[sin(theta), omega, sign(omega)]``; ``g = L * coef[sin]``, ``b = -coef[omega]``,
+    ``mu = -coef[sign]``. Frames with ``|omega|`` below :data:`STILL_OMEGA` are left out: there
+    the sign of omega is noise, and a stuck bob follows another law.
+``spring``
+    State ``(x, v)``. ``x'' = -w2 s - k3 s^3 - c v`` with ``s = x - L0``: library ``[s, s^3, v]``;
+    ``L0`` is not a coefficient, so it is profiled: the regression's residual sum of squares is
+    minimised over ``L0`` in its prior range (a grid, then a bounded scalar search), and its
+    standard error comes from the profile's curvature.
+``collision``
+    n/a: the pucks' motion is a constant deceleration between contacts and the parameters act
+    only at the contacts (mass ratio and restitution in the velocity jumps, wall restitution at
+    the walls): there is no smooth vector field for a library to hold.
+
+Derivatives are Savitzky-Golay (``smoothing_window`` frames, polynomial order 4) of the state
+read from the points; standard errors are the regression's (residual variance times
+``(Theta^T Theta)^-1``) inflated by ``sqrt(smoothing_window / 2)``, since smoothed derivatives of
+neighbouring frames share their noise. Estimates are clipped into the prior box; a clipped
+estimate's std grows by the distance moved. Forecast: the identified model (the system's
+simulator) run from the state estimated at the last frame, for ``n_forecast`` draws of
+parameters and state from their standard errors.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from methods._simulation import Stopwatch, make_rng, one_blas_thread
+from methods._system_fit import CountingSystemSimulator, _system, forecast_points, prepare_system
+from sysid_bench._validate import check_number, check_positive_int
+from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior
+
+__all__ = ["SystemSINDy", "LIBRARIES", "STILL_OMEGA"]
+
+#: rad/s: frames of the pendulum slower than this are left out of the regression.
+STILL_OMEGA = 0.3
+_POLYORDER = 4
+
+
+@dataclass
+class _Result:
+    mean: np.ndarray
+    std: np.ndarray
+    end_state: np.ndarray  # (S,) at the last frame
+    end_std: np.ndarray  # (S,)
+    extras: dict
+
+
+def _savgol(y: np.ndarray, w: int, dt: float, deriv: int) -> np.ndarray:
+    from scipy.signal import savgol_filter
+
+    return savgol_filter(y, w, _POLYORDER, deriv=deriv, delta=dt, mode="interp")
+
+
+def _interp_seen(y: np.ndarray) -> np.ndarray:
+    """A series with NaN gaps filled linearly (the ends held)."""
+    seen = np.flatnonzero(np.isfinite(y))
+    return np.interp(np.arange(y.size), seen, y[seen])
+
+
+def _regress(features: list, names: list, X: np.ndarray, Xdot: np.ndarray, threshold: float):
+    """pysindy STLSQ of Xdot (n, 2) on the custom features of X (n, 2) (arity-2 functions).
+
+    Returns the coefficients (2, F) and the library matrix (n, F)."""
+    import pysindy as ps
+
+    lib = ps.CustomLibrary(library_functions=features,
+                           function_names=[lambda a, b, n=n: n for n in names])
+    model = ps.SINDy(optimizer=ps.STLSQ(threshold=threshold), feature_library=lib)
+    with one_blas_thread():
+        model.fit(X, t=1.0, x_dot=Xdot)
+    theta = np.column_stack([f(X[:, 0], X[:, 1]) for f in features])
+    return np.asarray(model.coefficients()), theta, model
+
+
+def _se(theta: np.ndarray, y: np.ndarray, coef: np.ndarray, inflation: float) -> np.ndarray:
+    """Standard errors of the active coefficients of y ~ theta @ coef."""
+    active = np.flatnonzero(coef != 0)
+    out = np.zeros(coef.size)
+    if active.size:
+        resid = y - theta @ coef
+        s2 = float(resid @ resid) / max(len(y) - active.size, 1)
+        c = s2 * np.linalg.pinv(theta[:, active].T @ theta[:, active])
+        out[active] = np.sqrt(np.maximum(np.diag(c), 0.0)) * inflation
+    return out
+
+
+class Library:
+    """How SINDy reads one system: :meth:`fit` positions (T, K, 2) -> :class:`_Result`;
+    ``window`` is its default Savitzky-Golay window (frames)."""
+
+    window = 11
+
+    def fit(self, pos, dt, window, threshold, system) -> _Result:  # pragma: no cover
+        raise NotImplementedError
+
+
+class PendulumLibrary(Library):
+    features = ("sin(theta)", "omega", "sign(omega)")
+    window = 15
+
+    def fit(self, pos, dt, window, threshold, system):
+        p = pos[:, 0]
+        seen = np.isfinite(p).all(axis=1)
+        r = np.hypot(p[seen, 0], p[seen, 1])
+        L, L_se = float(np.mean(r)), float(np.std(r, ddof=1) / np.sqrt(max(r.size, 2)))
+        th = np.full(len(p), np.nan)
+        th[seen] = np.unwrap(np.arctan2(p[seen, 0], -p[seen, 1]))
+        th = _interp_seen(th)
+        om = _savgol(th, window, dt, 1)
+        al = _savgol(th, window, dt, 2)
+        ths = _savgol(th, window, dt, 0)
+        use = seen & (np.abs(om) > STILL_OMEGA)
+        if use.sum() < 10:
+            raise ValueError(f"positions: the pendulum moves in {int(use.sum())} frames; "
+                             "SINDy needs at least 10")
+        feats = [lambda a, b: np.sin(a), lambda a, b: b, lambda a, b: np.sign(b)]
+        coef, lib, model = _regress(feats, list(self.features), np.column_stack([ths, om])[use],
+                                    np.column_stack([om, al])[use], threshold)
+        c = coef[1]
+        se = _se(lib, al[use], c, np.sqrt(window / 2.0))
+        g, b, mu = c[0] * L, -c[1], -c[2]
+        g_se = float(np.hypot(se[0] * L, c[0] * L_se))
+        noise = 0.01 / max(L, 0.1)
+        extras = {"coefficients": coef.tolist(), "features": list(self.features),
+                  "equations": model.equations(), "n_used": int(use.sum())}
+        return _Result(np.array([g, L, b, mu]), np.array([g_se, L_se, se[1], se[2]]),
+                       np.array([ths[-1], om[-1]]), np.array([noise, 3 * noise / dt / window]),
+                       extras)
+
+
+class SpringLibrary(Library):
+    features = ("s", "s^3", "v")
+    window = 11
+
+    def fit(self, pos, dt, window, threshold, system):
+        from scipy.optimize import minimize_scalar
+
+        x = pos[:, 0, 0]
+        seen = np.isfinite(x)
+        xf = _interp_seen(x)
+        xs, v, a = (_savgol(xf, window, dt, k) for k in (0, 1, 2))
+        xs, v, a = xs[seen], v[seen], a[seen]
+        lo, hi = system.prior["L0"]
+
+        def rss(L0):
+            s = xs - L0
+            th = np.column_stack([s, s**3, v])
+            coef, *_ = np.linalg.lstsq(th, a, rcond=None)
+            r = a - th @ coef
+            return float(r @ r)
+
+        grid = np.linspace(lo, hi, 101)
+        i = int(np.argmin([rss(g) for g in grid]))
+        res = minimize_scalar(rss, bounds=(grid[max(i - 1, 0)], grid[min(i + 1, 100)]),
+                              method="bounded", options={"xatol": 1e-7})
+        L0 = float(res.x)
+        feats = _spring_features(L0)
+        coef, lib, model = _regress(feats, list(self.features), np.column_stack([xs, v]),
+                                    np.column_stack([v, a]), threshold)
+        c = coef[1]
+        infl = np.sqrt(window / 2.0)
+        se = _se(lib, a, c, infl)
+        # L0's standard error from the profile: RSS(L0) - RSS_min = s^2 at one standard error
+        h = 1e-3
+        curv = (rss(L0 + h) - 2 * rss(L0) + rss(L0 - h)) / h**2
+        s2 = rss(L0) / max(len(a) - 4, 1)
+        L0_se = float(np.sqrt(2.0 * s2 / curv) * infl) if curv > 0 else (hi - lo) / np.sqrt(12)
+        extras = {"coefficients": coef.tolist(), "features": list(self.features),
+                  "equations": model.equations(), "n_used": int(seen.sum())}
+        end_se = np.array([0.01, 3 * 0.01 / dt / window])
+        return _Result(np.array([-c[0], -c[1], -c[2], L0]), np.array([se[0], se[1], se[2], L0_se]),
+                       np.array([xs[-1], v[-1]]), end_se, extras)
+
+
+def _spring_features(L0: float) -> list:
+    """``[s, s^3, v]`` as functions of (x, v) (pysindy reads a function's arity from its
+    signature, so ``L0`` is closed over, not a default argument)."""
+
+    def s(x, v):
+        return x - L0
+
+    def s3(x, v):
+        return (x - L0) ** 3
+
+    def vel(x, v):
+        return v
+
+    return [s, s3, vel]
+
+
+#: The systems SINDy has a library for (the ball: :mod:`methods.sindy`).
+LIBRARIES: dict[str, Library] = {"pendulum": PendulumLibrary(), "spring": SpringLibrary()}
+_NA = {
+    "collision": "sindy is n/a on the collision system: the pucks decelerate at a constant rate "
+                 "between contacts and every parameter acts only at a contact (mass ratio and "
+                 "restitutions in the velocity jumps), so there is no smooth vector field for a "
+                 "feature library to hold",
+}
+
+
+class SystemSINDy(Estimator):
+    """SINDy with the system's feature library (see the module docstring).
+
+    Parameters
+    ----------
+    system : str
+    threshold : float
+        STLSQ threshold (0: plain least squares on the library; the libraries are minimal).
+    smoothing_window : int, optional
+        Savitzky-Golay window (odd, >= 7) of the derivatives; None: the library's (pendulum
+        15, spring 11; on a few noisy test tracks 9 let the pendulum's noise through and 21
+        smoothed its fast swings away).
+    n_forecast : int
+    seed : int
+    """
+
+    name = "sindy"
+    input_kind = "positions"
+    min_frames = 15
+    forecasts = True
+    cost = 4
+    figure_order = 5
+
+    def __init__(self, *, system: str = "spring", threshold: float = 0.0,
+                 smoothing_window: int | None = None, n_forecast: int = 32, seed: int = 0):
+        self.system = system
+        self.threshold = threshold
+        self.smoothing_window = smoothing_window
+        self.n_forecast = n_forecast
+        self.seed = seed
+
+    def _validate(self) -> None:
+        super()._validate()
+        _system(self.system)
+        check_number(self.threshold, "threshold", lo=0.0)
+        w = self.smoothing_window
+        if w is not None and (isinstance(w, bool) or not isinstance(w, (int, np.integer))
+                              or w < 7 or w % 2 == 0):
+            raise ValueError(f"smoothing_window: expected None or an odd integer >= 7, got {w!r}")
+        check_positive_int(self.n_forecast, "n_forecast")
+
+    def _library(self, system) -> Library:
+        lib = LIBRARIES.get(system.name)
+        if lib is None:
+            raise NotImplementedError(_NA.get(system.name, (
+                f"sindy is n/a on the {system.name} system: no feature library is declared for "
+                "it (methods._system_sindy.LIBRARIES)")))
+        return lib
+
+    def _fit(self, obs: Observation):
+        clock = Stopwatch()
+        system = _system(self.system)
+        lib = self._library(system)
+        track = prepare_system(obs, system, self.min_frames)
+        w = lib.window if self.smoothing_window is None else int(self.smoothing_window)
+        if track.n_frames < w + 2:
+            raise ValueError(f"obs: expected at least {w + 2} frames for a smoothing window of "
+                             f"{w}, got {track.n_frames}")
+        res = lib.fit(track.positions, track.dt, w, float(self.threshold), system)
+        lo, hi = system.prior_lo, system.prior_hi
+        prior_std = (hi - lo) / np.sqrt(12.0)
+        ok = np.isfinite(res.mean)
+        mean = np.where(ok, res.mean, 0.5 * (lo + hi))
+        moved = np.abs(np.clip(mean, lo, hi) - mean)
+        mean = np.clip(mean, lo, hi)
+        std = np.where(ok & np.isfinite(res.std), np.maximum(res.std, np.minimum(moved, prior_std)),
+                       prior_std)
+        extras = {"n_simulations": 0, "wall_s": clock(), "clipped": (moved > 0).tolist(),
+                  **res.extras, **track.describe(),
+                  "check_reason": "sindy fits derivatives, not the trajectory"}
+        post = Posterior(mean=mean, std=std, samples=None, extras=extras, system=system.name)
+        return post, res, track, clock
+
+    def identify(self, obs: Observation) -> Posterior:
+        """Parameters read from the library's coefficients; mean/std (P,), no samples."""
+        return self._fit(obs)[0]
+
+    def forecast(self, obs: Observation, horizon: int) -> Forecast:
+        """The identified model run on from the last frame's estimated state."""
+        m = check_positive_int(self.n_forecast, "n_forecast")
+        post, res, track, clock = self._fit(obs)
+        system = track.system
+        rng = make_rng(self.seed, 1)
+        theta = np.clip(post.mean + post.std * rng.standard_normal((m, system.n_params)),
+                        system.prior_lo, system.prior_hi)
+        blo = np.array([system.state_bounds[q][0] for q in system.state])
+        bhi = np.array([system.state_bounds[q][1] for q in system.state])
+        s_end = np.clip(res.end_state + res.end_std * rng.standard_normal((m, system.n_state)),
+                        blo, bhi)
+        sim = CountingSystemSimulator(system)
+        fc = forecast_points(sim, system, theta, s_end, 1, track.dt, horizon,
+                             {"posterior_extras": post.extras})
+        fc.extras["wall_s"] = clock()
+        return fc

@@ -1,0 +1,231 @@
+"""Every method on every system: ``methods.get(name, system=S)`` (issue 28, part 3).
+
+Each registered system other than the ball is tested as soon as its module has landed (a system
+whose module cannot be imported yet is skipped). Cheap budgets throughout; NUTS (a JAX compile
+per system) and the recovery checks are marked slow.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import methods
+from sysid_bench import systems
+from sysid_bench.estimator import Forecast, Observation, Posterior
+
+OTHER = [s for s in systems.available() if s != "ball"]
+
+CHEAP = {
+    "lsq": {"n_samples": 300, "n_starts": 2, "max_opt_evals": 20},
+    "bo": {"n_calls": 6, "n_initial_points": 3, "n_surrogate": 256},
+    "emcee": {"n_walkers": 18, "n_steps": 12, "n_burn": 4, "n_init": 200, "max_opt_evals": 10},
+    "nuts": {"num_warmup": 20, "num_samples": 20, "n_init": 200, "search_rounds": 2,
+             "n_starts": 1, "max_opt_evals": 10, "n_forecast": 10, "frame_bucket": 100},
+    "sindy": {},
+    "dmd": {},
+    "prior": {"n_samples": 16},
+}
+
+
+def _system(name):
+    try:
+        return systems.get(name)
+    except ImportError as exc:  # the module has not landed yet
+        pytest.skip(f"system {name!r} not available yet ({exc})")
+
+
+def _case(system, n_frames=100, seed=0, noise=0.01):
+    """theta (P,), noisy points (T, K, 2) of one test-split case."""
+    rng = np.random.default_rng([seed, 28])
+    theta = system.sample_theta(1, rng, "test")
+    try:
+        state0 = system.sample_state0(1, rng, theta=theta)
+    except TypeError:
+        state0 = system.sample_state0(1, rng)
+    pts = system.observe(system.simulate(theta, state0, n_frames=n_frames), theta)[0]
+    return theta[0], pts + rng.normal(0.0, noise, pts.shape)
+
+
+def _check_posterior(post, system):
+    assert isinstance(post, Posterior)
+    assert post.system == system.name
+    assert post.mean.shape == (system.n_params,) and post.std.shape == (system.n_params,)
+    assert np.isfinite(post.mean).all() and np.isfinite(post.std).all() and (post.std > 0).all()
+    assert (post.mean >= system.prior_lo).all() and (post.mean <= system.prior_hi).all()
+    assert post.as_dict().keys() >= set(system.params)
+
+
+def _check_forecast(fc, system, horizon):
+    assert isinstance(fc, Forecast)
+    shape = (horizon, 2) if system.n_points == 1 else (horizon, system.n_points, 2)
+    assert fc.mean.shape == shape and fc.std.shape == shape
+    assert np.isfinite(fc.mean).all()
+
+
+def _run(method, name, forecast=True):
+    system = _system(name)
+    _, pts = _case(system)
+    est = methods.get(method, system=name, **CHEAP[method])
+    obs = Observation(positions=pts, system=name)
+    try:
+        post = est.identify(obs)
+    except NotImplementedError as exc:  # a declared n/a: a sentence naming the system or why
+        assert len(str(exc)) > 30
+        post = None
+    if post is not None:
+        _check_posterior(post, system)
+        if est.spec().identifies and method not in ("sindy", "prior", "dmd"):
+            assert post.extras["n_simulations"] > 0
+            assert post.check is not None
+    if forecast:
+        try:
+            fc = est.forecast(obs, 7)
+        except NotImplementedError as exc:
+            assert method == "sindy" and len(str(exc)) > 30
+        else:
+            _check_forecast(fc, system, 7)
+    return post
+
+
+# ------------------------------------------------------------------------------------------
+# the registry
+def test_an_unknown_system_is_refused_with_the_known_ones():
+    with pytest.raises(ValueError, match="Did you mean 'spring'"):
+        methods.get("lsq", system="sprung")
+
+
+def test_vid2param_says_na_on_another_system():
+    for name in OTHER:
+        with pytest.raises(ValueError, match=f"n/a on the {name} system: no model is shipped"):
+            methods.get("vid2param", system=name)
+        with pytest.raises(NotImplementedError):  # what the benchmarks record as n/a
+            methods.get("vid2param-physics", system=name)
+
+
+def test_the_ball_keeps_its_own_methods():
+    from methods.dmd import DMD
+    from methods.lsq import LSQ
+
+    assert type(methods.get("lsq")) is LSQ
+    assert type(methods.get("lsq", system="ball", n_samples=500)) is LSQ
+    assert type(methods.get("dmd", system="ball")) is DMD
+    assert "system" not in methods.get("lsq").get_params()
+
+
+def test_a_generic_method_refuses_another_systems_observation():
+    _system("spring")
+    est = methods.get("lsq", system="spring")
+    ball = Observation(positions=np.column_stack([np.linspace(1, 2, 10), np.full(10, 5.0)]))
+    with pytest.raises(ValueError, match="obs: expected an observation of the spring system"):
+        est.identify(ball)
+    with pytest.raises(ValueError, match="obs: expected an observation of the ball system"):
+        methods.get("lsq").identify(Observation(positions=np.ones((10, 2)), system="spring"))
+
+
+# ------------------------------------------------------------------------------------------
+# Observation and Posterior on a system
+def test_observation_reads_a_systems_points():
+    system = _system("pendulum")
+    _, pts = _case(system)
+    assert (pts[..., 0] < 0).any()  # a pendulum's x is negative half the time: not refused
+    obs = Observation(positions=pts[:, 0], system="pendulum")  # (T, 2) read as K = 1
+    assert obs.positions.shape == (pts.shape[0], 1, 2) and obs.points.shape == obs.positions.shape
+    with pytest.raises(ValueError, match="positions: expected points within"):
+        Observation(positions=pts * 1000.0, system="pendulum")  # millimetres for metres
+    with pytest.raises(ValueError, match=r"positions: expected \(T, 1, 2\)"):
+        Observation(positions=np.repeat(pts, 2, axis=1), system="pendulum")
+    with pytest.raises(ValueError, match="state0"):
+        Observation(positions=pts, state0=np.zeros(4), system="pendulum")
+    with pytest.raises(ValueError, match="unknown system"):
+        Observation(positions=pts, system="pendulumm")
+    assert Observation(positions=pts, system="pendulum").prefix(10).system == "pendulum"
+
+
+def test_the_balls_observation_takes_one_point_as_k_1():
+    pos = np.column_stack([np.linspace(1, 2, 10), np.full(10, 5.0)])
+    obs = Observation(positions=pos[:, None, :])
+    assert obs.positions.shape == (10, 2) and obs.points.shape == (10, 1, 2)
+    with pytest.raises(ValueError, match=r"positions: expected \(T, 2\) or \(T, 1, 2\)"):
+        Observation(positions=np.stack([pos, pos], axis=1))
+
+
+def test_posterior_is_sized_by_its_system():
+    system = _system("spring")
+    p = Posterior(mean=system.prior_lo, std=np.ones(system.n_params), system="spring")
+    assert set(p.as_dict()) == set(system.params) | {f"{q}_std" for q in system.params}
+    with pytest.raises(ValueError, match="mean"):
+        Posterior(mean=np.zeros(3), std=np.ones(3), system="spring")
+
+
+# ------------------------------------------------------------------------------------------
+# every method on every system
+@pytest.mark.parametrize("name", OTHER)
+@pytest.mark.parametrize("method", ["lsq", "emcee", "sindy", "dmd", "prior"])
+def test_method_runs_on_system(method, name):
+    _run(method, name)
+
+
+@pytest.mark.parametrize("name", OTHER)
+def test_bo_runs_on_system(name):
+    _run("bo", name, forecast=False)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", OTHER)
+def test_nuts_runs_on_system(name):
+    post = _run("nuts", name, forecast=False)
+    system = systems.get(name)
+    assert set(post.extras["rhat"]) == set(system.params) == set(post.extras["ess"])
+
+
+def test_unseen_points_are_skipped():
+    system = _system("spring")
+    theta, pts = _case(system, seed=3)
+    pts[20:30] = np.nan
+    post = methods.get("lsq", system="spring", **CHEAP["lsq"]).identify(
+        Observation(positions=pts, system="spring"))
+    _check_posterior(post, system)
+
+
+def test_sindy_says_na_where_it_has_no_library():
+    from methods._system_sindy import LIBRARIES
+
+    for name in OTHER:
+        if name in LIBRARIES:
+            continue
+        system = _system(name)
+        _, pts = _case(system)
+        with pytest.raises(NotImplementedError, match=f"sindy is n/a on the {name} system"):
+            methods.get("sindy", system=name).identify(Observation(positions=pts, system=name))
+
+
+# ------------------------------------------------------------------------------------------
+# recovery on an easy spring: large swing, light damping, 200 frames, 1 cm noise
+def _easy_spring():
+    system = _system("spring")
+    theta = np.array([[12.0, 10.0, 0.1, 1.5]])
+    state0 = np.array([[1.5 + 0.55, 0.3]])
+    rng = np.random.default_rng(7)
+    pts = system.observe(system.simulate(theta, state0, n_frames=200), theta)[0]
+    return system, theta[0], pts + rng.normal(0.0, 0.01, pts.shape)
+
+
+def test_lsq_recovers_an_easy_spring():
+    system, theta, pts = _easy_spring()
+    post = methods.get("lsq", system="spring").identify(Observation(positions=pts, system="spring"))
+    z = (post.mean - theta) / post.std
+    assert np.all(np.abs(z) < 4), (post.mean, post.std, theta)
+    assert post.check.ok
+    # and it learned something: every std well below the prior's
+    assert np.all(post.std < 0.3 * (system.prior_hi - system.prior_lo) / np.sqrt(12))
+
+
+@pytest.mark.slow
+def test_nuts_recovers_an_easy_spring():
+    system, theta, pts = _easy_spring()
+    post = methods.get("nuts", system="spring", num_warmup=100, num_samples=100).identify(
+        Observation(positions=pts, system="spring"))
+    z = (post.mean - theta) / post.std
+    assert np.all(np.abs(z) < 4), (post.mean, post.std, theta)
+    assert post.extras["converged"], post.extras["warning"]
