@@ -371,6 +371,15 @@ class Pendulum(System):
         out[..., 0, 1] = -L * np.cos(states[..., 0])
         return out
 
+    def jax_observe(self, states, theta):
+        """The bob in JAX for NUTS (``methods._system_nuts``): states (T, 2), theta (4,) ->
+        (T, 1, 2); the same map as :meth:`_observe`, which NumPy's in-place writes keep from
+        tracing."""
+        import jax.numpy as jnp
+
+        L = theta[1]
+        return jnp.stack([L * jnp.sin(states[:, 0]), -L * jnp.cos(states[:, 0])], axis=-1)[:, None]
+
     @staticmethod
     def _sizes(view: _draw.View) -> tuple[float, float]:
         """Bob radius and rod width in pixels for a view."""
