@@ -24,8 +24,13 @@ from sysid_bench.datasets import make_dataset  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")
 
-ONLINE_RATIO = 100.0
+ONLINE_RATIO = 100.0  # the target: reported (extra_info, printed)
+#: Asserted: half the ratios measured (162x; 121x with every posterior's samples drawn), so a busy
+#: machine cannot fail them (issue 29) while losing the stream's advantage still does.
+ONLINE_RATIO_MIN = 80.0
+ONLINE_RATIO_SAMPLES_MIN = 60.0
 PUSH_SPEEDUP = 0.8 / 0.5  # the torch path's idle-machine median over the 0.5 ms target
+#: (measured 3.5-5.7x, CPU time of interleaved blocks: more than a 2x margin)
 
 
 @pytest.fixture
@@ -47,14 +52,20 @@ def test_bench_online_cost_vs_lsq(benchmark, one_thread):
     row = df.set_index("method")
     ratio_cpu = float(row.loc["lsq", "ratio_cpu"])
     ratio_wall = float(row.loc["lsq", "ratio"])
+    ratio_samples = float(row.loc["lsq", "cpu_s"] / row.loc["vid2param+samples", "cpu_s"])
     benchmark.extra_info.update({"lsq_over_vid2param_cpu": ratio_cpu,
                                  "lsq_over_vid2param_wall": ratio_wall,
+                                 "lsq_over_vid2param_samples_cpu": ratio_samples,
+                                 "target_ratio": ONLINE_RATIO,
+                                 "meets_target": bool(ratio_cpu >= ONLINE_RATIO),
                                  "vid2param_s": float(row.loc["vid2param", "total_s"]),
                                  "lsq_s": float(row.loc["lsq", "total_s"])})
+    print(f"lsq / vid2param CPU: {ratio_cpu:.0f}x (target {ONLINE_RATIO:g}x: "
+          f"{'met' if ratio_cpu >= ONLINE_RATIO else 'MISSED'}), {ratio_samples:.0f}x with samples")
     assert row.loc["lsq", "posteriors"] == 198 and row.loc["vid2param", "posteriors"] == 200
-    assert ratio_cpu >= ONLINE_RATIO, df.to_string()
+    assert ratio_cpu >= ONLINE_RATIO_MIN, df.to_string()
     # with every posterior's 200 samples drawn as well
-    assert float(row.loc["lsq", "cpu_s"] / row.loc["vid2param+samples", "cpu_s"]) >= ONLINE_RATIO / 2
+    assert ratio_samples >= ONLINE_RATIO_SAMPLES_MIN, df.to_string()
 
 
 def _push_times(stream, frames, rounds: int) -> np.ndarray:

@@ -6,8 +6,9 @@ frames at most 2 s on 2 cores. Absolute times depend on the machine and its load
 targets are only reported (``extra_info``: median, target, ``meets_target``; printed) and the
 README's measured tables hold them (issue 14: a slower machine failed 1.37 ms against 1 ms).
 What is asserted are ratios measured in the same run: a streamed frame costs at most a tenth of
-identifying the 200-frame video from scratch (measured ~90x under load 5), and batching 100
-videos is at least twice as fast per video as identifying one alone (measured ~9x).
+identifying the 200-frame video from scratch (measured ~90x under load 5), and, on one thread,
+batching 100 videos is at least twice as fast per video as identifying one alone (measured
+~9x). Nothing asserted depends on how busy the machine is beyond a 2x margin (issue 29).
 """
 
 from __future__ import annotations
@@ -86,7 +87,10 @@ def test_bench_identify_100_videos_200_frames(benchmark, threads, videos, n_thre
     """Reported against the 2-core target. On this shared machine two OpenMP threads contend
     with other processes (measured 6-9 s vs 1.4-1.7 s with one thread under load 5 with the
     first checkpoint), while on a quiet one two threads win (1.35 s vs 2.24 s with the second
-    checkpoint). Asserted: batching beats one video at a time, measured here."""
+    checkpoint). Asserted on one thread only: batching beats one video at a time, fastest
+    rounds against fastest (measured ~9x; bound 2x). The two-thread gain is reported, not
+    asserted: other processes on the cores hide it (a fresh clone failed it on a busy machine,
+    issue 29)."""
     import time
 
     threads(n_threads)
@@ -100,16 +104,20 @@ def test_bench_identify_100_videos_200_frames(benchmark, threads, videos, n_thre
         t0 = time.perf_counter()
         est.identify_batch(videos[i : i + 1])
         alone.append(time.perf_counter() - t0)
-    gain = float(np.median(alone)) / (med / 100)
+    # fastest rounds: the least disturbed by other processes (the medians are reported too)
+    gain = float(np.min(alone)) / (benchmark.stats.stats.min / 100)
     benchmark.extra_info.update({"median_s": med, "target_s": BATCH_TARGET_S,
                                  "meets_target": bool(med <= BATCH_TARGET_S),
                                  "per_video_s": med / 100, "threads": n_threads,
                                  "one_video_alone_s": float(np.median(alone)),
-                                 "batch_gain_per_video": gain})
+                                 "batch_gain_per_video": gain,
+                                 "gain_asserted": n_threads == 1})
     print(f"\n100 x 200 frames in {med:.3f} s ({med * 10:.1f} ms per video), {n_threads} thread(s) "
           f"(target {BATCH_TARGET_S:g} s: {'met' if med <= BATCH_TARGET_S else 'MISSED'}); "
           f"{gain:.1f}x faster per video than one alone")
-    assert gain >= BATCH_GAIN_MIN, f"batching gains only {gain:.1f}x per video, expected >= {BATCH_GAIN_MIN:g}x"
+    if n_threads == 1:
+        assert gain >= BATCH_GAIN_MIN, (
+            f"batching gains only {gain:.1f}x per video, expected >= {BATCH_GAIN_MIN:g}x")
 
 
 @pytest.mark.benchmark(group="vid2param")

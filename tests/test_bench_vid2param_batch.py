@@ -26,9 +26,11 @@ pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no ship
 #: Current path over the previous one, same run. Chunked encoding alone measured 3.0x when it
 #: was written and 1.66-1.82x three days later on the same 2-core machine (the ratio moves with
 #: the machine); with the channels_last keypoint convolution 2.23-2.75x (146-192 / 65-70
-#: videos/s, the other core busy training) and 2.97-3.10x idle (282-290 / 94-95). The bound
-#: keeps a margin below the lowest seen.
-SPEEDUP = 1.8
+#: videos/s, the other core busy training) and 2.97-3.10x idle (282-290 / 94-95). Both paths run
+#: two threads, which other processes on a 2-core machine disturb unevenly: the bound is half
+#: the lowest ratio seen with the current path (2.23x), so contention cannot fail it while a
+#: path no faster than the previous one still does (issue 29). The ratio is reported.
+SPEEDUP = 1.1
 
 
 @pytest.mark.benchmark(group="vid2param-batch")
