@@ -344,6 +344,18 @@ class System(abc.ABC):
 
         One Generator, in that order; ``theta`` goes to :meth:`sample_state0` where its signature
         takes it (a subclass written before the keyword existed still works).
+
+        Parameters
+        ----------
+        n : int
+        rng : int, None or numpy.random.Generator
+        split : {None, "train", "test"}
+            As :meth:`sample_theta`.
+
+        Returns
+        -------
+        theta : ndarray, shape (n, P)
+        state0 : ndarray, shape (n, S)
         """
         rng = check_seed(rng)
         theta = self.sample_theta(n, rng, split)
