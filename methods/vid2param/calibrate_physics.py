@@ -20,8 +20,8 @@ import time
 
 import numpy as np
 
-from methods.vid2param.inference import HI, LO, UNSEEN_SD_M, physical
-from sysid_bench.physics import BOX_WIDTH, DT, PARAMS
+from methods.vid2param.inference import HI, LO, physical, unseen_as_nan
+from sysid_bench.physics import DT, PARAMS
 
 __all__ = ["calibrate_physics_stage", "LENGTHS", "SEED"]
 
@@ -60,13 +60,11 @@ def calibrate_physics_stage(ctx, n: int = 100, seed: int = SEED) -> dict:
     truth = theta[:, -1] if theta.ndim == 3 else theta
     z = np.empty((len(truth), len(lengths), len(PARAMS)))
     frames = np.asarray(ds.frames)
-    i_x = list(ctx.net.config.targets).index("x")
     floor = ctx.floor_prior()
     for i in range(len(truth)):
         # as Vid2ParamPhysics.identify_prefixes, uncalibrated: the fit's Laplace posterior
         m, s, pos, sd = ctx.parameters(frames[i][None])
-        m, s, pos = m[0], s[0], pos[0]
-        pos[BOX_WIDTH * sd[0, :, i_x] > UNSEEN_SD_M] = np.nan
+        m, s, pos = m[0], s[0], unseen_as_nan(pos[0], sd[0], ctx.net.config.targets)
         for j, L in enumerate(lengths):
             fit = fit_track(pos[:L], *physical(m[L - 1], s[L - 1]), dt=DT, floor=floor)
             std = np.sqrt(np.diag(fit.cov[4:8, 4:8]))

@@ -36,6 +36,7 @@ from methods.vid2param.inference import (
     physical,
     positions,
     resolve_device,
+    unseen_as_nan,
 )
 from methods.vid2param.stages import Pipeline
 from methods.vid2param.stages import describe as describe_stages
@@ -755,9 +756,8 @@ class Vid2ParamPhysics(Vid2Param):
         # the parameters after every frame at once (the drag evidence is causal: its value
         # after n frames is that of the n-frame prefix)
         th_mu_n, th_sd_n, pos = self._calibrated(mu, sd)
-        # a frame without the ball (black, dropped, never found) gets the network's guess of a
-        # position, metres wide: unseen for the fit, not a point on the path
-        pos[BOX_WIDTH * sd[:, self.config_.targets.index("x")] > UNSEEN_SD_M] = np.nan
+        # a frame without the ball (black, dropped, never found) is unseen for the fit
+        unseen_as_nan(pos, sd, self.config_.targets)
         wall = time.perf_counter() - t0
         floor = self.floor_prior()
         out = []

@@ -15,6 +15,7 @@ import torch
 from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
 
 __all__ = ["LO", "HI", "SPAN", "UNSEEN_SD_M", "physical", "positions", "param_index",
+           "unseen_as_nan",
            "latent_pass", "floor_prior", "resolve_device", "FitContext"]
 
 LO = np.array([PRIOR[p][0] for p in PARAMS])
@@ -31,6 +32,14 @@ def physical(mu_n: np.ndarray, sd_n: np.ndarray) -> tuple[np.ndarray, np.ndarray
     """Normalised posterior mean and (calibrated) std of (e, g, d, r), (4,) each, in physical
     units; the mean clipped to the prior."""
     return LO + SPAN * np.clip(mu_n, 0.0, 1.0), SPAN * sd_n
+
+
+def unseen_as_nan(pos: np.ndarray, sd: np.ndarray, targets) -> np.ndarray:
+    """The track ``vid2param-physics`` fits: ``pos`` (..., T, 2) with every frame whose network
+    x-std (``sd`` (..., T, K)) exceeds ``UNSEEN_SD_M`` set to NaN (a frame without the ball gets
+    the network's guess, metres wide: unseen, not a point on the path). In place; returned."""
+    pos[BOX_WIDTH * sd[..., list(targets).index("x")] > UNSEEN_SD_M] = np.nan
+    return pos
 
 
 def param_index(targets) -> list[int]:
