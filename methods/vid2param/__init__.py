@@ -1,8 +1,10 @@
 """Vid2Param: online system identification from video with a physics-supervised VRNN.
 
 ``Vid2Param`` is the ``Estimator`` (``methods.get("vid2param")`` loads the shipped 28x28
-checkpoint); ``python -m methods.vid2param.train`` trains one. This package, and only this one,
-imports torch.
+checkpoint): the network followed by its named stages (``methods.vid2param.stages``; each
+shipped checkpoint's list: ``describe_checkpoints()``, ``sysid-bench list --checkpoints``).
+``python -m methods.vid2param.train`` trains one and fits its stages. This package, and only
+this one, imports torch.
 """
 
 from methods.vid2param.estimator import (
@@ -13,8 +15,9 @@ from methods.vid2param.estimator import (
     Vid2ParamChanging,
     Vid2ParamPhysics,
     Vid2ParamStream,
+    describe_checkpoints,
 )
 from methods.vid2param.model import PRESETS, V2PConfig
 
 __all__ = ["Vid2Param", "Vid2ParamChanging", "Vid2ParamPhysics", "Vid2ParamStream", "V2PConfig", "PRESETS", "FORECASTS",
-           "SHIPPED_CHECKPOINT", "SHIPPED_CHECKPOINTS"]
+           "SHIPPED_CHECKPOINT", "SHIPPED_CHECKPOINTS", "describe_checkpoints"]
