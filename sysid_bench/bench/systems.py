@@ -7,8 +7,9 @@ ranges, seeded per system), 200 frames. Position methods see the K tracked point
 ``render`` at its default size. Per case and observed-frame count (50, 100, 200) the rows are
 ``se_<p>`` / ``se`` (squared error normalised by the prior range, and their mean), ``cov90``
 (fraction of the parameters whose 90% interval holds the truth), ``check_ok`` (the posterior's
-model check passed), ``wall_s``; after 50 frames a 100-frame forecast adds ``fc_mse`` (position
-MSE normalised by the view's width).
+model check passed), ``wall_s``, ``u_<p>`` (the posterior mean normalised by the prior, for the agreement with the
+``nuts`` reference) and the samplers' ``rhat_max`` / ``ess_min``; after 50 frames a 100-frame
+forecast adds ``fc_mse`` (position MSE normalised by the view's width).
 
 A method that does not run on a system (no model shipped for it, no feature library) raises
 ``NotImplementedError`` with a sentence; the report lists it as ``n/a``.
@@ -76,6 +77,24 @@ def system_case(system: str, i: int, n: int, seed: int, input_kind: str):
     return obs, theta[i], points[i]
 
 
+#: the reference posterior every other method's mean is compared with
+REFERENCE = "nuts"
+
+
+def _gap_to_reference(df, system: str, method: str, n_frames: int) -> float:
+    """Mean squared distance (normalised units) between ``method``'s and the reference's
+    posterior means on the cases both identified after ``n_frames`` frames (NaN if none)."""
+    if method == REFERENCE:
+        return np.nan
+    sub = df[(df.condition == system) & (df.n_frames == n_frames) & df.metric.str.startswith("u_")]
+    a = sub[sub.method == method].set_index(["case", "metric"]).value
+    b = sub[sub.method == REFERENCE].set_index(["case", "metric"]).value
+    both = a.index.intersection(b.index)
+    if not len(both):
+        return np.nan
+    return float(((a[both] - b[both]) ** 2).mean())
+
+
 def _interval_holds(post, truth, level=0.9) -> np.ndarray:
     lo, hi = post.interval(level)
     return (truth >= lo) & (truth <= hi)
@@ -140,6 +159,15 @@ class Systems(Experiment):
                 out.add(i, n, "wall_s", wall)
                 if post.check is not None:
                     out.add(i, n, "check_ok", float(post.check.ok))
+                # the samplers' convergence diagnostics (NUTS is the reference posterior)
+                for key, metric in (("rhat", "rhat_max"), ("ess", "ess_min")):
+                    d = post.extras.get(key)
+                    if isinstance(d, dict) and d:
+                        v = np.asarray(list(d.values()), dtype=float)
+                        out.add(i, n, metric, v.max() if key == "rhat" else v.min())
+                # the posterior mean (normalised) for the agreement with the reference
+                for p, v in zip(sys_.params, sys_.normalise(post.mean)):
+                    out.add(i, n, f"u_{p}", v)
         if spec.forecasts:
             try:
                 fc = est.forecast(obs.prefix(FORECAST_AFTER), FORECAST_HORIZON)
@@ -181,6 +209,11 @@ class Systems(Experiment):
                    "forecast_mse@50": mean_of("fc_mse", FORECAST_AFTER),
                    "coverage90": mean_of("cov90"),
                    "check_pass": mean_of("check_ok"),
+                   "rhat_max": float(at[at.metric == "rhat_max"].value.max())
+                   if (at.metric == "rhat_max").any() else np.nan,
+                   "ess_min": float(at[at.metric == "ess_min"].value.min())
+                   if (at.metric == "ess_min").any() else np.nan,
+                   "nuts_gap": _gap_to_reference(df, s, m, last),
                    "s_per_id": float(at[at.metric == "wall_s"].value.median())
                    if (at.metric == "wall_s").any() else np.nan}
             recs.append(rec)
@@ -202,7 +235,8 @@ class Systems(Experiment):
             fmt_ci(m, lo, hi) for m, lo, hi in zip(t[f"param_mse@{last}"], t.param_mse_lo,
                                                    t.param_mse_hi)]
         show = show.drop(columns=["param_mse_lo", "param_mse_hi"])
-        for c in ("forecast_mse@50", "coverage90", "check_pass", "s_per_id"):
+        for c in ("forecast_mse@50", "coverage90", "check_pass", "s_per_id", "rhat_max",
+                  "ess_min", "nuts_gap"):
             show[c] = [("-" if not np.isfinite(v) else f"{v:.3g}") for v in t[c]]
         return {"systems_summary": t, "systems_summary_display": show}
 
