@@ -18,6 +18,13 @@ import the modules they run or draw anyway.
 >>> methods.references()
 ['prior']
 >>> est = methods.get("lsq", n_samples=500)          # doctest: +SKIP
+>>> est = methods.get("nuts", system="pendulum")    # doctest: +SKIP
+
+On the systems other than the ball (:mod:`sysid_bench.systems`) a method runs through the class
+its registration names as ``on_systems``: lsq, bo, emcee and nuts share one generic likelihood on
+the system's tracked points (:mod:`methods._system_fit`, :mod:`methods._system_nuts`), sindy has a
+feature library per system (:mod:`methods._system_sindy`), dmd forecasts the points of any system;
+a method without one (Vid2Param: no model shipped for that system) raises :class:`NotAvailable`.
 """
 
 from __future__ import annotations

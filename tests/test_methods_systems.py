@@ -229,3 +229,12 @@ def test_nuts_recovers_an_easy_spring():
     z = (post.mean - theta) / post.std
     assert np.all(np.abs(z) < 4), (post.mean, post.std, theta)
     assert post.extras["converged"], post.extras["warning"]
+
+
+def test_a_known_initial_state_is_used_as_given():
+    system, theta, pts = _easy_spring()
+    state0 = np.array([1.5 + 0.55, 0.3])
+    post = methods.get("lsq", system="spring", **CHEAP["lsq"]).identify(
+        Observation(positions=pts, state0=state0, system="spring"))
+    assert post.extras["state0_known"] and np.allclose(post.extras["state0"], state0)
+    assert np.all(np.abs(post.mean - theta) < 4 * post.std + 1e-9)
