@@ -157,6 +157,9 @@ def run_arguments(p) -> None:
     _execution(p)
     p.add_argument("--inline", nargs="*", default=None, metavar="NAME",
                    help="methods run in a thread of this process (default: those declaring inline)")
+    p.add_argument("--system", nargs="+", default=None, metavar="NAME", dest="systems",
+                   help="only these systems (sysid_bench.systems.available()); without "
+                        "--experiments and without 'ball', the across-systems experiment alone")
 
 
 def run_run(args) -> int:
@@ -165,7 +168,7 @@ def run_run(args) -> int:
     s = run(scale=args.scale, methods=args.methods, experiments=args.experiments,
             run_dir=args.run_dir, workers=args.workers, scheduler=args.scheduler,
             progress=not args.no_progress, inline=args.inline, threads=args.threads,
-            retry_errors=args.retry_errors)
+            retry_errors=args.retry_errors, systems=args.systems)
     print(f"store {s['store']}: {s['cells']} cells in the grid, {s['already']} already stored, "
           f"{s['ran']} computed ({s['ok']} ok, {s['errors']} errors, {s['na']} n/a) "
           f"in {s['wall_s']:.1f} s")

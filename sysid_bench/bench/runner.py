@@ -44,17 +44,52 @@ __all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "prove
            "method_fingerprint", "experiment_fingerprint", "cell_fingerprint", "default_inline", "default_run_dir", "STORE_NAME"]
 
 STORE_NAME = "results.sqlite"
+#: Paths (from the repository root) a run writes itself: left out of provenance's dirty check
+REPORT_OUTPUTS = ("reports",)
 #: sources (from the repository root) every simulation-based method is built on
 _VERSIONED = ("numpy", "scipy", "pandas", "pyarrow", "torch", "jax", "numpyro", "emcee",
               "pysindy", "pydmd", "scikit-optimize", "scikit-learn", "dask", "distributed",
               "matplotlib")
 
 
+def _cpu_flags() -> set[str]:
+    """The CPU's feature flags (Linux ``/proc/cpuinfo``; empty elsewhere)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return set()
+
+
+def portable_float_env() -> dict[str, str]:
+    """Variables that make the workers' floating point the same on every x86-64 CPU that has
+    AVX2 and FMA (``docs/reliability.md``, "Same report on any machine").
+
+    OpenBLAS (NumPy's and SciPy's) picks its kernels by CPU: on a fixed case ``Prescott``
+    kernels moved bo's e in the 5th digit and every emcee and nuts draw, and the chains
+    amplify that. ``OPENBLAS_CORETYPE=Haswell`` runs the same kernels on every such CPU,
+    AVX-512 ones included. NumPy's own AVX-512 loops (``exp``, ``log``, ``sin``: results 1 ulp
+    from the baseline's) are turned off; XLA compiles for at most AVX2. Empty on other CPUs
+    (ARM, x86 without AVX2): there the figures move within their CIs.
+    """
+    import platform
+
+    if platform.machine().lower() not in ("x86_64", "amd64") or not {"avx2", "fma"} <= _cpu_flags():
+        return {}
+    return {"OPENBLAS_CORETYPE": "Haswell", "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR"}
+
+
 def _thread_env(threads: int) -> dict[str, str]:
     n = str(int(threads))
+    port = portable_float_env()
+    isa = " --xla_cpu_max_isa=AVX2" if port else ""
     xla = ("--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" if n == "1"
-           else f"intra_op_parallelism_threads={n}")
-    return {"OMP_NUM_THREADS": n, "MKL_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n, "XLA_FLAGS": xla}
+           else f"intra_op_parallelism_threads={n}") + isa
+    return {"OMP_NUM_THREADS": n, "MKL_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n,
+            "XLA_FLAGS": xla, **port}
 
 
 def default_run_dir(scale: str) -> Path:
@@ -149,7 +184,10 @@ def provenance() -> dict:
     try:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
                                 text=True, timeout=10).stdout.strip() or "unknown"
-        dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+        # the report's own outputs (``reports/``, rewritten by every run) do not make the
+        # code the run measured "uncommitted"
+        dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no",
+                                     "--", ".", *(f":(exclude){p}" for p in REPORT_OUTPUTS)],
                                     cwd=root, capture_output=True, text=True,
                                     timeout=10).stdout.strip())
     except (OSError, subprocess.SubprocessError):
@@ -214,6 +252,7 @@ def run(
     argv=None,
     max_cells: int | None = None,
     retry_errors: bool = False,
+    systems=None,
 ) -> dict:
     """Run (or resume) a benchmark into ``run_dir/results.sqlite``.
 
@@ -243,6 +282,10 @@ def run(
     retry_errors : bool
         First drop the stored cells whose status is "error" (a missing checkpoint, a bug since
         fixed), so they are computed again; otherwise a resumed run keeps them as they are.
+    systems : list of str, optional
+        Only these registered systems' cells of the across-systems experiment. Without
+        ``experiments``, a list without "ball" runs that experiment alone (the other
+        experiments are the ball's).
 
     Raises
     ------
@@ -257,6 +300,9 @@ def run(
         (cells dropped because their method's fingerprint changed), ``wall_s``.
     """
     sc = get_scale(scale)
+    systems = _resolve_systems(systems)
+    if systems is not None and experiments is None and "ball" not in systems:
+        experiments = ["systems"]
     exps = resolve_experiments(experiments)
     meths, skipped = resolve_methods(methods)
     threads = check_positive_int(threads, "threads")
@@ -268,7 +314,18 @@ def run(
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(sc.name)
     with lock_run_dir(run_dir):  # one writing run per run dir; RunDirBusyError otherwise
         return _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline,
-                           progress, argv, max_cells, retry_errors, threads)
+                           progress, argv, max_cells, retry_errors, threads, systems)
+
+
+def _resolve_systems(systems) -> list[str] | None:
+    """Registered system names (``ValueError`` with "did you mean" for an unknown one)."""
+    if systems is None:
+        return None
+    from sysid_bench import systems as registry
+
+    if isinstance(systems, str):
+        systems = [systems]
+    return [registry.get(s).name for s in systems]
 
 
 def _check_inline(inline, meths, skipped) -> list[str]:
@@ -285,7 +342,7 @@ def _check_inline(inline, meths, skipped) -> list[str]:
 
 
 def _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline, progress, argv,
-                max_cells, retry_errors, threads) -> dict:
+                max_cells, retry_errors, threads, systems=None) -> dict:
     """:func:`run`'s body, under the run dir's lock."""
     from tqdm.auto import tqdm
 
@@ -307,6 +364,8 @@ def _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline, p
             store.drop_cells(ids=stale)
         retried = store.drop_cells("error") if retry_errors else 0
         grid = build_grid(sc, meths, exps)
+        if systems is not None:  # the across-systems experiment's cells name their system
+            grid = [c for c in grid if c.experiment != "systems" or c.condition in systems]
         done = store.done_cells()
         todo = _order([c for c in grid if c.id not in done])
         if max_cells is not None:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench.bench.experiment import Cell, CellOutput, Context, Experiment, ci_summary, fmt_ci
+from sysid_bench.bench.experiment import Cell, CellOutput, Context, Experiment, ci_summary
 from sysid_bench.estimator import Observation
 from sysid_bench.metrics import GUESS_MSE
 
@@ -221,30 +221,21 @@ class Systems(Experiment):
         if t.empty:
             return t
         key = f"param_mse@{last}"
-        t["rank"] = (t.groupby("system")[key].rank(method="min", na_option="keep"))
-        t["rank"] = t["rank"].astype("Int64")
+        t["rank"] = t.groupby("system")[key].rank(method="min", na_option="keep")
         return t.sort_values(["system", "rank", "method"], na_position="last").reset_index(drop=True)
 
     def tables(self, df):
         if df.empty:
             return {}
-        t = self.summary(df)
-        show = t.copy()
-        last = max(SYSTEM_LENGTHS)
-        show[f"param_mse@{last}"] = [
-            fmt_ci(m, lo, hi) for m, lo, hi in zip(t[f"param_mse@{last}"], t.param_mse_lo,
-                                                   t.param_mse_hi)]
-        show = show.drop(columns=["param_mse_lo", "param_mse_hi"])
-        for c in ("forecast_mse@50", "coverage90", "check_pass", "s_per_id", "rhat_max",
-                  "ess_min", "nuts_gap"):
-            show[c] = [("-" if not np.isfinite(v) else f"{v:.3g}") for v in t[c]]
-        return {"systems_summary": t, "systems_summary_display": show}
+        return {"systems_summary": self.summary(df)}
 
     def figures(self, df, store, outdir: Path):
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+
+        from sysid_bench.bench.figures import method_color
 
         if df.empty:
             return {}
@@ -259,7 +250,7 @@ class Systems(Experiment):
             xs = np.arange(len(systems_)) + (j - (len(meths) - 1) / 2) * width
             for ax, col in zip(axes, (f"param_mse@{last}", "forecast_mse@50")):
                 ys = [g[col].get(s, np.nan) if s in g.index else np.nan for s in systems_]
-                ax.bar(xs, ys, width=width, label=m)
+                ax.bar(xs, ys, width=width, label=m, color=method_color(m))
         for ax, lab in zip(axes, (f"parameter MSE after {last} frames", "forecast MSE (100 after 50)")):
             ax.set_xticks(np.arange(len(systems_)), systems_)
             ax.set_yscale("log")
