@@ -376,7 +376,8 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="the model of a method that takes a checkpoint: 28x28 (its default) or "
                         "camera (100x50 view)")
     p.add_argument("--out", default=None,
-                   help="output folder (default: <video name>_sysid beside the current folder)")
+                   help="output folder (default: runs/identify/<video name>_<method>/, never a "
+                        "committed file)")
     g = p.add_argument_group("geometry (default: framed as the suite's renderer)")
     g.add_argument("--px-per-m", type=float, default=None, help="pixels per metre")
     g.add_argument("--floor-row", type=float, default=None, help="row of the floor's surface")
@@ -399,9 +400,15 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return p
 
 
+def default_out(video, method: str) -> Path:
+    """``identify``'s output folder when ``--out`` is not given: under ``runs/`` (ignored by
+    git), one per video and method, so no two commands' outputs (or committed files) are
+    overwritten."""
+    return Path("runs") / "identify" / f"{Path(video).stem}_{method}"
+
+
 def run(args) -> int:
     """Run ``identify``; bad input prints one line to stderr and returns 2."""
-    out = Path(args.out) if args.out else Path(f"{Path(args.video).stem}_sysid")
     geometry = {"px_per_m": args.px_per_m, "floor_row": args.floor_row,
                 "wall_col": args.wall_col, "corners": args.corners,
                 "ball_radius_px": args.ball_radius_px}
@@ -412,6 +419,7 @@ def run(args) -> int:
             raise ValueError(f"horizon: expected an int >= 1, got {args.horizon}")
         if args.method is None:
             args.method = default_method()
+        out = Path(args.out) if args.out else default_out(args.video, args.method)
         res = identify_video(args.video, method=args.method, checkpoint=args.checkpoint,
                              geometry=geometry, every=args.every, horizon=args.horizon,
                              seed=args.seed, progress=None if not args.no_progress else False)

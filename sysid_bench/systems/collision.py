@@ -56,7 +56,12 @@ import math
 import numba
 import numpy as np
 
-from sysid_bench._validate import as_float_array, check_positive_float, check_positive_int, check_seed
+from sysid_bench._validate import (
+    as_float_array,
+    check_positive_float,
+    check_positive_int,
+    check_seed,
+)
 from sysid_bench.systems import _draw
 from sysid_bench.systems._base import System
 
@@ -192,34 +197,51 @@ def _simulate_kernel(th, s0, dt, out):
 
 
 # --------------------------------------------------------------------------------------------
-# the tracker's pieces
-def _coverage(centre, radius, size) -> np.ndarray:
-    """Unblurred anti-aliased coverage (H, W) of one disc at pixel ``centre`` (col, row)."""
-    return _draw.draw_discs(np.asarray(centre, dtype=np.float64)[None, None], radius, size)[0]
+# the tracker's pieces, on all frames at once: img (T, H, W), centres (T, 2) as (col, row)
+def _coverage(centres, radius, size) -> np.ndarray:
+    """Unblurred anti-aliased coverage (T, H, W) of one disc per frame; 0 where the centre is
+    NaN."""
+    c = np.nan_to_num(np.asarray(centres, dtype=np.float64), nan=-1e6)
+    return _draw.draw_discs(c[:, None], radius, size).astype(np.float64)
+
+
+def _dist2(centres, jc, ic):
+    """Squared pixel distances (T, H, W) of every pixel centre to each frame's centre."""
+    return ((jc[None, None, :] - centres[:, 0, None, None]) ** 2
+            + (ic[None, :, None] - centres[:, 1, None, None]) ** 2)
 
 
 def _blob(mask, jc, ic, reach):
-    """Centre (col, row) and count of the pixels of ``mask`` within ``reach`` of their median,
-    or None if fewer than 90% of them are (scattered pixels: noise, not a puck)."""
-    rows, cols = np.nonzero(mask)
-    if rows.size == 0:
-        return None, 0
-    cc, rc = jc[cols], ic[rows]
-    c0, r0 = np.median(cc), np.median(rc)
-    near = (cc - c0) ** 2 + (rc - r0) ** 2 <= reach * reach
-    if near.sum() < 0.9 * rows.size:
-        return None, rows.size
-    return np.array([cc[near].mean(), rc[near].mean()]), int(near.sum())
+    """Centre (T, 2) and count (T,) of the pixels of ``mask`` (T, H, W) in the band of columns
+    ``reach`` either side of where they are densest; NaN where fewer than 90% of the mask's
+    pixels are there (scattered pixels: noise, not a puck) or there are none."""
+    t, _, w = mask.shape
+    cols = mask.sum(axis=1).astype(np.float64)  # (T, W)
+    k = int(math.floor(reach))
+    cs = np.concatenate([np.zeros((t, 1)), np.cumsum(cols, axis=1)], axis=1)
+    lo = np.clip(np.arange(w) - k, 0, w)
+    hi = np.clip(np.arange(w) + k + 1, 0, w)
+    band = cs[:, hi] - cs[:, lo]  # pixels within k columns of each column
+    j0 = np.argmax(band, axis=1)
+    inband = np.abs(jc[None, :] - jc[j0][:, None]) <= k  # (T, W)
+    m = mask & inband[:, None, :]
+    n = m.sum(axis=(1, 2)).astype(np.float64)
+    total = mask.sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = np.stack([m.sum(axis=1) @ jc / n, m.sum(axis=2) @ ic / n], axis=-1)
+    c[(n == 0) | (n < 0.9 * total)] = np.nan
+    return c, n
 
 
-def _weighted_centre(w, jc, ic, centre, reach):
-    """Centroid of weights ``w`` (H, W) within ``reach`` of ``centre``, and their total."""
-    win = (jc[None, :] - centre[0]) ** 2 + (ic[:, None] - centre[1]) ** 2 <= reach * reach
-    ww = np.where(win, w, 0.0)
-    mass = ww.sum()
-    if mass <= 0:
-        return None, 0.0
-    return np.array([(ww.sum(axis=0) @ jc) / mass, (ww.sum(axis=1) @ ic) / mass]), float(mass)
+def _weighted_centre(wgt, jc, ic, centres, reach):
+    """Centroid (T, 2) of weights ``wgt`` (T, H, W) within ``reach`` of each centre, and the
+    weights' total (T,); NaN where the centre is NaN or the total is 0."""
+    ww = np.where(_dist2(centres, jc, ic) <= reach * reach, wgt, 0.0)
+    mass = ww.sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = np.stack([ww.sum(axis=1) @ jc / mass, ww.sum(axis=2) @ ic / mass], axis=-1)
+    c[~(mass > 0)] = np.nan
+    return c, mass
 
 
 def _soft(c):
@@ -321,58 +343,40 @@ class Collision(System):
         A puck is unseen (NaN) when its core is missing, scattered (noise), far too large (a
         white frame) or its coverage mass is not that of one disc.
         """
-        fr = np.asarray(frames, dtype=np.float64)
-        t, h, w = fr.shape
-        view = _draw.View(self.extent, (h, w))
+        img = np.asarray(frames, dtype=np.float64)
+        t, h, w = img.shape
+        size = (h, w)
+        view = _draw.View(self.extent, size)
         radius = R * view.px_per_m[0]
         jc = np.arange(w, dtype=np.float64) + 0.5
         ic = np.arange(h, dtype=np.float64) + 0.5
         area = math.pi * radius * radius
         reach = radius + 2.5
-        out = np.full((t, 2, 2), np.nan)
-        for k in range(t):
-            c = self._track_frame(fr[k], jc, ic, radius, area, reach)
-            for j in range(2):
-                if c[j] is not None:
-                    out[k, j] = view.to_metres(c[j])
-        return out
-
-    @staticmethod
-    def _track_frame(img, jc, ic, radius, area, reach):
-        size = img.shape
         mid = 0.5 * (LEVEL1 + LEVEL2)
-        bright = img >= mid
-        p1, n1 = _blob(bright, jc, ic, reach)
-        if p1 is not None and not (0.3 * area <= n1 <= 2.0 * area):
-            p1 = None
-        dim = (img >= 0.5 * LEVEL2) & (img < mid)
-        if p1 is not None:
-            far = (jc[None, :] - p1[0]) ** 2 + (ic[:, None] - p1[1]) ** 2 > (radius + 2.0) ** 2
-            dim &= far
-        p2, n2 = _blob(dim, jc, ic, reach)
-        if p2 is not None and not (0.25 * area <= n2 <= 2.0 * area):
-            p2 = None
-        m1 = m2 = 0.0
+        # first estimates: puck 1's core, then the mid-grey pixels beyond puck 1's rim
+        p1, n1 = _blob(img >= mid, jc, ic, reach)
+        p1[~((n1 >= 0.3 * area) & (n1 <= 2.0 * area))] = np.nan
+        far = ~(_dist2(p1, jc, ic) <= (radius + 2.0) ** 2)  # True where p1 is NaN
+        p2, n2 = _blob((img >= 0.5 * LEVEL2) & (img < mid) & far, jc, ic, reach)
+        p2[~((n2 >= 0.25 * area) & (n2 <= 2.0 * area))] = np.nan
+        m1 = m2 = np.zeros(t)
         for _ in range(3):
-            if p1 is not None:
-                cov2 = _coverage(p2, radius, size) if p2 is not None else 0.0
-                c1 = (img - LEVEL2 * cov2) / (LEVEL1 - LEVEL2 * cov2)
-                q, m1 = _weighted_centre(_soft(c1), jc, ic, p1, reach)
-                p1 = q if q is not None else p1
-            if p2 is not None:
-                cov1 = _coverage(p1, radius, size) if p1 is not None else np.zeros(size)
-                free = cov1 < 0.98
-                c2 = np.where(free, (img - LEVEL1 * cov1) / (LEVEL2 * np.maximum(1.0 - cov1, 0.02)),
-                              0.0)
-                q, m2 = _weighted_centre(_soft(c2), jc, ic, p2, reach)
-                p2 = q if q is not None else p2
+            cov2 = _coverage(p2, radius, size)
+            c1 = (img - LEVEL2 * cov2) / (LEVEL1 - LEVEL2 * cov2)
+            q, m1 = _weighted_centre(_soft(c1), jc, ic, p1, reach)
+            p1 = np.where(np.isfinite(q), q, p1)
+            cov1 = _coverage(p1, radius, size)
+            # where puck 1 covers most of a pixel the division would amplify its rounding and
+            # the image's; puck 2 covers under half of such a pixel anyway (discs do not overlap)
+            c2 = np.where(cov1 < 0.5, (img - LEVEL1 * cov1)
+                          / (LEVEL2 * np.maximum(1.0 - cov1, 0.5)), 0.0)
+            q, m2 = _weighted_centre(_soft(c2), jc, ic, p2, reach)
+            p2 = np.where(np.isfinite(q), q, p2)
         # the soft weights of a whole disc sum to about its area; a puck half hidden or a blob
         # of another size is not this puck
-        if p1 is not None and not 0.6 * area <= m1 <= 1.6 * area:
-            p1 = None
-        if p2 is not None and not 0.6 * area <= m2 <= 1.6 * area:
-            p2 = None
-        return p1, p2
+        p1[~((m1 >= 0.6 * area) & (m1 <= 1.6 * area))] = np.nan
+        p2[~((m2 >= 0.6 * area) & (m2 <= 1.6 * area))] = np.nan
+        return view.to_metres(np.stack([p1, p2], axis=1))
 
     # ------------------------------------------------------------------------------------------
     def state0_from_track(self, positions, dt=0.05):
