@@ -1040,19 +1040,20 @@ def thin_trace(trace: dict, n_forecasts: int = 12) -> dict:
     return rnd(out)
 
 
-def write_results(df, out_dir, command: str = "") -> tuple[Path, Path]:
+def write_results(df, out_dir, command: str = "", extra: dict | None = None) -> tuple[Path, Path]:
     """Write an :func:`evaluate` table and its summary (with the scene and traces).
 
     Files: ``out_dir/tables/intercept_<policy>.csv`` (one row per throw) and
-    ``out_dir/tables/intercept_<policy>.json`` (summary, scene, seed, command, traces), both
-    written atomically. Returns their paths.
+    ``out_dir/tables/intercept_<policy>.json`` (summary, scene, seed, command, traces and the
+    keys of ``extra``), both written atomically. Returns their paths.
     """
     tab = Path(out_dir) / "tables"
     base = tab / f"intercept_{_slug(df.attrs.get('policy', 'policy'))}"
     csv, js = base.with_suffix(".csv"), base.with_suffix(".json")
     atomic_write(csv, df.to_csv(index=False))
     meta = {"summary": summarise(df), "scene": df.attrs.get("scene"), "command": command,
-            "traces": {str(k): thin_trace(v) for k, v in df.attrs.get("traces", {}).items()}}
+            "traces": {str(k): thin_trace(v) for k, v in df.attrs.get("traces", {}).items()},
+            **(extra or {})}
     atomic_write(js, json.dumps(meta, default=float))
     return csv, js
 
@@ -1164,20 +1165,28 @@ def intercept_figure(results: dict, path, draw: str | None = None) -> Path | Non
     return save_figure(fig, path)
 
 
-def report_section(out_dir) -> list[str]:
-    """Markdown of the interception section from the tables ``sysid-bench intercept`` wrote.
+def report_section(out_dir, source=None) -> list[str]:
+    """Markdown of the interception section from the tables a run measured.
 
-    Reads ``out_dir/tables/intercept_*.json``; writes ``out_dir/tables/intercept_summary.csv``
-    and ``out_dir/figures/intercept.png``. Computes nothing.
+    Reads ``source/tables/intercept_*.json`` (default ``out_dir``: the run directory's, where
+    ``sysid_bench.report.measure_intercept`` writes them); writes
+    ``out_dir/tables/intercept_summary.csv``, a copy of each policy's per-throw CSV and
+    ``out_dir/figures/intercept.png``. Computes nothing.
     """
     import pandas as pd
 
     out = Path(out_dir)
+    src = out if source is None else Path(source)
     md = ["## 8. Interception (the paper's robot experiment, simulated)", ""]
-    res = _load_results(out)
+    res = _load_results(src)
     if not res:
-        return md + ["_No interception tables in `tables/`: run `sysid-bench intercept --policy "
-                     "NAME --throws 200 --out " + str(out_dir) + "` for each policy._", ""]
+        return md + ["_No interception tables in this run (`sysid-bench report` measures them "
+                     "into the run directory after the grid)._", ""]
+    if src.resolve() != out.resolve():
+        for p in res:
+            csv = src / "tables" / f"intercept_{_slug(p)}.csv"
+            if csv.is_file():
+                atomic_write(out / "tables" / csv.name, csv.read_bytes())
     sc = next(iter(res.values())).get("scene") or {}
     md += [f"A ball drawn from the test sub-ranges, filmed at 20 Hz with camera nuisances "
            f"({', '.join(f'{k} {v:g}' for k, v in sorted((sc.get('nuisance') or {}).items()))}), "
@@ -1231,7 +1240,9 @@ def add_arguments(p):
                    help="number of throws (default 200)")
     p.add_argument("--seed", type=arg_number(0, SEED_MAX, integer=True), default=0,
                    help="seed of the throws (default 0)")
-    p.add_argument("--out", default="reports", help="output directory (default reports/)")
+    p.add_argument("--out", default="runs/intercept",
+                   help="output directory (default runs/intercept/; the report's interception "
+                        "tables are measured by the run itself)")
     p.add_argument("--speed", type=arg_number(0, physics.V_MAX, lo_open=True, unit="m/s"),
                    default=None, help=f"effector speed limit, m/s (0 < speed <= {physics.V_MAX:g})")
     p.add_argument("--catch-radius", type=arg_number(0, CATCH_RADIUS_MAX, lo_open=True, unit="m"),

@@ -1,0 +1,121 @@
+"""What a user reads is true and safe to run (issue 29): the sample clip and identify's default
+output folder, intercept's default output folder, the report's store name and provenance, the
+interception table measured into the run directory, and the workers' portable floating point."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from sysid_bench.cli import main as cli_main
+
+ROOT = Path(__file__).resolve().parents[1]
+CLIP = ROOT / "docs" / "sample" / "ball.mp4"
+
+
+def test_sample_clip_is_small_and_identify_writes_under_runs(tmp_path, monkeypatch, capsys):
+    pytest.importorskip("av")
+    assert CLIP.is_file() and CLIP.stat().st_size <= 1_000_000
+    truth = json.loads(CLIP.with_suffix(".json").read_text())["theta"]
+    monkeypatch.chdir(tmp_path)  # the default output folder is relative to where one runs
+    assert cli_main(["identify", str(CLIP), "--method", "lsq", "--every", "100",
+                     "--no-progress"]) == 0
+    out = tmp_path / "runs" / "identify" / "ball_lsq"
+    assert {p.name for p in out.iterdir()} >= {"estimates.csv", "estimates.json", "track.png"}
+    import pandas as pd
+
+    est = pd.read_csv(out / "estimates.csv")
+    assert len(est) == 200
+    # a 10 s clip of our own physics: lsq finds g within 0.5 m/s^2
+    assert abs(est.g_mean.iloc[-1] - truth["g"]) < 0.5
+    assert "wrote runs/identify/ball_lsq/" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_readme_identify_lines_run_as_written(tmp_path, monkeypatch):
+    """Each README ``identify`` line, as written, on the shipped clip, each into its own folder."""
+    pytest.importorskip("av")
+    import shlex
+
+    lines = [ln.split("#")[0].split() for ln in (ROOT / "README.md").read_text().splitlines()
+             if ln.startswith("sysid-bench identify ")]
+    assert len(lines) >= 3
+    outs = [ln[ln.index("--out") + 1] for ln in lines]
+    assert len(set(outs)) == len(outs) and all(o.startswith("runs/") for o in outs)
+    monkeypatch.chdir(ROOT)
+    for ln in lines:
+        out = ROOT / ln[ln.index("--out") + 1]
+        assert cli_main(shlex.split(" ".join(ln[1:]))) == 0, ln
+        assert (out / "estimates.csv").is_file()
+
+
+def test_intercept_default_out_is_under_runs(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert cli_main(["intercept", "--policy", "random-1hz", "--throws", "1",
+                     "--no-progress"]) == 0
+    assert (tmp_path / "runs" / "intercept" / "tables" / "intercept_random-1hz.json").is_file()
+    assert not (tmp_path / "reports").exists()
+    capsys.readouterr()
+
+
+def test_store_label_is_relative(tmp_path, monkeypatch):
+    from sysid_bench.report import store_label
+
+    store = tmp_path / "runs" / "default" / "results.sqlite"
+    monkeypatch.chdir(tmp_path)
+    assert store_label(store) == "runs/default/results.sqlite"
+    monkeypatch.chdir(ROOT)  # a store outside the current folder: its run dir and file only
+    assert store_label(store) == "default/results.sqlite"
+    assert str(tmp_path) not in store_label(store)
+
+
+def test_provenance_ignores_the_reports_own_outputs():
+    """A run's own files under reports/ do not make its commit "uncommitted"."""
+    import subprocess
+
+    from sysid_bench.bench.runner import REPORT_OUTPUTS, provenance
+
+    assert "reports" in REPORT_OUTPUTS
+    other = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                            ":(exclude)reports"], cwd=ROOT, capture_output=True, text=True)
+    if other.returncode != 0:
+        pytest.skip("not a git checkout")
+    assert provenance()["git_dirty"] == bool(other.stdout.strip())
+
+
+def test_portable_float_env_in_workers():
+    from sysid_bench.bench.runner import _cpu_flags, _thread_env, portable_float_env
+
+    env = _thread_env(1)
+    port = portable_float_env()
+    if {"avx2", "fma"} <= _cpu_flags():
+        assert port["OPENBLAS_CORETYPE"] == "Haswell"
+        assert "--xla_cpu_max_isa=AVX2" in env["XLA_FLAGS"]
+    assert {k: env[k] for k in port} == port and env["OPENBLAS_NUM_THREADS"] == "1"
+
+
+def test_interception_is_measured_into_the_run_dir_and_rendered(tmp_path, monkeypatch):
+    """The report's section 8 reads the tables the run measured beside its store (and keeps a
+    measured policy whose code did not change)."""
+    from sysid_bench import report
+    from sysid_bench.bench.runner import STORE_NAME, run
+
+    monkeypatch.setattr(report, "intercept_policies", lambda methods=None: ["oracle", "random-1hz"])
+    run_dir = tmp_path / "run"
+    res = run(scale="smoke", methods=["prior"], experiments=["calibration"], run_dir=run_dir,
+              workers=0, progress=False)
+    files = report.measure_intercept("smoke", run_dir, workers=1)
+    assert sorted(f.name for f in files) == ["intercept_oracle.json", "intercept_random-1hz.json"]
+    stamp = [f.stat().st_mtime_ns for f in files]
+    assert [f.stat().st_mtime_ns for f in report.measure_intercept("smoke", run_dir, workers=1)] \
+        == stamp  # kept, not measured again
+    text = report.render(res["store"], tmp_path / "rep").read_text()
+    sec = text.split("## 8. Interception")[1]
+    assert "| oracle | 3 | 3 |" in sec and "| random-1hz | 3 |" in sec
+    assert (tmp_path / "rep" / "tables" / "intercept_oracle.csv").is_file()
+    assert str(tmp_path) not in text.split("## Run")[0]
+    assert f"run/{STORE_NAME}" in text.split("## Run")[0]
+    assert re.search(r"git commit `[0-9a-f]+`", text)
