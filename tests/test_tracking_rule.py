@@ -90,7 +90,7 @@ def test_both_trackers_apply_ball_seen(monkeypatch):
 @pytest.mark.parametrize("size", [(28, 28), (50, 100)])
 def test_rendered_balls_with_camera_nuisances_are_all_seen(size):
     rng = np.random.default_rng(29)
-    st = physics.simulate(physics.sample_theta(6, rng), physics.sample_state0(6, rng),
+    st = physics.simulate(physics.sample_theta(4, rng), physics.sample_state0(4, rng),
                           n_frames=40)
     fr, info = render(st, size, blur=0.5, occlusion=0.05, drop=0.05, noise=8.0, seed=3,
                       return_info=True)
