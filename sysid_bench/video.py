@@ -81,6 +81,9 @@ class IdentifyResult:
     forecast_mean, forecast_std : ndarray, shape (H, 2) or None
     info : dict
         What goes into ``estimates.json`` besides the rows.
+    check : ndarray, shape (T, 3), optional
+        Per-frame model check of the estimate (``Posterior.check``): ok (1/0), residual RMS
+        (m), assumed noise (m); NaN where the method gave no check (or no estimate yet).
     """
 
     mean: np.ndarray
@@ -89,6 +92,7 @@ class IdentifyResult:
     forecast_mean: np.ndarray | None
     forecast_std: np.ndarray | None
     info: dict
+    check: np.ndarray | None = None
 
 
 def _estimator(method: str, checkpoint: str | None, seed: int):
@@ -217,14 +221,19 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     if all(p is None for p in posts):
         raise VideoError(f"{path}: {method} could not identify from any prefix of the "
                          f"{t_n} frames")
+    check = np.full((t_n, 3), np.nan)
+    last_check = None
     for n, p in zip(lengths, posts):
         if p is not None:
             mean[n - 1], std[n - 1] = p.mean, p.std
             estimated[n - 1] = True
+            if p.check is not None:
+                check[n - 1] = (float(p.check.ok), p.check.rms_m, p.check.noise_m)
+                last_check = p.check
     # rows between estimates carry the last one forward
     for i in range(1, t_n):
         if not estimated[i] and np.isfinite(mean[i - 1]).all():
-            mean[i], std[i] = mean[i - 1], std[i - 1]
+            mean[i], std[i], check[i] = mean[i - 1], std[i - 1], check[i - 1]
     fmean = fstd = None
     if found:
         try:
@@ -252,8 +261,11 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         else "all",
         "notes": notes,
         "horizon": int(horizon),
+        # the last estimate's model check (None: the method cannot tell)
+        "check": None if last_check is None else {**last_check.as_dict(),
+                                                  "note": last_check.note},
     }
-    res = IdentifyResult(mean, std, pos, fmean, fstd, info)
+    res = IdentifyResult(mean, std, pos, fmean, fstd, info, check)
     res.info["estimated"] = estimated
     return res
 
@@ -268,6 +280,9 @@ def _rows(res: IdentifyResult, dt: float) -> list[dict]:
             r[f"{p}_mean"] = float(res.mean[i, k])
             r[f"{p}_std"] = float(res.std[i, k])
         r["estimated"] = int(bool(est[i]))
+        chk = res.check[i] if res.check is not None else np.full(3, np.nan)
+        r["check_ok"] = int(chk[0]) if np.isfinite(chk[0]) else None
+        r["check_rms_m"], r["check_noise_m"] = float(chk[1]), float(chk[2])
         r["x_m"], r["y_m"] = (float(v) for v in res.positions[i])
         rows.append(r)
     return rows
@@ -369,6 +384,9 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The ``identify VIDEO`` options on a ``sysid-bench`` subcommand parser
     (``sysid_bench.cli.SUBCOMMANDS``)."""
     p.add_argument("video", help="video file (any format FFmpeg reads)")
+    p.add_argument("--system", default="ball",
+                   help="the system seen (sysid_bench.systems.available(); default ball); "
+                        "another system's clip is taken to be framed as its renderer draws it")
     p.add_argument("--method", default=None,
                    help="identifying method (default: the first registered one that reads "
                         "frames)")
@@ -407,6 +425,30 @@ def default_out(video, method: str) -> Path:
     return Path("runs") / "identify" / f"{Path(video).stem}_{method}"
 
 
+def _run_system(args) -> int:
+    """``identify --system S`` for a system other than the ball (:mod:`video_systems`)."""
+    from sysid_bench import systems
+    from sysid_bench.video_systems import identify_system_video, write_system_outputs
+
+    name = systems.get(args.system).name  # unknown names: ValueError with "did you mean"
+    res = identify_system_video(args.video, name, method=args.method, every=args.every or 10,
+                                progress=None if not args.no_progress else False)
+    method = res["info"]["method"]
+    out = Path(args.out) if args.out else default_out(args.video, f"{name}_{method}")
+    write_system_outputs(res, out)
+    chk = res["check"][np.isfinite(res["check"][:, 0])]
+    if len(chk) and not chk[-1, 0]:
+        print(f"warning: the model does not explain this video: {method}'s fit misses the "
+              f"track by {chk[-1, 1]:.3g} m RMS against an assumed noise of {chk[-1, 2]:.3g} m",
+              file=sys.stderr)
+    last = np.flatnonzero(np.isfinite(res["mean"][:, 0]))[-1]
+    print(f"{args.video}: {name}, {method} after {last + 1} frames: "
+          + ", ".join(f"{p} = {m:.4g} ± {s:.2g}" for p, m, s in
+                      zip(res["info"]["params"], res["mean"][last], res["std"][last]))
+          + f"; wrote {out}/")
+    return 0
+
+
 def run(args) -> int:
     """Run ``identify``; bad input prints one line to stderr and returns 2."""
     geometry = {"px_per_m": args.px_per_m, "floor_row": args.floor_row,
@@ -417,6 +459,8 @@ def run(args) -> int:
             raise ValueError(f"every: expected an int >= 1, got {args.every}")
         if args.horizon < 1:
             raise ValueError(f"horizon: expected an int >= 1, got {args.horizon}")
+        if args.system != "ball":
+            return _run_system(args)
         if args.method is None:
             args.method = default_method()
         out = Path(args.out) if args.out else default_out(args.video, args.method)
@@ -439,6 +483,12 @@ def run(args) -> int:
         return 3
     for n in res.info["notes"]:
         print(f"note: {n}", file=sys.stderr)
+    chk = res.info.get("check")
+    if chk is not None and not chk["check_ok"]:
+        print(f"warning: the model does not explain this video: {res.info['method']}'s fit "
+              f"misses the track by {chk['check_rms_m']:.3g} m RMS against an assumed noise of "
+              f"{chk['check_noise_m']:.3g} m; intervals widened to at least the prior's, or read "
+              "them as unreliable", file=sys.stderr)
     last = res.mean[-1]
     sd = res.std[-1]
     print(f"{args.video}: {res.info['method']} after {len(res.mean)} frames: "

@@ -1,0 +1,161 @@
+"""``sysid-bench identify VIDEO --system S`` for a system other than the ball.
+
+The clip is read as the ball's (:func:`sysid_bench.footage.read_video`: any FFmpeg format, grey,
+resampled to 20 frames/s), then taken to be framed as the system's own renderer draws it (its
+``extent`` fills the frame) and resized to the system's default size. Position methods get the
+system's tracker's points, frame methods the frames. Estimates every ``every`` frames go to
+``estimates.csv`` (a row per frame: ``frame, t_s, <p>_mean, <p>_std`` for each of the system's
+parameters, the model check, the tracked points), ``estimates.json`` and ``track.png``, all or
+nothing.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["identify_system_video", "write_system_outputs", "resize_frames"]
+
+
+def resize_frames(frames: np.ndarray, size) -> np.ndarray:
+    """Grey frames (T, h, w) uint8 to (T, H, W) by area averaging (PIL's BOX filter)."""
+    from PIL import Image
+
+    h, w = size
+    if frames.shape[1:] == (h, w):
+        return frames
+    return np.stack([np.asarray(Image.fromarray(f).resize((w, h), Image.BOX)) for f in frames])
+
+
+def _default_method(system: str) -> str:
+    """The first registered contender that runs on ``system`` and identifies, frame methods
+    first (a learned model shipped for the system), then the position methods."""
+    import methods
+
+    names = methods.available()
+    ordered = ([n for n in names if methods.spec(n).input_kind == "frames"]
+               + [n for n in names if methods.spec(n).input_kind != "frames"])
+    for n in ordered:
+        if not methods.spec(n).identifies:
+            continue
+        try:
+            methods.get(n, system=system).fit(None)
+        except (NotImplementedError, ValueError, ImportError):
+            continue
+        return n
+    raise ValueError(f"system: no registered method identifies the {system} system")
+
+
+def identify_system_video(path, system: str, *, method: str | None = None, every: int = 10,
+                          progress=None) -> dict:
+    """Identify the parameters of ``system`` from a video file.
+
+    Returns
+    -------
+    dict
+        ``mean``, ``std`` (T, P) with NaN rows between estimates, ``check`` (T, 3) (ok, RMS m,
+        noise m), ``points`` (T, K, 2) tracked, ``info`` (what ``estimates.json`` records).
+    """
+    import methods
+    from sysid_bench import systems
+    from sysid_bench.estimator import Observation
+    from sysid_bench.footage import read_video
+
+    sys_ = systems.get(system)
+    clip = read_video(path, progress=progress)
+    frames = resize_frames(clip.frames, sys_.size)
+    name = method or _default_method(sys_.name)
+    est = methods.get(name, system=sys_.name)
+    est.fit(None)
+    obs = Observation(frames=frames, system=sys_.name)
+    t = obs.n_frames
+    lengths = sorted({*range(every, t + 1, every), t})
+    lengths = [n for n in lengths if n >= max(3, getattr(est.spec(), "min_frames", 3))]
+    if not lengths:
+        raise ValueError(f"video: expected at least 3 frames at 20 frames/s, got {t}")
+    posts = est.identify_prefixes(obs, lengths)
+    p = sys_.n_params
+    mean, std = np.full((t, p), np.nan), np.full((t, p), np.nan)
+    check = np.full((t, 3), np.nan)
+    for n, post in zip(lengths, posts):
+        mean[n - 1], std[n - 1] = post.mean, post.std
+        if post.check is not None:
+            check[n - 1] = (float(post.check.ok), post.check.rms_m, post.check.noise_m)
+    points = sys_.track(frames)
+    info = {"file": str(path), "system": sys_.name, "method": name, "params": list(sys_.params),
+            "model_fps": clip.fps, "frames": t, "source_fps": clip.source_fps,
+            "size": list(sys_.size), "extent": list(sys_.extent), "notes": list(clip.notes),
+            "points_seen": int(np.isfinite(points).all(axis=(1, 2)).sum())}
+    return {"mean": mean, "std": std, "check": check, "points": points, "info": info}
+
+
+def _plot(res: dict, path: Path, dt: float) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    params = res["info"]["params"]
+    t = np.arange(len(res["mean"])) * dt
+    fig, axes = plt.subplots(1, len(params) + 1, figsize=(3.2 * (len(params) + 1), 3.2))
+    pts = res["points"]
+    for k in range(pts.shape[1]):
+        axes[0].plot(pts[:, k, 0], pts[:, k, 1], ".", ms=3, label=f"point {k + 1}")
+    axes[0].set(xlabel="x (m)", ylabel="y (m)", title="tracked")
+    axes[0].legend(fontsize=7)
+    z = 1.6449
+    for ax, (k, p) in zip(axes[1:], enumerate(params)):
+        m, s = res["mean"][:, k], res["std"][:, k]
+        ok = np.isfinite(m)
+        ax.errorbar(t[ok], m[ok], yerr=z * s[ok], fmt="o", ms=3, color="tab:red", lw=1)
+        ax.set(xlabel="t (s)", title=f"{p} (mean, 90% interval)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def write_system_outputs(res: dict, out) -> Path:
+    """``estimates.csv``, ``estimates.json`` and ``track.png`` into ``out``, all or nothing."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out: expected a folder, got the file {out}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    dt = 1.0 / res["info"]["model_fps"]
+    params = res["info"]["params"]
+    rows = []
+    for i in range(len(res["mean"])):
+        r = {"frame": i, "t_s": round(i * dt, 6)}
+        for k, p in enumerate(params):
+            r[f"{p}_mean"], r[f"{p}_std"] = float(res["mean"][i, k]), float(res["std"][i, k])
+        c = res["check"][i]
+        r["check_ok"] = int(c[0]) if np.isfinite(c[0]) else None
+        r["check_rms_m"], r["check_noise_m"] = float(c[1]), float(c[2])
+        for k in range(res["points"].shape[1]):
+            r[f"x{k + 1}_m"], r[f"y{k + 1}_m"] = (float(v) for v in res["points"][i, k])
+        rows.append(r)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        with open(tmp / "estimates.csv", "w", newline="") as f:
+            wr = csv.DictWriter(f, fieldnames=list(rows[0]))
+            wr.writeheader()
+            wr.writerows(rows)
+        clean = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                  for k, v in r.items()} for r in rows]
+        with open(tmp / "estimates.json", "w") as f:
+            json.dump({**res["info"], "estimates": clean}, f, indent=1)
+        _plot(res, tmp / "track.png", dt)
+        if not out.exists():
+            os.replace(tmp, out)
+        else:
+            for name in ("estimates.csv", "estimates.json", "track.png"):
+                os.replace(tmp / name, out / name)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out
