@@ -88,7 +88,7 @@ def _jax_observer(name):
     y2 = system._observe(x[:, None, :], theta[::-1].copy())[:, 0].reshape(n, -1)
     fit = np.column_stack([x, np.ones(n)]) @ A
     if np.abs(fit - y).max() < 1e-9 and np.abs(y2 - y).max() < 1e-12:
-        M, b = jnp.asarray(A[:S]), jnp.asarray(A[S])
+        M, b = A[:S].copy(), A[S].copy()  # NumPy constants: this runs inside a trace, and is cached
 
         def affine(st, th):
             return (st @ M + b).reshape(st.shape[0], K, 2)
