@@ -13,6 +13,14 @@ tempered to at least ``min_ess`` effective draws, and the spread is taken about 
 With 20 evaluations in four dimensions this is wide, which is the honest answer. If the
 optimiser raises, the posterior falls back to the best evaluation made (or the prior) and says so
 in ``extras["ok"]``/``extras["message"]``.
+
+Model check (``Posterior.check``, :meth:`methods._simulation.Fit.checked`): the posterior mean
+simulated from the start that fits it best (the initial state it held fixed, refitted by least
+squares with the parameters held: bo does not search the start) against the seen positions, judged against ``sigma``
+(:meth:`sysid_bench.estimator.Check.from_residuals`). A failed check keeps the mean and widens
+the intervals to what the data supports (:func:`methods._simulation.widen_to_support`: to hold
+the best fit a local least-squares refinement from the mean finds, or to at least the prior's
+when even that fit fails); its simulations are in ``extras["check_simulations"]``.
 """
 
 from __future__ import annotations
@@ -207,7 +215,8 @@ class BayesOpt(SimulationMethod):
         }
         post = Posterior(mean=mean, std=std, samples=samples[idx], extras=extras)
         s0 = np.broadcast_to(track.state0, samples.shape)
-        return Fit(post, samples, s0, track.floor, track, sim, clock, weights=w)
+        return Fit(post, samples, s0, track.floor, track, sim, clock, weights=w,
+                   state0_point=track.state0, floor_point=track.floor, check_fits_state0=True)
 
     def _forecast_state0(self, fit: Fit, idx, rng) -> np.ndarray:
         """The (estimated) start, drawn from its standard error (0 when known)."""

@@ -24,6 +24,13 @@ autocorrelation time per parameter, emcee's estimate), ``tau_reliable`` (the cha
 [0.05, 0.9] and at least 10 tau kept) and the optimiser's ``opt_status``/``opt_message``. When
 not converged the reported std is the larger of the chain's and the Laplace approximation's,
 so a stuck chain cannot report a falsely narrow posterior.
+
+Model check (``Posterior.check``, :meth:`methods._simulation.Fit.checked`): the posterior mean
+simulated from the mean of the draws' initial states (and floors) against the seen positions, judged against ``sigma``
+(:meth:`sysid_bench.estimator.Check.from_residuals`). A failed check keeps the mean and widens
+the intervals to what the data supports (:func:`methods._simulation.widen_to_support`: to hold
+the best fit a local least-squares refinement from the mean finds, or to at least the prior's
+when even that fit fails); its simulations are in ``extras["check_simulations"]``.
 """
 
 from __future__ import annotations

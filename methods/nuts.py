@@ -57,6 +57,13 @@ residual of the mode's trajectory (``map_rms_m``) and ``converged``: R-hat < 1.0
 e, g, d, fewer than 2% divergences and ``map_rms_m`` <= 3 sigma (a larger residual means a wrong
 basin or a track the model cannot make). A run that fails these is returned, not raised:
 ``converged`` is False and ``warning`` says why.
+
+Model check (``Posterior.check``, :meth:`methods._simulation.Fit.checked`): the posterior mean
+simulated from the mean of the draws' initial states against the seen positions, judged against ``sigma``
+(:meth:`sysid_bench.estimator.Check.from_residuals`). A failed check keeps the mean and widens
+the intervals to what the data supports (:func:`methods._simulation.widen_to_support`: to hold
+the best fit a local least-squares refinement from the mean finds, or to at least the prior's
+when even that fit fails); its simulations are in ``extras["check_simulations"]``.
 """
 
 from __future__ import annotations

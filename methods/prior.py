@@ -54,6 +54,9 @@ class PriorOnly(Estimator):
         n = check_positive_int(self.n_samples, "n_samples")
         post = prior_posterior(n_samples=n, seed=self.seed)
         post.extras["wall_s"] = time.perf_counter() - t0
+        # Posterior.check stays None: the prior does not look at the observation, so there is
+        # no fit to check (and its intervals are the prior's anyway)
+        post.extras["check_reason"] = "the prior does not look at the observation"
         return post
 
     def forecast(self, obs: Observation, horizon: int) -> Forecast:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from methods._simulation import check_prefixes
 from methods.vid2param.checkpoint import (
     CONDITION_CHECKPOINTS,
     SENSITIVITY_CONDITIONS,
@@ -48,6 +49,7 @@ from sysid_bench._validate import (
 )
 from sysid_bench.estimator import MAX_HORIZON, Estimator, Forecast, Observation, Posterior, Stream
 from sysid_bench.physics import BOX_WIDTH, DT, PARAMS
+from sysid_bench.simulator import DEFAULT_SIGMA
 
 __all__ = ["Vid2Param", "Vid2ParamChanging", "Vid2ParamStream", "SHIPPED_CHECKPOINT",
            "SHIPPED_CHECKPOINTS", "CONDITION_CHECKPOINTS", "SENSITIVITY_CONDITIONS",
@@ -151,9 +153,19 @@ class Vid2Param(Estimator):
         prior in latent space (the paper's forecast; no frame is decoded), ``"physics"`` draws
         states and parameters from the filtered posterior and simulates them with
         ``sysid_bench.physics``.
+
+    Model check (``Posterior.check``, :func:`methods._simulation.check_prefixes`): the
+    network's posterior mean simulated with our physics, from the start that fits it best,
+    against the harness tracker's positions (not the network's own filtered track, which
+    follows any input, a hovering ball's included), judged against the tracking noise
+    ``sysid_bench.simulator.DEFAULT_SIGMA``; a failed check widens the intervals to at least
+    the prior's. ``identify`` and ``identify_prefixes`` check; ``identify_batch`` and
+    ``stream`` do not (yet).
     """
 
     name = "vid2param"
+    #: frames the model check covers (None: the whole prefix)
+    check_window = None
     input_kind = "frames"
     forecasts = True
     streams = True  # identify_prefixes: one pass of the LSTM for every prefix
@@ -489,11 +501,12 @@ class Vid2Param(Estimator):
         lengths = _check_lengths(lengths, T)
         mu, sd, wall = self._run(frames[None])
         # samples keyed by the prefix length: the same noise as a stream's after n frames
-        return [
+        posts = [
             self._posterior(mu[0, n - 1], sd[0, n - 1],
                             {"wall_s": wall * n / T, "n_frames": n}, key=(0, n))
             for n in lengths
         ]
+        return check_prefixes(posts, obs, lengths, DEFAULT_SIGMA, self.check_window)
 
     def normalised_prefixes(self, frames, lengths) -> tuple[np.ndarray, np.ndarray]:
         """Posterior means and stds in normalised units, many videos and prefixes at once.
@@ -769,7 +782,7 @@ class Vid2ParamPhysics(Vid2Param):
                       "n_simulations": simulations() - sims, "network_mean": th_mu,
                       "network_std": th_sd, "track_sigma_m": fit.sigma}
             out.append(self._fitted_posterior(fit, extras, self._rng(1000 + n)))
-        return out
+        return check_prefixes(out, obs, lengths, DEFAULT_SIGMA, self.check_window)
 
     def identify_batch(self, frames) -> list[Posterior]:
         """``identify`` of each of many videos (N, T, H, W): one fit per video."""
@@ -818,6 +831,8 @@ class Vid2ParamChanging(Vid2Param):
 
     name = "vid2param-changing"
     default_checkpoint = "changing"
+    #: parameters change every 50 frames: one posterior mean explains the last stretch only
+    check_window = 50
     forecasts = False
     online_cost = False
     policies = {}
