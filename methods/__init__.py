@@ -92,7 +92,8 @@ def unregister(name: str) -> None:
     del _REGISTRY[name]
 
 
-register("vid2param", "methods.vid2param:Vid2Param", requires=("torch",))
+register("vid2param", "methods.vid2param:Vid2Param", requires=("torch",),
+         on_systems="methods.vid2param.system_estimator:SystemVid2Param")
 register("vid2param-physics", "methods.vid2param:Vid2ParamPhysics", requires=("torch",))
 register("vid2param-changing", "methods.vid2param:Vid2ParamChanging", requires=("torch",))
 register("nuts", "methods.nuts:NUTS", requires=("jax", "numpyro"),

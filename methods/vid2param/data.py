@@ -16,7 +16,8 @@ import numpy as np
 from sysid_bench.datasets import make_dataset
 from sysid_bench.physics import BOX_WIDTH, normalise_theta
 
-__all__ = ["targets_from_dataset", "make_split", "rolls_mask", "chunk_seed", "perturb_dataset"]
+__all__ = ["targets_from_dataset", "make_split", "rolls_mask", "chunk_seed", "perturb_dataset",
+           "SystemVideos", "make_system_split", "system_targets_from_arrays", "normalise_points"]
 
 #: Velocities are divided by this (m/s) when used as targets.
 VEL_SCALE = 10.0
@@ -60,8 +61,119 @@ def targets_from_arrays(states, theta, floor, names) -> np.ndarray:
     return np.stack([cols[k] for k in names], axis=-1).astype(np.float32)
 
 
+def normalise_points(points, extent) -> np.ndarray:
+    """Points (..., K, 2) in metres to the view's unit square: ``(x - x0) / (x1 - x0)``,
+    ``(y - y0) / (y1 - y0)`` for ``extent = (x0, x1, y0, y1)``."""
+    x0, x1, y0, y1 = (float(v) for v in extent)
+    p = np.asarray(points, dtype=np.float64)
+    return np.stack([(p[..., 0] - x0) / (x1 - x0), (p[..., 1] - y0) / (y1 - y0)], axis=-1)
+
+
+def system_targets_from_arrays(system, points, theta, names) -> np.ndarray:
+    """Normalised targets of a system's videos (not the ball's, ``targets_from_arrays``).
+
+    Parameters
+    ----------
+    system : sysid_bench.systems.System
+    points : ndarray, shape (N, T, K, 2)
+        The tracked points, metres (``system.observe``).
+    theta : ndarray, shape (N, P)
+        Parameters in physical units.
+    names : sequence of str
+        Target names (``model.system_targets``): ``x, y, x1, y1, ...`` and parameter names.
+
+    Returns
+    -------
+    ndarray, shape (N, T, len(names)), float32
+        Positions in the view's unit square, parameters in the prior's ([0, 1]).
+    """
+    from methods.vid2param.model import position_names
+
+    pts = normalise_points(points, system.extent)
+    n, t, k = pts.shape[:3]
+    u = system.normalise(np.asarray(theta, dtype=np.float64))
+    cols = {name: pts[..., i // 2, i % 2] for i, name in enumerate(position_names(k))}
+    cols.update({p: np.broadcast_to(u[:, None, j], (n, t)) for j, p in enumerate(system.params)})
+    return np.stack([cols[k] for k in names], axis=-1).astype(np.float32)
+
+
+class SystemVideos:
+    """Rendered videos of a system with what the network is supervised on.
+
+    Attributes
+    ----------
+    system : System
+    frames : ndarray, shape (N, T, H, W), uint8
+    states : ndarray, shape (N, T, S)
+    theta : ndarray, shape (N, P)
+    points : ndarray, shape (N, T, K, 2), metres
+    """
+
+    def __init__(self, system, frames, states, theta, points):
+        self.system, self.frames, self.states = system, frames, states
+        self.theta, self.points = theta, points
+
+    def targets(self, names) -> np.ndarray:
+        """Normalised targets (N, T, len(names)) (:func:`system_targets_from_arrays`)."""
+        return system_targets_from_arrays(self.system, self.points, self.theta, names)
+
+
+#: Videos per seeded part of a system's split (``make_system_split``).
+PART = 50
+
+
+def make_system_split(system, split: str, n: int, seed: int, n_frames: int = 200, size=None,
+                      nuisance=None, dt: float = 0.05, workers: int = 1) -> SystemVideos:
+    """``n`` videos of a system's ``split`` (``System.sample_cases``, then ``simulate`` and
+    ``render`` at ``size``, default the system's), all from ``seed``.
+
+    Parameters
+    ----------
+    system : str or System
+    split : {"train", "test"}
+    n, seed, n_frames : int
+    size : (int, int), optional
+    nuisance : dict, optional
+        Camera nuisances passed to ``render`` (their ``seed`` derived from ``seed``).
+    workers : int
+        Threads drawing the parts (``PART`` videos each, seeded ``(seed, part)``): the videos
+        do not depend on it.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    from sysid_bench import systems
+
+    s = systems.get(system)
+    if split not in ("train", "test"):
+        raise ValueError(f"split: expected 'train' or 'test', got {split!r}")
+    n = int(n)
+
+    def part(k: int):
+        # fixed parts of PART videos, each from (seed, k): the same videos whatever the workers
+        rng = np.random.default_rng([int(seed), 7001, k])
+        theta, state0 = s.sample_cases(min(PART, n - k * PART), rng, split)
+        states = s.simulate(theta, state0, n_frames=int(n_frames), dt=dt)
+        nuis = dict(nuisance or {})
+        if nuis:
+            nuis.setdefault("seed", int(rng.integers(2**62)))
+        return theta, states, s.render(states, theta, size=size, **nuis)
+
+    n_parts = -(-n // PART)
+    w = max(1, min(int(workers), n_parts))
+    if w == 1:
+        parts = [part(k) for k in range(n_parts)]
+    else:  # the renderers' array work releases the GIL: threads share a chunk's drawing
+        with ThreadPoolExecutor(w) as pool:
+            parts = list(pool.map(part, range(n_parts)))
+    theta, states, frames = (np.concatenate(a) for a in zip(*parts))
+    return SystemVideos(s, frames, states, theta, s.observe(states, theta))
+
+
 def targets_from_dataset(ds, names) -> np.ndarray:
-    """Targets (N, T, K) from a ``sysid_bench.datasets.Dataset`` (uses its ``labels``)."""
+    """Targets (N, T, K) from a ``sysid_bench.datasets.Dataset`` (uses its ``labels``) or a
+    system's :class:`SystemVideos`."""
+    if isinstance(ds, SystemVideos):
+        return ds.targets(names)
     labels = getattr(ds, "labels", None)
     theta = labels if labels is not None else ds.theta
     return targets_from_arrays(ds.states, theta, ds.floor, names)

@@ -34,10 +34,27 @@ from methods.vid2param.prior import PhysicsPrior
 from sysid_bench.physics import BOX_WIDTH, DT
 
 __all__ = ["V2PConfig", "Vid2ParamNet", "RecurrentState", "TARGETS", "PRESETS",
-           "LEGACY_DEFAULTS", "REMOVED"]
+           "LEGACY_DEFAULTS", "REMOVED", "position_names", "system_targets"]
 
-#: Supervised quantities the latent dimensions can carry, in this order when present.
+#: Supervised quantities the ball's latent dimensions can carry, in this order when present.
 TARGETS = ("x", "y", "e", "g", "d", "r", "vx", "vy")
+
+
+def position_names(n_points: int) -> tuple[str, ...]:
+    """Target names of K tracked points' positions: ``x, y`` (point 0), ``x1, y1``, ..."""
+    return tuple(f"{a}{k or ''}" for k in range(int(n_points)) for a in "xy")
+
+
+def system_targets(system: str) -> tuple[str, ...]:
+    """The supervised targets of a system's network: its K points' (x, y) (normalised by the
+    view's ``extent``), then its P parameters (normalised by the prior); the ball's are
+    ``V2PConfig()``'s."""
+    if system == "ball":
+        return V2PConfig.targets
+    from sysid_bench import systems
+
+    s = systems.get(system)
+    return position_names(s.n_points) + tuple(s.params)
 _LOG2PI = math.log(2 * math.pi)
 
 
@@ -90,6 +107,16 @@ class V2PConfig:
         flat frames at any height (camera: noisy heights and an unseen raised floor).
     physics_prior : bool
         The latent rollout's physics transition (``methods.vid2param.prior``).
+    system : str
+        The system (``sysid_bench.systems``) whose videos the network reads. ``"ball"``: the
+        targets are ``TARGETS``' names, positions normalised by the ball's box. Any other: the
+        targets are ``system_targets(system)`` (its K points' x, y normalised by its view's
+        extent, its parameters by its prior), and the ball's parts (``roll_features``,
+        ``physics_prior``) are off.
+    kp_learn : bool
+        The keypoint map learns (its weights read every keypoint channel): a system with more
+        than one tracked point, whose channel 0 sees only the brightest. Off: the fixed map of
+        the view geometry (as the ball's).
     """
 
     frame_size: tuple[int, int] = (28, 28)
@@ -110,16 +137,26 @@ class V2PConfig:
     roll_features: bool = True
     roll_stat: str = "steps"
     physics_prior: bool = True
+    system: str = "ball"
+    kp_learn: bool = False
 
     def __post_init__(self) -> None:
         self.frame_size = tuple(int(v) for v in self.frame_size)
         self.targets = tuple(self.targets)
         self.channels = tuple(int(c) for c in self.channels)
-        bad = [t for t in self.targets if t not in TARGETS]
+        if self.system == "ball":
+            allowed = TARGETS
+        else:
+            allowed = system_targets(self.system)  # ValueError for an unknown system
+            if self.roll_features or self.physics_prior:
+                raise ValueError(
+                    f"roll_features, physics_prior: the ball's parts, expected False for the "
+                    f"{self.system} system, got {self.roll_features}, {self.physics_prior}")
+        bad = [t for t in self.targets if t not in allowed]
         if bad:
-            raise ValueError(f"targets: expected names from {TARGETS}, got {bad}")
-        if not {"x", "y"} <= set(self.targets):
-            raise ValueError(f"targets: expected 'x' and 'y' among them, got {self.targets}")
+            raise ValueError(f"targets: expected names from {allowed}, got {bad}")
+        if not set(self.positions) <= set(self.targets):
+            raise ValueError(f"targets: expected {self.positions} among them, got {self.targets}")
         if int(self.keypoints) < 1:
             raise ValueError(f"keypoints: expected an int >= 1 (the network without keypoints "
                              f"was removed), got {self.keypoints}")
@@ -138,6 +175,25 @@ class V2PConfig:
             raise ValueError(
                 f"latent: expected at least len(targets)={len(self.targets)}, got {self.latent}"
             )
+
+    @property
+    def n_points(self) -> int:
+        """K, the tracked points whose positions are targets (1 for the ball)."""
+        if self.system == "ball":
+            return 1
+        from sysid_bench import systems
+
+        return systems.get(self.system).n_points
+
+    @property
+    def positions(self) -> tuple[str, ...]:
+        """The position targets, ``(x, y, x1, y1, ...)``."""
+        return position_names(self.n_points)
+
+    @property
+    def params(self) -> tuple[str, ...]:
+        """The parameter targets, in ``targets`` order."""
+        return tuple(t for t in self.targets if t not in self.positions)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -177,15 +233,23 @@ class V2PConfig:
 
     @classmethod
     def preset(cls, name: str) -> V2PConfig:
-        """A named configuration of a shipped model (``PRESETS``)."""
+        """A named configuration of a shipped model (``PRESETS``); a system's preset takes its
+        targets and default frame size from the system."""
         if name not in PRESETS:
             raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {name!r}")
-        return cls(**PRESETS[name])
+        d = dict(PRESETS[name])
+        if d.get("system", "ball") != "ball":
+            from sysid_bench import systems
+
+            d.setdefault("targets", system_targets(d["system"]))
+            d.setdefault("frame_size", systems.get(d["system"]).size)
+        return cls(**d)
 
 
 #: Fields added after checkpoints were written, with the value that reproduces those
 #: checkpoints (``V2PConfig.from_dict``).
-LEGACY_DEFAULTS = {"physics_prior": False, "roll_stat": "steps"}
+LEGACY_DEFAULTS = {"physics_prior": False, "roll_stat": "steps", "system": "ball",
+                   "kp_learn": False}
 #: Options removed (no shipped model used another value), with the value the network now
 #: always has (``V2PConfig.from_dict``): a 1-layer LSTM, fed the mean of z (not a sample), with
 #: the position differences as inputs, read as ``[h, c]`` by the heads, a residual prior, and
@@ -200,6 +264,18 @@ PRESETS = {
     "camera": {"frame_size": (50, 100), "kp_threshold": 0.2, "kp_visibility": True, "pool": 2,
                "roll_stat": "fit"},
 }
+#: The other systems' networks: the same network, the ball's parts off, targets and frame size
+#: from the system. ``kp_threshold`` sits above the dim parts of a scene (the pendulum's rod at
+#: 0.3 of white, the spring's wall and coil at 0.25, the collision's puck 2 at 130/255), so
+#: keypoint channel 0's centroid is the bob, block or puck 1 from the first step.
+_SYSTEM = {"roll_features": False, "physics_prior": False}
+PRESETS.update({
+    # pool 2: the conv path and decoder see 32x32 (64x64 made a 5.4 MB checkpoint)
+    "pendulum": {**_SYSTEM, "system": "pendulum", "kp_threshold": 0.4, "pool": 2},
+    "spring": {**_SYSTEM, "system": "spring", "kp_threshold": 0.4},
+    "collision": {**_SYSTEM, "system": "collision", "kp_threshold": 0.75, "kp_learn": True,
+                  "keypoints": 6},
+})
 
 
 def _scale_grad(x: torch.Tensor, scale: float) -> torch.Tensor:
@@ -246,7 +322,7 @@ class Vid2ParamNet(nn.Module):
         self.recurrence = Recurrence(c)
         n_read = self.recurrence.n_read
         self.posterior = GaussianHead(self.encoder.n_out + n_read, c.hidden, c.latent)
-        self.prior = PriorHead(n_read, c.hidden, c.latent, c.targets)
+        self.prior = PriorHead(n_read, c.hidden, c.latent, c.targets, c.positions)
         self.phys_prior = PhysicsPrior() if c.physics_prior else None
         self.rolling = RollingEvidence(c.targets.index("r")) if c.roll_features else None
         self.decoder = Decoder(c, n_read)

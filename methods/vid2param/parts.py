@@ -39,10 +39,12 @@ def _gauss(raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return mu, F.softplus(s) + _MIN_STD
 
 
-def _xy_place(targets: tuple[str, ...], latent: int) -> torch.Tensor:
-    """(2, Z) one-hot rows: where an (x, y) pair goes in the latent vector."""
-    place = torch.zeros(2, latent)
-    place[0, targets.index("x")] = place[1, targets.index("y")] = 1.0
+def _xy_place(targets: tuple[str, ...], latent: int,
+              positions: tuple[str, ...] = ("x", "y")) -> torch.Tensor:
+    """(2K, Z) one-hot rows: where the K points' (x, y) pairs go in the latent vector."""
+    place = torch.zeros(len(positions), latent)
+    for i, name in enumerate(positions):
+        place[i, targets.index(name)] = 1.0
     return place
 
 
@@ -162,11 +164,26 @@ class KeypointPosition(nn.Module):
 
         super().__init__()
         self.keypoints, self.use_visibility = c.keypoints, bool(c.kp_visibility)
-        self.map = nn.Linear(3 * c.keypoints, 2).requires_grad_(False)
+        positions = c.positions
+        self.map = nn.Linear(3 * c.keypoints, len(positions)).requires_grad_(bool(c.kp_learn))
         self.gate = nn.Parameter(torch.zeros(()))
-        place = _xy_place(c.targets, c.latent)
+        place = _xy_place(c.targets, c.latent, positions)
         self.register_buffer("place", place, persistent=False)
         self.register_buffer("mask", place.sum(0), persistent=False)  # (Z,) 1 at x, y
+        if c.system != "ball":
+            # positions normalised by the system's view extent, which the frame spans linearly
+            # (``systems._draw.View``): x = column fraction, y = 1 - row fraction; every point
+            # starts at channel 0's centre (with ``kp_learn`` the map then learns the others)
+            with torch.no_grad():
+                self.map.weight.zero_()
+                self.map.bias.zero_()
+                self.map.weight[0::2, 0] = 1.0
+                self.map.weight[1::2, 1] = -1.0
+                self.map.bias[1::2] = 1.0
+            # visibility: half at a tenth of the frame's pixels lit (no ball geometry here)
+            self.log_mref = math.log(0.1 * c.frame_size[0] * c.frame_size[1] *
+                                     (1 - c.kp_threshold))
+            return
         # channel 0's centre (fractions of W and H) to normalised x, y: col = radius + x sx,
         # x_norm = x / 10; rows grow downwards from the floor: row = H - radius - (y - floor) sy
         H, W = c.frame_size
@@ -204,8 +221,9 @@ class RecurrentState:
     Attributes
     ----------
     h, c : Tensor, shape (B, hidden)
-    last_pos, last_vel : Tensor, shape (B, 2)
-        The last fed-back x, y (normalised by the view width) and velocity feature.
+    last_pos, last_vel : Tensor, shape (B, 2K)
+        The last fed-back positions of the K points (normalised: the ball's by the view width)
+        and velocity feature.
     n_seen : Tensor, shape (B, 1)
         Frames seen, capped at 2 (what the differences need).
     roll : Tensor, shape (B, n_cols), or None
@@ -244,14 +262,14 @@ class Recurrence(nn.Module):
         self.hidden, self.roll_features = c.hidden, bool(c.roll_features)
         self.roll_stat = ROLL_STATS[c.roll_stat] if c.roll_features else None
         self.phi_z = nn.Sequential(nn.Linear(c.latent, c.feat), nn.ReLU())
-        self.cell = nn.LSTMCell(c.feat + 4, c.hidden)
-        self.pos_idx = [c.targets.index("x"), c.targets.index("y")]
+        self.pos_idx = [c.targets.index(name) for name in c.positions]  # 2K
+        self.cell = nn.LSTMCell(c.feat + 2 * len(self.pos_idx), c.hidden)
         self.n_read = 2 * c.hidden + (2 if self.roll_features else 0)  # R
 
     def init_state(self, batch: int, device=None) -> RecurrentState:
         """The state before the first frame: zeros."""
         z = torch.zeros(batch, self.hidden, device=device)
-        m = torch.zeros(batch, 2, device=device)
+        m = torch.zeros(batch, len(self.pos_idx), device=device)
         st = self.roll_stat
         roll = None if st is None else torch.zeros(batch, st.n_cols, device=device, dtype=st.dtype)
         return RecurrentState(z, z, m, m, torch.zeros(batch, 1, device=device), roll)
@@ -295,13 +313,14 @@ class PriorHead(GaussianHead):
     target than an absolute position.
     """
 
-    def __init__(self, n_read: int, hidden: int, latent: int, targets: tuple[str, ...]):
+    def __init__(self, n_read: int, hidden: int, latent: int, targets: tuple[str, ...],
+                 positions: tuple[str, ...] = ("x", "y")):
         super().__init__(n_read, hidden, latent)
-        self.register_buffer("place", _xy_place(targets, latent), persistent=False)
+        self.register_buffer("place", _xy_place(targets, latent, positions), persistent=False)
 
     def forward(self, h: torch.Tensor, last: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean and std (..., Z) from the read-out ``h`` (..., R) and the last fed-back
-        position ``last`` (..., 2)."""
+        positions ``last`` (..., 2K)."""
         mu, std = _gauss(self.mlp(h))
         return mu + last @ self.place, std
 

@@ -14,6 +14,8 @@ checkpoint's own command is in its card and in ``methods/vid2param/README.md``):
 
     python -m methods.vid2param.train --out runs/v2p_28x28 --export runs/v2p_28x28.pt
     python -m methods.vid2param.train --out runs/camera --preset camera   # the 100x50 model
+    python -m methods.vid2param.train --system pendulum --out runs/pendulum \
+        --export runs/v2p_pendulum.pt   # another system's model, from scratch
 """
 
 from __future__ import annotations
@@ -44,8 +46,10 @@ from methods.vid2param.checkpoint import (
     upgrade_state_dict,
 )
 from methods.vid2param.data import (
+    SystemVideos,
     chunk_seed,
     make_split,
+    make_system_split,
     perturb_dataset,
     rolls_mask,
     targets_from_dataset,
@@ -85,6 +89,10 @@ class TrainConfig:
         Seeds of the training chunks.
     chunk : int
         Fresh training videos generated at a time (memory: chunk x T x H x W bytes).
+    chunk_epochs : int
+        Passes over each chunk before the next is drawn (1: every video seen once). A system
+        whose videos are slow to draw (the pendulum's, ~0.1 s each) reuses them so a GPU is
+        not left waiting; a system's chunk is drawn by ``threads`` threads.
     n_frames : int
         Frames per training video.
     rec_frac : float
@@ -143,6 +151,7 @@ class TrainConfig:
     seed: int = 0
     data_seed: int = 0
     chunk: int = 2000
+    chunk_epochs: int = 1
     n_frames: int = 200
     rec_frac: float = 0.25
     p_full: float = 0.7
@@ -283,8 +292,9 @@ class _Feed:
     of ``chunk`` videos from the train split with seed ``chunk_seed(data_seed, k)``.
     """
 
-    def __init__(self, tc: TrainConfig, targets: tuple[str, ...], dataset=None):
-        self.tc, self.names = tc, targets
+    def __init__(self, tc: TrainConfig, targets: tuple[str, ...], dataset=None,
+                 system: str = "ball"):
+        self.tc, self.names, self.system = tc, targets, system
         self.fixed = dataset
         if dataset is not None:
             self.frames = np.asarray(dataset.frames)
@@ -295,7 +305,7 @@ class _Feed:
                     f"train: expected at least batch={tc.batch} videos, got {len(self.frames)}"
                 )
         else:
-            self.per_chunk = tc.chunk // tc.batch
+            self.per_chunk = tc.chunk * tc.chunk_epochs // tc.batch
         self.k = None
         self.supervised = None
 
@@ -303,8 +313,12 @@ class _Feed:
         tc = self.tc
         if self.fixed is None:
             seed = chunk_seed(tc.data_seed, k)
-            ds = make_split("train", tc.chunk, seed, tc.size, tc.nuisance, tc.n_frames,
-                            variant=tc.variant, **(tc.variant_options or {}))
+            if self.system != "ball":
+                ds = make_system_split(self.system, "train", tc.chunk, seed, tc.n_frames,
+                                       tc.size, tc.nuisance, workers=tc.threads)
+            else:
+                ds = make_split("train", tc.chunk, seed, tc.size, tc.nuisance, tc.n_frames,
+                                variant=tc.variant, **(tc.variant_options or {}))
             if tc.perturb:
                 ds = perturb_dataset(ds, seed=seed, **tc.perturb)
             self.frames = np.asarray(ds.frames)
@@ -314,6 +328,9 @@ class _Feed:
         self.supervised = None if (spread > 0).all() else spread > 0
         rng = np.random.default_rng([tc.seed, k, 17])
         self.order = rng.permutation(len(self.frames))
+        if self.fixed is None and tc.chunk_epochs > 1:
+            self.order = np.concatenate([self.order] + [rng.permutation(len(self.frames))
+                                                        for _ in range(tc.chunk_epochs - 1)])
         self.k = k
 
     def batch(self, step: int):
@@ -373,6 +390,8 @@ def evaluate(net: Vid2ParamNet, ds, lengths=(10, 25, 50, 100, 150, 200), batch: 
     lengths = [int(L) for L in lengths if L <= t]
     mu, sd = _prefix_posteriors(net, frames, lengths, batch, device)  # (N, L, K)
     truth = tg[:, [L - 1 for L in lengths]]
+    if isinstance(ds, SystemVideos):
+        return _evaluate_system(net.config, mu, sd, truth, lengths)
     rolls = rolls_mask(ds.states, ds.floor)
     params = [p for p in ("e", "g", "d", "r") if p in names]
     out = {"n": int(n), "n_rolling": int(rolls.sum()), "nmse": {}, "nmse_r_rolling": {}}
@@ -387,6 +406,23 @@ def evaluate(net: Vid2ParamNet, ds, lengths=(10, 25, 50, 100, 150, 200), batch: 
     if "r" in names and (~rolls).any():
         out["r_std_not_rolling"] = float(sd[~rolls, -1, names.index("r")].mean())
         out["r_std_rolling"] = float(sd[rolls, -1, names.index("r")].mean()) if rolls.any() else None
+    return out
+
+
+def _evaluate_system(config, mu, sd, truth, lengths) -> dict:
+    """``evaluate`` of a system's network: per parameter, the nMSE after each length (errors of
+    prior-normalised parameters), 90% and 50% coverage at the last length, and the RMS error
+    of the points (normalised by the view) at each length."""
+    names = list(config.targets)
+    params, pos = config.params, [names.index(p) for p in config.positions]
+    err = (mu - truth) ** 2
+    out = {"n": int(len(mu)), "nmse": {}, "nmse_r_rolling": {}, "points_rmse": {}}
+    for j, L in enumerate(lengths):
+        out["nmse"][L] = {p: float(err[:, j, names.index(p)].mean()) for p in params}
+        out["points_rmse"][L] = float(np.sqrt(err[:, j, pos].mean()))
+    z = np.abs(mu[:, -1] - truth[:, -1]) / sd[:, -1]
+    out["coverage90"] = {p: float((z[:, names.index(p)] <= 1.6448536).mean()) for p in params}
+    out["coverage50"] = {p: float((z[:, names.index(p)] <= 0.6744898).mean()) for p in params}
     return out
 
 
@@ -443,7 +479,7 @@ def export_card(path) -> Path:
     return atomic_write(path.with_suffix(".json"), text + "\n")
 
 
-def export(state_path, out_path, card: bool = True, stages=()) -> Path:
+def export(state_path, out_path, card: bool = True, stages=(), record: dict | None = None) -> Path:
     """Write a shipped checkpoint (no optimizer state) and a JSON card from a training state,
     then fit ``stages`` after its network (:func:`fit_stages`).
 
@@ -453,9 +489,14 @@ def export(state_path, out_path, card: bool = True, stages=()) -> Path:
     out_path : path of the ``.pt`` to write; the card goes next to it as ``.json``.
     stages : sequence of (name, options)
         The stages to fit, in order (``stages.PRESET_STAGES``; :func:`parse_stages`).
+    record : dict, optional
+        Added to the checkpoint's ``train`` record (e.g. that ``--max-minutes`` ended the run
+        before its ``steps``).
     """
     ck = load_checkpoint(state_path)
     ck.pop("optimizer", None)
+    if record:
+        ck["train"] = {**ck["train"], **record}
     out_path = Path(out_path)
     init = (ck.get("train") or {}).get("init")
     if init and "init_checkpoint" not in ck and checkpoint_path(init).exists():
@@ -570,6 +611,8 @@ def train(
     progress: bool = True,
     log=None,
     init_net: Vid2ParamNet | None = None,
+    validate_on_stop: bool = False,
+    time_schedule: bool = False,
 ) -> tuple[Vid2ParamNet, dict]:
     """Train a Vid2Param network.
 
@@ -597,6 +640,13 @@ def train(
         Receives progress lines; default prints to stderr.
     init_net : Vid2ParamNet, optional
         Start from these weights (fine-tuning; its config must equal ``model_config``).
+    validate_on_stop : bool
+        Validate also when ``max_minutes`` ends the run early (a run exported as it stands).
+    time_schedule : bool
+        With ``max_minutes``: the learning-rate schedule and the warm-up phases advance with the
+        share of the budget spent when that is ahead of ``step / steps``, so a run that the
+        budget ends early still ends with its schedule run through (batches stay a function
+        of the step; the schedule then depends on the machine's speed).
 
     Returns
     -------
@@ -607,6 +657,8 @@ def train(
     """
     mc = model_config or V2PConfig()
     tc = train_config or TrainConfig()
+    if time_schedule and max_minutes is None:
+        raise ValueError("time_schedule: expected max_minutes with it, got max_minutes=None")
     dev = resolve_device(device)
     if dev.type == "cpu":
         torch.set_num_threads(int(tc.threads))
@@ -647,9 +699,17 @@ def train(
         log(f"init from {tc.init}: {len(loaded)} tensors copied, fresh: {skipped}")
     log(f"Vid2Param: {count_parameters(net)} parameters, device {dev}, threads "
         f"{torch.get_num_threads()}, steps {start}->{tc.steps}, batch {tc.batch}")
-    feed = _Feed(tc, mc.targets, dataset)
-    val = make_split("test", tc.val_n, tc.val_seed, tc.size, tc.nuisance, tc.n_frames) \
-        if tc.val_n > 0 else None
+    feed = _Feed(tc, mc.targets, dataset, system=mc.system)
+    if mc.system != "ball" and tc.perturb:
+        raise ValueError(f"perturb: the ball's physics deviations, expected None for the "
+                         f"{mc.system} system, got {tc.perturb!r}")
+    if tc.val_n <= 0:
+        val = None
+    elif mc.system != "ball":  # the system's test split, as the ball's
+        val = make_system_split(mc.system, "test", tc.val_n, tc.val_seed, tc.n_frames, tc.size,
+                                tc.nuisance)
+    else:
+        val = make_split("test", tc.val_n, tc.val_seed, tc.size, tc.nuisance, tc.n_frames)
     t_start = time.time()
     t_ckpt = t_start
 
@@ -674,6 +734,10 @@ def train(
     run_avg = None
     step = start
     for step in bar:
+        # the schedule's step: the step itself, or with ``time_schedule`` the share of the
+        # budget spent, whichever is further on
+        sched = step if not time_schedule else max(
+            step, int(tc.steps * (time.time() - t_start) / (60.0 * max_minutes)))
         fr_np, tg_np = feed.batch(step)
         rng = np.random.default_rng([tc.seed, step])
         T = fr_np.shape[1]
@@ -685,12 +749,12 @@ def train(
             fr[torch.as_tensor(blank, device=dev)] = 0
         gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
         for g in opt.param_groups:
-            g["lr"] = _lr_at(step, tc)
-        aux = tc.early_aux_grad if step < tc.early_aux_grad_steps else None
+            g["lr"] = _lr_at(sched, tc)
+        aux = tc.early_aux_grad if sched < tc.early_aux_grad_steps else None
         outd = net(fr, torch.as_tensor(tg_np, device=dev), n_obs=n_obs, rec_frac=tc.rec_frac,
                    generator=gen, aux_grad=aux, supervised=feed.supervised_targets(step))
         opt.zero_grad(set_to_none=True)
-        (outd["loss"] if step >= tc.nll_only_steps else outd["loss_nll"]).backward()
+        (outd["loss"] if sched >= tc.nll_only_steps else outd["loss_nll"]).backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), tc.clip)
         opt.step()
         cur = np.array([outd["loss"].item(), outd["rec"].item(), outd["kl"].item(),
@@ -699,7 +763,7 @@ def train(
         if progress:
             bar.set_postfix(loss=f"{run_avg[0]:.1f}", nll=f"{run_avg[3]:.2f}", refresh=False)
         if (step + 1) % 100 == 0:
-            log(f"step {step + 1} {wall() / 60:.1f} min lr {_lr_at(step, tc):.2e} loss "
+            log(f"step {step + 1} {wall() / 60:.1f} min lr {_lr_at(sched, tc):.2e} loss "
                 f"{run_avg[0]:.2f} rec {run_avg[1]:.2f} kl {run_avg[2]:.2f} nll {run_avg[3]:.3f} "
                 f"nll_prior {run_avg[4]:.3f}")
         if val is not None and (step + 1) % tc.val_every == 0:
@@ -719,11 +783,15 @@ def train(
         step = tc.steps
     bar.close()
     done = step >= tc.steps
-    if done and val is not None and (not history or history[-1][0] != step):
+    stopped = None if done else ("stop_at" if stop_at is not None and step >= stop_at
+                                 else "max_minutes")
+    end_val = done or (validate_on_stop and stopped == "max_minutes")
+    if end_val and val is not None and (not history or history[-1][0] != step):
         validate(step)
     save(step)
     net.eval()
-    return net.cpu(), {"step": step, "wall_s": wall(), "val_history": history, "done": done}
+    return net.cpu(), {"step": step, "wall_s": wall(), "val_history": history, "done": done,
+                       "stopped": stopped}
 
 
 #: TrainConfig values a preset's recipe takes instead of the defaults (a flag given overrides
@@ -740,6 +808,22 @@ PRESET_TRAIN = {
                "chunk": 600, "val_n": 100, "val_every": 500,
                "perturb": {"spin": 0.3, "dwell": 0.01, "p": 0.5}},
 }
+
+
+#: The other systems' from-scratch recipes (``--system S`` / ``--preset S``), sized so a run fits
+#: ~6-8 minutes on one H100 with three runs sharing it (``scripts/gpu_train_systems.sh``) and
+#: ``--max-minutes`` as the backstop: 1500 steps of 32 videos, the warm-up phases keeping
+#: their share of the default recipe's length (``TrainConfig.recipe``), chunks reused over
+#: several passes (drawing a pendulum video takes ~0.1 s on one core).
+_SYSTEM_TRAIN = {"steps": 1500, "nll_only_steps": 225, "early_aux_grad_steps": 1200,
+                 "warmup": 50, "val_n": 100, "val_every": 250, "threads": 4}
+PRESET_TRAIN.update({
+    "pendulum": {**_SYSTEM_TRAIN, "chunk": 800, "chunk_epochs": 10},
+    "spring": {**_SYSTEM_TRAIN, "chunk": 1000, "chunk_epochs": 4},
+    "collision": {**_SYSTEM_TRAIN, "chunk": 1000, "chunk_epochs": 4},
+})
+#: The systems with a preset of their own (``--system``).
+SYSTEM_PRESETS = ("pendulum", "spring", "collision")
 
 
 def _resolve_init(init: str | None) -> str | None:
@@ -789,6 +873,7 @@ def _field_help(cls) -> dict[str, str]:
 #: Checked by argparse (``_arg_type``), so ``--steps -1`` is refused before anything is built.
 _FLAG_RANGES = {
     "steps": (1, None, False), "batch": (1, None, False), "chunk": (1, None, False),
+    "chunk_epochs": (1, None, False),
     "n_frames": (2, None, False), "min_obs": (1, None, False), "val_every": (1, None, False),
     "threads": (1, None, False), "lr": (0, None, True), "clip": (0, None, True),
     "ckpt_every": (0, None, True), "rec_frac": (0, 1, True), "p_full": (0, 1, False),
@@ -834,6 +919,13 @@ def _parser() -> argparse.ArgumentParser:
                      help="auto (CUDA when present, else CPU), cpu or cuda[:N]")
     run.add_argument("--max-minutes", type=_arg_type("max_minutes", float), default=None,
                      help="stop (resumable) after this much wall-clock time")
+    run.add_argument("--time-schedule", action="store_true",
+                     help="with --max-minutes: the learning-rate schedule and warm-up phases "
+                          "advance with the budget spent, so a run the budget ends early has "
+                          "run its schedule through")
+    run.add_argument("--export-on-stop", action="store_true",
+                     help="with --export: export also when --max-minutes ends the run early "
+                          "(the card's train record says stopped: max_minutes and the step)")
     run.add_argument("--stop-at", type=_arg_type("stop_at", int), default=None,
                      help="stop (resumable) after this step")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -862,6 +954,9 @@ def _parser() -> argparse.ArgumentParser:
     model = p.add_argument_group("model (V2PConfig fields; each overrides the preset's value)")
     model.add_argument("--preset", default="28x28", choices=sorted(PRESETS),
                        help="model configuration (V2PConfig.preset) and its data settings")
+    model.add_argument("--system", default=None, choices=["ball", *SYSTEM_PRESETS],
+                       help="train a system's model from scratch: its preset (network, recipe "
+                            "and stages; 'ball' keeps --preset)")
     for name in ("latent", "hidden", "feat", "keypoints", "pool"):
         model.add_argument("--" + name, type=_arg_type(name, int), default=None,
                            help=mc_help.get(name))
@@ -870,7 +965,7 @@ def _parser() -> argparse.ArgumentParser:
                            help=mc_help.get(name))
     model.add_argument("--channels", type=_arg_type("channels", int), nargs="+", default=None,
                        help=mc_help.get("channels"))
-    for name in ("kp_visibility", "roll_features", "physics_prior"):
+    for name in ("kp_visibility", "roll_features", "physics_prior", "kp_learn"):
         model.add_argument("--" + name.replace("_", "-"), action=argparse.BooleanOptionalAction,
                            default=None, help=mc_help.get(name))
     model.add_argument("--targets", nargs="+", default=None, help=mc_help.get("targets"))
@@ -903,8 +998,22 @@ def _stages(a: argparse.Namespace) -> list[tuple[str, dict]]:
     return parse_stages(PRESET_STAGES.get(a.preset, ()))
 
 
+def _command(argv) -> str:
+    """The training command as run, for the card: paths given to ``--out`` and ``--export``
+    reduced to their names (records name no machine path)."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    for i, v in enumerate(args[:-1]):
+        if v in ("--out", "--export"):
+            args[i + 1] = Path(args[i + 1]).name
+    return " ".join(["sysid-bench train", *args])
+
+
 def main(argv=None) -> int:
     a = _parse(argv)
+    if a.system not in (None, "ball"):
+        if a.preset not in ("28x28", a.system):
+            raise SystemExit(f"--system {a.system} takes its own preset, not --preset {a.preset}")
+        a.preset = a.system
     if a.refit is not None:
         if not a.export:
             raise SystemExit("--refit needs --export PATH")
@@ -928,9 +1037,15 @@ def main(argv=None) -> int:
     mc = V2PConfig(**base)
     tc = _train_config(a, mc)
     _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
-                    max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress)
-    if info["done"] and a.export:
-        print(export(out / "state.pt", a.export, stages=_stages(a)))
+                    max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress,
+                    validate_on_stop=a.export_on_stop, time_schedule=a.time_schedule)
+    early = a.export_on_stop and info["stopped"] == "max_minutes"
+    if a.export and (info["done"] or early):
+        record = {"stopped": "max_minutes", "max_minutes": a.max_minutes} if early else {}
+        if a.time_schedule:
+            record["time_schedule"] = True
+        record["command"] = _command(argv)
+        print(export(out / "state.pt", a.export, stages=_stages(a), record=record))
     return 0
 
 

@@ -1,0 +1,253 @@
+"""Vid2Param on the systems other than the ball: the same network and stages, K points, P
+parameters.
+
+``methods.get("vid2param", system="pendulum")`` builds :class:`SystemVid2Param`, which loads the
+system's shipped checkpoint (``SYSTEM_CHECKPOINTS``) or the ``checkpoint`` path given. Where no
+model is shipped it raises :class:`methods.NotAvailable` with the command that trains one.
+
+The network gives the normalised posterior of the system's parameters (prior units) and of its
+K points' positions (view units, ``extent``); the checkpoint's stages (``std_scale``) act on the
+parameters as on the ball's; the forecast is the network's own latent rollout (the learned
+prior, ``forecast="latent"``), decoded to metres.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sysid_bench.estimator import MAX_HORIZON, Estimator, Forecast, Observation, Posterior, Stream
+
+__all__ = ["SystemVid2Param", "SYSTEM_CHECKPOINTS", "train_command"]
+
+_CKPT_DIR = Path(__file__).resolve().parent / "checkpoints"
+#: Where each system's shipped model lives (whether or not this checkout has it).
+SYSTEM_CHECKPOINTS = {name: _CKPT_DIR / f"v2p_{name}.pt"
+                      for name in ("pendulum", "spring", "collision")}
+
+
+def train_command(system: str) -> str:
+    """The one command that trains ``system``'s model from scratch."""
+    return (f"sysid-bench train --system {system} --out runs/v2p_{system} "
+            f"--export methods/vid2param/checkpoints/v2p_{system}.pt")
+
+
+class SystemVid2Param(Estimator):
+    """Vid2Param on a system other than the ball.
+
+    Parameters
+    ----------
+    system : str
+        A registered system (not ``"ball"``).
+    checkpoint : str or path, optional
+        A checkpoint trained for ``system``; default the shipped one.
+    n_samples : int
+        Posterior samples drawn from the Gaussian posterior, clipped to the prior.
+    seed : int
+    device : str
+        ``"cpu"`` (default) or ``"auto"`` / ``"cuda"``.
+    """
+
+    name = "vid2param"
+    input_kind = "frames"
+    forecasts = True
+    streams = True
+    online = True
+
+    def __init__(self, *, system: str = "pendulum", checkpoint=None, n_samples: int = 256,
+                 seed: int = 0, device: str = "cpu"):
+        self.system = system
+        self.checkpoint = checkpoint
+        self.n_samples = n_samples
+        self.seed = seed
+        self.device = device
+        self._load()
+
+    # -- loading ------------------------------------------------------------------------------
+    def _load(self) -> None:
+        from methods import NotAvailable
+        from sysid_bench import systems
+
+        sys_ = systems.get(self.system)
+        if sys_.name == "ball":
+            raise ValueError("system: expected a system other than 'ball' (the ball's Vid2Param "
+                             "is methods.vid2param.Vid2Param)")
+        if self.checkpoint is None:
+            path = SYSTEM_CHECKPOINTS.get(sys_.name)
+            if path is None or not path.is_file():
+                raise NotAvailable(
+                    f"system: 'vid2param' is n/a on the {sys_.name} system: no model is shipped "
+                    f"for it (no Vid2Param model is shipped for {sys_.name}; train one with "
+                    f"`{train_command(sys_.name)}`)")
+        else:
+            path = Path(self.checkpoint)
+        import torch
+
+        from methods.vid2param.checkpoint import build_net, load_checkpoint
+        from methods.vid2param.inference import resolve_device
+        from methods.vid2param.stages import Pipeline
+
+        ck = load_checkpoint(path)
+        net = build_net(ck, path)
+        if net.config.system != sys_.name:
+            raise ValueError(f"checkpoint: {str(path)!r} was trained for the "
+                             f"{net.config.system} system, not {sys_.name}")
+        self._dev = resolve_device(self.device)
+        self._net = net.to(self._dev).eval()
+        self._pipeline = Pipeline.from_checkpoint(ck, path, net)
+        self._sys = sys_
+        c = net.config
+        self._pidx = [c.targets.index(p) for p in c.params]
+        self._xidx = [c.targets.index(p) for p in c.positions]
+        missing = [p for p in sys_.params if p not in c.params]
+        if missing:
+            raise ValueError(f"checkpoint: {str(path)!r} does not identify {missing}")
+        # parameters in the system's order
+        self._order = [list(c.params).index(p) for p in sys_.params]
+        self._torch = torch
+
+    # -- units ----------------------------------------------------------------------------------
+    def _points(self, mu_pos: np.ndarray) -> np.ndarray:
+        """Normalised positions (..., 2K) to metres (..., K, 2)."""
+        x0, x1, y0, y1 = self._sys.extent
+        p = mu_pos.reshape(*mu_pos.shape[:-1], -1, 2)
+        return np.stack([x0 + (x1 - x0) * p[..., 0], y0 + (y1 - y0) * p[..., 1]], -1)
+
+    def _frames(self, frames) -> np.ndarray:
+        fr = np.asarray(frames)
+        if fr.ndim != 4 or tuple(fr.shape[-2:]) != tuple(self._net.config.frame_size):
+            raise ValueError(f"frames: expected (N, T, H, W) with H x W = "
+                             f"{tuple(self._net.config.frame_size)} (the {self._sys.name} "
+                             f"model's size), got shape {fr.shape}")
+        return fr
+
+    def _obs_frames(self, obs: Observation) -> np.ndarray:
+        if not isinstance(obs, Observation) or obs.frames is None:
+            raise ValueError("obs: expected an Observation with frames (vid2param reads video)")
+        return self._frames(np.asarray(obs.frames)[None])
+
+    def _params(self, m: np.ndarray, s: np.ndarray, extras: dict, key: int) -> Posterior:
+        """Posterior of normalised mean and std (P,) in the network's order."""
+        lo, hi = self._sys.prior_lo, self._sys.prior_hi
+        m, s = m[self._order], s[self._order]
+        mean = lo + (hi - lo) * np.clip(m, 0.0, 1.0)
+        std = (hi - lo) * s
+        rng = np.random.default_rng([int(self.seed), int(key)])
+        samples = np.clip(mean + std * rng.standard_normal((int(self.n_samples), len(mean))),
+                          lo, hi)
+        return Posterior(mean=mean, std=std, samples=samples, extras=extras,
+                         system=self._sys.name)
+
+    def posteriors(self, frames) -> tuple[np.ndarray, np.ndarray, np.ndarray, object]:
+        """Every frame's normalised parameter posterior (N, T, P) (network order) after the
+        stages, the network's points (N, T, K, 2) m, and the recurrent state after the last."""
+        from methods.vid2param.inference import latent_pass
+
+        fr = self._frames(frames)
+        mu, sd, state = latent_pass(self._net, fr, self._dev)
+        m, s = mu[..., self._pidx], sd[..., self._pidx]
+        pts = self._points(mu[..., self._xidx])
+        for stage in self._pipeline.stages:
+            m, s = stage.apply(m, s, pts)
+        return m, s, pts, state
+
+    # -- the estimator --------------------------------------------------------------------------
+    def identify(self, obs: Observation) -> Posterior:
+        t0 = time.perf_counter()
+        m, s, pts, _ = self.posteriors(self._obs_frames(obs))
+        return self._params(m[0, -1], s[0, -1], {"wall_s": time.perf_counter() - t0,
+                                                 "n_frames": m.shape[1]}, m.shape[1])
+
+    def identify_prefixes(self, obs: Observation, lengths) -> list[Posterior]:
+        fr = self._obs_frames(obs)
+        T = fr.shape[1]
+        lengths = [int(n) for n in lengths]
+        if not lengths or min(lengths) < 1 or max(lengths) > T:
+            raise ValueError(f"lengths: expected frame counts in [1, {T}], got {lengths}")
+        t0 = time.perf_counter()
+        m, s, _, _ = self.posteriors(fr)
+        wall = time.perf_counter() - t0
+        return [self._params(m[0, n - 1], s[0, n - 1], {"wall_s": wall * n / T, "n_frames": n},
+                             n) for n in lengths]
+
+    def identify_batch(self, frames) -> list[Posterior]:
+        """``identify`` of each of many videos (N, T, H, W), one network pass."""
+        m, s, _, _ = self.posteriors(frames)
+        return [self._params(m[i, -1], s[i, -1], {"n_frames": m.shape[1]}, m.shape[1])
+                for i in range(len(m))]
+
+    def _rollout(self, state, horizon: int) -> Forecast:
+        horizon = int(horizon)
+        if not 1 <= horizon <= MAX_HORIZON:
+            raise ValueError(f"horizon: expected an int in [1, {MAX_HORIZON}], got {horizon}")
+        torch = self._torch
+        with torch.inference_mode():
+            mu, std, _ = self._net.rollout(state, horizon)
+        mu, std = mu[0].cpu().numpy().astype(np.float64), std[0].cpu().numpy().astype(np.float64)
+        mean = self._points(mu[:, self._xidx])  # (H, K, 2)
+        x0, x1, y0, y1 = self._sys.extent
+        sd = std[:, self._xidx].reshape(horizon, -1, 2) * np.array([x1 - x0, y1 - y0])
+        if self._sys.n_points == 1:
+            mean, sd = mean[:, 0], sd[:, 0]
+        return Forecast(mean=mean, std=sd, extras={"n_simulations": 0, "forecast": "latent"})
+
+    def forecast(self, obs: Observation, horizon: int) -> Forecast:
+        """The network's latent rollout after the observed frames: points (H, 2) for one
+        tracked point, (H, K, 2) for K > 1, metres."""
+        _, _, _, state = self.posteriors(self._obs_frames(obs))
+        return self._rollout(state, horizon)
+
+    def stream(self) -> SystemVid2ParamStream:
+        return SystemVid2ParamStream(self)
+
+
+class SystemVid2ParamStream(Stream):
+    """One frame at a time through the network and the stages (constant cost per frame)."""
+
+    def __init__(self, est: SystemVid2Param):
+        self._est = est
+        self.reset()
+
+    def reset(self) -> None:
+        net = self._est._net
+        self._state = net.init_state(1, self._est._dev)
+        self._carries = self._est._pipeline.start(1)
+        self._n = 0
+        self._pts = np.full((self._est._sys.n_points, 2), np.nan)
+
+    @property
+    def n_frames(self) -> int:
+        return self._n
+
+    def push(self, frame: np.ndarray) -> Posterior:
+        est, torch = self._est, self._est._torch
+        fr = np.asarray(frame)
+        if tuple(fr.shape) != tuple(est._net.config.frame_size):
+            raise ValueError(f"frame: expected shape {tuple(est._net.config.frame_size)}, got "
+                             f"{fr.shape}")
+        t0 = time.perf_counter()
+        net = est._net
+        with torch.inference_mode():
+            fx = net.encode_frames(torch.as_tensor(fr[None], device=est._dev))
+            mu, sd = net.enc_step(fx, net.read(self._state))
+            self._state = net.step_rnn(mu, self._state)
+        mu = mu.cpu().numpy().astype(np.float64)
+        sd = sd.cpu().numpy().astype(np.float64)
+        pts = est._points(mu[:, est._xidx])
+        m, s = est._pipeline.step(self._carries, mu[:, est._pidx], sd[:, est._pidx], pts)
+        self._n += 1
+        self._pts = pts[0]
+        return est._params(m[0], s[0], {"wall_s": time.perf_counter() - t0,
+                                        "n_frames": self._n}, self._n)
+
+    def position(self) -> np.ndarray:
+        """The network's first tracked point (2,) m at the latest frame."""
+        return self._pts[0].copy()
+
+    def forecast(self, horizon: int, floor: float | None = None) -> Forecast:
+        fc = self._est._rollout(self._state, horizon)
+        if floor:
+            fc.mean[..., 1] += float(floor)
+        return fc

@@ -1,0 +1,149 @@
+"""Vid2Param on the systems other than the ball: one network and stages for K points and P
+parameters, one command that trains a system's model, its estimator, and n/a without a model."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import methods  # noqa: E402
+from methods.vid2param.data import make_system_split  # noqa: E402
+from methods.vid2param.model import V2PConfig, Vid2ParamNet, position_names  # noqa: E402
+from methods.vid2param.system_estimator import SYSTEM_CHECKPOINTS  # noqa: E402
+from sysid_bench.estimator import Observation  # noqa: E402
+
+#: a tiny network: small enough that two CPU steps take about a second
+TINY = ["--hidden", "16", "--feat", "16", "--latent", "12", "--channels", "4", "--keypoints", "2",
+        "--n-frames", "24", "--min-obs", "8", "--chunk", "8", "--val-n", "4", "--steps", "2",
+        "--batch", "4", "--threads", "1", "--no-progress", "--no-resume"]
+
+
+@pytest.fixture(scope="module")
+def collision_ckpt(tmp_path_factory):
+    """A collision model (K = 2) trained for 2 steps by the one command, exported with its
+    std_scale stage."""
+    from methods.vid2param.train import main
+
+    d = tmp_path_factory.mktemp("v2p_collision")
+    out = d / "v2p_collision.pt"
+    assert main(["--system", "collision", "--out", str(d / "run"), "--export", str(out),
+                 "--stages", "std_scale:n=4", *TINY]) == 0
+    return out
+
+
+def test_system_config_targets_are_points_then_parameters():
+    """Targets, the ball's parts off, bad configs refused, the ball's config unchanged."""
+    c = V2PConfig.preset("collision")
+    assert c.system == "collision" and c.n_points == 2
+    assert c.targets == ("x", "y", "x1", "y1", "lq", "eb", "mu", "ew")
+    assert c.params == ("lq", "eb", "mu", "ew") and not c.roll_features and not c.physics_prior
+    assert V2PConfig.preset("pendulum").frame_size == (64, 64)
+    assert position_names(3) == ("x", "y", "x1", "y1", "x2", "y2")
+    # the ball's parts are refused on another system, a parameter of another system too
+    with pytest.raises(ValueError, match="roll_features, physics_prior"):
+        V2PConfig(system="spring", targets=("x", "y", "w2"))
+    with pytest.raises(ValueError, match="targets"):
+        V2PConfig(system="spring", targets=("x", "y", "e"), roll_features=False,
+                  physics_prior=False)
+    with pytest.raises(ValueError, match="unknown system"):
+        V2PConfig(system="sprung", roll_features=False, physics_prior=False)
+    # the ball's config is unchanged and round-trips; an old config (no system) is the ball's
+    d = V2PConfig().to_dict()
+    assert d["system"] == "ball" and d["targets"] == ["x", "y", "e", "g", "d", "r"]
+    d.pop("system"), d.pop("kp_learn")
+    assert V2PConfig.from_dict(d) == V2PConfig()
+
+
+def test_system_targets_are_normalised_by_extent_and_prior():
+    c = V2PConfig.preset("spring")
+    ds = make_system_split("spring", "train", 3, 0, n_frames=10)
+    tg = ds.targets(c.targets)
+    x0, x1, _, _ = ds.system.extent
+    np.testing.assert_allclose(tg[..., 0], (ds.points[..., 0, 0] - x0) / (x1 - x0), rtol=1e-5)
+    np.testing.assert_allclose(tg[:, 0, 2:], ds.system.normalise(ds.theta), rtol=1e-5)
+    assert ds.frames.shape == (3, 10, *ds.system.size)
+    # the same videos whatever the threads drawing them
+    again = make_system_split("spring", "train", 3, 0, n_frames=10, workers=2)
+    assert np.array_equal(again.frames, ds.frames)
+
+
+def test_network_carries_k_points():
+    c = V2PConfig(**{**V2PConfig.preset("collision").to_dict(), "hidden": 8, "feat": 8,
+                     "channels": [4], "latent": 10})
+    net = Vid2ParamNet(c)
+    rng = np.random.default_rng(0)
+    fr = torch.as_tensor(rng.integers(0, 256, (2, 6, *c.frame_size), dtype=np.uint8))
+    out = net(fr, torch.as_tensor(rng.random((2, 6, 8), dtype=np.float32)), n_obs=4)
+    assert torch.isfinite(out["loss"]) and out["mse"].shape == (2, 8)
+    mu, sd, state = net.filter(fr)
+    assert mu.shape == (2, 6, 10) and state.last_pos.shape == (2, 4)
+    m, s, z = net.rollout(state, 3)
+    assert m.shape == (2, 3, 10) and ((m[..., :4] >= 0) & (m[..., :4] <= 1)).all()
+
+
+@pytest.mark.slow  # the collision simulator's first call compiles (~20 s on a busy CPU)
+def test_one_command_trains_exports_and_the_estimator_answers(collision_ckpt):
+    card = json.loads(collision_ckpt.with_suffix(".json").read_text())
+    assert card["config"]["system"] == "collision" and card["train"]["step"] == 2
+    assert [s["name"] for s in card["stages"]] == ["std_scale"]
+    est = methods.get("vid2param", system="collision", checkpoint=str(collision_ckpt))
+    ds = make_system_split("collision", "test", 2, 3, n_frames=24)
+    obs = Observation(frames=ds.frames[0], dt=0.05, system="collision")
+    post = est.identify(obs)
+    sys_ = ds.system
+    assert post.mean.shape == (4,) and post.samples.shape[1] == 4
+    assert ((post.mean >= sys_.prior_lo) & (post.mean <= sys_.prior_hi)).all()
+    assert (post.std > 0).all()
+    pre = est.identify_prefixes(obs, [5, 24])
+    np.testing.assert_allclose(pre[-1].mean, post.mean)
+    fc = est.forecast(obs, 7)
+    assert fc.mean.shape == (7, 2, 2) and fc.std.shape == (7, 2, 2)
+    st = est.stream()
+    for frame in ds.frames[0]:
+        last = st.push(frame)
+    assert st.n_frames == 24 and st.position().shape == (2,)
+    np.testing.assert_allclose(last.mean, post.mean, rtol=1e-4, atol=1e-4 * sys_.prior_hi.max())
+    assert st.forecast(3).mean.shape == (3, 2, 2)
+    with pytest.raises(ValueError, match="frames"):
+        est.identify(Observation(frames=np.zeros((5, 8, 8), np.uint8), dt=0.05,
+                                 system="collision"))
+    # a checkpoint of one system is refused for another
+    with pytest.raises(ValueError, match="trained for the collision system"):
+        methods.get("vid2param", system="spring", checkpoint=str(collision_ckpt))
+
+
+def test_one_point_system_trains_identifies_streams_and_forecasts(tmp_path):
+    """The spring (K = 1): 2 steps by the one command, then every answer's shape."""
+    from methods.vid2param.train import main
+
+    out = tmp_path / "v2p_spring.pt"
+    assert main(["--system", "spring", "--out", str(tmp_path / "run"), "--export", str(out),
+                 "--stages", "std_scale:n=4", *TINY]) == 0
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["config"]["system"] == "spring" and card["train"]["step"] == 2
+    est = methods.get("vid2param", system="spring", checkpoint=str(out))
+    ds = make_system_split("spring", "test", 1, 4, n_frames=12)
+    obs = Observation(frames=ds.frames[0], dt=0.05, system="spring")
+    post = est.identify(obs)
+    assert post.mean.shape == (4,) and post.samples.shape == (256, 4) and (post.std > 0).all()
+    assert len(est.identify_prefixes(obs, [3, 12])) == 2
+    fc = est.forecast(obs, 5)
+    assert fc.mean.shape == (5, 2) and fc.std.shape == (5, 2)
+    st = est.stream()
+    for frame in ds.frames[0]:
+        last = st.push(frame)
+    np.testing.assert_allclose(last.mean, post.mean, rtol=1e-4, atol=1e-5)
+    assert st.position().shape == (2,) and st.forecast(4).mean.shape == (4, 2)
+
+
+def test_no_shipped_model_is_na_with_the_command():
+    for name, path in SYSTEM_CHECKPOINTS.items():
+        if path.exists():
+            continue
+        with pytest.raises(methods.NotAvailable, match=f"no Vid2Param model is shipped for "
+                                                       f"{name}; train one with"):
+            methods.get("vid2param", system=name)
