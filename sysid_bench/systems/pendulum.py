@@ -44,17 +44,19 @@ the step, found by a quadratic first guess (Taylor series of ``omega`` to second
 one last plain Newton step (the one the JAX twin differentiates); the derivative of the RK4 step
 with respect to its length is the end acceleration up to O(tau^4), so Newton converges to machine
 precision. The bob is moved there with ``omega = 0`` exactly, the stick rule applied, and the
-rest of the step integrated afresh with the new direction (a "pass"; at most :data:`_MAX_PASSES`
-per step). Events are therefore not snapped to frames or steps. Between two events ``omega``
-keeps its sign for at least a half swing (``pi / sqrt(|g| / L)``, >= 0.26 s in the envelope), far
-longer than a step, so an end-of-step sign test cannot miss one.
+rest of the step integrated afresh from rest with the new direction. Events are therefore not
+snapped to frames or steps. Between two events ``omega`` keeps its sign for at least a half swing
+(``pi / sqrt(|g| / L)``, >= 0.26 s in the envelope), far longer than a step, so an end-of-step
+sign test cannot miss one and a step holds at most one.
 
-``SUBSTEPS = 8`` was measured (``python -m sysid_bench.systems.pendulum``, which prints the table):
-at the prior's fastest corner (``g = -12.81``, ``L = 0.5``, ``b = mu = 0``,
-``|theta0| = 2.5``, ``|omega0| = 1``, which swings to within 0.3 rad of the top) the largest bob
-position error over 200 frames at ``dt = 0.05`` against the event-driven ``solve_ivp`` reference
-(DOP853, ``rtol = atol = 1e-12``) is 1.2e-6 m with 6 steps, 3.8e-7 m with 7 and 2.0e-7 m with 8
-(RK4's ``h^4``): 8 keeps a 5x margin under the design's 1e-6 m. The JAX twin,
+``SUBSTEPS = 8`` was measured: at the prior's fastest corner (``g = -12.81``, ``L = 0.5``,
+``b = mu = 0``, ``|theta0| = 2.5``, ``|omega0| = 1``, all four sign combinations; it swings to
+within ~0.3 rad of the top) the largest bob position error over 200 frames at ``dt = 0.05``
+against the event-driven ``solve_ivp`` reference (DOP853, ``rtol = atol = 1e-12``) is 9.8e-6 m
+with 4 steps, 2.9e-6 m with 5, 1.05e-6 m with 6, 4.3e-7 m with 7, 1.9e-7 m with 8 and 4.5e-8 m
+with 10 (RK4's ``h^4``); with friction at that corner (``mu`` 0.2 or 0.5, events every half
+swing and a stick) it is smaller. 8 keeps a 5x margin under the design's 1e-6 m
+(``tests/test_system_pendulum.py`` checks that corner). The JAX twin,
 :mod:`sysid_bench.systems.pendulum_jax`, takes the same steps with the same operations.
 
 View
@@ -67,7 +69,8 @@ by maximum. Why 64 x 64: at 28 x 28 the design's 0.1 m bob is 0.56 px across in 
 anti-aliased disc is a single grey pixel whose centroid moves in jumps -- and the rod, which has
 the same order of brightness, cannot be told from it; a bob of 1.5 px radius spans ~3 x 3 pixels
 brighter than anything the rod can reach, and its centroid follows it to a tenth of a pixel
-(measured: 0.06 px RMS, 0.2 px worst on clean video; blur 0.5 and noise 8: 0.09 px RMS).
+(measured on 20 prior videos of 200 frames: 0.023 px RMS, 0.05 px worst on clean video; with
+blur 0.5 and noise 8, 0.041 px RMS, 0.17 px worst).
 
 The tracker uses only pixels brighter than :data:`_THRESHOLD` (above the rod's level plus
 pixel noise), so the rod never pulls it: a first centroid of those pixels, then a second one
@@ -116,8 +119,6 @@ OMEGA0_RANGE = (-1.0, 1.0)
 
 #: Safeguarded Newton steps locating an event (from a guess already good to ~1e-7 s).
 _NEWTON_ITERS = 4
-#: Passes per RK4 step: the step, the rest after an event, and one spare for a second event.
-_MAX_PASSES = 3
 #: |df/dtau| floor in the Newton step (a grazing event), as the ball's contact time.
 _TINY_W = 1e-12
 
@@ -130,11 +131,12 @@ _MIN_MASS = 0.35
 _MAX_STRAY = 0.5
 
 # state0_from_track: the first seen frames fitted (angle, quadratic in time) and the half-widths
-# of the box around the estimate (measured on 2000 prior trajectories with 1 cm noise, see
-# tests/test_system_pendulum.py: 99.9% quantiles of |error| doubled, rounded up)
+# of the box around the estimate (measured on 2000 prior trajectories with 1 cm Gaussian noise:
+# 99.9% quantiles of |error| 0.041 rad and 0.67 rad/s, largest 0.050 and 0.96; quantiles doubled,
+# rounded up; 5 or 10 frames fitted gave larger errors)
 _FIT_FRAMES = 7
-_THETA_HALF = 0.08
-_OMEGA_HALF = 0.9
+_THETA_HALF = 0.1
+_OMEGA_HALF = 1.4
 
 _njit = numba.njit(cache=True, nogil=True, error_model="numpy")
 
@@ -216,35 +218,37 @@ def _event_time(th, om, h, k, b, c, s):
 
 @_njit
 def _step(th, om, h, k, b, mu):
-    """One RK4 step of length ``h`` with its events; returns (theta, omega, unresolved)."""
+    """One RK4 step of length ``h`` with its event; returns the new (theta, omega).
+
+    At most two passes: the step, or the step up to its event and the rest of it from rest in
+    the new direction. A second event in one step would need a half swing shorter than a step
+    (>= 0.26 s against <= H_MAX in the envelope) and is not looked for.
+    """
     s = _direction(th, om, k, mu)
     if s == 0.0:
-        return th, om, False
-    rem = h
-    for _ in range(_MAX_PASSES):
-        c = mu * s
-        tn, on = _rk4(th, om, rem, k, b, c)
-        if s * on > 0.0:
-            return tn, on, False
-        if om == 0.0:
-            # started at rest and does not leave it: |G| exceeds mu by a rounding only
-            return th, 0.0, False
-        tau = _event_time(th, om, rem, k, b, c, s)
-        th, _ = _rk4(th, om, tau, k, b, c)
-        om = 0.0
-        s = _direction(th, om, k, mu)
-        rem = rem - tau
-        if s == 0.0 or not rem > 0.0:
-            return th, om, False
-    return th, om, True
+        return th, om  # stuck
+    c = mu * s
+    tn, on = _rk4(th, om, h, k, b, c)
+    if s * on > 0.0:
+        return tn, on
+    if om == 0.0:
+        # started at rest and does not leave it: |G| exceeds mu by a rounding only
+        return th, om
+    tau = _event_time(th, om, h, k, b, c, s)
+    te, _ = _rk4(th, om, tau, k, b, c)
+    s2 = _direction(te, 0.0, k, mu)
+    rem = h - tau
+    if s2 == 0.0 or not rem > 0.0:
+        return te, 0.0  # stuck at the event, or the event ends the step
+    t2, o2 = _rk4(te, 0.0, rem, k, b, mu * s2)
+    if s2 * o2 > 0.0:
+        return t2, o2
+    return te, 0.0  # at rest and does not leave it (as above)
 
 
 @_njit
 def _kernel(th, s0, dt, nsub, out):
-    """Fill ``out`` (B, n_frames, 2) from ``s0`` (B, 2); ``th`` is (B, 1 or n_frames, 4).
-
-    Returns the index of a trajectory with more events in one step than expected, or -1.
-    """
+    """Fill ``out`` (B, n_frames, 2) from ``s0`` (B, 2); ``th`` is (B, 1 or n_frames, 4)."""
     varying = th.shape[1] > 1
     h = dt / nsub
     for i in range(s0.shape[0]):
@@ -255,11 +259,8 @@ def _kernel(th, s0, dt, nsub, out):
             g, L, b, mu = th[i, j, 0], th[i, j, 1], th[i, j, 2], th[i, j, 3]
             k = g / L
             for _ in range(nsub):
-                a, w, bad = _step(a, w, h, k, b, mu)
-                if bad:
-                    return i
+                a, w = _step(a, w, h, k, b, mu)
             out[i, t + 1, 0], out[i, t + 1, 1] = a, w
-    return -1
 
 
 # --------------------------------------------------------------------------------------------
@@ -287,12 +288,7 @@ class Pendulum(System):
     # physics
     def _simulate(self, theta, state0, n_frames, dt):
         out = np.empty((state0.shape[0], n_frames, 2))
-        bad = _kernel(theta, state0, dt, n_substeps(dt), out)
-        if bad >= 0:
-            raise RuntimeError(
-                f"pendulum: trajectory {bad} had more than {_MAX_PASSES - 1} events in one RK4 "
-                f"step (theta = {theta[bad, 0].tolist()}, state0 = {state0[bad].tolist()})"
-            )
+        _kernel(theta, state0, dt, n_substeps(dt), out)
         return out
 
     def sample_state0(self, n, rng=None):
