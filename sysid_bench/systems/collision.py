@@ -302,8 +302,9 @@ class Collision(System):
             )
         return out
 
-    def sample_state0(self, n, rng=None):
-        """Initial states (n, 4): x1 in [1, 4], v1 in [1, 4], x2 in [6, 9], v2 in [-4, -1]."""
+    def sample_state0(self, n, rng=None, theta=None):
+        """Initial states (n, 4): x1 in [1, 4], v1 in [1, 4], x2 in [6, 9], v2 in [-4, -1]
+        (uniform, independent of ``theta``, which is accepted and ignored)."""
         n = check_positive_int(n, "n")
         rng = check_seed(rng)
         u = rng.random((n, 4))
