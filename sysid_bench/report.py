@@ -105,6 +105,12 @@ def summary_table(df):
         sel = ident[(ident.method == m) & (ident.input == i) & (ident.n_frames == last)]
         se = sel[sel.metric == "se"].value
         rec[f"param MSE @ {last}"] = se.mean() if len(se) else np.nan
+        # the README's headline columns: e, g, d together (r is unknowable until the ball
+        # rolls) and r alone, means over cases as in identification_params_at_200
+        egd = [sel[sel.metric == f"se_{p}"].value.mean() for p in "egd"]
+        rec[f"e, g, d MSE @ {last}"] = float(np.mean(egd)) if len(sel) else np.nan
+        r = sel[sel.metric == "se_r"].value
+        rec[f"r MSE @ {last}"] = r.mean() if len(r) else np.nan
         w = sel[sel.metric == "wall_s"].value
         rec[f"s / identification @ {last}"] = w.median() if len(w) else np.nan
         f = fc[(fc.method == m) & (fc.input == i) & (fc.n_frames == fc_at)].value

@@ -54,8 +54,11 @@ def test_render_from_store(store_path, tmp_path):
     band = pd.read_csv(out / "tables" / "forecast_band.csv")  # smoke: prefixes 20, 50
     assert list(band.columns[2:]) == [f"{k} on frames 50-end, after {t}"
                                       for k in ("band (m)", "cov90") for t in (20, 50)]
-    assert (band.iloc[:, 2:4].to_numpy() > 0).all()
-    assert ((band.iloc[:, 4:] >= 0) & (band.iloc[:, 4:] <= 1)).all().all()
+    # each cell "mean [lo, hi]" (95% CI over cases)
+    lead = band.iloc[:, 2:].map(lambda v: float(str(v).split()[0]))
+    assert (lead.iloc[:, :2].to_numpy() > 0).all()
+    assert ((lead.iloc[:, 2:] >= 0) & (lead.iloc[:, 2:] <= 1)).all().all()
+    assert band.iloc[:, 2:].map(lambda v: "[" in str(v)).all().all()
     for png in ("identification_accuracy", "identification_speed", "forecast_accuracy",
                 "forecast_examples", "forecast_uncertainty", "changing_example", "calibration"):
         data = (out / "figures" / f"{png}.png").read_bytes()
@@ -188,5 +191,5 @@ def test_forecast_certainty_is_judged_on_the_frames_every_prefix_forecasts(late,
     assert "(it holds 90%, 90%, 90% of the true positions)" in text
     assert "(other frames each time) it does not narrow monotonically: 0.20 m after 20" in text
     band = EXPERIMENTS["forecasting"].tables(df)["forecast_band"]
-    assert band.loc[0, "band (m) on frames 100-end, after 50"] == pytest.approx(late[1])
-    assert band.loc[0, "cov90 on frames 100-end, after 20"] == pytest.approx(0.9)
+    assert band.loc[0, "band (m) on frames 100-end, after 50"].startswith(f"{late[1]:.3g} [")
+    assert band.loc[0, "cov90 on frames 100-end, after 20"] == "0.9 [0.9, 0.9]"

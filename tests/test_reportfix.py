@@ -8,6 +8,7 @@ import json
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from sysid_bench.cli import main as cli_main
@@ -119,3 +120,61 @@ def test_interception_is_measured_into_the_run_dir_and_rendered(tmp_path, monkey
     assert str(tmp_path) not in text.split("## Run")[0]
     assert f"run/{STORE_NAME}" in text.split("## Run")[0]
     assert re.search(r"git commit `[0-9a-f]+`", text)
+
+
+# -- readings: a verdict only where the 95% CIs separate ------------------------------------------
+def _forecast_rows(spec):
+    """``spec``: method -> list of per-case position MSEs (the same after each prefix)."""
+    rows = []
+    for m, vals in spec.items():
+        for case, v in enumerate(vals):
+            for n in (20, 50, 100):
+                rows += [(m, "video", case, n, "pos_mse", v), (m, "video", case, n, "cov90", 0.9),
+                         (m, "video", case, n, "width90_m", 1.0 / n)]
+    import pandas as pd
+
+    return pd.DataFrame(rows, columns=["method", "input", "case", "n_frames", "metric", "value"])
+
+
+def test_forecast_reading_says_not_separable_when_cis_overlap():
+    from sysid_bench.bench import EXPERIMENTS
+
+    spread = [0.001, 0.01, 0.02, 0.05]  # emcee's 4 cases: mean 0.020, CI wide
+    v2p = [0.02, 0.025, 0.03, 0.022, 0.028, 0.024, 0.026, 0.021]  # mean 0.0245
+    text = " ".join(EXPERIMENTS["forecasting"].reading(_forecast_rows(
+        {"vid2param": v2p, "emcee": spread})))
+    assert "Not here" not in text
+    assert "holds here in that none of emcee" in text
+    assert "Not separable (95% CIs overlap): emcee (video) after 20, 50, 100" in text
+
+
+def test_forecast_reading_says_not_here_when_cis_separate():
+    from sysid_bench.bench import EXPERIMENTS
+
+    v2p = [0.02, 0.025, 0.03, 0.022, 0.028, 0.024, 0.026, 0.021]
+    text = " ".join(EXPERIMENTS["forecasting"].reading(_forecast_rows(
+        {"vid2param": v2p, "emcee": [0.001, 0.0012, 0.0011, 0.0013]})))
+    assert "Not here: a lower position MSE than vid2param (video), 95% CIs disjoint, for emcee " \
+           "(video) after 20, 50, 100 of 3 prefixes" in text
+    assert "Not separable" not in text
+
+
+@pytest.mark.parametrize("hits, verdict", [
+    ((0.5, 0.9), "consistent with calibration"),
+    ((0.2, 0.6), "over-confident"),
+])
+def test_calibration_verdict_rests_on_the_cis(hits, verdict):
+    """A coverage a few cases away from nominal is not called miscalibrated; a clear miss is."""
+    import pandas as pd
+
+    from sysid_bench.bench import EXPERIMENTS
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for case in range(12):
+        for lev, h in zip(("50", "90"), hits):
+            for p in "egdr":
+                rows.append(("lsq", "video", case, 200, f"hit{lev}_{p}", float(rng.random() < h)))
+    df = pd.DataFrame(rows, columns=["method", "input", "case", "n_frames", "metric", "value"])
+    text = " ".join(EXPERIMENTS["calibration"].reading(df))
+    assert verdict in text and "95% CIs over cases" in text

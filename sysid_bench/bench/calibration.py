@@ -36,16 +36,19 @@ from sysid_bench.metrics import gaussian_nll
 from sysid_bench.physics import PARAMS
 
 
-def _verdict(c50: float, c90: float, tol: float = 0.05) -> str:
-    """Words for empirical coverages ``c50`` and ``c90`` of nominal 50% and 90% intervals."""
-    d50, d90 = c50 - 0.5, c90 - 0.9
-    if abs(d50) <= tol and abs(d90) <= tol:
-        return "calibrated within 0.05"
-    if d50 < tol and d90 < tol:
-        return "over-confident (intervals too narrow)"
-    if d50 > -tol and d90 > -tol:
-        return "under-confident (intervals too wide)"
-    return ("too narrow at 50% but too wide at 90% (heavy tails)" if d50 < 0
+def _verdict_ci(ci50: tuple[float, float], ci90: tuple[float, float]) -> str:
+    """Words for the 95% CIs ``(lo, hi)`` of the empirical coverages of nominal 50% and 90%
+    intervals: a level is missed only where its CI excludes it."""
+    side = []
+    for (lo, hi), nominal in ((ci50, 0.5), (ci90, 0.9)):
+        side.append(-1 if hi < nominal else (1 if lo > nominal else 0))
+    if side == [0, 0]:
+        return "consistent with calibration (the 95% CIs hold 50% and 90%)"
+    if max(side) <= 0:
+        return "over-confident (intervals too narrow; CI below the nominal level)"
+    if min(side) >= 0:
+        return "under-confident (intervals too wide; CI above the nominal level)"
+    return ("too narrow at 50% but too wide at 90% (heavy tails)" if side[0] < 0
             else "too wide at 50% but too narrow at 90%")
 
 
@@ -223,10 +226,11 @@ class Calibration(Experiment):
 
         if df.empty:
             return {}
-        fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+        fig, axes = plt.subplots(1, 2, figsize=(13, 4.4))
         ax = axes[0]
         ax.plot([0, 1], [0, 1], "k:", lw=1)
-        for (m, inp), g in df.groupby(["method", "input"]):
+        groups = list(df.groupby(["method", "input"]))
+        for j, ((m, inp), g) in enumerate(groups):
             ys, los, his = [], [], []
             for lev in ("50", "90"):
                 per_case = self._pooled(g, f"hit{lev}").groupby("case").value.mean().reset_index().assign(k=0)
@@ -234,22 +238,28 @@ class Calibration(Experiment):
                 ys.append(s["mean"])
                 los.append(s["mean"] - s["lo"])
                 his.append(s["hi"] - s["mean"])
-            ax.errorbar([0.5, 0.9], ys, yerr=[los, his], marker="o", capsize=3, label=f"{m} ({inp})",
-                        color=method_color(m), ls="-" if inp == "video" else "--")
+            # methods side by side about each level, so their CI bars do not cover each other
+            dx = 0.006 * (j - (len(groups) - 1) / 2)
+            ax.errorbar([0.5 + dx, 0.9 + dx], ys, yerr=[los, his], marker="o", capsize=3,
+                        label=f"{m} ({inp})", color=method_color(m),
+                        ls="-" if inp == "video" else "--")
         ax.set(xlabel="nominal interval level", ylabel="empirical coverage", xlim=(0.4, 1.0),
-               ylim=(0, 1), title="Calibration of posteriors (95% CI)")
-        ax.legend(fontsize=7)
+               ylim=(0, 1.02), title="Calibration of posteriors (95% CI)")
+        ax.legend(fontsize=7, loc="lower right")
         ag = self.agreement(df)
         ax = axes[1]
         if len(ag):
             s = ci_summary(ag.groupby(["method", "input", "case"]).w1.mean().reset_index(),
                            ["method", "input"], value="w1")
-            lab = [f"{m}\n({i})" for m, i in zip(s.method, s.input)]
-            ax.bar(lab, s["mean"], yerr=[s["mean"] - s.lo, s.hi - s["mean"]], capsize=3,
-                   color=[method_color(m) for m in s.method])
+            # horizontal bars: long method names as y labels never overlap
+            lab = [f"{m} ({i})" for m, i in zip(s.method, s.input)]
+            y = np.arange(len(lab))
+            ax.barh(y, s["mean"], xerr=[s["mean"] - s.lo, s.hi - s["mean"]], capsize=3,
+                    color=[method_color(m) for m in s.method])
+            ax.set_yticks(y, lab, fontsize=8)
+            ax.invert_yaxis()
             ref = reference_method(df.method.unique())
-            ax.set(ylabel=f"W1 to the {ref} posterior (normalised)", title=f"Agreement with {ref.upper()}")
-            ax.tick_params(axis="x", labelsize=7)
+            ax.set(xlabel=f"W1 to the {ref} posterior (normalised)", title=f"Agreement with {ref.upper()}")
         else:
             ax.set_axis_off()
             ax.text(0.5, 0.5, "no reference-posterior (nuts) results in this run", ha="center")
@@ -263,11 +273,17 @@ class Calibration(Experiment):
         for (m, inp), g in df.groupby(["method", "input"]):
             c90 = self._pooled(g, "hit90").value.mean()
             c50 = self._pooled(g, "hit50").value.mean()
-            verdict = _verdict(c50, c90)
+            # CIs over cases (a case's coverage pooled over parameters), as in the figure
+            ci = [ci_summary(self._pooled(g, f"hit{lev}").groupby("case").value.mean()
+                             .reset_index().assign(k=0), ["k"]).iloc[0] for lev in ("50", "90")]
+            verdict = _verdict_ci(*[(c["lo"], c["hi"]) for c in ci])
             n = g.case.nunique()
             few = ", too few cases to tell" if n < 5 else ""
-            parts.append(f"{m} ({inp}, {n} cases) {c50:.2f}/{c90:.2f}, {verdict}{few}")
-        out.append("Not in the paper. Coverage of the 50%/90% intervals: " + "; ".join(parts) + ".")
+            parts.append(f"{m} ({inp}, {n} cases) {c50:.2f} [{ci[0]['lo']:.2f}, "
+                         f"{ci[0]['hi']:.2f}]/{c90:.2f} [{ci[1]['lo']:.2f}, {ci[1]['hi']:.2f}], "
+                         f"{verdict}{few}")
+        out.append("Not in the paper. Coverage of the 50%/90% intervals (95% CIs over cases): "
+                   + "; ".join(parts) + ".")
         ag = self.agreement(df)
         if len(ag):
             s = ag.groupby(["method", "input"]).w1.mean()

@@ -171,7 +171,7 @@ class Changing(Experiment):
                                 mu.value.to_numpy() + sd.value.to_numpy(),
                                 color=line.get_color(), alpha=0.15)
             ax.set(title=f"{p} (normalised)", xlabel="observed frames", ylim=(-0.1, 1.1))
-        axes[0].legend(fontsize=7)
+        axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # off the data
         fig.suptitle("Changing parameters, test case 0: truth (green), estimate +- 1 std")
         figs["Per-frame estimates vs truth (example)"] = _save(fig, outdir / "changing_example.png")
 

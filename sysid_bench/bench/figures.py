@@ -19,7 +19,9 @@ def save_figure(fig, path) -> Path:
 
     try:
         fig.tight_layout()
-        return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+        # "tight": legends placed outside the axes (off the data) stay in the picture
+        return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110,
+                                                          bbox_inches="tight"))
     finally:
         plt.close(fig)
 

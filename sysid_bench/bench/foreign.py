@@ -271,13 +271,20 @@ class Foreign(Experiment):
         if len(fc):
             s = ci_summary(fc, ["method", "n_frames"])
             fig, ax = plt.subplots(figsize=(7, 4))
-            for m, g in s.groupby("method"):
-                ax.plot(g.n_frames, g["mean"], "o-", ms=3, label=m, color=method_color(m))
+            # methods that agree draw one line over another: each its own marker and dash, and
+            # later lines thinner and on top, so a line under another still shows
+            styles = [("o", "-"), ("s", "--"), ("^", "-."), ("D", ":"), ("v", "-"), ("P", "--"),
+                      ("X", "-."), ("*", ":")]
+            for k, (m, g) in enumerate(s.groupby("method")):
+                mk, ls = styles[k % len(styles)]
+                ax.plot(g.n_frames, g["mean"], marker=mk, ls=ls, ms=6 - 0.5 * (k % 4),
+                        lw=2.2 - 0.3 * (k % 4), mfc="none", label=m, color=method_color(m),
+                        zorder=3 + k)
                 ax.fill_between(g.n_frames, g.lo, g.hi, alpha=0.15, color=method_color(m))
             ax.set(yscale="log", xlabel="frames observed",
                    ylabel="RMS error of the last 10 positions (m)",
                    title="MuJoCo videos: forecast of the last ten frames as the video unrolls")
-            ax.legend(fontsize=7)
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
             figs["Forecast of the last ten frames vs frames observed (MuJoCo videos; 95% CI)"] = \
                 _save(fig, outdir / "foreign_convergence.png")
         ident = df[df.metric.str.startswith("se_")]
@@ -335,10 +342,14 @@ class Foreign(Experiment):
         ident = df[df.metric == "se"]
         if len(ident):
             last = ident[ident.n_frames == ident.groupby("method").n_frames.transform("max")]
-            m = last.groupby("method").value.mean().sort_values()
-            bad = [k for k, v in m.items() if v > GUESS_MSE]
+            m = ci_summary(last, ["method"]).sort_values("mean").set_index("method")
+            # "worse than guessing" only where the whole 95% CI lies above it
+            bad = [k for k, r in m.iterrows() if r["lo"] > GUESS_MSE]
             out.append("On MuJoCo videos (physics that is not ours) the identification error "
-                       "after the last frame ranks " + ", ".join(f"{k} {v:.3g}" for k, v in m.items())
+                       "after the last frame (95% CIs; ordered by mean, neighbours whose CIs "
+                       "overlap are not separable): "
+                       + ", ".join(f"{k} {fmt_ci(r['mean'], r['lo'], r['hi'])}"
+                                   for k, r in m.iterrows())
                        + f" (guessing {GUESS_MSE:.3f})"
                        + (f"; worse than guessing, failing visibly: {', '.join(bad)}." if bad else "."))
         fc = df[df.metric == "last10_rmse"]
