@@ -178,3 +178,47 @@ def test_calibration_verdict_rests_on_the_cis(hits, verdict):
     df = pd.DataFrame(rows, columns=["method", "input", "case", "n_frames", "metric", "value"])
     text = " ".join(EXPERIMENTS["calibration"].reading(df))
     assert verdict in text and "95% CIs over cases" in text
+
+
+# -- the README's headline figures are the report's summary cells ---------------------------------
+def _headline():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("readme_headline",
+                                                  ROOT / "scripts" / "readme_headline.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_readme_headline_table_is_the_summary_under_its_names():
+    import pandas as pd
+
+    from sysid_bench.report import summary_table
+
+    rows = []
+    for m, se in (("vid2param", 0.01), ("lsq", 0.03), ("prior", 0.075)):
+        for case in range(3):
+            for p, v in zip("egdr", (se, se, se, 4 * se)):
+                rows.append((m, "video", case, 200, f"se_{p}", v, "identification", "ok"))
+            rows += [(m, "video", case, 200, "se", 1.75 * se, "identification", "ok"),
+                     (m, "video", case, 200, "wall_s", 0.5, "identification", "ok"),
+                     (m, "video", case, 50, "pos_mse", se / 10, "forecasting", "ok")]
+    df = pd.DataFrame(rows, columns=["method", "input", "case", "n_frames", "metric", "value",
+                                     "experiment", "status"])
+    summ = summary_table(df)
+    table = _headline().headline_table(summ).splitlines()
+    head = [c.strip() for c in table[0].strip("|").split("|")][1:]
+    assert head == list(_headline().COLUMNS) and set(head) <= set(summ.columns)
+    assert table[2] == "| vid2param | **0.01** | **0.04** | **0.001** | 0.5 |"
+    assert table[4] == "| prior | 0.075 | 0.3 | 0.0075 | - |"
+
+
+def test_readme_headline_matches_the_committed_report():
+    import pandas as pd
+
+    summ = pd.read_csv(ROOT / "reports" / "tables" / "summary.csv")
+    if "e, g, d MSE @ 200" not in summ.columns:
+        pytest.skip("the committed report predates the summary's headline columns: regenerate "
+                    "it, then run scripts/readme_headline.py")
+    assert _headline().main(["--check"]) == 0, "run scripts/readme_headline.py"
