@@ -185,7 +185,7 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
         md += ["Reproduce: `python -m sysid_bench.report" + ("" if sc_name == "default" else
                f" --scale {sc_name}") + "` (or `sysid-bench report`, `tox -e bench`); a killed "
                "run resumes where it stopped; `python -m sysid_bench.report --from-store "
-               f"runs/{sc_name}/results.sqlite` re-renders this file without computing.", ""]
+               f"{store_label(store_path)}` re-renders this file without computing.", ""]
         if scale is not None:
             md += [_scale_sentence(scale, sorted(df.method.unique()) if len(df) else []), ""]
         # the whole long-format run, for anyone's analysis (Parquet only: compressed)
