@@ -182,8 +182,14 @@ def uninformed(sim: CountingSimulator, theta, state0, floor: float, track: Track
     trajectories compared over the seen frames: when their squared distance summed over the
     seen coordinates is below ``UNINFORMED_CHI2`` noise variances, no data this track could
     hold tells the ends apart (a ball at rest says nothing of e, g or d; a clip without rolling
-    nothing of r), so no interval narrower than the prior's is supported. 8 simulations.
+    nothing of r), so no interval narrower than the prior's is supported. 8 simulations. A
+    still track (every seen position within 2 noise of their median) informs none.
     """
+    seen = track.positions[track.mask]
+    if len(seen) and np.max(np.abs(seen - np.median(seen, axis=0))) <= 2.0 * float(noise_m):
+        # a still track: its start explains it whatever the parameters (a sampler's start a
+        # hair above the floor would make e look informed by bounces nobody saw)
+        return np.ones(4, dtype=bool)
     th = np.repeat(np.asarray(theta, dtype=np.float64)[None], 8, axis=0)
     for k in range(4):
         th[2 * k, k], th[2 * k + 1, k] = physics.PRIOR_LO[k], physics.PRIOR_HI[k]
@@ -463,7 +469,8 @@ class Fit:
     check_fits_state0: bool = False
 
     def checked(self, noise_m: float) -> Posterior:
-        """The posterior with its model check (:func:`model_check`, :func:`widen_to_support`);
+        """The posterior with its model check (:func:`model_check`, :func:`widen_to_support`;
+        parameters the track cannot inform widened to the prior, :func:`uninformed`);
         the check's simulations are in ``extras["check_simulations"]``, not in
         ``n_simulations``."""
         w = self.weights
@@ -479,8 +486,13 @@ class Fit:
         info: dict = {}
         check = model_check(sim, self.posterior.mean, s0, float(fl), self.track, noise,
                             fit_state0=self.check_fits_state0, info=info)
-        post = widen_to_support(self.posterior, check, sim, self.track, info["state0"],
-                                float(fl))
+        post = self.posterior
+        if check.ok:
+            # a track that cannot inform a parameter (a ball at rest: e, g, d) supports no
+            # interval narrower than the prior's, however the sampler or search ended up
+            flat = uninformed(sim, post.mean, info["state0"], float(fl), self.track, noise)
+            post = widen_uninformed(post, flat, seed=self.track.n_frames)
+        post = widen_to_support(post, check, sim, self.track, info["state0"], float(fl))
         post.extras["check_simulations"] = sim.n_simulations
         return post
 

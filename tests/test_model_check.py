@@ -202,3 +202,14 @@ def test_identify_warns_and_writes_the_verdict(tmp_path, capsys):
     assert rc == 0 and "warning:" not in err, err
     rows = list(csv.DictReader(open(out / "estimates.csv")))
     assert rows[-1]["check_ok"] == "1"
+
+
+def test_a_ball_at_rest_informs_no_parameter():
+    # a frozen ball with the floor unknown is explained by a ball resting on a floor at its
+    # height: the check passes, and no parameter may claim more than the prior
+    obs = Observation(positions=np.tile([3.0, 4.0], (T, 1)))
+    post = methods.get("lsq", n_samples=400).identify(obs)
+    assert post.check.ok
+    assert post.extras["uninformed"] == ["e", "g", "d", "r"]
+    lo, hi = post.interval(0.9)
+    assert np.all(hi - lo >= 0.8 * PRIOR_SPAN)
