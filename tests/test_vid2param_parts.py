@@ -121,6 +121,12 @@ def test_shipped_checkpoints_give_the_pinned_outputs(name):
     keys = sorted(k.split("/", 1)[1] for k in want.files if k.startswith(name + "/"))
     assert keys == sorted(got), "the fixture and _outputs name different outputs"
     for k in keys:
+        if k == "identify_std":
+            # the model check (issue 29) widens identify's intervals where the track does not
+            # inform a parameter or the fit fails (to the best fit's distance, or the prior's):
+            # the network's own std, pinned, is a lower bound
+            assert np.all(got[k] >= want[f"{name}/{k}"] * (1 - 1e-5)), f"{name}: {k} narrowed"
+            continue
         np.testing.assert_allclose(got[k], want[f"{name}/{k}"], rtol=1e-5, atol=1e-5,
                                    err_msg=f"{name}: {k}")
 
