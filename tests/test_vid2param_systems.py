@@ -147,3 +147,12 @@ def test_no_shipped_model_is_na_with_the_command():
         with pytest.raises(methods.NotAvailable, match=f"no Vid2Param model is shipped for "
                                                        f"{name}; train one with"):
             methods.get("vid2param", system=name)
+
+
+def test_the_benchmark_threads_option_reaches_the_n_a_sentence():
+    """The benchmark passes ``threads`` to every method that declares it; on a system without a
+    shipped model that must still be n/a (NotImplementedError), not an options error."""
+    import methods
+
+    with pytest.raises(NotImplementedError, match="no model is shipped"):
+        methods.get("vid2param", system="pendulum", threads=1)

@@ -57,12 +57,13 @@ class SystemVid2Param(Estimator):
     online = True
 
     def __init__(self, *, system: str = "pendulum", checkpoint=None, n_samples: int = 256,
-                 seed: int = 0, device: str = "cpu"):
+                 seed: int = 0, device: str = "cpu", threads: int | None = None):
         self.system = system
         self.checkpoint = checkpoint
         self.n_samples = n_samples
         self.seed = seed
         self.device = device
+        self.threads = threads  # the benchmark's threads option, as the ball's Vid2Param takes
         self._load()
 
     # -- loading ------------------------------------------------------------------------------
