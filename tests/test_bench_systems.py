@@ -1,8 +1,8 @@
-"""The collision system's simulator speed: 2000 trajectories x 200 frames against a solve_ivp loop.
+"""Each new system's simulator speed: 2000 trajectories x 200 frames against its solve_ivp loop.
 
-Run with ``pytest tests/test_bench_system_collision.py --benchmark-only``. The loop of the
-event-driven ``solve_ivp`` reference is timed on ``N_REF`` trajectories and scaled per trajectory
-to 2000; the ratio, measured in the same process on the same cases, is stored in the benchmark's
+Run with ``pytest tests/test_bench_systems.py --benchmark-only``. The loop of the system's
+``solve_ivp`` reference is timed on ``N_REF`` trajectories and scaled per trajectory to 2000; the
+ratio, measured in the same process on the same cases, is stored in the benchmark's
 ``extra_info`` and printed. The design asks >= 1000x; the assertion keeps a 2x margin for a
 loaded machine (>= 500x).
 """
@@ -16,23 +16,18 @@ from sysid_bench import systems
 
 B = 2000
 N_REF = 10
+SYSTEMS = ("pendulum", "spring", "collision")
 
 
-@pytest.fixture(scope="module")
-def cases():
-    system = systems.get("collision")
-    rng = np.random.default_rng(0)
-    theta, state0 = system.sample_theta(B, rng), system.sample_state0(B, rng)
+@pytest.mark.parametrize("name", SYSTEMS)
+def test_bench_system_simulate_2000x200(benchmark, name):
+    benchmark.group = f"system-{name}"
+    system = systems.get(name)
+    theta, state0 = system.sample_cases(B, np.random.default_rng(0))
     system.simulate(theta[:2], state0[:2], 5)  # numba compile (or cache load) outside the timing
-    return system, theta, state0
-
-
-@pytest.mark.benchmark(group="system-collision")
-def test_bench_collision_simulate_2000x200(benchmark, cases):
-    system, theta, state0 = cases
     out = benchmark.pedantic(system.simulate, args=(theta, state0), rounds=7, iterations=1,
                              warmup_rounds=1)
-    assert out.shape == (B, 200, 4)
+    assert out.shape == (B, 200, system.n_state)
     t0 = time.perf_counter()
     for i in range(N_REF):
         system.reference(theta[i], state0[i])
@@ -43,6 +38,6 @@ def test_bench_collision_simulate_2000x200(benchmark, cases):
         {"reference_loop_s_scaled": ref_s, "reference_trajectories_timed": N_REF,
          "simulate_median_s": sim_s, "speedup": ratio}
     )
-    print(f"\ncollision simulate {sim_s * 1e3:.1f} ms, solve_ivp loop {ref_s:.1f} s "
+    print(f"\n{name} simulate {sim_s * 1e3:.1f} ms, solve_ivp loop {ref_s:.1f} s "
           f"(scaled from {N_REF}), speed-up {ratio:.0f}x")
     assert ratio >= 500, f"speed-up {ratio:.0f}x, design target >= 1000x (asserted with 2x margin)"
