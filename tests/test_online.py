@@ -35,3 +35,26 @@ def test_online_cost_bad_input():
         online_cost([])
     with pytest.raises(ValueError, match="n_videos"):
         online_cost(["lsq"], n_videos=0)
+
+
+def test_online_cost_prefix_stride_interpolates(monkeypatch):
+    """A stride times fewer prefixes; the estimate counts every prefix and sums interpolated
+    per-prefix times (a method whose cost is linear in the prefix is estimated exactly)."""
+    from sysid_bench.bench import online
+
+    now = [0.0]
+    calls = []
+
+    class Linear:
+        def identify(self, obs):  # "takes" n ms for n frames
+            calls.append(len(obs.frames))
+            now[0] += len(obs.frames) * 1e-3
+
+    monkeypatch.setattr(online, "_clock", lambda: (now[0], now[0]))
+    obs = type("O", (), {"frames": np.zeros((50, 8, 8), np.uint8), "dt": 0.05, "floor": 0.0})()
+    n, wall, cpu = online._run_batch(Linear(), obs, 3, 10)
+    assert n == 48 and calls == [3, 13, 23, 33, 43, 50]
+    assert wall == pytest.approx(sum(range(3, 51)) * 1e-3) and cpu == pytest.approx(wall)
+    assert online._timed_prefixes(3, 50, 1) == list(range(3, 51))
+    with pytest.raises(ValueError, match="prefix_stride"):
+        online_cost(["lsq"], prefix_stride=0)
