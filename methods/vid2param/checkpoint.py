@@ -31,7 +31,7 @@ from sysid_bench._io import atomic_write
 __all__ = ["FORMAT", "FORMAT_VERSION", "RENAMED", "save_atomic", "load_checkpoint", "build_net",
            "upgrade_state_dict", "upgrade_optimizer_state", "git_info", "SHIPPED_CHECKPOINTS",
            "SHIPPED_CHECKPOINT", "SENSITIVITY_CONDITIONS", "CONDITION_CHECKPOINTS",
-           "checkpoint_path", "condition_checkpoint"]
+           "checkpoint_path", "condition_checkpoint", "record_name"]
 
 FORMAT = "vid2param-checkpoint"
 FORMAT_VERSION = 1
@@ -73,6 +73,24 @@ def checkpoint_path(checkpoint) -> Path:
     if isinstance(checkpoint, str) and checkpoint in SHIPPED_CHECKPOINTS:
         return SHIPPED_CHECKPOINTS[checkpoint]
     return Path(checkpoint)
+
+
+def record_name(checkpoint) -> str:
+    """How records name ``checkpoint``: a shipped checkpoint's name for its name or for any
+    path to its file (so that no machine path enters a record that may ship); another path
+    as given."""
+    if isinstance(checkpoint, str) and checkpoint in SHIPPED_CHECKPOINTS:
+        return checkpoint
+    try:
+        resolved = Path(checkpoint).resolve()
+    except (OSError, RuntimeError, TypeError):
+        return str(checkpoint)
+    for name, path in SHIPPED_CHECKPOINTS.items():
+        if path.resolve() == resolved:
+            return name
+    return str(checkpoint)
+
+
 #: Weight names of checkpoints written before the network was composed of named parts -> today's
 #: (a name ending in "." renames every weight it begins).
 RENAMED = {

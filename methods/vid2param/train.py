@@ -36,10 +36,12 @@ from tqdm.auto import tqdm
 from methods.vid2param.checkpoint import (
     FORMAT,
     FORMAT_VERSION,
+    SHIPPED_CHECKPOINTS,
     build_net,
     checkpoint_path,
     git_info,
     load_checkpoint,
+    record_name,
     save_atomic,
     source_sha256,
     upgrade_optimizer_state,
@@ -221,7 +223,7 @@ def init_record(path) -> dict:
 
     src = load_checkpoint(checkpoint_path(path))
     return {
-        "path": str(path),  # a shipped checkpoint's name as given, no machine path
+        "path": record_name(path),  # a shipped checkpoint's name, no machine path
         "sha256": hashlib.sha256(checkpoint_path(path).read_bytes()).hexdigest(),
         **{k: src.get(k) for k in ("config", "train", "git_commit", "val_metrics")},
     }
@@ -567,8 +569,9 @@ def fit_stages(checkpoint, out, stages, threads: int | None = None, card: bool =
     Pipeline.check([n for n, _ in stages], net.config, str(path))
     if threads is not None:
         torch.set_num_threads(int(threads))
-    source = checkpoint if isinstance(checkpoint, str) and not Path(checkpoint).exists() \
-        else Path(path).name  # a name, not a machine path, in the records
+    source = record_name(checkpoint)  # a name, not a machine path, in the records
+    if source not in SHIPPED_CHECKPOINTS:
+        source = Path(path).name
     pipeline = Pipeline()
     ctx = FitContext(net=net, pipeline=pipeline, train=ck.get("train") or {}, source=source,
                      log=log)
@@ -828,10 +831,11 @@ SYSTEM_PRESETS = ("pendulum", "spring", "collision")
 
 def _resolve_init(init: str | None) -> str | None:
     """``init`` as recorded: a shipped checkpoint's name (``"28x28"``, ``"camera"``) as given,
-    so that records name no machine path (``train`` finds its file); a path as given."""
+    so that records name no machine path (``train`` finds its file); a path to a shipped
+    checkpoint's file as that checkpoint's name; another path as given."""
     if init is None or init.lower() == "none":  # "none": from scratch, whatever the preset
         return None
-    return str(init)
+    return record_name(init)
 
 
 #: TrainConfig fields whose flags are not the generic ``--name VALUE`` (JSON, two values, a path)
