@@ -26,8 +26,6 @@ same numbers.
 from __future__ import annotations
 
 import argparse
-import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -38,14 +36,9 @@ EGD = slice(0, 3)  # e, g, d: r is often not informed by a clip
 
 
 def _write_csv(df, path: Path) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.close(fd)
-    try:
-        df.to_csv(tmp, index=False)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    from sysid_bench._io import atomic_write
+
+    atomic_write(path, lambda tmp: df.to_csv(tmp, index=False))
 
 
 def _render(pos: np.ndarray) -> np.ndarray:
