@@ -89,7 +89,7 @@ def _thread_env(threads: int) -> dict[str, str]:
     xla = ("--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" if n == "1"
            else f"intra_op_parallelism_threads={n}") + isa
     return {"OMP_NUM_THREADS": n, "MKL_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n,
-            "XLA_FLAGS": xla, **port}
+            "NUMBA_NUM_THREADS": n, "XLA_FLAGS": xla, **port}
 
 
 def default_run_dir(scale: str) -> Path:

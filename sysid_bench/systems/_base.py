@@ -54,6 +54,22 @@ _DT_RANGE = (1e-4, 1.0)
 _MAX_FRAMES = 20000
 
 
+#: A batch of at least this many trajectories is simulated over numba's threads by the systems
+#: whose kernels have a parallel twin (pendulum, spring); smaller ones (a method's few
+#: simulations per step) stay serial, where starting the threads would cost more than it gains.
+PARALLEL_MIN = 512
+
+
+def use_parallel(batch: int) -> bool:
+    """Whether a batch of ``batch`` trajectories takes the parallel kernel: large enough, and
+    called from the main thread (numba's default threading layer does not take parallel
+    launches from several threads at once; the training data is drawn by threads). The
+    benchmark runner's workers get ``NUMBA_NUM_THREADS`` = their ``threads``."""
+    import threading
+
+    return batch >= PARALLEL_MIN and threading.current_thread() is threading.main_thread()
+
+
 class System(abc.ABC):
     """A dynamical system seen by a camera.
 

@@ -34,7 +34,8 @@ Numerics
 Classical RK4 on a fixed grid of ``n`` steps per frame interval, ``h = dt / n`` with
 ``n = max(SUBSTEPS, ceil(dt / H_MAX))`` (``H_MAX = 0.05 / SUBSTEPS``: at the design's ``dt = 0.05``
 exactly ``SUBSTEPS`` steps; a longer frame interval gets more steps rather than a coarser,
-possibly unstable, step). One scalar kernel compiled by numba runs over the batch.
+possibly unstable, step). One scalar kernel compiled by numba runs over the batch; a batch of
+``_base.PARALLEL_MIN`` trajectories or more runs over numba's threads (bitwise the same output).
 
 Within a step the friction direction ``s`` is constant, so the right-hand side is smooth. A step
 whose end has ``s * omega <= 0`` holds an event: its time ``tau`` is the root of
@@ -88,7 +89,7 @@ import numpy as np
 
 from sysid_bench._validate import as_float_array, check_positive_int, check_seed
 from sysid_bench.systems import _draw
-from sysid_bench.systems._base import System
+from sysid_bench.systems._base import System, use_parallel
 
 __all__ = [
     "Pendulum",
@@ -247,20 +248,34 @@ def _step(th, om, h, k, b, mu):
 
 
 @_njit
-def _kernel(th, s0, dt, nsub, out):
-    """Fill ``out`` (B, n_frames, 2) from ``s0`` (B, 2); ``th`` is (B, 1 or n_frames, 4)."""
+def _trajectory(i, th, s0, dt, nsub, out):
+    """Fill ``out[i]`` (n_frames, 2) from ``s0[i]``; ``th`` is (B, 1 or n_frames, 4)."""
     varying = th.shape[1] > 1
     h = dt / nsub
+    a, w = s0[i, 0], s0[i, 1]
+    out[i, 0, 0], out[i, 0, 1] = a, w
+    for t in range(out.shape[1] - 1):
+        j = t if varying else 0
+        g, L, b, mu = th[i, j, 0], th[i, j, 1], th[i, j, 2], th[i, j, 3]
+        k = g / L
+        for _ in range(nsub):
+            a, w = _step(a, w, h, k, b, mu)
+        out[i, t + 1, 0], out[i, t + 1, 1] = a, w
+
+
+@_njit
+def _kernel(th, s0, dt, nsub, out):
+    """Fill ``out`` (B, n_frames, 2) from ``s0`` (B, 2), one trajectory after another."""
     for i in range(s0.shape[0]):
-        a, w = s0[i, 0], s0[i, 1]
-        out[i, 0, 0], out[i, 0, 1] = a, w
-        for t in range(out.shape[1] - 1):
-            j = t if varying else 0
-            g, L, b, mu = th[i, j, 0], th[i, j, 1], th[i, j, 2], th[i, j, 3]
-            k = g / L
-            for _ in range(nsub):
-                a, w = _step(a, w, h, k, b, mu)
-            out[i, t + 1, 0], out[i, t + 1, 1] = a, w
+        _trajectory(i, th, s0, dt, nsub, out)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def _kernel_parallel(th, s0, dt, nsub, out):
+    """:func:`_kernel` with the trajectories spread over numba's threads (each trajectory's
+    arithmetic is the same, so the output is bitwise the serial kernel's)."""
+    for i in numba.prange(s0.shape[0]):
+        _trajectory(i, th, s0, dt, nsub, out)
 
 
 # --------------------------------------------------------------------------------------------
@@ -288,7 +303,8 @@ class Pendulum(System):
     # physics
     def _simulate(self, theta, state0, n_frames, dt):
         out = np.empty((state0.shape[0], n_frames, 2))
-        _kernel(theta, state0, dt, n_substeps(dt), out)
+        kernel = _kernel_parallel if use_parallel(state0.shape[0]) else _kernel
+        kernel(theta, state0, dt, n_substeps(dt), out)
         return out
 
     def sample_state0(self, n, rng=None):
