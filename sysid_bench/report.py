@@ -100,6 +100,8 @@ def summary_table(df):
     fc_at = 50 if (fc.n_frames == 50).any() else (int(fc.n_frames.min()) if len(fc) else None)
     ch = ok[(ok.experiment == "changing") & ok.metric.str.startswith("followed_")]
     cal = ok[(ok.experiment == "calibration") & ok.metric.str.startswith("hit90_")]
+    if "condition" in cal.columns:  # our physics only: perturbed cases have their own rows
+        cal = cal[cal.condition.fillna("") == ""]
     for m, i in keys:
         rec = {"method": m, "input": i}
         sel = ident[(ident.method == m) & (ident.input == i) & (ident.n_frames == last)]

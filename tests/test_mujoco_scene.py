@@ -100,5 +100,7 @@ def test_foreign_experiment_cell(tmp_path):
     assert res["status"] == "ok", res["error"]
     metrics = {r.metric for r in res["rows"]}
     assert {"se", "se_e", "se_g", "se_d", "last10_rmse", "track_rmse_m"} <= metrics
+    # issue 29: the 90% intervals against what the engine measured (the prior has no check)
+    assert {"hit90_e", "hit90_g", "hit90_d"} <= metrics and "check_ok" not in metrics
     track_err = [r.value for r in res["rows"] if r.metric == "track_rmse_m"][0]
     assert track_err < 0.05

@@ -71,6 +71,26 @@ def test_render_from_store(store_path, tmp_path):
     assert "No results in the store" in text  # sensitivity: no trainable method in this run
 
 
+def test_perturbed_physics_rows_come_from_the_stored_cells(store_path):
+    """Section 5's perturbed-physics rows (issue 29): each method's coverage of e, g, d is the
+    stored hits' per-case mean, apart from its rows on our physics."""
+    with Store(store_path) as s:
+        res = s.results("calibration")
+    tabs = Calibration().tables(res[res.status == "ok"])
+    cal = tabs["calibration"]
+    assert set(zip(cal.method, cal.physics)) == {(m, ph) for m in FAST for ph in ("ours", "perturbed")}
+    for m in FAST:
+        hits = res[(res.method == m) & (res.condition == "perturbed")
+                   & res.metric.isin(["hit90_e", "hit90_g", "hit90_d"])]
+        want = hits.groupby("case").value.mean().mean()
+        got = cal[(cal.method == m) & (cal.physics == "perturbed")]["coverage 90% (e, g, d)"]
+        assert float(got.iloc[0].split()[0]) == pytest.approx(want, abs=0.006)
+    if "lsq" in FAST:
+        chk = tabs["model_check"]
+        row = chk[(chk.method == "lsq") & (chk.physics == "perturbed")]
+        assert len(row) == 1 and row["honest (e, g, d)"].iloc[0] != "-"
+
+
 def test_report_cli_from_store_and_bad_names(store_path, tmp_path, capsys):
     assert report_main(["--from-store", str(store_path.parent), "--out", str(tmp_path / "r")]) == 0
     assert (tmp_path / "r" / "REPORT.md").is_file()

@@ -10,9 +10,11 @@ subtraction; Vid2Param sees frames re-drawn at the track, position methods the t
 
 Rows per case and frame count: ``se_<p>`` (squared error against what the engine measurably
 did, normalised by the prior range; ``r`` only where the ball rolled), ``se`` (their mean),
-``wall_s``; and, the paper's real-video metric, ``last10_rmse`` / ``last10_mse``: the error of
-the forecast of the video's last ten positions from the first ``n`` frames (metres RMS, and
-the normalised position MSE), for ``n`` growing as the video unrolls.
+``wall_s``, ``hit90_<p>`` (1 when the posterior's central 90% interval holds that measured
+value), ``check_ok`` (1 when the posterior's model check passed; methods that return one);
+and, the paper's real-video metric, ``last10_rmse`` / ``last10_mse``: the error of the
+forecast of the video's last ten positions from the first ``n`` frames (metres RMS, and the
+normalised position MSE), for ``n`` growing as the video unrolls.
 
 Skipped (no cells; the report says why) when MuJoCo does not import. Where MuJoCo's renderer
 is unavailable the engine's trajectories are drawn by the suite's renderer and the report says
@@ -27,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from sysid_bench._io import atomic_write
+from sysid_bench.bench.calibration import COVERAGE_BAND, EGD, honest_rows
 from sysid_bench.bench.experiment import (
     Cell,
     CellOutput,
@@ -139,8 +142,11 @@ class Foreign(Experiment):
         "Vid2Param sees frames re-drawn at the track, position methods the track, floor known). "
         "Identification: normalised squared error against what the engine measurably did "
         "(e from its bounces, d fitted to its flight, r from its rolling, g exact; guessing "
-        f"scores {GUESS_MSE:.3f}). Forecast: RMS error (m) of the last ten positions of the video "
-        "predicted from the first n frames, as the video unrolls (the paper's real-video metric)."
+        f"scores {GUESS_MSE:.3f}); coverage: share of e, g, d whose measured value the "
+        "posterior's central 90% interval holds, and honest: the interval holds it or the "
+        "method's model check fails (issue 29 asks 80-97% and at least 80%). Forecast: RMS "
+        "error (m) of the last ten positions of the video predicted from the first n frames, as "
+        "the video unrolls (the paper's real-video metric)."
     )
 
     @property
@@ -198,6 +204,13 @@ class Foreign(Experiment):
                     out.add(i, n, f"se_{p}", v)
             out.add(i, n, "se", np.nanmean(se))
             out.add(i, n, "wall_s", wall)
+            # issue 29: do the 90% intervals hold what the engine measurably did?
+            lo, hi = post.interval(0.9)
+            for p, t, a, b in zip(PARAMS, measured, lo, hi):
+                if np.isfinite(t):
+                    out.add(i, n, f"hit90_{p}", float(a <= t <= b))
+            if post.check is not None:
+                out.add(i, n, "check_ok", float(post.check.ok))
         truth_last = truth_states[t_n - LAST : t_n, :2]
         for n in cfg["forecast_after_expensive" if expensive else "forecast_after"]:
             if n > t_n - LAST:
@@ -243,6 +256,10 @@ class Foreign(Experiment):
                     s = ci_summary(g[g.metric == metric], ["method"])
                     rec[lab] = fmt_ci(*s.iloc[0][["mean", "lo", "hi"]]) if len(s) and s.n.iloc[0] else "-"
                 rec["fails (mean > guessing)"] = "yes" if g[g.metric == "se"].value.mean() > GUESS_MSE else "no"
+                gm = df[(df.method == m) & (df.n_frames == n)]
+                for lab, s in (("coverage 90% (e, g, d)", _coverage(gm)),
+                               ("honest (e, g, d)", _honest(gm))):
+                    rec[lab] = fmt_ci(s["mean"], s["lo"], s["hi"], 2) if s is not None else "-"
                 recs.append(rec)
             tabs["foreign_identification"] = pd.DataFrame(recs)
         fc = df[df.metric == "last10_rmse"]
@@ -352,6 +369,7 @@ class Foreign(Experiment):
                                    for k, r in m.iterrows())
                        + f" (guessing {GUESS_MSE:.3f})"
                        + (f"; worse than guessing, failing visibly: {', '.join(bad)}." if bad else "."))
+        out += self._coverage_reading(df)
         fc = df[df.metric == "last10_rmse"]
         if len(fc):
             s = fc.groupby(["method", "n_frames"]).value.mean()
@@ -364,3 +382,52 @@ class Foreign(Experiment):
                        "converges as frames come in. Here (RMS of the last ten positions): "
                        + "; ".join(lines) + ".")
         return out
+
+    @staticmethod
+    def _coverage_reading(df) -> list[str]:
+        """One sentence: each method's 90% coverage of e, g, d and honest share after its last
+        frame count, against issue 29's band; verdicts only where the whole 95% CI is outside."""
+        hits = df[df.metric.isin([f"hit90_{p}" for p in EGD])]
+        if hits.empty:
+            return []
+        last = hits.groupby("method").n_frames.max()
+        lo_b, hi_b = COVERAGE_BAND
+        parts, below, above = [], [], []
+        for m, n in last.items():
+            gm = df[(df.method == m) & (df.n_frames == n)]
+            c, h = _coverage(gm), _honest(gm)
+            parts.append(f"{m} {fmt_ci(c['mean'], c['lo'], c['hi'], 2)}"
+                         + (f" (honest {fmt_ci(h['mean'], h['lo'], h['hi'], 2)})" if h is not None
+                            else "") + f", {gm.case.nunique()} cases")
+            if c["hi"] < lo_b:
+                below.append(m)
+            elif c["lo"] > hi_b:
+                above.append(m)
+        return ["On MuJoCo videos the 90% intervals after the last frame hold the engine's "
+                "measured e, g, d in (95% CIs over cases; honest: the interval holds it or the "
+                "model check fails): " + "; ".join(parts)
+                + f"; issue 29 asks {lo_b:.0%}-{hi_b:.0%}: "
+                + (f"below it (whole CI under {lo_b:.0%}): {', '.join(below)}" if below
+                   else f"no CI lies wholly below {lo_b:.0%}")
+                + (f"; above it (whole CI over {hi_b:.0%}): {', '.join(above)}" if above else "")
+                + "."]
+
+
+def _coverage(g):
+    """Mean and 95% CI over cases of the 90% intervals' hits on e, g, d in rows ``g`` (each
+    case's hits averaged first), or None without hits."""
+    h = g[g.metric.isin([f"hit90_{p}" for p in EGD])]
+    if h.empty:
+        return None
+    per_case = h.groupby("case").value.mean().reset_index().assign(k=0)
+    return ci_summary(per_case, ["k"]).iloc[0]
+
+
+def _honest(g):
+    """As :func:`_coverage` for the honest share (:func:`~.calibration.honest_rows`), or None
+    where the method gives no model check."""
+    h = honest_rows(g)
+    if h.empty:
+        return None
+    per_case = h.groupby("case").value.mean().reset_index().assign(k=0)
+    return ci_summary(per_case, ["k"]).iloc[0]

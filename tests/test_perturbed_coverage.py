@@ -1,0 +1,176 @@
+"""Issue 29, honest intervals off our physics: experiment 5's perturbed-physics cases and
+experiment 6's coverage column, computed from stored cells."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from sysid_bench.bench.calibration import (
+    DWELL,
+    PERTURBED,
+    PERTURBED_CONFIG,
+    SPIN,
+    Calibration,
+    perturbation,
+    perturbed_cases,
+    perturbed_observation,
+)
+from sysid_bench.bench.cases import SCALES, observation
+from sysid_bench.bench.cases import test_set as make_test_set
+from sysid_bench.bench.experiment import Cell, execute
+from sysid_bench.bench.foreign import Foreign
+
+
+def test_perturbed_cells_per_method_and_the_reference_minimum():
+    sc = SCALES["default"]
+    cells = Calibration().cells(sc, ["nuts", "emcee", "lsq", "prior"])
+    pert = pd.DataFrame([c.key() for c in cells if c.condition == PERTURBED])
+    n = pert.groupby("method").case.nunique().to_dict()
+    # nuts (the reference) gets at least 10 whatever its calibration cap (3); emcee keeps its cap
+    assert n == {"nuts": 10, "emcee": 4, "lsq": PERTURBED_CONFIG["default"]["n"],
+                 "prior": PERTURBED_CONFIG["default"]["n"]}
+    assert perturbed_cases(sc, "nuts") == 10
+    assert set(pert.input) == {"video"}
+    # the in-model cells are as before
+    ours = [c for c in cells if c.condition == ""]
+    assert len([c for c in ours if c.method == "nuts"]) == 3
+
+
+def test_perturbation_is_seeded_in_range_and_zero_is_our_physics():
+    draws = np.array([perturbation(2024, i) for i in range(50)])
+    assert (draws[:, 0] >= 0).all() and (draws[:, 0] < SPIN).all()
+    assert (draws[:, 1] >= 0).all() and (draws[:, 1] < DWELL).all()
+    assert draws[:, 0].std() > 0.05 and perturbation(2024, 3) == tuple(draws[3])
+    ds = make_test_set("interleaved", 2, SCALES["smoke"].seed)
+    for inp in ("video", "privileged"):
+        same = perturbed_observation(ds, 1, inp, 100, 0.0, 0.0)
+        ours = observation(ds, 1, inp)
+        if inp == "video":
+            np.testing.assert_array_equal(same.frames, ours.frames[:100])
+        else:
+            np.testing.assert_array_equal(same.positions, ours.positions[:100])
+            np.testing.assert_array_equal(same.state0, ours.state0)
+    bent = perturbed_observation(ds, 1, "privileged", 100, SPIN * 0.99, DWELL * 0.99)
+    assert np.abs(bent.positions - same.positions).max() > 0.05
+    with pytest.raises(ValueError, match="input"):
+        perturbed_observation(ds, 1, "frames", 100, 0.1, 0.0)
+
+
+def test_a_perturbed_cell_stores_hits_check_and_its_perturbation(tmp_path):
+    res = execute(Cell("calibration", "lsq", "video", PERTURBED, 1), SCALES["smoke"],
+                  str(tmp_path))
+    assert res["status"] == "ok", res["error"]
+    rows = pd.DataFrame([r.__dict__ if hasattr(r, "__dict__") else r._asdict()
+                         for r in res["rows"]])
+    assert set(rows.n_frames) == {0, 50, 100}
+    at = rows[rows.n_frames == 100].set_index("metric").value
+    assert {"hit90_e", "hit90_g", "hit90_d", "hit50_e", "check_ok"} <= set(at.index)
+    spin, dwell = perturbation(SCALES["smoke"].seed, 1)
+    zero = rows[rows.n_frames == 0].set_index("metric").value
+    assert zero["spin"] == spin and zero["dwell"] == dwell
+    with pytest.raises(ValueError, match="condition"):
+        Calibration().run(Cell("calibration", "prior", "video", "other", 0), _ctx(tmp_path))
+
+
+def _ctx(tmp_path):
+    from sysid_bench.bench.experiment import Context
+
+    return Context(SCALES["smoke"], tmp_path)
+
+
+def _rows(method, cond, cases, hit, ok=None, n=100, params="egdr"):
+    """Calibration rows: ``hit(case, p)`` -> 0/1, ``ok(case)`` -> check verdict or None."""
+    out = []
+    for c in range(cases):
+        for p in params:
+            h = float(hit(c, p))
+            out += [(method, "video", cond, c, n, f"hit90_{p}", h),
+                    (method, "video", cond, c, n, f"hit50_{p}", h),
+                    (method, "video", cond, c, n, f"std_{p}", 0.1),
+                    (method, "video", cond, c, n, f"nll_{p}", 0.0)]
+        if ok is not None:
+            out.append((method, "video", cond, c, n, "check_ok", float(ok(c))))
+    return out
+
+
+def _frame(rows):
+    return pd.DataFrame(rows, columns=["method", "input", "condition", "case", "n_frames",
+                                       "metric", "value"])
+
+
+def test_tables_and_readings_split_our_physics_from_perturbed():
+    rows = (_rows("nuts", "", 3, lambda c, p: 1, ok=lambda c: 1, n=200)
+            # reference: 12 cases, e always in, g and d in on 11 of 12 cases -> 0.94 ... in band
+            + _rows("nuts", PERTURBED, 12, lambda c, p: p == "e" or c != 0 or p == "r",
+                    ok=lambda c: 1)
+            + _rows("lsq", "", 20, lambda c, p: 1, ok=lambda c: 1, n=200)
+            # lsq off our physics: never holds the truth, its check fails on half the cases
+            + _rows("lsq", PERTURBED, 20, lambda c, p: 0, ok=lambda c: c % 2))
+    df = _frame(rows)
+    cal = Calibration()
+    t = cal.tables(df)
+    tab = t["calibration"].set_index(["method", "physics"])
+    assert list(t["calibration"].columns[:5]) == ["method", "input", "physics", "cases", "frames"]
+    assert tab.loc[("lsq", "perturbed"), "coverage 90% (e, g, d)"].startswith("0 [0, 0]")
+    assert tab.loc[("lsq", "ours"), "coverage 90% (e, g, d)"].startswith("1 [1, 1]")
+    assert tab.loc[("nuts", "perturbed"), "cases"] == 12
+    assert tab.loc[("nuts", "perturbed"), "frames"] == "100"
+    cov = cal.coverage(df, "90", ("e", "g", "d")).set_index(["method", "condition"])
+    # computed from the rows: per case mean over e, g, d, then over cases
+    assert cov.loc[("nuts", PERTURBED), "mean"] == pytest.approx((11 + 1 / 3) / 12)
+    chk = t["model_check"].set_index(["method", "physics"])
+    # honest: held or the check failed -> the failing half of lsq's cases
+    assert chk.loc[("lsq", "perturbed"), "honest (e, g, d)"].startswith("0.5 ")
+    assert chk.loc[("lsq", "perturbed"), "failing the check"].startswith("0.5 ")
+    text = " ".join(cal.reading(df))
+    assert "below it (whole CI under 80%): lsq" in text
+    assert "NUTS, the reference posterior" in text and "12 cases" in text
+    assert "drops where the CIs are disjoint: lsq 1.00 -> 0.00" in text
+    # the in-model sentence does not pool perturbed cases
+    assert "lsq (video, 20 cases) 1.00 [1.00, 1.00]/1.00" in text
+
+
+@pytest.mark.parametrize("cases, verdict", [(3, "cannot tell"), (12, "not enough cases to tell"),
+                                            (100, "the reference holds")])
+def test_reference_verdict_needs_cases_and_a_ci_inside_the_band(cases, verdict):
+    # 3 of every 10 cases miss d: coverage of e, g, d 0.9, its CI narrows with cases
+    df = _frame(_rows("nuts", PERTURBED, cases, lambda c, p: p != "d" or c % 10 > 2,
+                      ok=lambda c: 1)
+                + _rows("lsq", PERTURBED, cases, lambda c, p: 1, ok=lambda c: 1))
+    text = " ".join(Calibration().reading(df))
+    assert verdict in text, text
+
+
+def test_summary_coverage_is_our_physics_only():
+    from sysid_bench.report import summary_table
+
+    df = _frame(_rows("lsq", "", 4, lambda c, p: 1, n=200)
+                + _rows("lsq", PERTURBED, 4, lambda c, p: 0)).assign(experiment="calibration",
+                                                                     status="ok")
+    assert summary_table(df).set_index("method").loc["lsq", "90% coverage"] == 1.0
+
+
+def test_foreign_coverage_column_and_reading():
+    rows = []
+    for c in range(6):
+        for m, hit, ok in (("vid2param", c < 2, 1.0), ("lsq", 1, 1.0), ("prior", 1, None)):
+            for p in "egd":
+                rows.append((m, "video", "", c, 200, f"hit90_{p}", float(hit)))
+                rows.append((m, "video", "", c, 200, f"se_{p}", 0.01))
+            rows.append((m, "video", "", c, 200, "se", 0.01))
+            # an earlier prefix whose hits must not count
+            rows.append((m, "video", "", c, 50, "hit90_e", 0.0))
+            if ok is not None:
+                rows.append((m, "video", "", c, 200, "check_ok", ok if c != 5 else 0.0))
+    df = _frame(rows)
+    tab = Foreign().tables(df)["foreign_identification"].set_index("method")
+    assert tab.loc["lsq", "coverage 90% (e, g, d)"].startswith("1 [1, 1]")
+    assert tab.loc["vid2param", "coverage 90% (e, g, d)"].startswith("0.33 ")
+    # honest: cases 0, 1 hold, case 5's check failed -> 3 of 6
+    assert tab.loc["vid2param", "honest (e, g, d)"].startswith("0.5 ")
+    assert tab.loc["prior", "honest (e, g, d)"] == "-"
+    text = " ".join(Foreign().reading(df))
+    assert "below it (whole CI under 80%): vid2param" in text
+    assert "above it (whole CI over 97%): lsq, prior" in text
