@@ -138,6 +138,9 @@ def test_one_point_system_trains_identifies_streams_and_forecasts(tmp_path):
         last = st.push(frame)
     np.testing.assert_allclose(last.mean, post.mean, rtol=1e-4, atol=1e-5)
     assert st.position().shape == (2,) and st.forecast(4).mean.shape == (4, 2)
+    # on the CPU the push runs the NumPy FrameFilter, and its state forecasts as the batch pass
+    assert st._fast is not None
+    np.testing.assert_allclose(st.forecast(4).mean, est.forecast(obs, 4).mean, atol=1e-4)
 
 
 def test_no_shipped_model_is_na_with_the_command():

@@ -205,15 +205,24 @@ class SystemVid2Param(Estimator):
 
 
 class SystemVid2ParamStream(Stream):
-    """One frame at a time through the network and the stages (constant cost per frame)."""
+    """One frame at a time through the network and the stages (constant cost per frame).
+
+    On the CPU a push runs :class:`methods.vid2param.fast.FrameFilter` (the ball stream's NumPy
+    path: the same network, float32 rounding apart) where it supports the network; otherwise,
+    and on an accelerator, the torch modules.
+    """
 
     def __init__(self, est: SystemVid2Param):
         self._est = est
+        self._fast = None
         self.reset()
 
     def reset(self) -> None:
+        from methods.vid2param.fast import frame_filter_for
+
         net = self._est._net
-        self._state = net.init_state(1, self._est._dev)
+        self._fast = frame_filter_for(net, self._est._dev, self._fast)
+        self._state = None if self._fast is not None else net.init_state(1, self._est._dev)
         self._carries = self._est._pipeline.start(1)
         self._n = 0
         self._pts = np.full((self._est._sys.n_points, 2), np.nan)
@@ -230,12 +239,16 @@ class SystemVid2ParamStream(Stream):
                              f"{fr.shape}")
         t0 = time.perf_counter()
         net = est._net
-        with torch.inference_mode():
-            fx = net.encode_frames(torch.as_tensor(fr[None], device=est._dev))
-            mu, sd = net.enc_step(fx, net.read(self._state))
-            self._state = net.step_rnn(mu, self._state)
-        mu = mu.cpu().numpy().astype(np.float64)
-        sd = sd.cpu().numpy().astype(np.float64)
+        if self._fast is not None:
+            mu, sd = self._fast.step(fr)
+            mu, sd = mu[None].astype(np.float64), sd[None].astype(np.float64)
+        else:
+            with torch.inference_mode():
+                fx = net.encode_frames(torch.as_tensor(fr[None], device=est._dev))
+                mu, sd = net.enc_step(fx, net.read(self._state))
+                self._state = net.step_rnn(mu, self._state)
+            mu = mu.cpu().numpy().astype(np.float64)
+            sd = sd.cpu().numpy().astype(np.float64)
         pts = est._points(mu[:, est._xidx])
         m, s = est._pipeline.step(self._carries, mu[:, est._pidx], sd[:, est._pidx], pts)
         self._n += 1
@@ -248,7 +261,9 @@ class SystemVid2ParamStream(Stream):
         return self._pts[0].copy()
 
     def forecast(self, horizon: int, floor: float | None = None) -> Forecast:
-        fc = self._est._rollout(self._state, horizon)
+        state = (self._fast.torch_state(self._est._dev) if self._fast is not None
+                 else self._state)
+        fc = self._est._rollout(state, horizon)
         if floor:
             fc.mean[..., 1] += float(floor)
         return fc
