@@ -123,6 +123,13 @@ def test_same_seed_same_numbers(tiny_ckpt, tiny_data):
 def test_identify_batch_matches_shapes(est, tiny_data):
     posts = est.identify_batch(tiny_data.frames)
     assert len(posts) == 4 and all(isinstance(p, Posterior) for p in posts)
+    # each checked as identify checks it (same verdict, same intervals)
+    one = est.identify(tiny_data.observation(1))
+    assert posts[1].check is not None and posts[1].check.ok == one.check.ok
+    # (the batched and single network passes differ by float32 rounding)
+    np.testing.assert_allclose(posts[1].check.rms_m, one.check.rms_m, rtol=1e-3)
+    np.testing.assert_allclose(posts[1].std, one.std, rtol=1e-3)
+    assert all(p.check is None for p in est.identify_batch(tiny_data.frames, check=False))
 
 
 def test_forecast_shapes_and_floor(est, tiny_data):
@@ -230,7 +237,7 @@ def test_shipped_model_identifies_and_improves_with_frames(test_data):
     assert 5 < rolls.sum() < len(rolls)
     err, r_err, r_sd = {}, {}, {}
     for n in (20, 200):
-        posts = est.identify_batch(np.asarray(test_data.frames[:, :n]))
+        posts = est.identify_batch(np.asarray(test_data.frames[:, :n]), check=False)
         mu = np.array([p.extras["normalised_mean"] for p in posts])
         sd = np.array([p.extras["normalised_std"] for p in posts])
         sq = (np.clip(mu, 0, 1) - u) ** 2
