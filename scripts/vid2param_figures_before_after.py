@@ -179,7 +179,8 @@ def table(name: str, before: str) -> str:
                 continue
             key = verdict.split(" (")[0]
             counts[key] = counts.get(key, 0) + 1
-            lines.append(f"| {label} | {c} | {bt} | {at} | {verdict} | {ci} |")
+            cells = (label, c, bt, at, verdict, ci)
+            lines.append("| " + " | ".join(s.replace("|", "\\|") for s in cells) + " |")
     tally = ", ".join(f"{v} {k}" for k, v in sorted(counts.items()))
     return f"### {name}\n\n{tally}.\n\n" + "\n".join(lines) + "\n"
 
