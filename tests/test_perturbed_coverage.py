@@ -64,7 +64,7 @@ def test_a_perturbed_cell_stores_hits_check_and_its_perturbation(tmp_path):
     assert res["status"] == "ok", res["error"]
     rows = pd.DataFrame([r.__dict__ if hasattr(r, "__dict__") else r._asdict()
                          for r in res["rows"]])
-    assert set(rows.n_frames) == {0, 50, 100}
+    assert set(rows.n_frames) == {0, 100}
     at = rows[rows.n_frames == 100].set_index("metric").value
     assert {"hit90_e", "hit90_g", "hit90_d", "hit50_e", "check_ok"} <= set(at.index)
     spin, dwell = perturbation(SCALES["smoke"].seed, 1)
@@ -113,8 +113,9 @@ def test_tables_and_readings_split_our_physics_from_perturbed():
     t = cal.tables(df)
     tab = t["calibration"].set_index(["method", "physics"])
     assert list(t["calibration"].columns[:5]) == ["method", "input", "physics", "cases", "frames"]
-    assert tab.loc[("lsq", "perturbed"), "coverage 90% (e, g, d)"].startswith("0 [0, 0]")
-    assert tab.loc[("lsq", "ours"), "coverage 90% (e, g, d)"].startswith("1 [1, 1]")
+    # all cases alike: the open side is the exact bound over 20 cases, 0.025 ** (1 / 20)
+    assert tab.loc[("lsq", "perturbed"), "coverage 90% (e, g, d)"] == "0 [0, 0.17]"
+    assert tab.loc[("lsq", "ours"), "coverage 90% (e, g, d)"] == "1 [0.83, 1]"
     assert tab.loc[("nuts", "perturbed"), "cases"] == 12
     assert tab.loc[("nuts", "perturbed"), "frames"] == "100"
     cov = cal.coverage(df, "90", ("e", "g", "d")).set_index(["method", "condition"])
@@ -129,7 +130,7 @@ def test_tables_and_readings_split_our_physics_from_perturbed():
     assert "NUTS, the reference posterior" in text and "12 cases" in text
     assert "drops where the CIs are disjoint: lsq 1.00 -> 0.00" in text
     # the in-model sentence does not pool perturbed cases
-    assert "lsq (video, 20 cases) 1.00 [1.00, 1.00]/1.00" in text
+    assert "lsq (video, 20 cases) 1.00 [0.83, 1.00]/1.00 [0.83, 1.00]" in text
 
 
 @pytest.mark.parametrize("cases, verdict", [(3, "cannot tell"), (12, "not enough cases to tell"),
@@ -166,11 +167,29 @@ def test_foreign_coverage_column_and_reading():
                 rows.append((m, "video", "", c, 200, "check_ok", ok if c != 5 else 0.0))
     df = _frame(rows)
     tab = Foreign().tables(df)["foreign_identification"].set_index("method")
-    assert tab.loc["lsq", "coverage 90% (e, g, d)"].startswith("1 [1, 1]")
+    # six cases that all hold: a bootstrap says [1, 1], the exact bound over cases 0.54
+    assert tab.loc["lsq", "coverage 90% (e, g, d)"] == "1 [0.54, 1]"
     assert tab.loc["vid2param", "coverage 90% (e, g, d)"].startswith("0.33 ")
     # honest: cases 0, 1 hold, case 5's check failed -> 3 of 6
     assert tab.loc["vid2param", "honest (e, g, d)"].startswith("0.5 ")
     assert tab.loc["prior", "honest (e, g, d)"] == "-"
     text = " ".join(Foreign().reading(df))
     assert "below it (whole CI under 80%): vid2param" in text
-    assert "above it (whole CI over 97%): lsq, prior" in text
+    assert "above it" not in text  # six cases cannot put a share above 97%
+
+
+def test_share_ci_is_exact_where_every_case_agrees_and_few_cases_get_no_verdict():
+    from sysid_bench.bench.calibration import share_ci
+
+    ones = pd.DataFrame({"case": np.repeat(np.arange(10), 3), "value": 1.0})
+    s = share_ci(ones)
+    assert s["mean"] == 1.0 and s["hi"] == 1.0 and s["lo"] == pytest.approx(0.025 ** 0.1)
+    s0 = share_ci(ones.assign(value=0.0))
+    assert s0["lo"] == 0.0 and s0["hi"] == pytest.approx(1 - 0.025 ** 0.1)
+    mixed = ones.assign(value=(ones.case % 2).astype(float))
+    assert 0.1 < share_ci(mixed)["lo"] < 0.5 < share_ci(mixed)["hi"] < 0.9  # the bootstrap's
+    # two cases that never hold: no band verdict, and said so
+    df = _frame(_rows("lsq", PERTURBED, 2, lambda c, p: 0, ok=lambda c: 1))
+    text = " ".join(Calibration().reading(df))
+    assert "lsq (video, 2 cases) 0 [0, 0.84], too few cases to tell" in text
+    assert "no CI lies wholly below 80%" in text

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from sysid_bench._io import atomic_write
-from sysid_bench.bench.calibration import COVERAGE_BAND, EGD, honest_rows
+from sysid_bench.bench.calibration import COVERAGE_BAND, EGD, FEW_CASES, honest_rows, share_ci
 from sysid_bench.bench.experiment import (
     Cell,
     CellOutput,
@@ -396,9 +396,14 @@ class Foreign(Experiment):
         for m, n in last.items():
             gm = df[(df.method == m) & (df.n_frames == n)]
             c, h = _coverage(gm), _honest(gm)
+            n_cases = gm[gm.metric.isin([f"hit90_{p}" for p in EGD])].case.nunique()
+            few = n_cases < FEW_CASES
             parts.append(f"{m} {fmt_ci(c['mean'], c['lo'], c['hi'], 2)}"
                          + (f" (honest {fmt_ci(h['mean'], h['lo'], h['hi'], 2)})" if h is not None
-                            else "") + f", {gm.case.nunique()} cases")
+                            else "") + f", {n_cases} cases"
+                         + (", too few to tell" if few else ""))
+            if few:
+                continue
             if c["hi"] < lo_b:
                 below.append(m)
             elif c["lo"] > hi_b:
@@ -414,20 +419,14 @@ class Foreign(Experiment):
 
 
 def _coverage(g):
-    """Mean and 95% CI over cases of the 90% intervals' hits on e, g, d in rows ``g`` (each
-    case's hits averaged first), or None without hits."""
+    """Mean and 95% CI over cases (:func:`~.calibration.share_ci`) of the 90% intervals' hits on
+    e, g, d in rows ``g``, or None without hits."""
     h = g[g.metric.isin([f"hit90_{p}" for p in EGD])]
-    if h.empty:
-        return None
-    per_case = h.groupby("case").value.mean().reset_index().assign(k=0)
-    return ci_summary(per_case, ["k"]).iloc[0]
+    return None if h.empty else share_ci(h)
 
 
 def _honest(g):
     """As :func:`_coverage` for the honest share (:func:`~.calibration.honest_rows`), or None
     where the method gives no model check."""
     h = honest_rows(g)
-    if h.empty:
-        return None
-    per_case = h.groupby("case").value.mean().reset_index().assign(k=0)
-    return ci_summary(per_case, ["k"]).iloc[0]
+    return None if h.empty else share_ci(h)
