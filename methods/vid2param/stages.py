@@ -99,6 +99,26 @@ class Stage:
         """Fit on train videos (``ctx``: ``inference.FitContext``); returns the stage."""
         raise NotImplementedError
 
+    @classmethod
+    def fit_options(cls) -> tuple[str, ...]:
+        """The names of the options :meth:`fit` takes (the driver's ``NAME:KEY=VALUE``): its
+        named keywords; a stage whose ``fit`` passes ``**options`` on adds what they reach."""
+        import inspect
+
+        return tuple(n for n, p in inspect.signature(cls.fit).parameters.items()
+                     if n != "ctx" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY))
+
+    @classmethod
+    def check_options(cls, options) -> None:
+        """``ValueError`` naming the stage and every option of ``options`` that :meth:`fit`
+        does not take (a misspelt option would otherwise be dropped or fail deep in a fit)."""
+        known = cls.fit_options()
+        unknown = sorted(set(options) - set(known))
+        if unknown:
+            raise ValueError(f"stages: stage {cls.name!r} has no option "
+                             f"{', '.join(map(repr, unknown))} (its options: "
+                             f"{', '.join(known) or 'none'})")
+
     def bind(self, net) -> None:
         """Attach to the loaded network (a stage that owns some of its weights sets them)."""
 
@@ -151,7 +171,7 @@ class StdScale(Stage):
         self.factors = _factors(state, "calibration", source, self.name)
 
     @classmethod
-    def fit(cls, ctx, n: int = 500, seed: int = 424242, **_) -> StdScale:
+    def fit(cls, ctx, n: int = 500, seed: int = 424242) -> StdScale:
         """Factors from ``n`` clean train videos (``seed``), after their last frame (a system's
         train split for a system's network)."""
         from methods.vid2param.data import make_split, make_system_split
@@ -203,11 +223,20 @@ class PriorNoise(Stage):
     legacy_key = "prior_fit"
 
     @classmethod
+    def fit_options(cls) -> tuple[str, ...]:
+        from dataclasses import fields
+
+        from methods.vid2param.fit_prior import PriorFitConfig
+
+        return tuple(f.name for f in fields(PriorFitConfig))  # steps among them
+
+    @classmethod
     def fit(cls, ctx, steps: int = 150, **options) -> PriorNoise:
         """Train the noise on the network's forecasts of train videos (``PriorFitConfig``;
         ``ctx.net`` is replaced by the network with the trained prior)."""
         from methods.vid2param.fit_prior import PriorFitConfig, fit_prior_stage
 
+        cls.check_options(options)
         record, net = fit_prior_stage(ctx, PriorFitConfig(steps=int(steps), **options))
         ctx.net = net
         weights = {k: v.detach().cpu().clone() for k, v in net.phys_prior.state_dict().items()}
@@ -252,9 +281,18 @@ class DragEvidence(Stage):
         self._i = PARAMS.index("d")
 
     @classmethod
+    def fit_options(cls) -> tuple[str, ...]:
+        from dataclasses import fields
+
+        from methods.vid2param.drag import DragFitConfig
+
+        return tuple(f.name for f in fields(DragFitConfig))  # n_videos among them
+
+    @classmethod
     def fit(cls, ctx, n_videos: int = 300, **options) -> DragEvidence:
         from methods.vid2param.drag import DragFitConfig, fit_drag_stage
 
+        cls.check_options(options)
         return cls(fit_drag_stage(ctx, DragFitConfig(n_videos=int(n_videos), **options)),
                    ctx.source)
 
@@ -295,8 +333,19 @@ class PhysicsCalibration(Stage):
         self.factors = _factors(state, "physics_calibration", source, self.name)
 
     @classmethod
+    def fit_options(cls) -> tuple[str, ...]:
+        import inspect
+
+        from methods.vid2param.calibrate_physics import calibrate_physics_stage
+
+        return tuple(n for n in inspect.signature(calibrate_physics_stage).parameters
+                     if n != "ctx")
+
+    @classmethod
     def fit(cls, ctx, n: int = 100, **options) -> PhysicsCalibration:
         from methods.vid2param.calibrate_physics import calibrate_physics_stage
+
+        cls.check_options(options)
 
         return cls(calibrate_physics_stage(ctx, n=int(n), **options), ctx.source)
 

@@ -536,7 +536,12 @@ def parse_stages(specs) -> list[tuple[str, dict]]:
         if name not in STAGES:
             raise ValueError(f"stages: unknown stage {name!r} (known stages: "
                              f"{', '.join(sorted(STAGES))})")
-        out.append((name, dict(opts)))
+        opts = dict(opts)
+        if opts.get("keep") and len(opts) > 1:
+            raise ValueError(f"stages: stage {name!r} is kept as fitted (keep=true), so its "
+                             f"options {sorted(k for k in opts if k != 'keep')} would be ignored")
+        STAGES[name].check_options({k: v for k, v in opts.items() if k != "keep"})
+        out.append((name, opts))
     return out
 
 
@@ -1018,10 +1023,11 @@ def main(argv=None) -> int:
         if a.preset not in ("28x28", a.system):
             raise SystemExit(f"--system {a.system} takes its own preset, not --preset {a.preset}")
         a.preset = a.system
+    stages = _stages(a)  # checked before any training: a misspelt stage fails now, not at export
     if a.refit is not None:
         if not a.export:
             raise SystemExit("--refit needs --export PATH")
-        print(fit_stages(a.refit, a.export, _stages(a), threads=a.threads))
+        print(fit_stages(a.refit, a.export, stages, threads=a.threads))
         return 0
     if a.out is None:
         raise SystemExit("--out is required (the run's folder), except with --refit")
@@ -1029,7 +1035,7 @@ def main(argv=None) -> int:
     if a.export_only:
         if not a.export:
             raise SystemExit("--export-only needs --export PATH")
-        print(export(out / "state.pt", a.export, stages=_stages(a)))
+        print(export(out / "state.pt", a.export, stages=stages))
         return 0
     base = V2PConfig.preset(a.preset).to_dict()
     for name in base:
@@ -1049,7 +1055,7 @@ def main(argv=None) -> int:
         if a.time_schedule:
             record["time_schedule"] = True
         record["command"] = _command(argv)
-        print(export(out / "state.pt", a.export, stages=_stages(a), record=record))
+        print(export(out / "state.pt", a.export, stages=stages, record=record))
     return 0
 
 
