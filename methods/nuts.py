@@ -15,7 +15,18 @@ Model
   and on ``[-V0_MAX, V0_MAX]`` m/s for each velocity, starting from ``methods._tracks.prepare``'s
   estimate. Sampling it makes the intervals honest about how well the start is known; holding
   the polynomial estimate fixed would bias ``e`` and ``g`` with no spread to show for it.
-* **Floor** — ``Observation.floor``, else ``methods._tracks.prepare``'s point estimate (fixed).
+* **Floor** — ``Observation.floor`` when given (held fixed). Otherwise it is *sampled* as a
+  nuisance parameter, as emcee samples it: uniform on ``FLOOR_BOX`` (20) standard errors
+  (``Track.floor_std``) either side of ``methods._tracks.prepare``'s estimate (with a given
+  initial state, no higher than its height), through the logit like the rest; a sampled
+  initial state's height is then uniform on ``[floor, floor + 10]`` for its own floor. Every
+  stage carries it: the search, the mode and Laplace covariance, the whitened NUTS coordinates
+  and the forward-mode gradient (the JAX simulator's contact times depend on the floor
+  differentiably). Held at the estimate instead, a floor 2 cm off put g 8 posterior widths from
+  the truth on positions with 1 cm noise, with the model check passing. The draws' floors are
+  summarised in ``extras["floor_mean"]``/``["floor_post_std"]`` (``floor_rhat``, ``floor_ess``,
+  ``floor_box``); ``extras["floor"]``/``["floor_std"]`` stay the track's estimate and its
+  standard error. ``Posterior.samples`` stay ``(e, g, d, r)``.
 
 Gradients go through the JAX simulator including its contact times
 (:mod:`sysid_bench.physics_jax`). They are computed in **forward mode** (one ``jvp`` per
@@ -37,7 +48,7 @@ alone:
    adaptation) samples ``z`` with ``x = x_mode + L z``: a roughly isotropic target, so trees
    stay shallow (about 5 leapfrog steps per iteration). The chain loop is one jitted
    ``lax.scan`` taking the observation as an argument, compiled once per (frame bucket, known
-   or sampled initial state, budgets) and reused — NumPyro's ``MCMC`` driver re-jits its loop
+   or sampled initial state and floor, budgets) and reused — NumPyro's ``MCMC`` driver re-jits its loop
    for every run. Chains run one after another (the first from the mode, the others from
    ``z ~ N(0, 0.25 I)``).
 
@@ -59,7 +70,7 @@ basin or a track the model cannot make). A run that fails these is returned, not
 ``converged`` is False and ``warning`` says why.
 
 Model check (``Posterior.check``, :meth:`methods._simulation.Fit.checked`): the posterior mean
-simulated from the mean of the draws' initial states against the seen positions, judged against ``sigma``
+simulated from the mean of the draws' initial states (and floors, when sampled) against the seen positions, judged against ``sigma``
 (:meth:`sysid_bench.estimator.Check.from_residuals`). A failed check keeps the mean and widens
 the intervals to what the data supports (:func:`methods._simulation.widen_to_support`: to hold
 the best fit a local least-squares refinement from the mean finds, or to at least the prior's
@@ -96,10 +107,13 @@ from sysid_bench.simulator import (
     mean_sq_error,
 )
 
-__all__ = ["NUTS", "loglik_jax", "V0_MAX"]
+__all__ = ["NUTS", "loglik_jax", "V0_MAX", "FLOOR_BOX"]
 
 #: Bound (m/s) of the uniform prior on each initial velocity when the initial state is sampled.
 V0_MAX = 20.0
+#: Half-width, in standard errors of ``methods._tracks.prepare``'s estimate, of the uniform prior
+#: on an unknown floor (emcee's ``state0_box`` default, the same prior).
+FLOOR_BOX = 20.0
 _LO = jnp.asarray(PRIOR_LO)
 _SPAN = jnp.asarray(PRIOR_SPAN)
 _EPS = 1e-6  # keeps initial values off the unit interval's ends, where the logit is infinite
@@ -137,21 +151,35 @@ def _loglik_value(theta, state0, data, n_frames, dt):
     return jnp.where(bad[0], -jnp.inf, ll)
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(3, 4, 5))
-def _loglik(theta, state0, data, n_frames, dt, free_state):
+@partial(jax.custom_jvp, nondiff_argnums=(3, 4, 5, 6))
+def _loglik(theta, state0, data, n_frames, dt, free_state, free_floor=False):
     """Log-likelihood of theta (4,) and state0 (4,); its derivative is taken in forward mode.
 
-    ``data`` is treated as a constant (its tangent is ignored); ``state0`` is differentiated
+    ``data`` = ``(obs_pos, mask, floor, sigma)`` is treated as a constant (its tangent is
+    ignored) except for the floor (a scalar) when ``free_floor``; ``state0`` is differentiated
     only when ``free_state``.
     """
     return _loglik_value(theta, state0, data, n_frames, dt)
 
 
 @_loglik.defjvp
-def _loglik_jvp(n_frames, dt, free_state, primals, tangents):
+def _loglik_jvp(n_frames, dt, free_state, free_floor, primals, tangents):
     theta, state0, data = primals
-    d_theta, d_state0, _ = tangents
-    if free_state:
+    d_theta, d_state0, d_data = tangents
+    if free_floor:
+        # the floor rides at the end of x; the simulator's contact times carry its derivative
+        obs_pos, mask, floor, sigma = data
+        parts, dparts = [theta], [d_theta]
+        if free_state:
+            parts.append(state0)
+            dparts.append(d_state0)
+        x = jnp.concatenate(parts + [jnp.reshape(floor, (1,))])
+        dx = jnp.concatenate(dparts + [jnp.reshape(d_data[2], (1,))])
+
+        def f(x):
+            s0 = x[4:8] if free_state else state0
+            return _loglik_value(x[:4], s0, (obs_pos, mask, x[-1], sigma), n_frames, dt)
+    elif free_state:
         x = jnp.concatenate((theta, state0))
         f = lambda x: _loglik_value(x[:4], x[4:], data, n_frames, dt)  # noqa: E731
         dx = jnp.concatenate((d_theta, d_state0))
@@ -167,24 +195,41 @@ def _loglik_jvp(n_frames, dt, free_state, primals, tangents):
 
 # ------------------------------------------------------------------------------------------
 # the NumPyro model, in coordinates whitened by the Laplace approximation
+def _dim(free_state, free_floor):
+    """Sampled coordinates: e, g, d, r, then the initial state (4) and the floor (1) if free."""
+    return 4 + 4 * bool(free_state) + bool(free_floor)
+
+
 def _state_box(floor):
-    """Lower corner and size of the initial-state prior box, arrays (4,)."""
-    lo = jnp.stack([0.0, jnp.asarray(floor, jnp.float64), -V0_MAX, -V0_MAX])
+    """Lower corner and size of the initial-state prior box, arrays (4,) (``floor`` a scalar)
+    or (..., 4) (``floor`` an array (...), one box per sampled floor)."""
+    if jnp.ndim(floor):
+        fl = jnp.asarray(floor, jnp.float64)
+        lo = jnp.stack([jnp.zeros_like(fl), fl, jnp.full_like(fl, -V0_MAX), jnp.full_like(fl, -V0_MAX)], -1)
+    else:
+        lo = jnp.stack([0.0, jnp.asarray(floor, jnp.float64), -V0_MAX, -V0_MAX])
     span = jnp.array([physics.BOX_WIDTH, physics.BOX_WIDTH, 2 * V0_MAX, 2 * V0_MAX])
     return lo, span
 
 
-def _physical(x, floor, s0_fixed, free_state):
-    """Unconstrained (logit) coordinates x (..., D) -> theta (..., 4), state0 (..., 4)."""
+def _physical(x, floor, s0_fixed, free_state, free_floor=False):
+    """Unconstrained (logit) coordinates x (..., D) -> theta (..., 4), state0 (..., 4), floor.
+
+    ``floor`` is the floor (a scalar) when it is known, else ``[lo, span]`` (2,) of its prior
+    interval, and the floor is ``lo + span * sigmoid(x[..., -1])``, shape (...). A sampled
+    initial state's height is uniform on ``[floor, floor + BOX_WIDTH]`` for its own floor.
+    """
     u = jax.nn.sigmoid(x)
     theta = _LO + _SPAN * u[..., :4]
+    if free_floor:
+        floor = floor[0] + floor[1] * u[..., -1]
     if free_state:
         lo, span = _state_box(floor)
-        return theta, lo + span * u[..., 4:]
-    return theta, jnp.broadcast_to(s0_fixed, theta.shape)
+        return theta, lo + span * u[..., 4:8], floor
+    return theta, jnp.broadcast_to(s0_fixed, theta.shape), floor
 
 
-def _model(data, *, n_frames, dt, free_state):
+def _model(data, *, n_frames, dt, free_state, free_floor=False):
     """Uniform prior on PRIOR (and on the state box when free), Gaussian position noise.
 
     The sampled site ``z`` (D,) has a flat base measure; ``x = x_ref + L z`` are the logit
@@ -194,23 +239,24 @@ def _model(data, *, n_frames, dt, free_state):
     isotropic target and one compiled sampler serves every observation of a given length.
     """
     obs_pos, mask, floor, sigma, s0_fixed, x_ref, chol = data
-    D = 8 if free_state else 4
+    D = _dim(free_state, free_floor)
     z = numpyro.sample("z", dist.ImproperUniform(dist.constraints.real_vector, (), event_shape=(D,)))
     x = x_ref + chol @ z
     log_prior = jnp.sum(jax.nn.log_sigmoid(x) + jax.nn.log_sigmoid(-x))
-    theta, state0 = _physical(x, floor, s0_fixed, free_state)
-    ll = _loglik(theta, state0, (obs_pos, mask, floor, sigma), n_frames, dt, free_state)
+    theta, state0, fl = _physical(x, floor, s0_fixed, free_state, free_floor)
+    ll = _loglik(theta, state0, (obs_pos, mask, fl, sigma), n_frames, dt, free_state, free_floor)
     numpyro.factor("log_post", ll + log_prior)
 
 
-def _potential(z, data, *, n_frames, dt, free_state):
+def _potential(z, data, *, n_frames, dt, free_state, free_floor=False):
     """NumPyro's potential energy (minus log posterior density) of the model at ``z`` (D,)."""
-    model = partial(_model, n_frames=n_frames, dt=dt, free_state=free_state)
+    model = partial(_model, n_frames=n_frames, dt=dt, free_state=free_state, free_floor=free_floor)
     return potential_energy(model, (data,), {}, {"z": z})
 
 
 @lru_cache(maxsize=16)
-def _compiled(n_frames, dt, free_state, num_warmup, num_samples, dense_mass, target_accept, max_tree_depth):
+def _compiled(n_frames, dt, free_state, num_warmup, num_samples, dense_mass, target_accept, max_tree_depth,
+              free_floor=False):
     """Jitted potential (value, gradient) and one jitted NUTS chain for a configuration.
 
     NumPyro's ``hmc(potential_fn_gen=..., algo="NUTS")`` kernel does the sampling and the
@@ -218,7 +264,7 @@ def _compiled(n_frames, dt, free_state, num_warmup, num_samples, dense_mass, tar
     here, with the observation as an argument, so every identification of the same (bucketed)
     length reuses one compiled chain instead of recompiling (``MCMC`` re-jits its loop per run).
     """
-    pe = partial(_potential, n_frames=n_frames, dt=dt, free_state=free_state)
+    pe = partial(_potential, n_frames=n_frames, dt=dt, free_state=free_state, free_floor=free_floor)
     init_kernel, sample_kernel = hmc(potential_fn_gen=lambda data: partial(pe, data=data), algo="NUTS")
 
     @jax.jit
@@ -322,15 +368,18 @@ def _laplace(pot, starts, *, maxiter_lbfgs=300, newton_iters=6):
     return x, cov, {"map_potential": f, "n_newton": n_newton, "hessian_nonpd": n_neg, "lbfgs_iters": int(opt.nit)}
 
 
-def _search(sim, track, sigma, free, rng, n, rounds, n_starts):
+def _search(sim, track, sigma, free, rng, n, rounds, n_starts, floor_box=None):
     """Cross-entropy search for starting points, on batched NumPy simulations.
 
-    Round 0 draws ``n`` parameter vectors from the prior with the initial state at its estimate
-    (as ``lsq``); each later round draws ``n`` from a Gaussian fitted to the best 5% seen so far
-    (the initial state included when it is sampled, starting from the estimate's standard
-    error). The likelihood has cliffs where a bounce or the start of rolling comes and goes, so
-    a gradient method started from a prior draw can stall on the wrong side of one; this search
-    narrows in on the right basin first.
+    Round 0 draws ``n`` parameter vectors from the prior with the initial state (and an unknown
+    floor) at its estimate (as ``lsq``); each later round draws ``n`` from a Gaussian fitted to
+    the best 5% seen so far (the initial state and floor included when they are sampled,
+    starting from their estimates' standard errors). The likelihood has cliffs where a bounce
+    or the start of rolling comes and goes, so a gradient method started from a prior draw can
+    stall on the wrong side of one; this search narrows in on the right basin first.
+
+    ``floor_box`` : ``(lo, span)`` of the sampled floor's prior interval; None: the floor is
+    ``track.floor``, fixed.
 
     Returns
     -------
@@ -339,28 +388,39 @@ def _search(sim, track, sigma, free, rng, n, rounds, n_starts):
     info : dict
     """
     T, dt, floor = track.n_frames, track.dt, track.floor
-    D = 8 if free else 4
+    free_floor = floor_box is not None
+    D = _dim(free, free_floor)
     lo_s, span_s = (np.asarray(a) for a in _state_box(floor))
     u_s0 = np.clip((track.state0 - lo_s) / span_s, _EPS, 1 - _EPS)
     v = np.empty((n, D))
     v[:, :4] = rng.random((n, 4))
     if free:
-        v[:, 4:] = u_s0
+        v[:, 4:8] = u_s0
+    if free_floor:
+        v[:, -1] = np.clip((floor - floor_box[0]) / floor_box[1], _EPS, 1 - _EPS)
     pool_v, pool_ll = np.empty((0, D)), np.empty(0)
     n_elite = max(10, n // 20)
     for r in range(rounds):
         theta = PRIOR_LO + PRIOR_SPAN * v[:, :4]
-        state = lo_s + span_s * v[:, 4:] if free else np.repeat(track.state0[None], n, 0)
-        pos = sim.positions(theta, clip_state(state, floor), T, dt, floor)
+        state = lo_s + span_s * v[:, 4:8] if free else np.repeat(track.state0[None], n, 0)
+        fl = floor
+        if free_floor:
+            fl = floor_box[0] + floor_box[1] * v[:, -1]
+            if free:  # the state's height is uniform above its own floor
+                state[:, 1] += fl - floor
+        pos = sim.positions(theta, clip_state(state, fl), T, dt, fl)
         ll = gaussian_loglik(pos, track.positions, track.mask, sigma)
         pool_v, pool_ll = np.concatenate((pool_v, v)), np.concatenate((pool_ll, ll))
         if r == rounds - 1:
             break
         elite = pool_v[np.argsort(-pool_ll)[:n_elite]]
         cov = np.cov(elite.T) + np.diag(np.full(D, 1e-12))
-        if free and r == 0:  # the state did not vary yet: start from its estimate's error
+        if (free or free_floor) and r == 0:  # they did not vary yet: start from their errors
             cov[4:, :] = cov[:, 4:] = 0.0
-            cov[4:, 4:] = np.diag((np.maximum(track.state0_std, 1e-3) / span_s) ** 2)
+            if free:
+                cov[4:8, 4:8] = np.diag((np.maximum(track.state0_std, 1e-3) / span_s) ** 2)
+            if free_floor:
+                cov[-1, -1] = (track.floor_std / floor_box[1]) ** 2
         v = np.clip(rng.multivariate_normal(elite.mean(0), cov, size=n, method="eigh"), _EPS, 1 - _EPS)
     order = np.argsort(-pool_ll)
     starts = []
@@ -502,8 +562,17 @@ class NUTS(SimulationMethod):
         T, dt, floor = track.n_frames, track.dt, track.floor
         Tb = _bucket(T, int(self.frame_bucket))
         free = not track.state0_known
-        D = 8 if free else 4
+        free_floor = not track.floor_known
+        D = _dim(free, free_floor)
         rng = make_rng(self.seed, 0)
+        floor_box = None
+        if free_floor:
+            # flat on FLOOR_BOX standard errors either side of the estimate, as emcee's; with a
+            # known start, no floor above the ball's starting height
+            fl_lo, fl_hi = floor - FLOOR_BOX * track.floor_std, floor + FLOOR_BOX * track.floor_std
+            if not free:
+                fl_hi = min(fl_hi, float(track.state0[1]))
+            floor_box = (fl_lo, fl_hi - fl_lo)
 
         # data, padded to the bucket length (padded frames are unseen)
         obs_pos = np.zeros((Tb, 2))
@@ -514,20 +583,21 @@ class NUTS(SimulationMethod):
         base = (
             jnp.asarray(obs_pos),
             jnp.asarray(mask),
-            jnp.asarray(floor, jnp.float64),
+            jnp.asarray(floor_box if free_floor else floor, jnp.float64),
             jnp.asarray(sigma, jnp.float64),
             jnp.asarray(s0_est),
         )
 
         # 1. global: cross-entropy search with batched NumPy simulations (starts as lsq does)
         starts, search_info = _search(
-            sim, track, sigma, free, rng, int(self.n_init), int(self.search_rounds), int(self.n_starts)
+            sim, track, sigma, free, rng, int(self.n_init), int(self.search_rounds), int(self.n_starts),
+            floor_box,
         )
 
         # 2. local: the mode and curvature (Laplace) of the model's potential
         pe_vg, chain = _compiled(
             Tb, dt, free, int(self.num_warmup), int(self.num_samples),
-            bool(self.dense_mass), float(self.target_accept), int(self.max_tree_depth),
+            bool(self.dense_mass), float(self.target_accept), int(self.max_tree_depth), free_floor,
         )
         pot = _Potential(pe_vg, base, D)
         x_map, cov, lap_info = _laplace(pot, starts)
@@ -552,7 +622,10 @@ class NUTS(SimulationMethod):
         steps_run = steps[:, int(self.num_warmup) :]
 
         x = x_map + z @ chol.T
-        th, s0s = (np.asarray(a) for a in _physical(jnp.asarray(x), floor, jnp.asarray(s0_est), free))
+        fl_arg = base[2] if free_floor else floor  # the floor's prior interval, or the floor
+        th, s0s, fls = (
+            np.asarray(a) for a in _physical(jnp.asarray(x), fl_arg, jnp.asarray(s0_est), free, free_floor)
+        )
         rhat = np.asarray(split_gelman_rubin(th))
         ess = np.asarray(effective_sample_size(th))
         flat = th.reshape(-1, 4)
@@ -566,8 +639,11 @@ class NUTS(SimulationMethod):
         if frac_div >= 0.02:
             problems.append(f"{n_div} divergent transitions ({100 * frac_div:.1f}%)")
         # how well the mode fits: a wrong basin or a misspecified model shows as RMS >> sigma
-        th_map, s0_map = (np.asarray(a) for a in _physical(jnp.asarray(x_map), floor, jnp.asarray(s0_est), free))
-        fit = sim.positions(th_map[None], s0_map[None], T, dt, floor)
+        th_map, s0_map, fl_map = (
+            np.asarray(a) for a in _physical(jnp.asarray(x_map), fl_arg, jnp.asarray(s0_est), free, free_floor)
+        )
+        fl_map = float(fl_map) if free_floor else floor
+        fit = sim.positions(th_map[None], s0_map[None], T, dt, fl_map)
         rms = float(np.sqrt(mean_sq_error(fit, track.positions, track.mask)[0]))
         if rms > 3.0 * sigma:
             problems.append(f"the mode misses the track by {rms:.3g} m RMS (> 3 sigma = {3 * sigma:.3g} m)")
@@ -585,12 +661,23 @@ class NUTS(SimulationMethod):
             "n_potential_evals_init": pot.n,
             "sigma": sigma,
             "state0_sampled": free,
+            # the floor's posterior; a known floor is its own mean with no spread
+            "floor_sampled": free_floor,
+            "floor_mean": float(fls.mean()) if free_floor else floor,
+            "floor_post_std": float(fls.std(ddof=1)) if free_floor else 0.0,
             **search_info,
             **lap_info,
             **track.describe(),
         }
+        if free_floor:
+            extras["floor_box"] = [fl_lo, fl_hi]
+            extras["floor_rhat"] = float(split_gelman_rubin(fls[..., None])[0])
+            extras["floor_ess"] = float(effective_sample_size(fls[..., None])[0])
         post = Posterior(mean=flat.mean(0), std=flat.std(0, ddof=1), samples=flat, extras=extras)
-        return Fit(post, flat, s0s.reshape(-1, 4), track.floor, track, sim, sw)
+        # per-draw floors when sampled: the model check simulates from their mean, a forecast
+        # continues each draw with its own
+        floors = fls.reshape(-1) if free_floor else track.floor
+        return Fit(post, flat, s0s.reshape(-1, 4), floors, track, sim, sw)
 
 
 def _logit(u):
