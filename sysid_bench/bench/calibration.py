@@ -75,6 +75,11 @@ FEW_CASES = 5
 EGD = ("e", "g", "d")
 
 
+def n_cases(n: int) -> str:
+    """``"1 case"``, ``"12 cases"``."""
+    return f"{int(n)} case" + ("" if int(n) == 1 else "s")
+
+
 def physics_label(condition: str) -> str:
     """The ``physics`` column of the report's tables for a cell ``condition``."""
     return "perturbed" if condition == PERTURBED else "ours"
@@ -555,7 +560,7 @@ class Calibration(Experiment):
         parts, below, above = [], [], []
         for r in pert.itertuples():
             few = r.cases < FEW_CASES
-            parts.append(f"{r.method} ({r.input}, {r.cases} cases) {fmt_ci(r.mean, r.lo, r.hi, 2)}"
+            parts.append(f"{r.method} ({r.input}, {n_cases(r.cases)}) {fmt_ci(r.mean, r.lo, r.hi, 2)}"
                          + (", too few cases to tell" if few else ""))
             if few:
                 continue
@@ -577,7 +582,7 @@ class Calibration(Experiment):
             r = next(pert[pert.method == ref].itertuples())
             a, b = REFERENCE_BAND
             if r.cases < REFERENCE_MIN_CASES:
-                verdict = (f"{r.cases} cases cannot tell whether it holds {a:.0%}-{b:.0%} "
+                verdict = (f"{n_cases(r.cases)} cannot tell whether it holds {a:.0%}-{b:.0%} "
                            f"(at least {REFERENCE_MIN_CASES} needed; the paper scale has them)")
             elif r.lo >= a and r.hi <= b:
                 verdict = f"its 95% CI lies within {a:.0%}-{b:.0%}: the reference holds"
@@ -587,7 +592,7 @@ class Calibration(Experiment):
                 verdict = (f"its 95% CI [{r.lo:.2f}, {r.hi:.2f}] straddles {a:.0%}-{b:.0%}: "
                            "not enough cases to tell")
             out.append(f"{ref.upper()}, the reference posterior, holds {r.mean:.2f} of the "
-                       f"perturbed truths of e, g, d with {r.cases} cases: {verdict}.")
+                       f"perturbed truths of e, g, d with {n_cases(r.cases)}: {verdict}.")
         ours = cov[cov.condition == ""].set_index(["method", "input"])
         drops, rises, same = [], [], []
         for r in pert.itertuples():

@@ -29,7 +29,14 @@ from pathlib import Path
 import numpy as np
 
 from sysid_bench._io import atomic_write
-from sysid_bench.bench.calibration import COVERAGE_BAND, EGD, FEW_CASES, honest_rows, share_ci
+from sysid_bench.bench.calibration import (
+    COVERAGE_BAND,
+    EGD,
+    FEW_CASES,
+    honest_rows,
+    share_ci,
+)
+from sysid_bench.bench.calibration import n_cases as plural_cases
 from sysid_bench.bench.experiment import (
     Cell,
     CellOutput,
@@ -393,14 +400,14 @@ class Foreign(Experiment):
         last = hits.groupby("method").n_frames.max()
         lo_b, hi_b = COVERAGE_BAND
         parts, below, above = [], [], []
-        for m, n in last.items():
-            gm = df[(df.method == m) & (df.n_frames == n)]
+        for m, last_n in last.items():
+            gm = df[(df.method == m) & (df.n_frames == last_n)]
             c, h = _coverage(gm), _honest(gm)
-            n_cases = gm[gm.metric.isin([f"hit90_{p}" for p in EGD])].case.nunique()
-            few = n_cases < FEW_CASES
+            n = gm[gm.metric.isin([f"hit90_{p}" for p in EGD])].case.nunique()
+            few = n < FEW_CASES
             parts.append(f"{m} {fmt_ci(c['mean'], c['lo'], c['hi'], 2)}"
                          + (f" (honest {fmt_ci(h['mean'], h['lo'], h['hi'], 2)})" if h is not None
-                            else "") + f", {n_cases} cases"
+                            else "") + f", {plural_cases(n)}"
                          + (", too few to tell" if few else ""))
             if few:
                 continue
