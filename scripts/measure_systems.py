@@ -5,8 +5,10 @@ system's own ranges), ``--frames`` frames, the K tracked points with Gaussian no
 ``--noise`` metres (default the system's ``noise_m``, 1 cm), no initial state given. Per method:
 normalised MSE (each parameter's squared error over its prior range squared, averaged over the
 parameters and the cases), the 90% interval coverage (fraction of parameter-case pairs whose
-central 90% interval holds the truth), per-parameter figures, seconds per identification, and
-for NUTS its worst R-hat and smallest ESS.
+central 90% interval holds the truth), per-parameter figures, seconds per identification (wall
+and this process's CPU time: on a shared machine the CPU time is the figure that holds), and
+for NUTS its worst R-hat, smallest ESS and the cases it converged on (R-hat < 1.05 and
+ESS >= 50 on every parameter: ``converged_rhat_ess``).
 
     OMP_NUM_THREADS=1 python scripts/measure_systems.py --system pendulum --n 20 --methods lsq nuts
 
@@ -80,20 +82,21 @@ def main(argv=None) -> int:
     rows, summary = [], []
     for m in args.methods:
         est = methods.get(m, system=system.name, **opts.get(m, {}))
-        se, cov, walls, rhat, ess = [], [], [], [], []
+        se, cov, walls, cpus, rhat, ess, conv = [], [], [], [], [], [], []
         for i in range(args.n):
             obs = Observation(positions=noisy[i], dt=0.05, system=system.name)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             post = est.identify(obs)
-            wall = time.perf_counter() - t0
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
             lo, hi = post.interval(0.9)
             e = ((post.mean - theta[i]) / span) ** 2
             inside = (theta[i] >= lo) & (theta[i] <= hi)
             se.append(e)
             cov.append(inside)
             walls.append(wall)
+            cpus.append(cpu)
             row = {"system": system.name, "method": m, "case": i, "nmse": float(e.mean()),
-                   "coverage90": float(inside.mean()), "wall_s": wall,
+                   "coverage90": float(inside.mean()), "wall_s": wall, "cpu_s": cpu,
                    "check_ok": None if post.check is None else bool(post.check.ok)}
             for j, p in enumerate(system.params):
                 row.update({f"{p}_true": theta[i, j], f"{p}_mean": post.mean[j],
@@ -101,21 +104,24 @@ def main(argv=None) -> int:
             if isinstance(post.extras.get("rhat"), dict):
                 rhat.append(max(post.extras["rhat"].values()))
                 ess.append(min(post.extras["ess"].values()))
-                row.update(rhat_max=rhat[-1], ess_min=ess[-1],
+                conv.append(bool(rhat[-1] < 1.05 and ess[-1] >= 50))
+                row.update(rhat_max=rhat[-1], ess_min=ess[-1], converged_rhat_ess=conv[-1],
                            converged=post.extras.get("converged"))
             rows.append(row)
             print(f"{m:6s} case {i:2d} nmse {e.mean():.2e} cov90 {inside.mean():.2f} "
-                  f"{wall:6.1f} s" + (f" rhat {rhat[-1]:.3f} ess {ess[-1]:.0f}" if rhat else ""),
+                  f"{wall:6.1f} s (cpu {cpu:5.1f} s)" + (f" rhat {rhat[-1]:.3f} ess {ess[-1]:.0f}" if rhat else ""),
                   flush=True)
         se, cov = np.array(se), np.array(cov)
         s = {"system": system.name, "method": m, "n": args.n, "frames": args.frames,
              "noise_m": noise, "nmse": float(se.mean()), "coverage90": float(cov.mean()),
-             "median_wall_s": float(np.median(walls))}
+             "median_wall_s": float(np.median(walls)), "median_cpu_s": float(np.median(cpus)),
+             "mean_cpu_s": float(np.mean(cpus))}
         for j, p in enumerate(system.params):
             s[f"nmse_{p}"] = float(se[:, j].mean())
             s[f"cov90_{p}"] = float(cov[:, j].mean())
         if rhat:
-            s.update(rhat_max=float(np.max(rhat)), ess_min=float(np.min(ess)))
+            s.update(rhat_max=float(np.max(rhat)), ess_min=float(np.min(ess)),
+                     converged_rhat_ess=int(np.sum(conv)))
         s["meets_targets"] = bool(s["nmse"] <= _TARGET_NMSE and s["coverage90"] >= _TARGET_COVERAGE)
         summary.append(s)
 
@@ -124,16 +130,16 @@ def main(argv=None) -> int:
     _write_csv(out / f"systems_{system.name}_cases.csv", rows)
     _write_csv(out / f"systems_{system.name}_summary.csv", summary)
     print(f"\n{system.name}: {args.n} test cases, {args.frames} frames, noise {noise:g} m")
-    head = f"{'method':8s} {'nMSE':>9s} {'cov90':>6s} {'s/id':>7s}  " + "  ".join(
+    head = f"{'method':8s} {'nMSE':>9s} {'cov90':>6s} {'s/id':>7s} {'cpu/id':>7s}  " + "  ".join(
         f"{p:>15s}" for p in system.params)
     print(head + "   (per parameter: nMSE / cov90)")
     for s in summary:
         per = "  ".join(f"{s[f'nmse_{p}']:.1e}/{s[f'cov90_{p}']:.2f}".rjust(15)
                         for p in system.params)
-        extra = (f"  R-hat max {s['rhat_max']:.3f}, ESS min {s['ess_min']:.0f}"
-                 if "rhat_max" in s else "")
+        extra = (f"  R-hat max {s['rhat_max']:.3f}, ESS min {s['ess_min']:.0f}, converged "
+                 f"{s['converged_rhat_ess']}/{args.n}" if "rhat_max" in s else "")
         print(f"{s['method']:8s} {s['nmse']:9.2e} {s['coverage90']:6.2f} "
-              f"{s['median_wall_s']:7.2f}  {per}{extra}")
+              f"{s['median_wall_s']:7.2f} {s['median_cpu_s']:7.2f}  {per}{extra}")
     print(f"targets: nMSE <= {_TARGET_NMSE}, 90% coverage >= {_TARGET_COVERAGE:.0%}; "
           f"written {out}/systems_{system.name}_summary.csv")
     return 0
