@@ -30,7 +30,8 @@ from sysid_bench.physics import PRIOR_STD
 from sysid_bench.simulator import CountingSimulator
 
 __all__ = ["SimulationMethod", "Fit", "forecast_by_simulation", "make_rng", "Stopwatch",
-           "one_blas_thread", "model_check", "widen_failed", "widen_to_support", "check_prefixes",
+           "one_blas_thread", "model_check", "region_box", "region_check",
+           "check_posterior", "widen_failed", "widen_to_support", "check_prefixes",
            "uninformed", "widen_uninformed", "refine_fit", "state0_box",
            "state0_half"]
 
@@ -127,16 +128,22 @@ def check_prefixes(posts: list, obs: Observation, lengths, noise_m: float,
 
     For a method that does not fit trajectories itself (Vid2Param): the observation is tracked
     once (:func:`sysid_bench.estimator.observed_positions`: the harness's tracker on frames),
-    and each posterior mean is simulated with our physics from the start that fits it best
-    (:func:`model_check` with ``fit_state0``) over its prefix, judged against ``noise_m``.
-    A prefix with fewer than 3 seen frames fails ("nothing observed" / too few). ``window``:
-    only the last ``window`` frames of each prefix are checked (parameters that change over
-    time: one constant ``theta`` explains one stretch, not the whole video).
+    and each posterior is checked with our physics over its prefix (:func:`check_posterior`
+    with ``fit_state0``: the mean from the start that fits it best, else a parameter vector
+    inside its 90% interval), judged against ``noise_m``. A prefix with fewer than 3 seen
+    frames fails ("nothing observed" / too few). ``window``: only the last ``window`` frames
+    of each prefix are checked (parameters that change over time: one constant ``theta``
+    explains one stretch, not the whole video).
+
+    Cost: consecutive prefixes differ by a frame, so each prefix starts from the previous one's
+    judged trajectory (its start, moved on by the frames the window moved): that start is
+    judged as it is first and the start's least-squares fit runs only when it fails; the
+    previous prefix's parameters are tried first in the region check.
 
     Returns
     -------
     list of Posterior
-        ``posts`` with ``check`` set, widened where it failed (:func:`widen_failed`).
+        ``posts`` with ``check`` set, widened where it failed (:func:`widen_to_support`).
     """
     from methods._tracks import prepare
     from sysid_bench.estimator import observed_positions
@@ -146,6 +153,7 @@ def check_prefixes(posts: list, obs: Observation, lengths, noise_m: float,
     except ValueError:
         pos = None
     out = []
+    prev: dict | None = None  # the last prefix's window start, floor and fits (warm starts)
     for n, post in zip(lengths, posts):
         sim = CountingSimulator()
         try:
@@ -154,19 +162,54 @@ def check_prefixes(posts: list, obs: Observation, lengths, noise_m: float,
             start = 0 if window is None else max(int(n) - int(window), 0)
             track = prepare(dataclasses.replace(obs, frames=None, positions=pos[start: int(n)],
                                                 state0=None))
+            kw: dict = {"try_start": False, "search": True}
+            s0 = track.state0
+            if prev is not None and start >= prev["start"]:
+                k, fl = start - prev["start"], prev["floor"]
+                s0 = _moved(sim, (prev["theta"], prev["state0"]), k, track.dt, fl)[1]
+                kw.update(try_start=True, witness=_moved(sim, prev["region"], k, track.dt, fl),
+                          support_start=_moved(sim, prev["support"], k, track.dt, fl))
+                # nested prefixes: a trajectory's squared residuals over these frames are at
+                # least those over the frames before; when the smallest sum found there,
+                # spread over these residuals, still exceeds the bound, nothing found there
+                # passes here. The searches are local, so this is trusted only until the
+                # track has grown by SEARCH_GROWTH since the last search (then searched again)
+                n_res = 2 * track.n_seen
+                if (k == 0 and not prev["ok"] and np.isfinite(prev["best_sse"]) and n_res > 0
+                        and n_res < SEARCH_GROWTH * prev["searched_n"]):
+                    bound = Check.bound(n_res) * float(noise_m)
+                    kw["search"] = bool(prev["best_sse"] / n_res <= bound ** 2)
             info: dict = {}
-            check = model_check(sim, post.mean, track.state0, track.floor, track, noise_m,
-                                fit_state0=True, info=info)
-            if check.ok:
-                flat = uninformed(sim, post.mean, info["state0"], track.floor, track, noise_m)
-                post = widen_uninformed(post, flat, seed=int(n))
-            post = widen_to_support(post, check, sim, track, info["state0"], track.floor)
+            post = check_posterior(post, sim, track, s0, track.floor, noise_m, fit_state0=True,
+                                   seed=int(n), info=info, **kw)
+            searched_n = 2 * track.n_seen
+            if not kw["search"]:  # the bound found before still holds, and its fits
+                info.update(best_sse=prev["best_sse"], region=prev["region"],
+                            support=prev["support"])
+                searched_n = prev["searched_n"]
+            prev = {"start": start, "floor": float(track.floor), "ok": bool(post.check.ok),
+                    "searched_n": searched_n, **info}
         except ValueError as exc:
             check = Check(float("nan"), float(noise_m), False, 0, f"no track to check: {exc}")
             post = widen_failed(post, check)
         post.extras["check_simulations"] = sim.n_simulations
         out.append(post)
     return out
+
+
+#: :func:`check_prefixes` searches a failing chain of prefixes again once the track has
+#: grown by this factor since its last search (whatever the bound from that search says)
+SEARCH_GROWTH = 1.25
+
+
+def _moved(sim: CountingSimulator, fit, k: int, dt: float, floor: float):
+    """``fit = (theta, state0)`` with its start moved on by ``k`` frames (None stays None)."""
+    if fit is None or k == 0:
+        return fit
+    th, s0 = fit
+    s = sim(np.asarray(th, dtype=np.float64)[None],
+            clip_state(np.asarray(s0, dtype=np.float64)[None], floor), k + 1, dt, floor)
+    return th, s[0, -1]
 
 
 #: a parameter is uninformed when moving it across its whole prior range changes the
@@ -248,22 +291,28 @@ CHECK_TOL = 1e-4
 
 
 def widen_to_support(post: Posterior, check: Check, sim: CountingSimulator, track: Track,
-                     state0: np.ndarray, floor: float) -> Posterior:
+                     state0: np.ndarray, floor: float, start=None,
+                     info: dict | None = None, max_sims: int = SUPPORT_SIMS) -> Posterior:
     """``post`` with ``check``; when it fails, intervals widened to what the data supports.
 
     A failed check says the posterior mean does not reproduce the track. Whether the model can
     reproduce it at all is asked by a local least-squares fit from the posterior mean (and
     ``state0``; the start is fitted too unless known), :func:`refine_fit`, at most
-    :data:`SUPPORT_SIMS` simulations. If that best fit passes the same check, the data support
+    ``max_sims`` (:data:`SUPPORT_SIMS`) simulations. If that best fit passes the same check, the data support
     the model near the method's answer: each parameter's std grows to at least its distance
     from the best fit (so the 90% interval holds the best fit), the samples are stretched
     about the mean by the same factors, and ``check.note`` says so (the verdict stays failed,
     with the posterior mean's RMS). If even the best fit fails, the model does not explain the
-    observation and the spread becomes at least the prior's (:func:`widen_failed`).
+    observation and the spread becomes at least the prior's (:func:`widen_failed`). ``start``:
+    ``(theta, state0)`` to fit from instead (the region check's best fit inside the 90% box).
+    ``info`` receives the best fit's ``"theta"``, ``"state0"`` and ``"rms"`` (when it ran).
     """
     if check.ok:
         post.check = check
         return post
+    theta0 = post.mean
+    if start is not None:
+        theta0, state0 = start
     if track.state0_known:
         lo_s = hi_s = None
         s0 = track.state0
@@ -271,12 +320,15 @@ def widen_to_support(post: Posterior, check: Check, sim: CountingSimulator, trac
         lo_s, hi_s = state0_box(track)
         s0 = np.clip(np.asarray(state0, dtype=np.float64), lo_s, hi_s)
     try:
-        best, s0_best, rms = refine_fit(sim, track, np.clip(post.mean, physics.PRIOR_LO,
+        best, s0_best, rms = refine_fit(sim, track, np.clip(theta0, physics.PRIOR_LO,
                                                              physics.PRIOR_HI),
-                                        s0, lo_s, hi_s, SUPPORT_SIMS, tol=CHECK_TOL)
+                                        s0, lo_s, hi_s, max_sims, tol=CHECK_TOL)
     except ValueError:
         return widen_failed(post, check)
-    if not model_check(sim, best, s0_best, floor, track, check.noise_m).ok:
+    if info is not None:
+        info.update(theta=best, state0=s0_best, rms=rms)
+    # judged on the floor the fit used
+    if not model_check(sim, best, s0_best, track.floor, track, check.noise_m).ok:
         return widen_failed(post, check)
     std = np.maximum(post.std, np.abs(best - post.mean))
     samples = post.samples
@@ -316,26 +368,9 @@ def state0_box(track: Track) -> tuple[np.ndarray, np.ndarray]:
             clip_state(track.state0 + half, track.floor))
 
 
-def model_check(sim: CountingSimulator, theta: np.ndarray, state0: np.ndarray, floor: float,
-                track: Track, noise_m: float, fit_state0: bool = False,
-                info: dict | None = None) -> Check:
-    """:class:`Check` of the trajectory of ``theta`` (4,) from ``state0`` (4,) over ``track``.
-
-    Simulates that one trajectory (counted by ``sim``) and judges its residual RMS over the
-    seen frames against ``noise_m`` (:meth:`Check.from_residuals`). ``fit_state0``: for a
-    method that holds an estimated initial state fixed (bo, sindy), the start is first fitted
-    by least squares with ``theta`` held (:func:`refine_fit`, at most
-    :data:`CHECK_STATE_SIMS` simulations, inside :func:`state0_box`): the check then asks
-    whether the posterior-mean parameters explain the track, not whether a finite-difference
-    start does (from the tracked start, 200 frames of a clean video drift by metres).
-    ``info``: a dict that receives the start used (``"state0"``).
-    """
-    if fit_state0 and not track.state0_known:
-        lo, hi = state0_box(track)
-        _, state0, _ = refine_fit(sim, track, theta, state0, lo, hi, CHECK_STATE_SIMS,
-                                  fit_theta=False, tol=CHECK_TOL)
-    if info is not None:
-        info["state0"] = np.asarray(state0, dtype=np.float64)
+def _judge(sim: CountingSimulator, theta, state0, floor: float, track: Track,
+           noise_m: float) -> Check:
+    """:class:`Check` of the one trajectory of ``theta`` (4,) from ``state0`` (4,) (1 simulation)."""
     traj = sim.positions(np.asarray(theta, dtype=np.float64)[None],
                          clip_state(np.asarray(state0, dtype=np.float64)[None], floor),
                          track.n_frames, track.dt, float(floor))[0]
@@ -344,13 +379,203 @@ def model_check(sim: CountingSimulator, theta: np.ndarray, state0: np.ndarray, f
     return Check.from_residuals(resid, float(noise_m))
 
 
+def model_check(sim: CountingSimulator, theta: np.ndarray, state0: np.ndarray, floor: float,
+                track: Track, noise_m: float, fit_state0: bool = False,
+                info: dict | None = None, try_start: bool = False,
+                max_sims: int = CHECK_STATE_SIMS) -> Check:
+    """:class:`Check` of the trajectory of ``theta`` (4,) from ``state0`` (4,) over ``track``.
+
+    Simulates that one trajectory (counted by ``sim``) and judges its residual RMS over the
+    seen frames against ``noise_m`` (:meth:`Check.from_residuals`). ``fit_state0``: for a
+    method that holds an estimated initial state fixed (bo, sindy), the start is first fitted
+    by least squares with ``theta`` held (:func:`refine_fit`, at most
+    ``max_sims`` (:data:`CHECK_STATE_SIMS`) simulations, inside :func:`state0_box`): the check
+    then asks
+    whether the posterior-mean parameters explain the track, not whether a finite-difference
+    start does (from the tracked start, 200 frames of a clean video drift by metres).
+    ``try_start``: ``state0`` is a warm start (the fitted start of the previous prefix, which
+    differs by a frame): it is judged as it is first and the fit is skipped when it passes.
+    ``info``: a dict that receives the start used (``"state0"``).
+    """
+    if fit_state0 and not track.state0_known:
+        lo, hi = state0_box(track)
+        state0 = np.clip(np.asarray(state0, dtype=np.float64), lo, hi)
+        if try_start:
+            check = _judge(sim, theta, state0, floor, track, noise_m)
+            if check.ok:
+                if info is not None:
+                    info["state0"] = state0
+                return check
+        _, state0, _ = refine_fit(sim, track, theta, state0, lo, hi, max_sims,
+                                  fit_theta=False, tol=CHECK_TOL)
+    if info is not None:
+        info["state0"] = np.asarray(state0, dtype=np.float64)
+    return _judge(sim, theta, state0, floor, track, noise_m)
+
+
+#: ``Check.note`` of a failed check that did not search (:func:`check_prefixes`)
+UNSEARCHED_NOTE = ("intervals widened to at least the prior's: no fit found explained the "
+                   "frames before these, so none can explain these (not searched again)")
+#: the posterior's central interval the region check searches (:func:`region_box`)
+REGION_LEVEL = 0.9
+#: simulations the region check's bounded refit may use (a batch of 9 per step: the four
+#: parameters and the four initial-state coordinates free)
+REGION_SIMS = 180
+#: the budget of each search (the start's, the region's, the support's) that starts warm, from
+#: the previous prefix's fits (:func:`check_prefixes`): a frame more moves the optimum little
+WARM_SIMS = 90
+#: the parts of the track the region refit fits in turn (continuation)
+REGION_STAGES = (0.25, 0.5, 1.0)
+#: ``Check.note`` of a check passed by the posterior mean's own trajectory
+MEAN_NOTE = "passes at the posterior mean"
+#: ``Check.note`` (its start) of a check passed by a parameter vector inside the 90% interval
+REGION_NOTE = "passes inside the 90% interval"
+
+
+def region_box(post: Posterior, level: float = REGION_LEVEL) -> tuple[np.ndarray, np.ndarray]:
+    """The posterior's central ``level`` box ``(lo, hi)``, (4,) each, inside the prior box.
+
+    Per parameter, the interval a user reads (:meth:`Posterior.interval`): the samples'
+    ``(1 - level) / 2`` and ``(1 + level) / 2`` quantiles when there are samples, else
+    ``mean -/+ z std`` (1.645 std at 90%); an infinite or NaN side is the prior's bound.
+    """
+    lo, hi = post.interval(level)
+    lo = np.clip(np.where(np.isnan(lo), physics.PRIOR_LO, lo), physics.PRIOR_LO, physics.PRIOR_HI)
+    hi = np.clip(np.where(np.isnan(hi), physics.PRIOR_HI, hi), physics.PRIOR_LO, physics.PRIOR_HI)
+    return np.minimum(lo, hi), np.maximum(lo, hi)
+
+
+def region_check(sim: CountingSimulator, post: Posterior, track: Track, state0: np.ndarray,
+                 noise_m: float, witness=None, info: dict | None = None,
+                 max_sims: int = REGION_SIMS) -> Check:
+    """Does a parameter vector inside the posterior's 90% box explain the track?
+
+    A bounded least-squares refit (:func:`refine_fit`): ``theta`` inside :func:`region_box`,
+    the initial state free in :func:`state0_box` (held when known), from the posterior mean
+    (clipped into the box) and ``state0``, by continuation (the first quarter of the track,
+    then half, then all of it, :data:`REGION_STAGES`, at most ``max_sims`` simulations
+    each: a long track's bounces make the landscape rough far from the optimum). The fit's
+    trajectory is judged against ``noise_m`` as the mean's is (on ``track.floor``).
+    ``witness``: ``(theta, state0)`` fitted to a neighbouring prefix (one frame shorter): it is
+    judged first (clipped into the box; 1 simulation), and when it fails the refit starts from
+    it on the whole track in one stage. ``info`` receives the judged ``"theta"`` and
+    ``"state0"``.
+
+    A wide posterior whose mean drifts off the track across bounces passes when its interval
+    holds parameters that fit; a narrow one off the truth cannot move far enough and fails.
+    """
+    lo_t, hi_t = region_box(post)
+    theta = np.clip(np.asarray(post.mean, dtype=np.float64), lo_t, hi_t)
+    s0 = np.asarray(state0, dtype=np.float64)
+    stages = REGION_STAGES
+    if witness is not None:
+        theta = np.clip(np.asarray(witness[0], dtype=np.float64), lo_t, hi_t)
+        s0 = np.asarray(witness[1], dtype=np.float64)
+        stages = (1.0,)
+    if track.state0_known:
+        lo_s = hi_s = None
+        s0 = track.state0
+    else:
+        lo_s, hi_s = state0_box(track)
+        s0 = np.clip(s0, lo_s, hi_s)
+    if witness is not None:
+        check = _judge(sim, theta, s0, track.floor, track, noise_m)
+        if check.ok:
+            if info is not None:
+                info.update(theta=theta, state0=s0)
+            return check
+    for frac in stages:
+        m = max(int(np.ceil(frac * track.n_frames)), min(track.n_frames, 3))
+        part = track if m >= track.n_frames else dataclasses.replace(
+            track, positions=track.positions[:m], mask=track.mask[:m])
+        if part.mask.sum() < 3:
+            continue
+        theta, s0, _ = refine_fit(sim, part, theta, s0, lo_s, hi_s, max_sims, tol=CHECK_TOL,
+                                  theta_box=(lo_t, hi_t))
+    if info is not None:
+        info.update(theta=theta, state0=s0)
+    return _judge(sim, theta, s0, track.floor, track, noise_m)
+
+
+def check_posterior(post: Posterior, sim: CountingSimulator, track: Track, state0: np.ndarray,
+                    floor: float, noise_m: float, *, fit_state0: bool = False, seed: int = 0,
+                    try_start: bool = False, witness=None, support_start=None,
+                    search: bool = True, info: dict | None = None) -> Posterior:
+    """``post`` with its model check, a check of the posterior rather than of one point.
+
+    1. The posterior mean's trajectory from ``state0`` (fitted first with ``fit_state0``,
+       judged from ``state0`` as it is first with ``try_start``; :func:`model_check`).
+    2. If it fails, :func:`region_check` (from ``witness`` when given): a parameter vector
+       inside the 90% interval box, with its own fitted start. Either passing passes;
+       ``Check.note`` says which (:data:`MEAN_NOTE`, :data:`REGION_NOTE`) and ``Check.rms_m``
+       is the RMS of the trajectory that passed.
+    3. Passed: parameters the track cannot inform at the passing trajectory are widened to the
+       prior (:func:`uninformed`, :func:`widen_uninformed` with ``seed``). Failed: the intervals
+       are widened to what the data supports (:func:`widen_to_support`, from ``support_start``
+       or the region's best fit); the verdict stays failed with the posterior mean's RMS.
+
+    ``try_start`` (a warm start from the previous prefix) also limits each search to
+    :data:`WARM_SIMS` simulations. ``search=False`` (:func:`check_prefixes`, when the prefix
+    before was explained by nothing
+    it searched): the mean is judged from ``state0`` only (1 simulation) and a failure widens
+    to the prior (:func:`widen_failed`) without searching. All simulations are counted by
+    ``sim``. ``info`` receives, for the next prefix: the judged ``"theta"`` and ``"state0"``,
+    the region's and the support's fits (``"region"``, ``"support"``: ``(theta, state0)`` or
+    None) and ``"best_sse"``, the smallest sum of squared residuals (m^2) found (NaN if none).
+    """
+    info = {} if info is None else info
+    m_info: dict = {}
+    budget = {} if not try_start else {"max_sims": WARM_SIMS}
+    check = model_check(sim, post.mean, state0, floor, track, noise_m,
+                        fit_state0=fit_state0 and search, info=m_info, try_start=try_start,
+                        **budget)
+    theta, s0, fl = np.asarray(post.mean, dtype=np.float64), m_info["state0"], float(floor)
+    info.update(region=None, support=None, best_sse=check.rms_m ** 2 * check.n)
+    if check.ok:
+        check = dataclasses.replace(check, note=MEAN_NOTE)
+    elif search:
+        r_info: dict = {}
+        region = region_check(sim, post, track, s0, noise_m, witness=witness, info=r_info,
+                              **budget)
+        info["region"] = (r_info["theta"], r_info["state0"])
+        info["best_sse"] = min(info["best_sse"], region.rms_m ** 2 * region.n)
+        post.extras["region_box"] = [b.tolist() for b in region_box(post)]
+        post.extras["region_rms_m"] = region.rms_m
+        post.extras["mean_rms_m"] = check.rms_m
+        if region.ok:
+            note = (f"{REGION_NOTE}: the posterior mean misses the track by {check.rms_m:.3g} m "
+                    f"RMS, a parameter vector inside the interval explains it "
+                    f"({region.rms_m:.3g} m RMS)")
+            check = dataclasses.replace(region, note=note)
+            theta, s0, fl = r_info["theta"], r_info["state0"], float(track.floor)
+    info.update(theta=theta, state0=s0)
+    if check.ok:
+        # a track that cannot inform a parameter (a ball at rest: e, g, d) supports no
+        # interval narrower than the prior's, however the method ended up
+        flat = uninformed(sim, theta, s0, fl, track, noise_m)
+        post = widen_uninformed(post, flat, seed=seed)
+        post.check = check  # in place: a subclass's lazy samples stay lazy
+        return post
+    if not search:
+        return widen_failed(post, dataclasses.replace(check, note=UNSEARCHED_NOTE))
+    s_info: dict = {}
+    post = widen_to_support(post, check, sim, track, s0, fl,
+                            start=support_start or info["region"], info=s_info, **budget)
+    if s_info:
+        info["support"] = (s_info["theta"], s_info["state0"])
+        info["best_sse"] = min(info["best_sse"], s_info["rms"] ** 2 * check.n)
+    return post
+
+
 def refine_fit(sim: CountingSimulator, track: Track, theta0, s00, lo_s, hi_s, max_sims: int,
-               fit_theta: bool = True, tol: float = 1e-8):
+               fit_theta: bool = True, tol: float = 1e-8, theta_box=None):
     """Local least squares from ``theta0`` (4,), ``s00`` (4,); returns ``(theta, state0, rms)``.
 
     Coordinates: the parameters mapped to [0, 1] by the prior (held at ``theta0`` when
-    ``fit_theta`` is False), then (when ``lo_s`` is not None) the initial state mapped to [0, 1]
-    by its box ``[lo_s, hi_s]`` (held at ``s00`` otherwise). Residuals are the seen coordinates'
+    ``fit_theta`` is False; kept inside ``theta_box = (lo, hi)``, (4,) each in physical units
+    within the prior, when given: the region check's box), then (when ``lo_s`` is not None) the
+    initial state mapped to [0, 1] by its box ``[lo_s, hi_s]`` (held at ``s00`` otherwise).
+    Residuals are the seen coordinates'
     errors (m); the Jacobian is forward differences, one batch of D + 1 simulations per
     evaluation, at most ``max_sims`` simulations in all (counted by ``sim``). ``tol``: the
     optimiser's ``ftol``/``xtol`` (the checks use 1e-4: they need the RMS to a few percent of the
@@ -369,10 +594,22 @@ def refine_fit(sim: CountingSimulator, track: Track, theta0, s00, lo_s, hi_s, ma
     mask = track.mask
     obs = track.positions[mask].ravel()
     span_s = (hi_s - lo_s) if free else None
+    # bounds in the optimiser's coordinates: [0, 1] but the theta box's (never empty: a
+    # zero-width side is opened by 1e-9 so the optimiser's strict bounds hold)
+    lb, ub = np.zeros(D), np.ones(D)
+    if fit_theta and theta_box is not None:
+        lb[:4] = np.clip(physics.normalise_theta(np.asarray(theta_box[0], np.float64)[None])[0],
+                         0.0, 1.0)
+        ub[:4] = np.clip(physics.normalise_theta(np.asarray(theta_box[1], np.float64)[None])[0],
+                         0.0, 1.0)
+        lb[:4] = np.minimum(lb[:4], ub[:4])
+        point = ub[:4] - lb[:4] < 1e-9
+        lb[:4] = np.where(point, np.minimum(lb[:4], 1.0 - 1e-9), lb[:4])
+        ub[:4] = np.where(point, lb[:4] + 1e-9, ub[:4])
 
     def unpack(U):
         if fit_theta:
-            th = physics.denormalise_theta(np.clip(U[:, :4], 0.0, 1.0))
+            th = physics.denormalise_theta(np.clip(U[:, :4], lb[:4], ub[:4]))
         else:
             th = np.broadcast_to(theta0, (len(U), 4))
         if free:
@@ -391,7 +628,7 @@ def refine_fit(sim: CountingSimulator, track: Track, theta0, s00, lo_s, hi_s, ma
         x0[:4] = physics.normalise_theta(theta0[None])[0]
     if free:
         x0[nt:] = np.where(span_s > 0, (s00 - lo_s) / np.where(span_s > 0, span_s, 1.0), 0.5)
-    x0 = np.clip(x0, 0.0, 1.0)
+    x0 = np.clip(x0, lb, ub)
     h = 1e-6
     cache = {}
 
@@ -399,7 +636,7 @@ def refine_fit(sim: CountingSimulator, track: Track, theta0, s00, lo_s, hi_s, ma
         key = x.tobytes()
         if key not in cache:
             # the point and its D forward steps in one batch (stepping inwards at a bound)
-            steps = np.where(x + h <= 1.0, h, -h)
+            steps = np.where(x + h <= ub, h, -h)
             U = np.vstack([x, x + np.diag(steps)])
             r = resid(U)
             cache.clear()
@@ -412,7 +649,7 @@ def refine_fit(sim: CountingSimulator, track: Track, theta0, s00, lo_s, hi_s, ma
 
     r0 = fun(x0)
     with one_blas_thread():
-        res = least_squares(fun, x0, jac=jac, bounds=(0.0, 1.0), method="trf",
+        res = least_squares(fun, x0, jac=jac, bounds=(lb, ub), method="trf",
                             max_nfev=max(max_sims // (D + 1), 1), x_scale="jac",
                             ftol=tol, xtol=tol)
     x = res.x if np.sum(res.fun**2) < np.sum(r0**2) else x0
@@ -469,7 +706,8 @@ class Fit:
     check_fits_state0: bool = False
 
     def checked(self, noise_m: float) -> Posterior:
-        """The posterior with its model check (:func:`model_check`, :func:`widen_to_support`;
+        """The posterior with its model check (:func:`check_posterior`: the mean, else a
+        parameter vector inside the 90% interval; failed: :func:`widen_to_support`;
         parameters the track cannot inform widened to the prior, :func:`uninformed`);
         the check's simulations are in ``extras["check_simulations"]``, not in
         ``n_simulations``."""
@@ -483,16 +721,8 @@ class Fit:
         noise = noise_m if self.noise_m is None else self.noise_m
         # the check's own simulations are counted apart: n_simulations stays the method's
         sim = CountingSimulator()
-        info: dict = {}
-        check = model_check(sim, self.posterior.mean, s0, float(fl), self.track, noise,
-                            fit_state0=self.check_fits_state0, info=info)
-        post = self.posterior
-        if check.ok:
-            # a track that cannot inform a parameter (a ball at rest: e, g, d) supports no
-            # interval narrower than the prior's, however the sampler or search ended up
-            flat = uninformed(sim, post.mean, info["state0"], float(fl), self.track, noise)
-            post = widen_uninformed(post, flat, seed=self.track.n_frames)
-        post = widen_to_support(post, check, sim, self.track, info["state0"], float(fl))
+        post = check_posterior(self.posterior, sim, self.track, s0, float(fl), noise,
+                               fit_state0=self.check_fits_state0, seed=self.track.n_frames)
         post.extras["check_simulations"] = sim.n_simulations
         return post
 

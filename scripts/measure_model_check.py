@@ -17,6 +17,7 @@ Three sets, each as positions and as rendered 28x28 video:
 Usage::
 
     python scripts/measure_model_check.py --methods lsq,sindy --cases 20 --out DIR
+    python scripts/measure_model_check.py --methods vid2param --time-prefixes 2
 
 Writes ``DIR/model_check_rows.csv`` (one row per answer) and ``DIR/model_check.csv`` (the three
 counts per method and input) atomically; prints the summary. Seeded: the same arguments give the
@@ -108,7 +109,8 @@ def answer(method: str, item: dict, inp: str) -> dict:
     from sysid_bench.physics import PRIOR_SPAN
 
     rec = {"refused": False, "check_ok": np.nan, "check_rms_m": np.nan, "narrow": False,
-           "holds90": np.nan, "seconds": np.nan, "error": ""}
+           "holds90": np.nan, "own_holds90": np.nan, "region": False, "check_note": "",
+           "seconds": np.nan, "error": ""}
     data = item["frames"] if inp == "video" else item["positions"]
     if data is None:
         rec.update(refused=True, error="no positions in this kind")
@@ -128,10 +130,17 @@ def answer(method: str, item: dict, inp: str) -> dict:
     if post.check is not None:
         rec["check_ok"] = float(post.check.ok)
         rec["check_rms_m"] = post.check.rms_m
+        rec["check_note"] = post.check.note[:60]
+        rec["region"] = post.check.note.startswith("passes inside")
     if item["truth"] is not None:
         t = item["truth"][EGD]
         rec["holds90"] = float(np.mean((t >= lo[EGD]) & (t <= hi[EGD])))
         rec["holds90_all"] = [bool(v) for v in ((t >= lo[EGD]) & (t <= hi[EGD]))]
+        # the method's own 90% interval, before a failed check widened it: the box the region
+        # check searched when it ran (clipped to the prior), else the interval returned
+        own_lo, own_hi = post.extras.get("region_box", (lo, hi))
+        own_lo, own_hi = np.asarray(own_lo)[EGD], np.asarray(own_hi)[EGD]
+        rec["own_holds90"] = float(np.mean((t >= own_lo) & (t <= own_hi)))
     return rec
 
 
@@ -163,9 +172,46 @@ def summarise(rows):
             "test cases failing the check (target <= 0.05)": (
                 f"{np.mean(c.check_ok == 0.0):.2f}" if len(c) else "-"),
             "test cases": len(c),
+            # how the test cases passed: inside the 90% interval, not at the mean
+            "test passes inside the interval": int(c.region.sum()) if len(c) else 0,
+            # failing test cases: did the method's own 90% intervals hold the truth (e, g, d)?
+            "failing: own 90% coverage": (
+                f"{np.nanmean(c[c.check_ok == 0.0].own_holds90):.2f}"
+                if (c.check_ok == 0.0).any() else "-"),
             "median s": f"{np.nanmedian(g.seconds):.2g}" if g.seconds.notna().any() else "-",
         })
     return df, pd.DataFrame(out)
+
+
+def time_prefixes(names: list[str], n_videos: int) -> list[dict]:
+    """Seconds (wall and CPU) of ``identify_prefixes(obs, range(1, T + 1))`` on the first
+    ``n_videos`` test videos of experiment 3 (changing parameters, default scale), after one
+    warm-up call per method (network load, compilation); and how the checks ended."""
+    import methods
+    from sysid_bench.bench.cases import SCALES, observation, test_set
+
+    sc = SCALES["default"]
+    ds = test_set("changing", n_videos, sc.seed, every=sc.change_every)
+    out = []
+    for name in names:
+        est = methods.get(name)
+        est.identify_prefixes(observation(ds, 0, "video"), [5])
+        for i in range(n_videos):
+            obs = observation(ds, i, "video")
+            t0, c0 = time.perf_counter(), time.process_time()
+            posts = est.identify_prefixes(obs, range(1, obs.n_frames + 1))
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+            ok = [p.check is not None and p.check.ok for p in posts]
+            region = [p.check is not None and p.check.note.startswith("passes inside")
+                      for p in posts]
+            row = {"method": name, "video": i, "prefixes": len(posts), "wall s": round(wall, 2),
+                   "cpu s": round(cpu, 2), "passing": round(float(np.mean(ok)), 3),
+                   "passing inside the interval": int(np.sum(region)),
+                   "check simulations": int(sum(p.extras.get("check_simulations", 0)
+                                                for p in posts))}
+            print(row, flush=True)
+            out.append(row)
+    return out
 
 
 def main(argv=None) -> int:
@@ -182,7 +228,15 @@ def main(argv=None) -> int:
     ap.add_argument("--inputs", default="positions,video")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--time-prefixes", type=int, default=0, metavar="N",
+                    help="instead: time identify_prefixes over every prefix of N changing-"
+                         "parameter test videos for --methods (e.g. vid2param)")
     args = ap.parse_args(argv)
+    if args.time_prefixes:
+        if args.time_prefixes < 1:
+            ap.error(f"--time-prefixes: expected N >= 1, got {args.time_prefixes}")
+        time_prefixes(args.methods.split(","), args.time_prefixes)
+        return 0
     rng = np.random.default_rng(args.seed)
     ds, tests = test_cases(max(args.cases, 2))
     sets = {"a": meaningless(rng, ds), "b": perturbed(rng, args.perturbed, args.spin, args.dwell),

@@ -348,7 +348,9 @@ class Check:
     Parameters
     ----------
     rms_m : float
-        Residual RMS (m) of the posterior-mean trajectory against the observed positions.
+        Residual RMS (m) against the observed positions of the trajectory that was judged: the
+        posterior mean's; when that fails and a parameter vector inside the posterior's 90%
+        interval explains the track (``methods._simulation.check_posterior``), that one's.
     noise_m : float
         The observation noise (m) the method assumed.
     ok : bool
@@ -357,7 +359,9 @@ class Check:
     n : int
         Number of residuals (coordinates of seen points) behind ``rms_m``.
     note : str
-        What was done about a failed check (e.g. "intervals widened to the prior").
+        Which trajectory passed ("passes at the posterior mean", "passes inside the 90%
+        interval"), or what was done about a failed check (e.g. "intervals widened to the
+        prior").
     """
 
     rms_m: float
@@ -385,16 +389,24 @@ class Check:
         ``noise_m``: the chi-square bound keeps a short track's honest fit from failing by chance.
         No residual at all (nothing seen) fails: nothing explains nothing.
         """
-        from scipy.stats import chi2
-
         r = np.asarray(residuals, dtype=np.float64).ravel()
         r = r[np.isfinite(r)]
         noise = float(noise_m)
         if r.size == 0:
             return cls(float("nan"), noise, False, 0, note or "nothing observed")
         rms = float(np.sqrt(np.mean(r * r)))
-        bound = max(factor, float(np.sqrt(chi2.ppf(0.999, r.size) / r.size)))
-        return cls(rms, noise, bool(rms <= bound * noise), int(r.size), note)
+        return cls(rms, noise, bool(rms <= cls.bound(r.size, factor) * noise), int(r.size), note)
+
+    @staticmethod
+    def bound(n: int, factor: float = CHECK_FACTOR) -> float:
+        """The largest passing RMS of ``n`` residuals, in units of the noise:
+        ``max(factor, sqrt(chi2_0.999(n) / n))``."""
+        from scipy.stats import chi2
+
+        n = int(n)
+        if n < 1:
+            raise ValueError(f"n: expected at least 1 residual, got {n!r}")
+        return max(float(factor), float(np.sqrt(chi2.ppf(0.999, n) / n)))
 
     def as_dict(self) -> dict[str, Any]:
         """``{"check_ok": ..., "check_rms_m": ..., "check_noise_m": ...}`` for tables."""
