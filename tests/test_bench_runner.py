@@ -361,3 +361,19 @@ def test_fingerprint_covers_checkpoints_and_shared_code():
     efp = experiment_fingerprint("forecasting")
     assert efp == experiment_fingerprint("forecasting") and len(efp) == 16
     assert experiment_fingerprint("identification") != efp
+
+
+def test_workers_share_a_jax_compilation_cache(tmp_path, monkeypatch):
+    """Spawned workers get the run's JAX compilation cache and one thread each; the parent's
+    environment comes back as it was."""
+    from sysid_bench.bench.runner import _single_threaded_children
+
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.delenv("NUMBA_NUM_THREADS", raising=False)
+    with _single_threaded_children(1, tmp_path / "jax_cache"):
+        assert os.environ["JAX_COMPILATION_CACHE_DIR"] == str(tmp_path / "jax_cache")
+        assert os.environ["NUMBA_NUM_THREADS"] == "1"
+    assert "JAX_COMPILATION_CACHE_DIR" not in os.environ
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/elsewhere")  # the user's own is kept
+    with _single_threaded_children(1, tmp_path / "jax_cache"):
+        assert os.environ["JAX_COMPILATION_CACHE_DIR"] == "/elsewhere"

@@ -206,10 +206,15 @@ def provenance() -> dict:
 
 
 @contextlib.contextmanager
-def _single_threaded_children(threads: int = 1):
+def _single_threaded_children(threads: int = 1, jax_cache=None):
     """Spawned workers inherit these: ``threads`` BLAS/OpenMP/XLA threads each (default one:
-    workers = cores). Variables the user set already are kept."""
+    workers = cores), and ``jax_cache`` as JAX's persistent compilation cache (NUTS compiles
+    its sampler per frame bucket, ~10-50 s each: every worker after the first, and a resumed
+    run, loads it instead; the compiled code is the same). Variables the user set already are
+    kept."""
     env = _thread_env(threads)
+    if jax_cache is not None:
+        env["JAX_COMPILATION_CACHE_DIR"] = str(jax_cache)
     old = {k: os.environ.get(k) for k in env}
     for k, v in env.items():
         os.environ.setdefault(k, v)
@@ -428,7 +433,7 @@ def _run_local(todo, sc, run_dir, workers, inline, write, threads=1) -> None:
                 if pool is None or broken:
                     if pool is not None:
                         pool.shutdown(wait=False, cancel_futures=True)
-                    with _single_threaded_children(threads):
+                    with _single_threaded_children(threads, Path(run_dir) / "jax_cache"):
                         pool = ProcessPoolExecutor(min(n_workers, len(pooled)),
                                                    mp_context=mp.get_context("spawn"),
                                                    initializer=_end_with_parent,
