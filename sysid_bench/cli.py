@@ -216,7 +216,7 @@ def _functions(name: str):
     if name in delegated:
         return _delegate_arguments, _delegated(delegated[name][0])
     module = importlib.import_module(SUBCOMMANDS[name][0])
-    if module.__name__ == __name__:
+    if hasattr(module, f"{name}_arguments"):  # defined here (also as ``python -m``'s __main__)
         return getattr(module, f"{name}_arguments"), getattr(module, f"{name}_run")
     return module.add_arguments, module.run
 

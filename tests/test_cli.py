@@ -67,3 +67,15 @@ def test_the_chosen_subcommand_alone_is_imported():
             "print('torch' in sys.modules, 'jax' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split()[-2:] == ["False", "False"]
+
+
+def test_cli_runs_as_a_module():
+    """``python -m sysid_bench.cli run --help`` (the module as __main__) finds its own
+    subcommands (it looked them up by module name and raised AttributeError)."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", "sysid_bench.cli", "run", "--help"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "usage: sysid-bench run" in out.stdout
