@@ -159,6 +159,19 @@ def table(name: str, before: str) -> str:
 
         return head + markdown_table(new.map(_short)) + "\n"
     old = ours(old)
+    extra = ""
+    if "physics" in new.columns and "physics" not in old.columns:
+        # rows on physics that is not ours are new (section 5's perturbed rows): listed apart
+        from sysid_bench._markdown import markdown_table
+
+        added = new[new["physics"] != "ours"]
+        if len(added):
+            extra = (f"\nNew rows (physics not ours, none before):\n\n"
+                     + markdown_table(added.map(_short)) + "\n")
+        new = new[new["physics"] == "ours"].drop(columns="physics")
+    keys = [k for k in keys if k in old.columns and k in new.columns]
+    new = new.drop(columns=[k for k in KEYS if k in new.columns and k not in keys
+                            and new[k].nunique() <= 1])
     merged = new.merge(old, on=keys, how="outer", suffixes=(" (after)", " (before)"),
                        indicator=True)
     cols = [c for c in new.columns if c not in keys and c not in SKIP]
@@ -182,7 +195,7 @@ def table(name: str, before: str) -> str:
             cells = (label, c, bt, at, verdict, ci)
             lines.append("| " + " | ".join(s.replace("|", "\\|") for s in cells) + " |")
     tally = ", ".join(f"{v} {k}" for k, v in sorted(counts.items()))
-    return f"### {name}\n\n{tally}.\n\n" + "\n".join(lines) + "\n"
+    return f"### {name}\n\n{tally}.\n\n" + "\n".join(lines) + "\n" + extra
 
 
 def same_throws(policy: str, before: str) -> str:
