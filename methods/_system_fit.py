@@ -45,6 +45,7 @@ Forecasts are (H, 2) for a system with one tracked point and (H, K, 2) for K > 1
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 import warnings
@@ -493,6 +494,19 @@ class SystemFitMethod(Estimator):
         return Problem(track, self._sigma(system), CountingSystemSimulator(system))
 
     def _posterior(self, prob: Problem, mean, std, samples, extras, check) -> Posterior:
+        """The posterior; where its model check failed, widened to the prior (the track is not
+        explained by the mean's trajectory, so no interval narrower than the prior's is claimed:
+        the mean stays, ``std`` becomes at least the prior's, the samples are prior draws, and
+        ``check.note`` and ``extras["widened"]`` say so)."""
+        if check is not None and not check.ok:
+            system = prob.system
+            lo, hi = system.prior_lo, system.prior_hi
+            rng = np.random.default_rng([int(getattr(self, "seed", 0) or 0), len(samples)])
+            samples = lo + (hi - lo) * rng.random((len(samples), len(lo)))
+            std = np.maximum(np.asarray(std, dtype=float), (hi - lo) / np.sqrt(12.0))
+            note = "intervals widened to the prior: the model does not explain the track"
+            check = dataclasses.replace(check, note=f"{check.note}; {note}" if check.note else note)
+            extras = {**extras, "widened": "prior"}
         return Posterior(mean=mean, std=std, samples=samples, extras=extras, check=check,
                          system=prob.system.name)
 
