@@ -8,11 +8,38 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["method_fingerprint"]
+__all__ = ["method_fingerprint", "fingerprint_files"]
 
-#: harness files the baselines are built on: a change to one changes their fingerprints
-_SHARED_SOURCES = ("sysid_bench/simulator.py", "methods/_tracks.py", "methods/_weights.py",
-                   "methods/_simulation.py")
+#: harness files the methods are built on: a change to one changes their fingerprints (globs
+#: from the repository root; every private ``methods/_*.py`` module is shared by several
+#: methods, and the physics and systems decide what every method simulates)
+_SHARED_SOURCES = ("sysid_bench/simulator.py", "sysid_bench/physics.py",
+                   "sysid_bench/physics_jax.py", "sysid_bench/systems/*.py", "methods/_*.py")
+
+
+def fingerprint_files(name: str) -> list[Path]:
+    """The files whose bytes a method's fingerprint hashes (its module or package, then the
+    shared harness sources)."""
+    import importlib.util
+
+    import methods
+
+    mod = methods.spec(name).entry_point.split(":")[0]
+    found = importlib.util.find_spec(mod)
+    files: list[Path] = []
+    if found is not None and found.origin:
+        origin = Path(found.origin)
+        if found.submodule_search_locations:  # a package: all its sources and weights
+            pkg = origin.parent
+            files = sorted(p for p in pkg.rglob("*")
+                           if p.is_file() and p.suffix in (".py", ".pt", ".json", ".npz")
+                           and "__pycache__" not in p.parts and not p.name.endswith("_test.json"))
+        else:
+            files = [origin]
+    root = Path(__file__).resolve().parents[2]
+    for pattern in _SHARED_SOURCES:
+        files.extend(sorted(f for f in root.glob(pattern) if f.is_file() and f not in files))
+    return files
 
 
 def method_fingerprint(name: str) -> str:
@@ -24,27 +51,11 @@ def method_fingerprint(name: str) -> str:
     so a retrained checkpoint or a fixed method never mixes with its old results.
     """
     import hashlib
-    import importlib.util
 
     import methods
 
     spec = methods.spec(name)
-    mod = spec.entry_point.split(":")[0]
-    found = importlib.util.find_spec(mod)
-    files: list[Path] = []
-    if found is not None and found.origin:
-        origin = Path(found.origin)
-        if found.submodule_search_locations:  # a package: all its sources and weights
-            root = origin.parent
-            files = sorted(p for p in root.rglob("*")
-                           if p.is_file() and p.suffix in (".py", ".pt", ".json", ".npz")
-                           and "__pycache__" not in p.parts and not p.name.endswith("_test.json"))
-        else:
-            files = [origin]
-    for shared in _SHARED_SOURCES:
-        f = Path(__file__).resolve().parents[2] / shared
-        if f.is_file():
-            files.append(f)
+    files = fingerprint_files(name)
     h = hashlib.sha256()
     for f in files:
         h.update(f.name.encode())
