@@ -179,6 +179,24 @@ def share_ci(rows):
     return s
 
 
+def _group_shares(df, rows):
+    """Per method, input and condition: ``share_ci`` of the per-case rows ``rows(group)``
+    gives (groups without rows left out); ``method``, ``input``, ``condition``, ``mean``,
+    ``lo``, ``hi``, ``cases``."""
+    import pandas as pd
+
+    recs = []
+    for (m, inp, cond), g in _conditioned(df).groupby(["method", "input", "condition"]):
+        h = rows(g)
+        if h.empty:
+            continue
+        s = share_ci(h)
+        recs.append({"method": m, "input": inp, "condition": cond, "mean": s["mean"],
+                     "lo": s["lo"], "hi": s["hi"], "cases": h.case.nunique()})
+    return pd.DataFrame(recs, columns=["method", "input", "condition", "mean", "lo", "hi",
+                                       "cases"])
+
+
 def honest_rows(g):
     """Per (case, n_frames, p in e, g, d) of one method's rows ``g``: 1 when the 90% interval
     holds the truth or the posterior's model check failed (issue 29's "honest"), as rows with
@@ -388,19 +406,7 @@ class Calibration(Experiment):
         pandas.DataFrame
             ``method``, ``input``, ``condition``, ``mean``, ``lo``, ``hi``, ``cases``.
         """
-        import pandas as pd
-
-        df = _conditioned(df)
-        recs = []
-        for (m, inp, cond), g in df.groupby(["method", "input", "condition"]):
-            h = honest_rows(g)
-            if h.empty:
-                continue
-            s = share_ci(h)
-            recs.append({"method": m, "input": inp, "condition": cond, "mean": s["mean"],
-                         "lo": s["lo"], "hi": s["hi"], "cases": h.case.nunique()})
-        return pd.DataFrame(recs, columns=["method", "input", "condition", "mean", "lo", "hi",
-                                           "cases"])
+        return _group_shares(df, honest_rows)
 
     def coverage(self, df, level: str = "90", params=PARAMS):
         """Per method, input and condition: coverage of the central ``level``% intervals pooled
@@ -411,19 +417,7 @@ class Calibration(Experiment):
         pandas.DataFrame
             ``method``, ``input``, ``condition``, ``mean``, ``lo``, ``hi``, ``cases``.
         """
-        import pandas as pd
-
-        df = _conditioned(df)
-        recs = []
-        for (m, inp, cond), g in df.groupby(["method", "input", "condition"]):
-            h = self._pooled(g, f"hit{level}", params)
-            if h.empty:
-                continue
-            s = share_ci(h)
-            recs.append({"method": m, "input": inp, "condition": cond, "mean": s["mean"],
-                         "lo": s["lo"], "hi": s["hi"], "cases": h.case.nunique()})
-        return pd.DataFrame(recs, columns=["method", "input", "condition", "mean", "lo", "hi",
-                                           "cases"])
+        return _group_shares(df, lambda g: self._pooled(g, f"hit{level}", params))
 
     def tables(self, df):
         import pandas as pd
