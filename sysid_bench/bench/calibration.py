@@ -179,6 +179,16 @@ def share_ci(rows):
     return s
 
 
+def band_verdict(below, above, lo_b: float, hi_b: float) -> str:
+    """The end of a coverage reading: which methods' whole CIs lie under or over the band
+    ``[lo_b, hi_b]`` issue 29 asks for."""
+    return (f"; issue 29 asks {lo_b:.0%}-{hi_b:.0%}: "
+            + (f"below it (whole CI under {lo_b:.0%}): {', '.join(below)}" if below
+               else f"no CI lies wholly below {lo_b:.0%}")
+            + (f"; above it (whole CI over {hi_b:.0%}): {', '.join(above)}" if above else "")
+            + ".")
+
+
 def _group_shares(df, rows):
     """Per method, input and condition: ``share_ci`` of the per-case rows ``rows(group)``
     gives (groups without rows left out); ``method``, ``input``, ``condition``, ``mean``,
@@ -566,11 +576,7 @@ class Calibration(Experiment):
                 f"U(0, {DWELL * 1e3:g} ms) at every bounce; the model every method fits has "
                 "neither), the 90% intervals hold "
                 "e, g, d in (95% CIs over cases): " + "; ".join(parts)
-                + f"; issue 29 asks {lo_b:.0%}-{hi_b:.0%}: "
-                + (f"below it (whole CI under {lo_b:.0%}): {', '.join(below)}" if below
-                   else f"no CI lies wholly below {lo_b:.0%}")
-                + (f"; above it (whole CI over {hi_b:.0%}): {', '.join(above)}" if above else "")
-                + ".")
+                + band_verdict(below, above, lo_b, hi_b))
         out = [text]
         if ref is not None and ref in set(pert.method):
             r = next(pert[pert.method == ref].itertuples())

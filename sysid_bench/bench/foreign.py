@@ -33,6 +33,7 @@ from sysid_bench.bench.calibration import (
     COVERAGE_BAND,
     EGD,
     FEW_CASES,
+    band_verdict,
     honest_rows,
     share_ci,
 )
@@ -418,11 +419,7 @@ class Foreign(Experiment):
         return ["On MuJoCo videos the 90% intervals after the last frame hold the engine's "
                 "measured e, g, d in (95% CIs over cases; honest: the interval holds it or the "
                 "model check fails): " + "; ".join(parts)
-                + f"; issue 29 asks {lo_b:.0%}-{hi_b:.0%}: "
-                + (f"below it (whole CI under {lo_b:.0%}): {', '.join(below)}" if below
-                   else f"no CI lies wholly below {lo_b:.0%}")
-                + (f"; above it (whole CI over {hi_b:.0%}): {', '.join(above)}" if above else "")
-                + "."]
+                + band_verdict(below, above, lo_b, hi_b)]
 
 
 def _coverage(g):
