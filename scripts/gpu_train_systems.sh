@@ -13,8 +13,8 @@
 # --stage-n N (std_scale's videos, default the preset's 300), --out DIR (default $OUT or
 # runs/gpu_systems); --steps/--batch/--chunk/--val-n pass through to the training command.
 # Per system it writes DIR/v2p_<system>.pt (+ .json card), DIR/v2p_<system>_test.json and
-# DIR/train_<system>.log; 7 files reach $OUT (3 checkpoints, 3 test JSONs, and
-# cards_and_logs.tar.gz with the 3 cards and 3 logs). A run that does not export (a crash) is
+# DIR/train_<system>.log, and the same for the warm-up's snapshot (v2p_<system>_warmup.*); 7 files
+# reach $OUT (6 checkpoints and cards_and_logs.tar.gz with the cards, test JSONs and logs). A run that does not export (a crash) is
 # reported and the others go on.
 set -u
 MAX_MIN=7
@@ -34,7 +34,7 @@ while [ $# -gt 0 ]; do
     --eval-n) EVAL_N="$2"; shift 2 ;;
     --stage-n) STAGE_N="$2"; shift 2 ;;
     --out) DEST="$2"; shift 2 ;;
-    --steps|--batch|--chunk|--val-n|--val-every|--chunk-epochs) PASS+=("$1" "$2"); shift 2 ;;
+    --steps|--batch|--chunk|--val-n|--val-every|--chunk-epochs|--nll-only-steps) PASS+=("$1" "$2"); shift 2 ;;
     *) echo "gpu_train_systems: unknown option $1" >&2; exit 2 ;;
   esac
 done
@@ -50,6 +50,7 @@ for s in $SYSTEMS; do
   rm -rf "$WORK/$s"
   OMP_NUM_THREADS=$THREADS MKL_NUM_THREADS=$THREADS python3 -m methods.vid2param.train \
     --system "$s" --out "$WORK/$s" --export "$WORK/v2p_$s.pt" --export-on-stop \
+    --export-warmup "$WORK/v2p_${s}_warmup.pt" \
     --max-minutes "$MAX_MIN" --time-schedule --device "$DEVICE" --threads "$THREADS" --no-resume \
     --no-progress "${STAGE_ARGS[@]}" "${PASS[@]}" > "$WORK/train_$s.log" 2>&1 &
   pids+=($!)
@@ -62,24 +63,29 @@ for s in $SYSTEMS; do
   i=$((i + 1))
 done
 
-# evaluation: 100 test-split videos per system, in parallel (CPU or GPU, as the training)
+# evaluation: 100 test-split videos per model (the final and the warm-up's), in parallel
 pids=()
 for s in $SYSTEMS; do
-  if [ -f "$WORK/v2p_$s.pt" ]; then
-    OMP_NUM_THREADS=$THREADS python3 -m methods.vid2param.evaluate_system --system "$s" \
-      --checkpoint "$WORK/v2p_$s.pt" --n "$EVAL_N" --device "$DEVICE" \
-      --out "$WORK/v2p_${s}_test.json" >> "$WORK/train_$s.log" 2>&1 &
-    pids+=($!)
-  fi
+  for m in "$s" "${s}_warmup"; do
+    if [ -f "$WORK/v2p_$m.pt" ]; then
+      OMP_NUM_THREADS=2 python3 -m methods.vid2param.evaluate_system --system "$s" \
+        --checkpoint "$WORK/v2p_$m.pt" --n "$EVAL_N" --device "$DEVICE" \
+        --out "$WORK/v2p_${m}_test.json" >> "$WORK/train_$s.log" 2>&1 &
+      pids+=($!)
+    fi
+  done
 done
 for p in "${pids[@]}"; do wait "$p" || status=1; done
 
+# back: the checkpoints (at most 6) and one archive of cards, test JSONs and logs (7 files)
 for s in $SYSTEMS; do
-  for f in "$WORK/v2p_$s.pt" "$WORK/v2p_${s}_test.json"; do
-    if [ -f "$f" ]; then cp "$f" "$DEST/"; fi
+  for m in "$s" "${s}_warmup"; do
+    if [ -f "$WORK/v2p_$m.pt" ]; then cp "$WORK/v2p_$m.pt" "$DEST/"; fi
+    if [ -f "$WORK/v2p_${m}_test.json" ]; then
+      python3 -c "import json,sys; d=json.load(open(sys.argv[1])); print(sys.argv[2], 'nMSE', {k: round(v, 4) for k, v in d['nmse_mean'].items()}, 'nMSE@200', {k: round(v, 4) for k, v in d['nmse']['200'].items()}, 'cov@200', d['coverage90']['200'])" "$WORK/v2p_${m}_test.json" "$m"
+    fi
   done
-  if [ -f "$WORK/v2p_${s}_test.json" ]; then cat "$WORK/v2p_${s}_test.json"; fi
 done
-(cd "$WORK" && tar czf - v2p_*[a-z].json train_*.log 2>/dev/null) > "$DEST/cards_and_logs.tar.gz"
+(cd "$WORK" && tar czf - v2p_*.json train_*.log 2>/dev/null) > "$DEST/cards_and_logs.tar.gz"
 ls -la "$DEST"
 exit $status
