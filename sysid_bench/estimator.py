@@ -834,6 +834,34 @@ class Estimator(abc.ABC):
         lengths = _check_lengths(obs, lengths)
         return [self.identify(obs.prefix(n)) for n in lengths]
 
+    def identify_prefixes_batch(self, observations, lengths,
+                                check: bool = True) -> list[list[Posterior]]:
+        """Posteriors after each of ``lengths`` frames of each observation.
+
+        Default: :meth:`identify_prefixes` on each. A method that answers many videos in one
+        pass (a network) overrides it; its answers must equal the default's to float rounding
+        (``sysid_bench.testing.check_prefixes``).
+
+        Parameters
+        ----------
+        observations : sequence of Observation
+        lengths : sequence of int
+        check : bool
+            False: the caller scores the posterior means alone, so a method that model-checks
+            separately from identifying may skip its check (``Posterior.check`` None then);
+            the default ignores it.
+
+        Returns
+        -------
+        list (one per observation) of list (one per length) of Posterior
+        """
+        obs = list(observations)
+        for i, o in enumerate(obs):
+            if not isinstance(o, Observation):
+                raise ValueError(f"observations[{i}]: expected an Observation, got "
+                                 f"{type(o).__name__}")
+        return [self.identify_prefixes(o, lengths) for o in obs]
+
     def forecast(self, obs: Observation, horizon: int) -> Forecast:
         """Positions of the ``horizon`` frames after the observation (``horizon`` <= MAX_HORIZON)."""
         raise NotImplementedError(f"{self.name} does not forecast positions.")

@@ -306,7 +306,8 @@ def check_min_frames(est: Estimator, ctx: dict) -> None:
 
 
 def check_prefixes(est: Estimator, ctx: dict) -> None:
-    """``identify_prefixes`` gives one posterior per length."""
+    """``identify_prefixes`` gives one posterior per length; a method's own
+    ``identify_prefixes_batch`` gives the same means."""
     obs = ctx["obs"]
     lengths = [20, obs.n_frames]
     posts = est.identify_prefixes(obs, lengths)
@@ -314,6 +315,18 @@ def check_prefixes(est: Estimator, ctx: dict) -> None:
         _fail(f"identify_prefixes(obs, {lengths}) gave {len(posts)} posteriors")
     for n, p in zip(lengths, posts):
         _check_posterior(p, f"identify_prefixes at {n} frames")
+    if type(est).identify_prefixes_batch is not Estimator.identify_prefixes_batch:
+        # a method's own batched pass answers as identify_prefixes does, video by video
+        batch = est.identify_prefixes_batch([obs, obs], lengths)
+        if len(batch) != 2 or any(len(b) != len(lengths) for b in batch):
+            _fail(f"identify_prefixes_batch([obs, obs], {lengths}): expected 2 lists of "
+                  f"{len(lengths)} posteriors")
+        for b in batch:
+            for n, p, q in zip(lengths, posts, b):
+                _check_posterior(q, f"identify_prefixes_batch at {n} frames")
+                if not np.allclose(p.mean, q.mean, rtol=1e-4, atol=1e-6):
+                    _fail(f"identify_prefixes_batch at {n} frames: mean {q.mean} differs from "
+                          f"identify_prefixes' {p.mean}")
 
 
 def check_stream(est: Estimator, ctx: dict) -> None:

@@ -118,3 +118,33 @@ def test_the_stream_contract_is_checked():
 
     with pytest.raises(EstimatorCheckError, match="check_stream .*n_frames after 1 pushes"):
         dict(estimator_checks(Counts()))["check_stream"]()
+
+
+def test_a_batched_pass_must_answer_as_one_video_does():
+    import numpy as np
+
+    from sysid_bench.estimator import Estimator, prior_posterior
+    from sysid_bench.testing import contract_observation
+
+    class Drifts(Estimator):
+        """Its own batched pass answers differently from identify_prefixes."""
+
+        name = "drifts"
+
+        def __init__(self, *, seed: int = 0):
+            self.seed = seed
+
+        def identify(self, obs):
+            return prior_posterior()
+
+        def identify_prefixes_batch(self, observations, lengths, check=True):
+            out = super().identify_prefixes_batch(observations, lengths, check)
+            for posts in out:
+                for p in posts:
+                    p.mean = np.asarray(p.mean) + 0.1
+            return out
+
+    with pytest.raises(EstimatorCheckError, match="check_prefixes .*identify_prefixes_batch"):
+        dict(estimator_checks(Drifts()))["check_prefixes"]()
+    with pytest.raises(ValueError, match=r"observations\[1\]"):
+        Drifts().identify_prefixes_batch([contract_observation("both"), "x"], [5])

@@ -861,3 +861,14 @@ def test_labels_fixed_in_training_are_not_supervised():
     c = net(frames, moved, generator=torch.Generator().manual_seed(1), n_obs=12)
     assert a["loss"].item() == b["loss"].item()
     assert c["loss"].item() != b["loss"].item()
+
+
+def test_identify_prefixes_batch_equals_one_video_at_a_time(est, tiny_data):
+    obs = [Observation(frames=np.asarray(tiny_data.frames[i])) for i in range(3)]
+    many = est.identify_prefixes_batch(obs, [5, 24], check=False)
+    assert len(many) == 3 and all(len(p) == 2 for p in many)
+    for o, posts in zip(obs, many):
+        for one, batched in zip(est.identify_prefixes(o, [5, 24]), posts):
+            np.testing.assert_allclose(batched.mean, one.mean, rtol=1e-5, atol=1e-7)
+            np.testing.assert_allclose(batched.std, one.std, rtol=1e-5, atol=1e-7)
+            assert batched.check is None and one.check is not None
