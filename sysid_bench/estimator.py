@@ -642,6 +642,15 @@ class Stream(abc.ABC):
         """
         raise NotImplementedError(f"{type(self).__name__} does not forecast")
 
+    def check(self) -> Posterior:
+        """The posterior after the latest frame pushed, with its model check
+        (``Posterior.check``) and widened where it fails, as ``identify`` answers.
+
+        A recurrent stream's ``push`` answers without a check (one costs a least-squares fit,
+        ~100 pushes); a caller that acts on a posterior asks for its check here.
+        """
+        raise NotImplementedError(f"{type(self).__name__} does not check its posteriors")
+
 
 class LoopStream(Stream):
     """Stream for methods with no recurrent state: re-identifies on all frames so far.
@@ -657,10 +666,18 @@ class LoopStream(Stream):
 
     def reset(self) -> None:
         self._frames = []
+        self._last: Posterior | None = None
 
     @property
     def n_frames(self) -> int:
         return len(self._frames)
+
+    def check(self) -> Posterior:
+        """The latest posterior: ``identify``'s, checked already (the prior's before
+        ``min_frames`` frames)."""
+        if self._last is None:
+            raise ValueError("check: push at least one frame first")
+        return self._last
 
     def position(self) -> np.ndarray:
         """The ball tracked in the latest frame (:func:`sysid_bench.tracking.track`; a method
@@ -693,9 +710,12 @@ class LoopStream(Stream):
             )
         self._frames.append(fr)
         if len(self._frames) < self.estimator.min_frames:
-            return prior_posterior(note=f"fewer than {self.estimator.min_frames} frames: the prior")
-        obs = Observation(frames=np.stack(self._frames), dt=self.dt, floor=self.floor)
-        return self.estimator.identify(obs)
+            self._last = prior_posterior(
+                note=f"fewer than {self.estimator.min_frames} frames: the prior")
+        else:
+            obs = Observation(frames=np.stack(self._frames), dt=self.dt, floor=self.floor)
+            self._last = self.estimator.identify(obs)
+        return self._last
 
 
 _SPECS: dict[type, MethodSpec] = {}

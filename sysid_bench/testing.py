@@ -331,8 +331,9 @@ def check_prefixes(est: Estimator, ctx: dict) -> None:
 
 def check_stream(est: Estimator, ctx: dict) -> None:
     """The :class:`~sysid_bench.estimator.Stream` contract: a posterior after each frame, the
-    frame count, the position now (2,) and, for a method that forecasts, a forecast with the
-    fitted position now; ``online`` declared exactly when the stream is the method's own."""
+    frame count, the position now (2,), the latest posterior with its model check
+    (``check()``) and, for a method that forecasts, a forecast with the fitted position now;
+    ``online`` declared exactly when the stream is the method's own."""
     spec, obs = ctx["spec"], ctx["obs"]
     stream = est.stream()
     if not isinstance(stream, Stream):
@@ -363,6 +364,12 @@ def check_stream(est: Estimator, ctx: dict) -> None:
         lifted = stream.forecast(HORIZON, floor=1.0)
         if not np.allclose(lifted.mean[:, 1], fc.mean[:, 1] + 1.0, atol=1e-6):
             _fail("stream.forecast(floor=1): expected the heights shifted by 1 m")
+    # the latest posterior with its model check where identify checks its answers
+    checked = stream.check()
+    _check_posterior(checked, "stream.check")
+    if checked.check is None and _clone(est).identify(obs.prefix(n)).check is not None:
+        _fail("stream.check(): expected a posterior with its model check (identify checks "
+              "its answers), got check None")
     _expect_value_error(lambda: stream.push(np.zeros((3, 3, 3))), "frame",
                         "stream.push of a (3, 3, 3) array")
     stream.reset()

@@ -148,3 +148,30 @@ def test_a_batched_pass_must_answer_as_one_video_does():
         dict(estimator_checks(Drifts()))["check_prefixes"]()
     with pytest.raises(ValueError, match=r"observations\[1\]"):
         Drifts().identify_prefixes_batch([contract_observation("both"), "x"], [5])
+
+
+def test_a_stream_must_check_what_identify_checks():
+    import dataclasses
+
+    from sysid_bench.estimator import Check, Estimator, LoopStream, prior_posterior
+
+    class Checks(Estimator):
+        """identify checks its answers; its stream's check() drops the verdict."""
+
+        name = "checks"
+
+        def __init__(self, *, seed: int = 0):
+            self.seed = seed
+
+        def identify(self, obs):
+            return dataclasses.replace(prior_posterior(), check=Check(0.01, 0.01, True, 10))
+
+        def stream(self):
+            class Drops(LoopStream):
+                def check(self):
+                    return dataclasses.replace(super().check(), check=None)
+
+            return Drops(self)
+
+    with pytest.raises(EstimatorCheckError, match=r"check_stream .*stream.check\(\)"):
+        dict(estimator_checks(Checks()))["check_stream"]()

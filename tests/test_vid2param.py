@@ -872,3 +872,17 @@ def test_identify_prefixes_batch_equals_one_video_at_a_time(est, tiny_data):
             np.testing.assert_allclose(batched.mean, one.mean, rtol=1e-5, atol=1e-7)
             np.testing.assert_allclose(batched.std, one.std, rtol=1e-5, atol=1e-7)
             assert batched.check is None and one.check is not None
+
+
+def test_stream_check_judges_as_identify_does(est, tiny_data):
+    frames = np.asarray(tiny_data.frames[0])
+    stream = est.stream()
+    with pytest.raises(ValueError, match="push at least one frame"):
+        stream.check()
+    for fr in frames:
+        pushed = stream.push(fr)
+    assert pushed.check is None  # a push answers without a check
+    checked, whole = stream.check(), est.identify(Observation(frames=frames))
+    assert checked.check is not None and checked.check.ok == whole.check.ok
+    np.testing.assert_allclose(checked.check.rms_m, whole.check.rms_m, rtol=1e-3)
+    np.testing.assert_allclose(checked.mean, whole.mean, rtol=1e-4, atol=1e-6)

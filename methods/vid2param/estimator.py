@@ -929,6 +929,9 @@ class Vid2ParamStream(Stream):
         # the network's own track (floor-relative metres) and last posterior, for forecast()
         self.track = np.full((256, 2), np.nan)
         self.last = None
+        # the frames pushed (a few kB each) and the last answer, for check()
+        self._frames: list[np.ndarray] = []
+        self._post: Posterior | None = None
         # the stages' streaming states (the drag statistic of the track, ...): the stream's
         # own, not part of ``state``
         self._stages = self.est.pipeline_.start(1)
@@ -1012,6 +1015,18 @@ class Vid2ParamStream(Stream):
         mu_n, sd_n = m[0], s[0]
         self.last = (mu_n, sd_n)
         self.n += 1
+        self._frames.append(fr)
         wall = time.perf_counter() - t0
-        return self.est._posterior(mu_n, sd_n, {"wall_s": wall, "n_frames": self.n},
-                                   key=(0, self.n))
+        self._post = self.est._posterior(mu_n, sd_n, {"wall_s": wall, "n_frames": self.n},
+                                         key=(0, self.n))
+        return self._post
+
+    def check(self) -> Posterior:
+        """The latest posterior with its model check, as ``identify`` on the frames pushed
+        would check it (``check_prefixes``: the frames tracked, our physics fitted inside the
+        posterior's interval), widened where it fails. Costs one check (~100 pushes)."""
+        if self._post is None:
+            raise ValueError("check: push at least one frame first")
+        obs = Observation(frames=np.stack(self._frames))
+        return check_prefixes([self._post], obs, [self.n], DEFAULT_SIGMA,
+                              self.est.check_window)[0]
