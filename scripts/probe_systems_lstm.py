@@ -211,28 +211,33 @@ def _recurrence_config(n_pos: int, hidden: int, feat: int) -> SimpleNamespace:
 
 
 class Probe(nn.Module):
-    """``parts.Recurrence``'s ``phi_z`` and LSTM cell fed ``[phi_z(z_t), u_t]``, read as
-    ``[h, c]`` by a ``parts.GaussianHead`` over the P normalised parameters."""
+    """``parts.Recurrence``'s ``phi_z`` and LSTM fed ``[phi_z(z_t), u_t]``, read as ``[h, c]``
+    by a ``parts.GaussianHead`` over the P normalised parameters.
+
+    The LSTM is ``nn.LSTM`` (the same cell as ``Recurrence``'s ``nn.LSTMCell``, ~1.7x faster
+    on one CPU thread) run in chunks of ``read_every`` frames, the head reading the state at
+    each chunk's end.
+    """
 
     def __init__(self, n_pos: int, n_u: int, n_par: int, hidden: int, feat: int):
         super().__init__()
         self.phi_z = nn.Sequential(nn.Linear(n_pos, feat), nn.ReLU())
-        self.cell = nn.LSTMCell(feat + n_u, hidden)
+        self.lstm = nn.LSTM(feat + n_u, hidden, batch_first=True)
         self.head = GaussianHead(2 * hidden, hidden, n_par)
-        self.hidden = hidden
 
-    def forward(self, z: torch.Tensor, u: torch.Tensor, every: bool = True):
-        """Mean and std (B, T, P) after each frame of ``z`` (B, T, 2K), ``u`` (B, T, F); with
-        ``every=False`` only after the last, (B, 1, P)."""
-        b, t = z.shape[:2]
-        fz = self.phi_z(z)
-        h = c = z.new_zeros(b, self.hidden)
-        reads = []
-        for i in range(t):
-            h, c = self.cell(torch.cat([fz[:, i], u[:, i]], -1), (h, c))
-            if every or i == t - 1:
-                reads.append(torch.cat([h, c], -1))
-        return self.head(torch.stack(reads, 1))
+    def states(self, z: torch.Tensor, u: torch.Tensor, read_every: int) -> torch.Tensor:
+        """``[h, c]`` (B, n_reads, 2 hidden) after frames ``read_every``, ``2 read_every``, ...
+        and the last of ``z`` (B, T, 2K), ``u`` (B, T, F)."""
+        x = torch.cat([self.phi_z(z), u], -1)
+        st, reads = None, []
+        for i in range(0, x.shape[1], read_every):
+            _, st = self.lstm(x[:, i:i + read_every], st)
+            reads.append(torch.cat([st[0][0], st[1][0]], -1))
+        return torch.stack(reads, 1)
+
+    def forward(self, z: torch.Tensor, u: torch.Tensor, read_every: int):
+        """Mean and std (B, n_reads, P) of the parameters at the reads of :meth:`states`."""
+        return self.head(self.states(z, u, read_every))
 
 
 def check_against_recurrence(sysobj, hidden: int, feat: int, seed: int) -> float:
@@ -246,17 +251,16 @@ def check_against_recurrence(sysobj, hidden: int, feat: int, seed: int) -> float
     probe = Probe(n_pos, u.shape[-1], len(sysobj.params), hidden, feat)
     rec = Recurrence(_recurrence_config(n_pos, hidden, feat))
     rec.phi_z.load_state_dict(probe.phi_z.state_dict())
-    rec.cell.load_state_dict(probe.cell.state_dict())
+    lstm = probe.lstm
+    rec.cell.load_state_dict({"weight_ih": lstm.weight_ih_l0, "weight_hh": lstm.weight_hh_l0,
+                              "bias_ih": lstm.bias_ih_l0, "bias_hh": lstm.bias_hh_l0})
     zt, ut = torch.from_numpy(z), torch.from_numpy(u)
     with torch.no_grad():
         st = rec.init_state(zt.shape[0])
         for i in range(zt.shape[1]):
             st = rec(zt[:, i], st)
-        h = c = zt.new_zeros(zt.shape[0], hidden)
-        fz = probe.phi_z(zt)
-        for i in range(zt.shape[1]):
-            h, c = probe.cell(torch.cat([fz[:, i], ut[:, i]], -1), (h, c))
-    return float(torch.cat([(h - st.h).abs(), (c - st.c).abs()]).max())
+        hc = probe.states(zt, ut, 5)[:, -1]
+    return float((hc - torch.cat([st.h, st.c], -1)).abs().max())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -264,7 +268,7 @@ def check_against_recurrence(sysobj, hidden: int, feat: int, seed: int) -> float
 def evaluate(probe: Probe, z: torch.Tensor, u: torch.Tensor, theta: torch.Tensor) -> dict:
     """nMSE and 90% coverage per parameter after the last frame, and their means."""
     with torch.no_grad():
-        mu, sd = probe(z, u, every=False)
+        mu, sd = probe(z, u, z.shape[1])
     mu, sd = mu[:, 0], sd[:, 0]
     se = ((mu - theta) ** 2).mean(0)
     cov = ((mu - theta).abs() <= Z90 * sd).float().mean(0)
@@ -296,7 +300,7 @@ def run(name: str, variant: str, args, scales: dict) -> dict:
             break
         pts, th = draw(s, args.batch, rng, "train", args.frames, args.noise_px)
         z, u = (torch.from_numpy(a) for a in features(s, variant, pts, scales))
-        mu, sd = probe(z, u)
+        mu, sd = probe(z, u, args.read_every)
         loss = gaussian_nll(mu, sd, torch.from_numpy(th)[:, None, :]).mean()
         opt.zero_grad()
         loss.backward()
@@ -342,6 +346,8 @@ def main(argv=None) -> int:
     ap.add_argument("--n-test", type=_positive_int, default=256, help="test-split trajectories")
     ap.add_argument("--hidden", type=_positive_int, default=128, help="LSTM size (V2PConfig)")
     ap.add_argument("--feat", type=_positive_int, default=128, help="phi_z size (V2PConfig)")
+    ap.add_argument("--read-every", type=_positive_int, default=10,
+                    help="the NLL is taken after every this many frames (and the last)")
     ap.add_argument("--lr", type=_nonneg_float, default=1e-3)
     ap.add_argument("--clip", type=_nonneg_float, default=10.0, help="gradient-norm clip")
     ap.add_argument("--noise-px", type=_nonneg_float, default=0.02,

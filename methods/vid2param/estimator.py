@@ -160,8 +160,9 @@ class Vid2Param(Estimator):
     follows any input, a hovering ball's included), judged against the tracking noise
     ``sysid_bench.simulator.DEFAULT_SIGMA``; a failed check widens the intervals to at least
     the prior's. ``identify``, ``identify_prefixes`` and ``identify_batch`` check (the last
-    can be told not to, to time the network alone); a ``stream``'s posteriors carry no check
-    (``check`` None): a check costs a least-squares fit, ~100x a push.
+    can be told not to, to time the network alone); a ``stream``'s pushes carry no check
+    (``check`` None: a check costs a least-squares fit, ~100x a push) and ``stream.check()``
+    gives the latest posterior checked, as ``identify`` would.
     """
 
     name = "vid2param"
