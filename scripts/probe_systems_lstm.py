@@ -21,6 +21,9 @@ Feature variants (what the LSTM cell gets beside ``phi_z(positions)``):
        radius, the angular velocity and acceleration (scaled to ~1); collision -- the gap
        ``x2 - x1``, its rate, and each puck's velocity change at the velocity's scale (an
        impulse at a contact, unclamped up to +-10). The spring has no ``c``.
+``d``  pendulum only: ``c`` plus the per-frame terms of the least-squares normal equations of
+       ``alpha = k sin(angle) - b omega`` (alpha sin, sin^2, alpha omega, omega^2, omega sin),
+       which the cell can sum so that the head reads ``k = g / L`` and ``b`` as their ratios.
 
 Example (one thread, ~2-4 min a run)::
 
@@ -54,7 +57,7 @@ from methods.vid2param.parts import GaussianHead, Recurrence  # noqa: E402
 from sysid_bench import systems  # noqa: E402
 
 SYSTEMS = ("pendulum", "spring", "collision")
-VARIANTS = ("a", "b", "c")
+VARIANTS = ("a", "b", "c", "d")
 #: parts.Recurrence's scales and clamps (variant a).
 VEL_SCALE, ACC_SCALE, VEL_CLAMP, ACC_CLAMP = 10.0, 40.0, 5.0, 10.0
 #: Clamp of the variant-c evidence features (angle rates, impulses).
@@ -183,12 +186,21 @@ def features(system, variant: str, pts: np.ndarray, sc: dict) -> tuple[np.ndarra
     else:
         u = [np.clip(sc["vel"] * d1, -VEL_CLAMP, VEL_CLAMP),
              np.clip(sc["acc"] * d2, -ACC_CLAMP, ACC_CLAMP)]
-    if variant == "c" and system.name == "pendulum":
+    if variant in ("c", "d") and system.name == "pendulum":
         ang, rad = _angle(system, pts)
         a1, a2 = differences(ang[..., None])
-        u += [np.sin(ang)[..., None], np.cos(ang)[..., None], sc["rad"] * rad[..., None],
-              np.clip(sc["omega"] * a1, -EVID_CLAMP, EVID_CLAMP),
-              np.clip(sc["alpha"] * a2, -EVID_CLAMP, EVID_CLAMP)]
+        om = np.clip(sc["omega"] * a1, -EVID_CLAMP, EVID_CLAMP)
+        al = np.clip(sc["alpha"] * a2, -EVID_CLAMP, EVID_CLAMP)
+        sn = np.sin(ang)[..., None]
+        u += [sn, np.cos(ang)[..., None], sc["rad"] * rad[..., None], om, al]
+        if variant == "d":
+            # the per-frame terms of the least-squares normal equations of
+            # alpha = k sin(angle) - b omega: summed by the cell, their ratios give k = g / L, b
+            ok = np.zeros_like(al)
+            ok[:, 2:] = 1.0  # alpha is defined from the third frame
+            u += [al * sn, ok * sn**2, al * om, ok * om**2, ok * om * sn]
+    elif variant == "d":
+        raise ValueError(f"variant: 'd' is defined for the pendulum, got {system.name}")
     elif variant == "c" and system.name == "collision":
         gap = pts[..., 1, 0] - pts[..., 0, 0]
         g1, _ = differences(gap[..., None])
@@ -338,7 +350,8 @@ def main(argv=None) -> int:
                                  epilog=__doc__.split("\n\n", 1)[1])
     ap.add_argument("--systems", nargs="+", choices=SYSTEMS, default=list(SYSTEMS))
     ap.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS),
-                    help="feature variants (c is skipped for the spring)")
+                    help="feature variants (c is skipped for the spring, d run for the "
+                         "pendulum only)")
     ap.add_argument("--steps", type=_positive_int, default=300, help="Adam steps per run")
     ap.add_argument("--eval-every", type=_positive_int, default=100)
     ap.add_argument("--batch", type=_positive_int, default=64)
@@ -381,7 +394,7 @@ def main(argv=None) -> int:
         out["scales"][name] = {"scales": sc,
                                "magnitudes": report_scales(name, clean, pts, moving, sc)}
         for v in args.variants:
-            if v == "c" and name == "spring":
+            if (v == "c" and name == "spring") or (v == "d" and name != "pendulum"):
                 continue
             out["runs"].append(run(name, v, args, sc))
             if args.json is not None:
