@@ -36,9 +36,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -322,12 +320,10 @@ def run(name: str, variant: str, args, scales: dict) -> dict:
 
 
 def _write_json(path: Path, obj) -> None:
-    """Write ``obj`` as JSON atomically (temp file + rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(obj, f, indent=1)
-    os.replace(tmp, path)
+    """Write ``obj`` as JSON atomically (``sysid_bench._io.atomic_write``)."""
+    from sysid_bench._io import atomic_write
+
+    atomic_write(path, json.dumps(obj, indent=1))
 
 
 def _positive_int(text: str) -> int:
