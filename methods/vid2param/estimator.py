@@ -498,17 +498,7 @@ class Vid2Param(Estimator):
 
         ``extras["wall_s"]`` of each is the time of the pass up to that prefix, pro rata.
         """
-        frames = self._frames_of(obs)
-        T = frames.shape[0]
-        lengths = _check_lengths(lengths, T)
-        mu, sd, wall = self._run(frames[None])
-        # samples keyed by the prefix length: the same noise as a stream's after n frames
-        posts = [
-            self._posterior(mu[0, n - 1], sd[0, n - 1],
-                            {"wall_s": wall * n / T, "n_frames": n}, key=(0, n))
-            for n in lengths
-        ]
-        return check_prefixes(posts, obs, lengths, DEFAULT_SIGMA, self.check_window)
+        return self.identify_prefixes_batch([obs], lengths)[0]
 
     def identify_prefixes_batch(self, observations, lengths,
                                 check: bool = True) -> list[list[Posterior]]:
@@ -535,7 +525,8 @@ class Vid2Param(Estimator):
             mu, sd, wall = self._run(np.stack(frames[i : i + b]))
             wall /= mu.shape[0]
             for j in range(mu.shape[0]):
-                # keyed as identify_prefixes keys them: the same samples as one video's pass
+                # samples keyed by the prefix length: the same noise as a stream's after n
+                # frames, whichever batch the video came in
                 posts = [self._posterior(mu[j, n - 1], sd[j, n - 1],
                                          {"wall_s": wall * n / T, "n_frames": n}, key=(0, n))
                          for n in lengths]

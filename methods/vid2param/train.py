@@ -724,10 +724,10 @@ def train(
     def wall() -> float:
         return wall0 + time.time() - t_start
 
-    def save(step: int) -> None:
+    def save(step: int, name: str = "state.pt") -> None:
         if state_path is not None:
             save_atomic(_state_dict(net, opt, mc, tc, step, wall(), history, init=init_ck),
-                        state_path)
+                        state_path.with_name(name))
 
     def validate(step: int) -> None:
         net.eval()
@@ -751,8 +751,7 @@ def train(
                 and prev_sched < tc.nll_only_steps <= sched):
             # the network as the NLL-only warm-up left it: a regressor that the VRNN terms
             # may still disturb (export it with ``--export-warmup``)
-            save_atomic(_state_dict(net, opt, mc, tc, step, wall(), history, init=init_ck),
-                        state_path.with_name(WARMUP_STATE))
+            save(step, WARMUP_STATE)
             log(f"warm-up ends at step {step}: state kept in {WARMUP_STATE}")
         prev_sched = sched
         fr_np, tg_np = feed.batch(step)
