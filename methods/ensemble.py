@@ -40,7 +40,14 @@ import warnings
 
 import numpy as np
 
-from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng, one_blas_thread
+from methods._simulation import (
+    Fit,
+    SimulationMethod,
+    Stopwatch,
+    make_rng,
+    one_blas_thread,
+    start_before_contact,
+)
 from methods._tracks import clip_state, prepare
 from sysid_bench import physics
 from sysid_bench._validate import check_number, check_positive_int
@@ -298,7 +305,11 @@ class Emcee(SimulationMethod):
         box = float(self.state0_box)
         if not np.isfinite(box) or box <= 0:
             raise ValueError(f"state0_box: expected a number > 0, got {self.state0_box!r}")
-        track = prepare(obs)
+        raw_track = prepare(obs)
+        # a start extrapolated back across an early contact is in a mirrored basin, and the
+        # start's prior box (standard errors around it) can exclude the truth: refit it on the
+        # frames before that contact
+        track = start_before_contact(raw_track)
         sim = CountingSimulator()
         prob = _Problem(track, sigma, box, sim)
         if n_walkers < 2 * prob.ndim or n_walkers % 2:
@@ -351,6 +362,7 @@ class Emcee(SimulationMethod):
             "converged": converged,
             "laplace_std": lap_std.tolist(),
             "n_dim": prob.ndim,
+            "state0_before_contact": track is not raw_track,
             **info,
             **track.describe(),
         }

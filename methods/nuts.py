@@ -92,7 +92,7 @@ from numpyro.infer.hmc import hmc
 from numpyro.infer.util import potential_energy
 from scipy.optimize import minimize
 
-from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng
+from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng, start_before_contact
 from methods._tracks import clip_state, prepare
 from sysid_bench import physics
 from sysid_bench import physics_jax as pj
@@ -557,7 +557,10 @@ class NUTS(SimulationMethod):
         the last frame. ``extras["n_simulations"]`` of a forecast counts the fit's too."""
         sw = Stopwatch()
         sigma = self._check()
-        track = prepare(obs)
+        raw_track = prepare(obs)
+        # a start extrapolated back across an early contact is in a mirrored basin: refit it
+        # on the frames before that contact (the search starts there)
+        track = start_before_contact(raw_track)
         sim = CountingSimulator()
         T, dt, floor = track.n_frames, track.dt, track.floor
         Tb = _bucket(T, int(self.frame_bucket))
@@ -661,6 +664,7 @@ class NUTS(SimulationMethod):
             "n_potential_evals_init": pot.n,
             "sigma": sigma,
             "state0_sampled": free,
+            "state0_before_contact": track is not raw_track,
             # the floor's posterior; a known floor is its own mean with no spread
             "floor_sampled": free_floor,
             "floor_mean": float(fls.mean()) if free_floor else floor,
