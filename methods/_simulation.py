@@ -383,12 +383,13 @@ def start_before_contact(track: Track) -> Track:
     x0 = 10 m and vx0 = -6.4 m/s for a ball at 9.2 m moving right at +6.4 m/s, its standard
     errors (1 cm, 0.07 m/s) 77 and 170 times smaller than its error. A sampler started there (or
     whose prior on the start is a box of standard errors around it) settles in the mirrored
-    basin and reports a narrow, wrong posterior. The seen frames before the first flagged
-    contact observe the start directly: with 3 or more, ``local_state``'s polynomial fit; with
-    2, the line through them with the prior's mean gravity added back to the vertical velocity
-    and velocity errors of at least half of ``_FREE_ACC`` times their time apart (the rest of
-    gravity and drag). With fewer than 2 such frames, or no contact before the fitted run, or a
-    known start, ``track`` is returned as it is.
+    basin and reports a narrow, wrong posterior. The seen frames before the first contact
+    observe the start directly (those before the first frame flagged, and that frame too when
+    the next is flagged: the contact lies between them): with 3 or more, ``local_state``'s
+    polynomial fit; with 2, the line through them with the prior's mean gravity added back to
+    the vertical velocity and velocity errors of at least half of ``_FREE_ACC`` times their
+    time apart (the rest of gravity and drag). With fewer than 2 such frames, or no contact
+    before the fitted run, or a known start, ``track`` is returned as it is.
 
     Parameters
     ----------
@@ -406,7 +407,12 @@ def start_before_contact(track: Track) -> Track:
     starts = [a for a, _ in seg.flight_all] + [a for a, _ in seg.rolling]
     if flags.size == 0 or not starts or seg.stopped[0] or flags[0] > min(starts):
         return track
-    early = np.flatnonzero(track.mask[: flags[0]])
+    # a contact's impulse shows in the second differences of the frames either side of it:
+    # the first two frames flagged bracket it, and the first of them is still before it
+    f = int(flags[0])
+    if f + 1 < track.n_frames and (seg.floor_hit[f + 1] or seg.wall_hit[f + 1]):
+        f += 1
+    early = np.flatnonzero(track.mask[:f])
     if early.size < 2:
         return track
     state, std = local_state(track.positions, track.dt, early, 0.0, track.noise,
