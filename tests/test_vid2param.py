@@ -91,8 +91,10 @@ def test_identify_prefixes_equals_identify_on_prefixes(est, tiny_data):
     posts = est.identify_prefixes(obs, [1, 5, 24])
     for n, p in zip([1, 5, 24], posts):
         q = est.identify(obs.prefix(n))
-        np.testing.assert_allclose(p.mean, q.mean, rtol=1e-6)
-        np.testing.assert_allclose(p.std, q.std, rtol=1e-6)
+        # float32 network, batched against single passes: 2e-6 apart with torch 2.11 on an
+        # Intel Xeon (bitwise here)
+        np.testing.assert_allclose(p.mean, q.mean, rtol=1e-5)
+        np.testing.assert_allclose(p.std, q.std, rtol=1e-5)
     with pytest.raises(ValueError, match="lengths"):
         est.identify_prefixes(obs, [25])
 

@@ -113,6 +113,12 @@ def _outputs(name: str) -> dict[str, np.ndarray]:
     return out
 
 
+#: the outputs were pinned with the torch the project pins (pyproject: torch==2.13.0); another
+#: torch computes the float32 network with other kernels (torch 2.11 on an Intel Xeon: up to
+#: 1.4e-4 apart), so there the test checks the same outputs to 1e-3
+_PIN_TOL = 1e-5 if torch.__version__.split("+")[0] == "2.13.0" else 1e-3
+
+
 @pytest.mark.parametrize("name", [pytest.param("28x28", marks=needs["28x28"]),
                                   pytest.param("camera", marks=needs["camera"])])
 def test_shipped_checkpoints_give_the_pinned_outputs(name):
@@ -127,7 +133,7 @@ def test_shipped_checkpoints_give_the_pinned_outputs(name):
             # the network's own std, pinned, is a lower bound
             assert np.all(got[k] >= want[f"{name}/{k}"] * (1 - 1e-5)), f"{name}: {k} narrowed"
             continue
-        np.testing.assert_allclose(got[k], want[f"{name}/{k}"], rtol=1e-5, atol=1e-5,
+        np.testing.assert_allclose(got[k], want[f"{name}/{k}"], rtol=_PIN_TOL, atol=_PIN_TOL,
                                    err_msg=f"{name}: {k}")
 
 

@@ -40,6 +40,7 @@ from sysid_bench.bench.experiment import (
     Experiment,
     ci_summary,
     fmt_ci,
+    median_ci,
     normalise,
     timed_prefixes,
 )
@@ -396,12 +397,12 @@ class Calibration(Experiment):
         rows = []
         for (m, inp, cond), g in ok.groupby(["method", "input", "condition"]):
             s = share_ci(g.assign(value=1.0 - g.value))
-            r = rms[(rms.method == m) & (rms.input == inp) & (rms.condition == cond)].value
+            r = rms[(rms.method == m) & (rms.input == inp) & (rms.condition == cond)]
             hs = hon.get((m, inp, cond))
             rows.append({"method": m, "input": inp, "physics": physics_label(cond),
                          "cases": g.case.nunique(), "posteriors": len(g),
                          "failing the check": fmt_ci(s["mean"], s["lo"], s["hi"], 2),
-                         "median residual RMS (m)": f"{np.nanmedian(r):.3g}" if len(r) else "-",
+                         "median residual RMS (m)": fmt_ci(*median_ci(r, (m, inp, cond, "rms"))),
                          "honest (e, g, d)": (fmt_ci(hs.mean, hs.lo, hs.hi, 2)
                                               if hs is not None else "-")})
         return pd.DataFrame(rows)
@@ -446,10 +447,9 @@ class Calibration(Experiment):
                 h = self._pooled(g, f"hit{lev}", params)
                 s = share_ci(h) if len(h) else None
                 rec[lab] = fmt_ci(s["mean"], s["lo"], s["hi"], 2) if s is not None else "-"
-            nll = self._pooled(g, "nll").value
-            rec["median NLL"] = f"{np.median(nll):.3g}" if len(nll) else "-"
-            sd = self._pooled(g, "std").value
-            rec["median std"] = f"{np.median(sd):.3g}" if len(sd) else "-"
+            # medians over (case, parameter, frames), with CIs over cases (issue 29)
+            for metric, lab in (("nll", "median NLL"), ("std", "median std")):
+                rec[lab] = fmt_ci(*median_ci(self._pooled(g, metric), (m, inp, cond, metric)))
             recs.append(rec)
         out = {"calibration": pd.DataFrame(recs)}
         chk = self.model_check(df)
@@ -465,7 +465,8 @@ class Calibration(Experiment):
                 rows.append({"method": m, "input": inp, "physics": physics_label(cond),
                              "cases": g.case.nunique(),
                              f"W1 to {ref}": fmt_ci(s["mean"], s["lo"], s["hi"]),
-                             f"median |mean shift| / {ref} std": f"{g['shift'].median():.3g}"})
+                             f"median |mean shift| / {ref} std":
+                                 fmt_ci(*median_ci(g, (m, inp, cond, "shift"), value="shift"))})
             out[f"agreement_with_{ref}"] = pd.DataFrame(rows)
         return out
 

@@ -36,6 +36,8 @@ __all__ = [
     "paper_methods",
     "normalise",
     "ci_summary",
+    "median_ci",
+    "small_sample_widen",
     "fmt_ci",
     "LO",
     "SPAN",
@@ -263,6 +265,37 @@ def _group_seed(seed: int, value: str, by, keys) -> int:
     return int.from_bytes(digest[:8], "little")
 
 
+#: below this many cases a percentile bootstrap is too narrow (its resamples are few and its
+#: spread is the sample's, not the mean's); :func:`small_sample_widen`
+SMALL_N = 10
+
+
+def small_sample_widen(values, lo: float, hi: float) -> tuple[float, float]:
+    """``(lo, hi)`` widened to hold the Student-t 95% interval of the mean when fewer than
+    :data:`SMALL_N` values are finite.
+
+    A percentile bootstrap of 3 or 4 cases under-covers badly (of 3 values it has 10 distinct
+    resamples); a fresh run on another machine, whose samplers draw other chains, then lands
+    outside a CI that only looked precise (issue 29). The t interval is clipped to what the
+    values can be: at 0 below when none is negative, at 1 above when all lie in [0, 1] (shares,
+    normalised errors). Ten cases and more keep the bootstrap's interval unchanged.
+    """
+    from scipy import stats
+
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    n = v.size
+    if n < 2 or n >= SMALL_N:
+        return lo, hi
+    half = float(stats.t.ppf(0.975, n - 1) * v.std(ddof=1) / np.sqrt(n))
+    t_lo, t_hi = float(v.mean()) - half, float(v.mean()) + half
+    if (v >= 0).all():
+        t_lo = max(t_lo, 0.0)
+        if (v <= 1).all():
+            t_hi = min(t_hi, 1.0)
+    return min(lo, t_lo), max(hi, t_hi)
+
+
 def ci_summary(df, by: list[str], value: str = "value", seed: int = 0):
     """Mean with a 95% bootstrap CI of ``value`` per group (cases are the resampled unit).
 
@@ -283,9 +316,52 @@ def ci_summary(df, by: list[str], value: str = "value", seed: int = 0):
         v = g[value].to_numpy(dtype=float)
         m, lo, hi = (bootstrap_ci(v, seed=_group_seed(seed, value, by, keys), n_boot=1000)
                      if len(v) else (np.nan,) * 3)
+        lo, hi = small_sample_widen(v, lo, hi)
         recs.append({**dict(zip(by, keys)), "mean": m, "lo": lo, "hi": hi,
                      "n": int(np.isfinite(v).sum())})
     return pd.DataFrame.from_records(recs, columns=[*by, "mean", "lo", "hi", "n"])
+
+
+def median_ci(df, key, value: str = "value", case: str = "case", n_boot: int = 1000,
+              level: float = 0.95) -> tuple[float, float, float]:
+    """Median of ``df[value]`` pooled over rows, with a percentile-bootstrap CI that resamples
+    cases (``df[case]``: a case's rows go in or out together, as they are not independent).
+
+    A median shown without an interval cannot say whether another run's differs (issue 29: a
+    fresh run on another machine must land inside the committed figure's CI). Independent of
+    row order; seeded from ``key`` (the group's identity). One case: its median thrice.
+
+    Returns
+    -------
+    (median, lo, hi) : tuple of float
+        NaN thrice when no value is finite.
+    """
+    v = df[value].to_numpy(dtype=float)
+    c = df[case].to_numpy()
+    ok = np.isfinite(v)
+    v, c = v[ok], c[ok]
+    if not v.size:
+        return (np.nan,) * 3
+    med = float(np.median(v))
+    ids, gid = np.unique(c, return_inverse=True)
+    k = len(ids)
+    if k == 1:
+        return med, med, med
+    order = np.lexsort((gid, v))  # by value, ties by case: the same for any row order
+    v, gid = v[order], gid[order]
+    rng = np.random.default_rng(_group_seed(0, value, ["median", case], list(key)))
+    counts = np.zeros((n_boot, k), dtype=np.int64)
+    np.add.at(counts, (np.arange(n_boot)[:, None], rng.integers(0, k, (n_boot, k))), 1)
+    cw = np.cumsum(counts[:, gid], axis=1)  # (n_boot, n): how many resampled values <= each
+    total = cw[:, -1]
+    # np.median's two middle values: ranks floor((t-1)/2) and ceil((t-1)/2) of each resample
+    lo_r, hi_r = (total - 1) // 2, total // 2
+    at_lo = (cw <= lo_r[:, None]).sum(axis=1)
+    at_hi = (cw <= hi_r[:, None]).sum(axis=1)
+    meds = 0.5 * (v[at_lo] + v[at_hi])
+    a = (1.0 - level) / 2
+    lo, hi = np.quantile(meds, [a, 1.0 - a])
+    return med, float(lo), float(hi)
 
 
 def fmt_ci(m: float, lo: float, hi: float, digits: int = 3) -> str:

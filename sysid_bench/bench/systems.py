@@ -24,7 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench.bench.experiment import Cell, CellOutput, Context, Experiment, ci_summary
+from sysid_bench.bench.experiment import (
+    Cell,
+    CellOutput,
+    Context,
+    Experiment,
+    ci_summary,
+    fmt_ci,
+)
 from sysid_bench.estimator import Observation
 from sysid_bench.metrics import GUESS_MSE
 
@@ -85,23 +92,91 @@ def system_case(system: str, i: int, n: int, seed: int, input_kind: str):
 REFERENCE = "nuts"
 
 
-def _gap_to_reference(df, system: str, method: str, n_frames: int) -> float:
-    """Mean squared distance (normalised units) between ``method``'s and the reference's
-    posterior means on the cases both identified after ``n_frames`` frames (NaN if none)."""
+def _gap_to_reference(df, system: str, method: str, n_frames: int):
+    """Per case: the mean squared distance (normalised units) between ``method``'s and the
+    reference's posterior means, on the cases both identified after ``n_frames`` frames.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``method``, ``case``, ``value``; empty for the reference itself or no shared case.
+    """
+    import pandas as pd
+
+    empty = pd.DataFrame({"method": [], "case": [], "value": []})
     if method == REFERENCE:
-        return np.nan
+        return empty
     sub = df[(df.condition == system) & (df.n_frames == n_frames) & df.metric.str.startswith("u_")]
     a = sub[sub.method == method].set_index(["case", "metric"]).value
     b = sub[sub.method == REFERENCE].set_index(["case", "metric"]).value
     both = a.index.intersection(b.index)
     if not len(both):
-        return np.nan
-    return float(((a[both] - b[both]) ** 2).mean())
+        return empty
+    d = ((a[both] - b[both]) ** 2).groupby(level="case").mean()
+    return pd.DataFrame({"method": method, "case": d.index, "value": d.to_numpy()})
+
+
+def _share_bounds(c, per_case, trials: int):
+    """``c`` (a :func:`ci_summary` row) with the exact binomial (Clopper-Pearson) 95% interval
+    of the pooled trials where every case scored the same share: a bootstrap of identical
+    cases has no width (10 cases whose 4 intervals each held 3 truths are not "0.75 [0.75,
+    0.75]"). ``trials`` per case: the parameters (coverage) or 1 (the check)."""
+    from scipy import stats
+
+    v = np.asarray(per_case, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size and np.ptp(v) == 0 and trials >= 1:
+        n = v.size * trials
+        k = int(round(float(v.sum()) * trials))
+        ci = stats.binomtest(k, n).proportion_ci(0.95, method="exact")
+        c = c.copy()
+        c["lo"] = min(float(c["lo"].iloc[0]), ci.low)
+        c["hi"] = max(float(c["hi"].iloc[0]), ci.high)
+    return c
+
+
+#: a sampler's chains converged on a case: worst split R-hat below this and ESS at least
+#: :data:`CONVERGED_ESS` (the reference's own rule, ``methods.nuts``)
+CONVERGED_RHAT = 1.05
+CONVERGED_ESS = 50
+
+
+def _converged_rows(at):
+    """Per case (``method``, ``case``, ``value`` 0/1): whether the sampler's chains converged
+    (:data:`CONVERGED_RHAT`, :data:`CONVERGED_ESS`); empty for methods without diagnostics.
+    A share over cases has a CI; the worst R-hat of three cases does not (issue 29)."""
+    import pandas as pd
+
+    rh = at[at.metric == "rhat_max"].groupby("case").value.max()
+    es = at[at.metric == "ess_min"].groupby("case").value.min()
+    both = rh.index.intersection(es.index)
+    ok = (rh[both] < CONVERGED_RHAT) & (es[both] >= CONVERGED_ESS)
+    meth = at.method.iloc[0] if len(at) else ""
+    return pd.DataFrame({"method": meth, "case": both, "value": ok.to_numpy(dtype=float)})
+
+
+def _ci_rank(mean, lo, hi) -> np.ndarray:
+    """1 + the number of methods whose whole 95% CI lies below this one's (lower is better):
+    methods the intervals cannot separate share a rank, so a rank never rests on a difference
+    the CIs do not support (issue 29). NaN where ``mean`` is NaN."""
+    mean, lo, hi = (np.asarray(x, dtype=float) for x in (mean, lo, hi))
+    ok = np.isfinite(mean)
+    lo = np.where(np.isfinite(lo), lo, mean)
+    hi = np.where(np.isfinite(hi), hi, mean)
+    better = (hi[None, :] < lo[:, None]) & ok[None, :]
+    return np.where(ok, 1.0 + better.sum(axis=1), np.nan)
 
 
 def _interval_holds(post, truth, level=0.9) -> np.ndarray:
     lo, hi = post.interval(level)
     return (truth >= lo) & (truth <= hi)
+
+
+def _rank_text(best: float, worst: float) -> str:
+    """``"2"``, or ``"2-4"`` where the CIs leave the place open; ``"-"`` unranked."""
+    if not np.isfinite(best):
+        return "-"
+    return f"{best:.0f}" if worst <= best else f"{best:.0f}-{worst:.0f}"
 
 
 class Systems(Experiment):
@@ -115,8 +190,13 @@ class Systems(Experiment):
         "MSE is normalised by each prior range (guessing the prior mean scores "
         f"{GUESS_MSE:.3f}); coverage is the fraction of parameters whose 90% interval holds the "
         "truth; forecast MSE is over positions scaled by the view's width, 100 frames after 50; "
-        "`check` is the share of posteriors whose model check passed. Rank orders the methods "
-        "of a system by parameter MSE at 200 frames (forecast-only methods last)."
+        "`check passes` is the share of posteriors whose model check passed; `gap to nuts` the "
+        "mean squared distance of the posterior means from the reference's; `chains converged` "
+        f"the share of cases whose sampler chains converged (split R-hat < {CONVERGED_RHAT}, "
+        f"ESS >= {CONVERGED_ESS}). Figures carry 95% CIs over cases. Rank: the places the "
+        "parameter-MSE CIs allow, from 1 + the methods whose whole CI lies below to the last "
+        "place but those whose whole CI lies above (`2-4`: not separable from its neighbours); "
+        "forecast-only methods unranked."
     )
 
     def cells(self, scale, methods):
@@ -192,47 +272,78 @@ class Systems(Experiment):
 
     # -- report -----------------------------------------------------------------------------
     def summary(self, df):
-        """``systems_summary``: one row per (system, method, input)."""
+        """``systems_summary``: one row per (system, method, input), numbers with 95% CIs over
+        cases (``<figure>_lo``, ``<figure>_hi``) and the CI rank (:func:`_ci_rank`)."""
         import pandas as pd
 
         last = max(SYSTEM_LENGTHS)
         recs = []
         for (s, m, inp), g in df.groupby(["condition", "method", "input"], sort=True):
             at = g[g.n_frames == last]
-
-            def mean_of(metric, frame=None, g=g, at=at):
-                v = (at if frame is None else g[g.n_frames == frame])
-                v = v[v.metric == metric].value
-                return float(v.mean()) if len(v) else np.nan
-
-            se = ci_summary(at[at.metric == "se"], ["method"])
-            rec = {"system": s, "method": m, "input": inp,
-                   "cases": int(g.case.nunique()),
-                   f"param_mse@{last}": mean_of("se"),
-                   "param_mse_lo": float(se["lo"].iloc[0]) if len(se) else np.nan,
-                   "param_mse_hi": float(se["hi"].iloc[0]) if len(se) else np.nan,
-                   "forecast_mse@50": mean_of("fc_mse", FORECAST_AFTER),
-                   "coverage90": mean_of("cov90"),
-                   "check_pass": mean_of("check_ok"),
-                   "rhat_max": float(at[at.metric == "rhat_max"].value.max())
-                   if (at.metric == "rhat_max").any() else np.nan,
-                   "ess_min": float(at[at.metric == "ess_min"].value.min())
-                   if (at.metric == "ess_min").any() else np.nan,
-                   "nuts_gap": _gap_to_reference(df, s, m, last),
-                   "s_per_id": float(at[at.metric == "wall_s"].value.median())
-                   if (at.metric == "wall_s").any() else np.nan}
+            rec = {"system": s, "method": m, "input": inp, "cases": int(g.case.nunique())}
+            for name, rows in ((f"param_mse@{last}", at[at.metric == "se"]),
+                               ("forecast_mse@50", g[(g.n_frames == FORECAST_AFTER)
+                                                     & (g.metric == "fc_mse")]),
+                               ("coverage90", at[at.metric == "cov90"]),
+                               ("check_pass", at[at.metric == "check_ok"]),
+                               ("nuts_gap", _gap_to_reference(df, s, m, last)),
+                               ("converged", _converged_rows(at))):
+                c = ci_summary(rows, ["method"]) if len(rows) else None
+                if c is not None and name in ("coverage90", "check_pass", "converged"):
+                    trials = len(g.metric[g.metric.str.startswith("se_")].unique())
+                    c = _share_bounds(c, rows.value, trials if name == "coverage90" else 1)
+                base = name.split("@")[0]
+                rec[name] = float(c["mean"].iloc[0]) if c is not None else np.nan
+                rec[f"{base}_lo"] = float(c["lo"].iloc[0]) if c is not None else np.nan
+                rec[f"{base}_hi"] = float(c["hi"].iloc[0]) if c is not None else np.nan
+            rec["rhat_max"] = (float(at[at.metric == "rhat_max"].value.max())
+                               if (at.metric == "rhat_max").any() else np.nan)
+            rec["ess_min"] = (float(at[at.metric == "ess_min"].value.min())
+                              if (at.metric == "ess_min").any() else np.nan)
+            rec["s_per_id"] = (float(at[at.metric == "wall_s"].value.median())
+                               if (at.metric == "wall_s").any() else np.nan)
             recs.append(rec)
         t = pd.DataFrame(recs)
         if t.empty:
             return t
         key = f"param_mse@{last}"
-        t["rank"] = t.groupby("system")[key].rank(method="min", na_option="keep")
-        return t.sort_values(["system", "rank", "method"], na_position="last").reset_index(drop=True)
+        t["rank"] = np.nan
+        t["rank_worst"] = np.nan
+        for _, idx in t.groupby("system").groups.items():
+            sub = t.loc[idx]
+            t.loc[idx, "rank"] = _ci_rank(sub[key], sub.param_mse_lo, sub.param_mse_hi)
+            # worst: ranked methods minus those whose whole CI lies above this one's
+            worse = _ci_rank(-sub[key], -sub.param_mse_hi, -sub.param_mse_lo)
+            t.loc[idx, "rank_worst"] = np.isfinite(sub[key]).sum() + 1 - worse
+        return t.sort_values(["system", "rank", key, "method"],
+                             na_position="last").reset_index(drop=True)
 
     def tables(self, df):
+        """The summary as the report shows it: each figure with its 95% CI over cases."""
+        import pandas as pd
+
         if df.empty:
             return {}
-        return {"systems_summary": self.summary(df)}
+        t = self.summary(df)
+        last = max(SYSTEM_LENGTHS)
+
+        def ci(r, name, digits=3):
+            base = name.split("@")[0]
+            return fmt_ci(r[name], r[f"{base}_lo"], r[f"{base}_hi"], digits)
+
+        def num(x, fmt):
+            return format(x, fmt) if np.isfinite(x) else "-"
+
+        rows = [{"system": r.system, "method": r.method, "input": r.input, "cases": r.cases,
+                 f"param MSE @ {last}": ci(r, f"param_mse@{last}"),
+                 "forecast MSE @ 50": ci(r, "forecast_mse@50"),
+                 "coverage 90%": ci(r, "coverage90", 2),
+                 "check passes": ci(r, "check_pass", 2),
+                 "chains converged": ci(r, "converged", 2),
+                 f"gap to {REFERENCE}": ci(r, "nuts_gap"),
+                 "s / identification": num(r.s_per_id, ".3g"),
+                 "rank": _rank_text(r["rank"], r["rank_worst"])} for _, r in t.iterrows()]
+        return {"systems_summary": pd.DataFrame(rows)}
 
     def figures(self, df, store, outdir: Path):
         import matplotlib
