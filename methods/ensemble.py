@@ -4,7 +4,10 @@ The posterior is the Gaussian position likelihood of :func:`sysid_bench.simulato
 (fixed noise ``sigma``, the same as ``nuts``) times the uniform prior of
 :data:`sysid_bench.physics.PRIOR`. When the initial state is not given it is sampled too, as a
 nuisance with a flat prior on a box of ``state0_box`` standard errors around the state estimated
-from the first tracked frames (see :mod:`methods._tracks`); so is an unknown floor, on a box of
+from the first tracked frames (see :mod:`methods._tracks`; refitted on the frames before the first
+contact when it was extrapolated back across one, :func:`methods._simulation.start_before_contact`,
+``extras["state0_before_contact"]``: a wall bounce in frame 2 put the box 170 errors from the
+truth); so is an unknown floor, on a box of
 as many of its standard errors around its estimate. (With the floor fixed at its estimate from
 tracked 28x28 frames, a 1-2 cm error in it put the truth outside the 90% interval of g in 6 of 6
 test videos; sampled, the intervals hold it.)

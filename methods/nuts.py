@@ -13,8 +13,11 @@ Model
 * **Initial state** — ``Observation.state0`` when given (held fixed). Otherwise it is *sampled*
   as a nuisance parameter, uniform on the box (``x0`` in [0, 10], ``y0`` in [floor, floor + 10])
   and on ``[-V0_MAX, V0_MAX]`` m/s for each velocity, starting from ``methods._tracks.prepare``'s
-  estimate. Sampling it makes the intervals honest about how well the start is known; holding
-  the polynomial estimate fixed would bias ``e`` and ``g`` with no spread to show for it.
+  estimate (refitted on the frames before the first contact when ``prepare`` extrapolated it
+  back across one: :func:`methods._simulation.start_before_contact`,
+  ``extras["state0_before_contact"]``). Sampling it makes the intervals honest about how well
+  the start is known; holding the polynomial estimate fixed would bias ``e`` and ``g`` with no
+  spread to show for it.
 * **Floor** — ``Observation.floor`` when given (held fixed). Otherwise it is *sampled* as a
   nuisance parameter, as emcee samples it: uniform on ``FLOOR_BOX`` (20) standard errors
   (``Track.floor_std``) either side of ``methods._tracks.prepare``'s estimate (with a given
