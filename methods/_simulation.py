@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from methods._tracks import Track, clip_state, local_state
+from methods._tracks import Track, clip_state, start_before_contact  # noqa: F401 (re-export)
 from methods._weights import resample
 from sysid_bench import physics
 from sysid_bench._validate import check_positive_int
@@ -366,62 +366,6 @@ def state0_box(track: Track) -> tuple[np.ndarray, np.ndarray]:
     half = state0_half(track)
     return (clip_state(track.state0 - half, track.floor),
             clip_state(track.state0 + half, track.floor))
-
-
-#: free flight departs from a constant velocity plus the prior's mean gravity by at most about
-#: this much (m/s^2): the prior's g is within 3 of its mean, drag adds up to ~6 (``_tracks``)
-_FREE_ACC = 9.0
-
-
-def start_before_contact(track: Track) -> Track:
-    """``track`` with its initial-state estimate refitted on the frames before the first
-    contact, when :func:`methods._tracks.prepare` extrapolated it back across one.
-
-    ``prepare`` fits the first free-flight run of at least 3 frames. When a contact comes
-    earlier (a wall bounce in frame 2 of test case 0 of the default scale), that fit describes
-    the ball *after* the contact, extrapolated to frame 0 as if there were none: in that case
-    x0 = 10 m and vx0 = -6.4 m/s for a ball at 9.2 m moving right at +6.4 m/s, its standard
-    errors (1 cm, 0.07 m/s) 77 and 170 times smaller than its error. A sampler started there (or
-    whose prior on the start is a box of standard errors around it) settles in the mirrored
-    basin and reports a narrow, wrong posterior. The seen frames before the first contact
-    observe the start directly (those before the first frame flagged, and that frame too when
-    the next is flagged: the contact lies between them): with 3 or more, ``local_state``'s
-    polynomial fit; with 2, the line through them with the prior's mean gravity added back to
-    the vertical velocity and velocity errors of at least half of ``_FREE_ACC`` times their
-    time apart (the rest of gravity and drag). With fewer than 2 such frames, or no contact
-    before the fitted run, or a known start, ``track`` is returned as it is.
-
-    Parameters
-    ----------
-    track : Track
-
-    Returns
-    -------
-    Track
-        ``track``, or a copy with ``state0`` and ``state0_std`` (4,) replaced.
-    """
-    if track.state0_known:
-        return track
-    seg = track.segments
-    flags = np.flatnonzero(seg.floor_hit | seg.wall_hit)
-    starts = [a for a, _ in seg.flight_all] + [a for a, _ in seg.rolling]
-    if flags.size == 0 or not starts or seg.stopped[0] or flags[0] > min(starts):
-        return track
-    # a contact's impulse shows in the second differences of the frames either side of it:
-    # the first two frames flagged bracket it, and the first of them is still before it
-    f = int(flags[0])
-    if f + 1 < track.n_frames and (seg.floor_hit[f + 1] or seg.wall_hit[f + 1]):
-        f += 1
-    early = np.flatnonzero(track.mask[:f])
-    if early.size < 2:
-        return track
-    state, std = local_state(track.positions, track.dt, early, 0.0, track.noise,
-                             floor=track.floor)
-    if early.size == 2:
-        span = float(early[1] - early[0]) * track.dt
-        state[3] -= 0.5 * physics.PRIOR_MEAN[1] * span
-        std[2:] = np.maximum(std[2:], 0.5 * _FREE_ACC * span)
-    return dataclasses.replace(track, state0=clip_state(state, track.floor), state0_std=std)
 
 
 def _judge(sim: CountingSimulator, theta, state0, floor: float, track: Track,

@@ -5,7 +5,7 @@ The posterior is the Gaussian position likelihood of :func:`sysid_bench.simulato
 :data:`sysid_bench.physics.PRIOR`. When the initial state is not given it is sampled too, as a
 nuisance with a flat prior on a box of ``state0_box`` standard errors around the state estimated
 from the first tracked frames (see :mod:`methods._tracks`; refitted on the frames before the first
-contact when it was extrapolated back across one, :func:`methods._simulation.start_before_contact`,
+contact when it was extrapolated back across one, :func:`methods._tracks.start_before_contact` (in ``prepare``),
 ``extras["state0_before_contact"]``: a wall bounce in frame 2 put the box 170 errors from the
 truth); so is an unknown floor, on a box of
 as many of its standard errors around its estimate. (With the floor fixed at its estimate from
@@ -49,7 +49,6 @@ from methods._simulation import (
     Stopwatch,
     make_rng,
     one_blas_thread,
-    start_before_contact,
 )
 from methods._tracks import clip_state, prepare
 from sysid_bench import physics
@@ -308,11 +307,10 @@ class Emcee(SimulationMethod):
         box = float(self.state0_box)
         if not np.isfinite(box) or box <= 0:
             raise ValueError(f"state0_box: expected a number > 0, got {self.state0_box!r}")
-        raw_track = prepare(obs)
-        # a start extrapolated back across an early contact is in a mirrored basin, and the
-        # start's prior box (standard errors around it) can exclude the truth: refit it on the
-        # frames before that contact
-        track = start_before_contact(raw_track)
+        # a start extrapolated back across an early contact is refitted on the frames before it
+        # (``prepare``: ``start_before_contact``): else the start's prior box (standard errors
+        # around it) can exclude the truth
+        track = prepare(obs)
         sim = CountingSimulator()
         prob = _Problem(track, sigma, box, sim)
         if n_walkers < 2 * prob.ndim or n_walkers % 2:
@@ -365,7 +363,7 @@ class Emcee(SimulationMethod):
             "converged": converged,
             "laplace_std": lap_std.tolist(),
             "n_dim": prob.ndim,
-            "state0_before_contact": track is not raw_track,
+            "state0_before_contact": track.state0_refit,
             **info,
             **track.describe(),
         }

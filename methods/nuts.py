@@ -14,7 +14,7 @@ Model
   as a nuisance parameter, uniform on the box (``x0`` in [0, 10], ``y0`` in [floor, floor + 10])
   and on ``[-V0_MAX, V0_MAX]`` m/s for each velocity, starting from ``methods._tracks.prepare``'s
   estimate (refitted on the frames before the first contact when ``prepare`` extrapolated it
-  back across one: :func:`methods._simulation.start_before_contact`,
+  back across one: :func:`methods._tracks.start_before_contact` (in ``prepare``),
   ``extras["state0_before_contact"]``). Sampling it makes the intervals honest about how well
   the start is known; holding the polynomial estimate fixed would bias ``e`` and ``g`` with no
   spread to show for it.
@@ -95,7 +95,7 @@ from numpyro.infer.hmc import hmc
 from numpyro.infer.util import potential_energy
 from scipy.optimize import minimize
 
-from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng, start_before_contact
+from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng
 from methods._tracks import clip_state, prepare
 from sysid_bench import physics
 from sysid_bench import physics_jax as pj
@@ -560,10 +560,9 @@ class NUTS(SimulationMethod):
         the last frame. ``extras["n_simulations"]`` of a forecast counts the fit's too."""
         sw = Stopwatch()
         sigma = self._check()
-        raw_track = prepare(obs)
-        # a start extrapolated back across an early contact is in a mirrored basin: refit it
-        # on the frames before that contact (the search starts there)
-        track = start_before_contact(raw_track)
+        # a start extrapolated back across an early contact is refitted on the frames before
+        # it (``prepare``: ``start_before_contact``); the search starts there
+        track = prepare(obs)
         sim = CountingSimulator()
         T, dt, floor = track.n_frames, track.dt, track.floor
         Tb = _bucket(T, int(self.frame_bucket))
@@ -667,7 +666,7 @@ class NUTS(SimulationMethod):
             "n_potential_evals_init": pot.n,
             "sigma": sigma,
             "state0_sampled": free,
-            "state0_before_contact": track is not raw_track,
+            "state0_before_contact": track.state0_refit,
             # the floor's posterior; a known floor is its own mean with no spread
             "floor_sampled": free_floor,
             "floor_mean": float(fls.mean()) if free_floor else floor,
