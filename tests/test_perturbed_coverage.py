@@ -25,12 +25,12 @@ from sysid_bench.bench.foreign import Foreign
 
 def test_perturbed_cells_per_method_and_the_reference_minimum():
     sc = SCALES["default"]
-    cells = Calibration().cells(sc, ["nuts", "emcee", "lsq", "prior"])
+    cells = Calibration().cells(sc, ["nuts", "bo", "emcee", "lsq", "prior"])
     pert = pd.DataFrame([c.key() for c in cells if c.condition == PERTURBED])
     n = pert.groupby("method").case.nunique().to_dict()
-    # nuts (the reference) gets at least 10 whatever its calibration cap (3); emcee keeps its cap
-    assert n == {"nuts": 10, "emcee": 4, "lsq": PERTURBED_CONFIG["default"]["n"],
-                 "prior": PERTURBED_CONFIG["default"]["n"]}
+    # nuts (the reference) gets at least 10 whatever its calibration cap (3); bo keeps its cap
+    full = PERTURBED_CONFIG["default"]["n"]
+    assert n == {"nuts": 10, "bo": 4, "emcee": full, "lsq": full, "prior": full}
     assert perturbed_cases(sc, "nuts") == 10
     assert set(pert.input) == {"video"}
     # the in-model cells are as before
