@@ -33,7 +33,8 @@ __all__ = ["SimulationMethod", "Fit", "forecast_by_simulation", "make_rng", "Sto
            "one_blas_thread", "model_check", "region_box", "region_check",
            "check_posterior", "widen_failed", "widen_to_support", "check_prefixes",
            "uninformed", "widen_uninformed", "refine_fit", "state0_box",
-           "state0_half", "start_before_contact"]
+           "state0_half", "start_before_contact", "widen_by_discrepancy",
+           "residual_tau"]
 
 #: ``Check.note`` of a failed check whose intervals were widened
 WIDENED_NOTE = ("intervals widened to at least the prior's: the model at the reported "
@@ -284,6 +285,182 @@ def widen_failed(post: Posterior, check: Check) -> Posterior:
                      samples=samples, extras=extras, check=check, system=post.system)
 
 
+#: the model explains a track only roughly when its best fit's residual RMS is at most this share
+#: of the track's own spread (the RMS of the seen positions about their mean); beyond it (random
+#: points, a ball hovering mid-air) the misfit is the track and nothing is left to measure
+DISCREPANCY_MAX_SHARE = 0.1
+
+
+#: how :func:`widen_to_support` widens when even the best fit fails: None, to the prior
+#: (:func:`widen_failed`, the default); else the ``reading`` of :func:`widen_by_discrepancy`.
+#: Off by default: on physics that is not ours the best fit's e and d are biased by more than
+#: any reading of its residuals says (docs/reliability.md, "Widening by a measured model
+#: discrepancy")
+DISCREPANCY_READING: str | None = None
+
+
+def residual_tau(resid: np.ndarray) -> float:
+    """Integrated autocorrelation time (frames, >= 1) of a best fit's residuals.
+
+    ``resid`` (T, 2), metres, NaN where unseen: per coordinate, the seen residuals in frame
+    order, their autocorrelation about zero (a constant offset is a perfectly correlated misfit,
+    not noise) ``c_k = sum r_t r_{t+k} / sum r_t^2``, and ``tau = 1 + 2 sum_k c_k`` summed while
+    ``c_k`` stays positive (the initial positive sequence: the noisy tail adds only noise);
+    the coordinates' taus weighted by their sums of squares. White noise gives ~1; a misfit
+    that drifts over ``m`` frames gives ~``m``. Never more than the seen frames.
+    """
+    resid = np.asarray(resid, dtype=np.float64)
+    if resid.ndim != 2 or resid.shape[1] != 2:
+        raise ValueError(f"resid: expected shape (T, 2), got {resid.shape}")
+    taus, weights = [], []
+    for j in range(2):
+        r = resid[:, j]
+        r = r[np.isfinite(r)]
+        ss = float(np.sum(r * r))
+        if r.size < 2 or ss <= 0.0:
+            continue
+        tau = 1.0
+        for k in range(1, r.size):
+            c = float(np.dot(r[:-k], r[k:])) / ss
+            if c <= 0.0:
+                break
+            tau += 2.0 * c
+        taus.append(min(tau, float(r.size)))
+        weights.append(ss)
+    if not taus:
+        return 1.0
+    return float(max(np.average(taus, weights=weights), 1.0))
+
+
+def _discrepancy_std(sim: CountingSimulator, track: Track, best: np.ndarray, state0: np.ndarray,
+                     noise_eff: float) -> np.ndarray:
+    """Marginal std (4,) of the parameters at the best fit with ``noise_eff`` as the noise:
+    Laplace, ``(J^T J / noise_eff^2 + P)^-1`` with ``J`` the seen positions' forward-difference
+    Jacobian in the parameters and (unless known) the initial state (one batch of 5 or 9
+    simulations, stepping inwards at the prior's bounds) and ``P`` the prior's precision
+    (``1 / PRIOR_STD^2``; for the start, that of its box, :func:`state0_half`)."""
+    best = np.asarray(best, dtype=np.float64)
+    s0 = np.asarray(state0, dtype=np.float64)
+    free = not track.state0_known
+    h_t = 1e-6 * physics.PRIOR_SPAN
+    h_t = np.where(best + h_t <= physics.PRIOR_HI, h_t, -h_t)
+    th = np.repeat(best[None], 5 + 4 * free, axis=0)
+    st = np.repeat(s0[None], len(th), axis=0)
+    th[1:5] += np.diag(h_t)
+    steps = list(h_t)
+    prec = list(1.0 / PRIOR_STD ** 2)
+    if free:
+        half = state0_half(track)
+        h_s = 1e-6 * half
+        st[5:] += np.diag(h_s)
+        steps += list(h_s)
+        prec += list(1.0 / half ** 2)
+    pos = sim.positions(th, clip_state(st, track.floor), track.n_frames, track.dt,
+                        float(track.floor))[:, track.mask].reshape(len(th), -1)
+    J = ((pos[1:] - pos[0]) / np.asarray(steps)[:, None]).T
+    A = J.T @ J / float(noise_eff) ** 2 + np.diag(prec)
+    cov = np.linalg.pinv(A)
+    return np.sqrt(np.clip(np.diag(cov)[:4], 0.0, None))
+
+
+def widen_by_discrepancy(post: Posterior, check: Check, sim: CountingSimulator, track: Track,
+                         best: np.ndarray, state0: np.ndarray, seed: int = 0,
+                         reading: str = "tau") -> Posterior:
+    """``post`` widened by the model discrepancy its best fit measures, when the check fails
+    even at the best fit; the prior (:func:`widen_failed`) where nothing can be measured.
+
+    The best fit ``best`` (4,) from ``state0`` (4,) (:func:`refine_fit`) is simulated (counted
+    by ``sim``) and its residuals over the seen frames measured: their RMS ``rho`` and their
+    integrated autocorrelation time ``tau`` (:func:`residual_tau`). Read as noise, the misfit
+    has the variance ``rho^2`` and only ``n / tau`` of the ``n`` residuals are independent, so
+    it weighs as white noise of ``noise_eff = rho * sqrt(tau)`` would. ``reading`` says how the
+    spread follows from it: ``"tau"``, the Laplace posterior at the best fit with that noise
+    (:func:`_discrepancy_std`: its Jacobian, the start marginalised, the prior's precision
+    added); ``"worst"``, the same with ``tau = n`` (``noise_eff = rho * sqrt(n)``: the shift
+    of the linearised fit under a misfit of the measured size in its worst shape: one std
+    is where the linearised sum of squares doubles); ``"scale"``, the
+    method's own std times ``noise_eff / sigma``. Each parameter's std becomes the largest of
+    the method's own, that spread and its distance from the best fit
+    (its interval holds the best fit, as :func:`widen_to_support`'s), at most the prior's
+    (``PRIOR_STD``). The samples (if any) are stretched about the mean by the same factors
+    (clipped to the prior box, and further where their 90% interval still missed the best
+    fit); a parameter whose std reached the prior's, or that the best fit cannot inform
+    beyond ``noise_eff`` (:func:`uninformed`, 8 simulations), gets the prior (uniform draws,
+    seeded by ``seed``). The verdict stays failed; ``check.note`` says what was measured and
+    ``extras["discrepancy"]`` holds ``rms_m`` (rho), ``tau``, ``noise_m`` (noise_eff),
+    ``factor`` (noise_eff over the assumed noise ``check.noise_m``), ``reading``,
+    ``spread_std`` (4,, the spread the reading gave) and
+    ``prior`` (the parameters given the prior).
+
+    Falls back to the prior (:func:`widen_failed`) when the model explains nothing of the
+    track: ``rho`` above :data:`DISCREPANCY_MAX_SHARE` of the track's spread (random points,
+    a ball hovering mid-air), fewer than 3 seen frames, or a still track.
+    """
+    if reading not in ("tau", "worst", "scale"):
+        raise ValueError(f"reading: expected 'tau', 'worst' or 'scale', got {reading!r}")
+    best = np.asarray(best, dtype=np.float64)
+    traj = sim.positions(best[None],
+                         clip_state(np.asarray(state0, dtype=np.float64)[None], track.floor),
+                         track.n_frames, track.dt, float(track.floor))[0]
+    m = track.mask
+    resid = np.where(m[:, None], traj - np.where(m[:, None], track.positions, 0.0), np.nan)
+    seen = track.positions[m]
+    r = resid[m].ravel()
+    sigma = float(check.noise_m)
+    if seen.shape[0] < 3 or not np.all(np.isfinite(r)) or not sigma > 0:
+        return widen_failed(post, check)
+    rho = float(np.sqrt(np.mean(r * r)))
+    spread = float(np.sqrt(np.mean(np.var(seen, axis=0))))
+    if not rho <= DISCREPANCY_MAX_SHARE * spread:
+        return widen_failed(post, check)
+    tau = residual_tau(resid)
+    noise_eff = max(rho, sigma) * float(np.sqrt(r.size if reading == "worst" else tau))
+    mean = np.asarray(post.mean, dtype=np.float64)
+    old = np.asarray(post.std, dtype=np.float64)
+    if reading == "scale":
+        lap = old * (noise_eff / sigma)
+    else:
+        lap = _discrepancy_std(sim, track, best, state0, noise_eff)
+    std = np.minimum(np.maximum(np.maximum(old, lap), np.abs(best - mean)), PRIOR_STD)
+    flat = (std >= PRIOR_STD) | uninformed(sim, best, state0, track.floor, track, noise_eff)
+    std = np.where(flat, PRIOR_STD, std)
+    samples = post.samples
+    if samples is not None:
+        samples = np.asarray(samples, dtype=np.float64)
+        ratio = np.where(old > 0, std / np.where(old > 0, old, 1.0), 1.0)
+        samples = mean + (samples - mean) * ratio
+        # a parameter the method gave no spread: Gaussian draws of the new std (seeded)
+        point = (old <= 0) & (std > 0)
+        if point.any():
+            z = np.random.default_rng([seed, 37]).standard_normal((len(samples), 4))
+            samples[:, point] = (mean + z * std)[:, point]
+        samples = np.clip(samples, physics.PRIOR_LO, physics.PRIOR_HI)
+        # the interval read from the samples holds the best fit too (a skewed cloud may not)
+        lo, hi = np.quantile(samples, [0.05, 0.95], axis=0)
+        for j in np.flatnonzero(((best < lo) | (best > hi)) & ~flat):
+            side = lo[j] if best[j] < lo[j] else hi[j]
+            if side != mean[j]:
+                f = 1.05 * abs(best[j] - mean[j]) / abs(side - mean[j])
+                samples[:, j] = np.clip(mean[j] + (samples[:, j] - mean[j]) * f,
+                                        physics.PRIOR_LO[j], physics.PRIOR_HI[j])
+        if flat.any():
+            u = np.random.default_rng([seed, 31]).random((len(samples), 4))
+            prior = physics.PRIOR_LO + u * physics.PRIOR_SPAN
+            samples[:, flat] = prior[:, flat]
+    k = noise_eff / sigma
+    note = (f"the posterior mean misses the track by {check.rms_m:.3g} m RMS and the best fit "
+            f"by {rho:.3g} m, correlated over {tau:.3g} frames: intervals widened as for "
+            f"white noise of {noise_eff:.3g} m ({k:.3g} x the {sigma:.3g} m assumed), to hold "
+            f"the best fit, at most the prior's")
+    check = dataclasses.replace(check, note=note)
+    extras = {**post.extras, "check_failed": True, "support_fit": best.tolist(),
+              "discrepancy": {"rms_m": rho, "tau": tau, "noise_m": noise_eff, "factor": k,
+                              "reading": reading, "spread_std": lap.tolist(),
+                              "prior": [p for p, f in zip(physics.PARAMS, flat) if f]}}
+    return Posterior(mean=mean, std=std, samples=samples, extras=extras, check=check,
+                     system=post.system)
+
+
 #: simulations the search for what the data supports may use (:func:`widen_to_support`)
 SUPPORT_SIMS = 450
 #: the checks' least-squares tolerance (:func:`refine_fit`'s ``tol``)
@@ -292,7 +469,8 @@ CHECK_TOL = 1e-4
 
 def widen_to_support(post: Posterior, check: Check, sim: CountingSimulator, track: Track,
                      state0: np.ndarray, floor: float, start=None,
-                     info: dict | None = None, max_sims: int = SUPPORT_SIMS) -> Posterior:
+                     info: dict | None = None, max_sims: int = SUPPORT_SIMS,
+                     seed: int = 0) -> Posterior:
     """``post`` with ``check``; when it fails, intervals widened to what the data supports.
 
     A failed check says the posterior mean does not reproduce the track. Whether the model can
@@ -303,7 +481,10 @@ def widen_to_support(post: Posterior, check: Check, sim: CountingSimulator, trac
     from the best fit (so the 90% interval holds the best fit), the samples are stretched
     about the mean by the same factors, and ``check.note`` says so (the verdict stays failed,
     with the posterior mean's RMS). If even the best fit fails, the model does not explain the
-    observation and the spread becomes at least the prior's (:func:`widen_failed`). ``start``:
+    observation and the spread becomes at least the prior's (:func:`widen_failed`); with
+    :data:`DISCREPANCY_READING` set, the intervals are instead widened by the discrepancy the
+    best fit measures (:func:`widen_by_discrepancy`, seeded by ``seed``; off by default: on
+    the perturbed cases it held too few truths, docs/reliability.md). ``start``:
     ``(theta, state0)`` to fit from instead (the region check's best fit inside the 90% box).
     ``info`` receives the best fit's ``"theta"``, ``"state0"`` and ``"rms"`` (when it ran).
     """
@@ -329,7 +510,10 @@ def widen_to_support(post: Posterior, check: Check, sim: CountingSimulator, trac
         info.update(theta=best, state0=s0_best, rms=rms)
     # judged on the floor the fit used
     if not model_check(sim, best, s0_best, track.floor, track, check.noise_m).ok:
-        return widen_failed(post, check)
+        if DISCREPANCY_READING is None:
+            return widen_failed(post, check)
+        return widen_by_discrepancy(post, check, sim, track, best, s0_best, seed=seed,
+                                    reading=DISCREPANCY_READING)
     std = np.maximum(post.std, np.abs(best - post.mean))
     samples = post.samples
     if samples is not None:
@@ -560,7 +744,8 @@ def check_posterior(post: Posterior, sim: CountingSimulator, track: Track, state
         return widen_failed(post, dataclasses.replace(check, note=UNSEARCHED_NOTE))
     s_info: dict = {}
     post = widen_to_support(post, check, sim, track, s0, fl,
-                            start=support_start or info["region"], info=s_info, **budget)
+                            start=support_start or info["region"], info=s_info, seed=seed,
+                            **budget)
     if s_info:
         info["support"] = (s_info["theta"], s_info["state0"])
         info["best_sse"] = min(info["best_sse"], s_info["rms"] ** 2 * check.n)
