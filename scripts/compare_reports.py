@@ -40,9 +40,10 @@ def parse(value) -> tuple[float, float, float] | float | None:
     s = str(value).strip()
     m = _CI.match(s)
     if m:
+        x = parse(m.group(1))  # "0.05 [..]" or a count "7/19 [..]"
         try:
-            return tuple(float(g) for g in m.groups())
-        except ValueError:
+            return (float(x), float(m.group(2)), float(m.group(3)))
+        except (TypeError, ValueError):
             return None
     try:
         return float(s)

@@ -6,11 +6,14 @@
 # Run on the device with the missing pure-Python packages carried as wheels in .whl/:
 #   python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl
 #   export PYTHONPATH=/tmp/site:$PWD CUDA_VISIBLE_DEVICES= JAX_PLATFORMS=cpu
-#   bash scripts/device_cross_machine.sh [SECONDS]
+#   bash scripts/device_cross_machine.sh [SECONDS [EXPERIMENT ...]]
 # Writes to $OUT: env.txt (CPU and versions), log.txt, rep.tgz (REPORT.md, tables, figures),
 # store.sqlite.gz (the results store, for re-rendering).
 set -uo pipefail
 limit=${1:-430}
+shift || true
+exps=()
+[ $# -gt 0 ] && exps=(--experiments "$@")
 out=${OUT:-/tmp/out}
 mkdir -p "$out"
 {
@@ -30,7 +33,8 @@ EOF
 } > "$out/env.txt" 2>&1
 workers=$(nproc)
 timeout "$limit" python3 -m sysid_bench.report --no-progress --workers "$workers" \
-  --run-dir /tmp/dev --out /tmp/rep 2>&1 | tee "$out/log.txt"
+  --run-dir /tmp/dev --out /tmp/rep "${exps[@]}" 2>&1 | grep -v -e SyntaxWarning -e '^  """' \
+  | tee "$out/log.txt"
 echo "report exit: $?" | tee -a "$out/log.txt"
 if [ ! -f /tmp/rep/REPORT.md ]; then
   # killed at the limit: render what the store holds

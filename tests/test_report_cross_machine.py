@@ -107,6 +107,7 @@ def test_compare_holds_each_figure_to_the_committed_ci(tmp_path):
     assert {(k, c) for k, c, _, _ in r["outside"]} == {
         (("b", "4"), "MSE"), (("b", "4"), "median std"), (("a", "4"), "rank"),
         (("b", "4"), "rank"), (("a", "4"), "followed")}
+    assert cmp.parse("7/19 [0.069, 0.71]") == pytest.approx((7 / 19, 0.069, 0.71))
     assert cmp.main([str(tmp_path / "ref"), str(tmp_path / "outside")]) == 1
     assert cmp.main([str(tmp_path / "ref"), str(tmp_path / "same")]) == 0
     assert cmp.main([str(tmp_path / "ref"), str(tmp_path / "missing")]) == 2

@@ -42,6 +42,7 @@ from sysid_bench.bench.experiment import (
     fmt_ci,
     median_ci,
     normalise,
+    share_ci,
     timed_prefixes,
 )
 from sysid_bench.bench.identification import _save, case_cells, method_color, method_inputs
@@ -151,33 +152,6 @@ def _conditioned(df):
     if "condition" in df.columns:
         return df.assign(condition=df.condition.fillna("").astype(str))
     return df.assign(condition="")
-
-
-def share_ci(rows):
-    """Mean with its 95% CI over cases of ``rows``' 0/1 values (each case's values averaged
-    first; a bootstrap over cases).
-
-    A bootstrap of cases that all score 1 (or all 0) has no width, and would let a reading call
-    a share of 1.00 [1.00, 1.00] from four cases above 97%. There the open side is the exact
-    binomial bound over cases instead: with all ``n`` cases holding, a share of holding cases
-    below ``0.025 ** (1 / n)`` would give that outcome less than 2.5% of the time (0.40 for 4
-    cases, 0.69 for 10, 0.96 for 100).
-
-    Returns
-    -------
-    pandas.Series
-        ``mean``, ``lo``, ``hi``, ``n``.
-    """
-    per_case = rows.groupby("case").value.mean().reset_index().assign(k=0)
-    s = ci_summary(per_case, ["k"]).iloc[0].copy()
-    n = len(per_case)
-    if n:
-        bound = 0.025 ** (1.0 / n)
-        if (per_case.value >= 1.0).all():
-            s["lo"] = min(s["lo"], bound)
-        elif (per_case.value <= 0.0).all():
-            s["hi"] = max(s["hi"], 1.0 - bound)
-    return s
 
 
 def band_verdict(below, above, lo_b: float, hi_b: float) -> str:

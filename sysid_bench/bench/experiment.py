@@ -37,6 +37,7 @@ __all__ = [
     "normalise",
     "ci_summary",
     "median_ci",
+    "share_ci",
     "small_sample_widen",
     "fmt_ci",
     "LO",
@@ -362,6 +363,33 @@ def median_ci(df, key, value: str = "value", case: str = "case", n_boot: int = 1
     a = (1.0 - level) / 2
     lo, hi = np.quantile(meds, [a, 1.0 - a])
     return med, float(lo), float(hi)
+
+
+def share_ci(rows):
+    """Mean with its 95% CI over cases of ``rows``' 0/1 values (each case's values averaged
+    first; a bootstrap over cases).
+
+    A bootstrap of cases that all score 1 (or all 0) has no width, and would let a reading call
+    a share of 1.00 [1.00, 1.00] from four cases above 97%. There the open side is the exact
+    binomial bound over cases instead: with all ``n`` cases holding, a share of holding cases
+    below ``0.025 ** (1 / n)`` would give that outcome less than 2.5% of the time (0.40 for 4
+    cases, 0.69 for 10, 0.96 for 100).
+
+    Returns
+    -------
+    pandas.Series
+        ``mean``, ``lo``, ``hi``, ``n``.
+    """
+    per_case = rows.groupby("case").value.mean().reset_index().assign(k=0)
+    s = ci_summary(per_case, ["k"]).iloc[0].copy()
+    n = len(per_case)
+    if n:
+        bound = 0.025 ** (1.0 / n)
+        if (per_case.value >= 1.0).all():
+            s["lo"] = min(s["lo"], bound)
+        elif (per_case.value <= 0.0).all():
+            s["hi"] = max(s["hi"], 1.0 - bound)
+    return s
 
 
 def fmt_ci(m: float, lo: float, hi: float, digits: int = 3) -> str:
