@@ -38,9 +38,12 @@ def test_median_ci_resamples_cases_and_ignores_row_order():
             for _ in range(3000)]
     q = np.quantile(meds, [0.025, 0.975])
     assert abs(lo - q[0]) < 0.15 and abs(hi - q[1]) < 0.15
+    # fewer than 10 cases: at least the range of the values (3 cases' resamples are too alike)
+    few = df[df.case < 3]
+    m3, lo3, hi3 = median_ci(few, ("k",))
+    assert (m3, lo3, hi3) == (np.median(few.value), few.value.min(), few.value.max())
     one = df[df.case == 2]
-    m1 = float(np.median(one.value))
-    assert median_ci(one, ("k",)) == (m1, m1, m1)
+    assert median_ci(one, ("k",)) == (np.median(one.value), one.value.min(), one.value.max())
 
 
 def test_few_cases_get_at_least_the_t_interval():

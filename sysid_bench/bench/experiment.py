@@ -330,7 +330,8 @@ def median_ci(df, key, value: str = "value", case: str = "case", n_boot: int = 1
 
     A median shown without an interval cannot say whether another run's differs (issue 29: a
     fresh run on another machine must land inside the committed figure's CI). Independent of
-    row order; seeded from ``key`` (the group's identity). One case: its median thrice.
+    row order; seeded from ``key`` (the group's identity). Fewer than :data:`SMALL_N` cases:
+    the interval is widened to the range of the values (one case: that range).
 
     Returns
     -------
@@ -347,7 +348,7 @@ def median_ci(df, key, value: str = "value", case: str = "case", n_boot: int = 1
     ids, gid = np.unique(c, return_inverse=True)
     k = len(ids)
     if k == 1:
-        return med, med, med
+        return med, float(v.min()), float(v.max())
     order = np.lexsort((gid, v))  # by value, ties by case: the same for any row order
     v, gid = v[order], gid[order]
     rng = np.random.default_rng(_group_seed(0, value, ["median", case], list(key)))
@@ -362,6 +363,11 @@ def median_ci(df, key, value: str = "value", case: str = "case", n_boot: int = 1
     meds = 0.5 * (v[at_lo] + v[at_hi])
     a = (1.0 - level) / 2
     lo, hi = np.quantile(meds, [a, 1.0 - a])
+    if k < SMALL_N:
+        # a few cases' resamples are few and alike (a rerun elsewhere missed 3 cases' CI):
+        # no distribution-free 95% interval of a median exists below 6 cases, so the range of
+        # the values is shown instead
+        lo, hi = min(lo, float(v[0])), max(hi, float(v[-1]))
     return med, float(lo), float(hi)
 
 
