@@ -3,25 +3,19 @@ CI a rerun elsewhere can be held to (medians, small case counts, ranks), and
 scripts/compare_reports.py holds one report to another's."""
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+from scripts_loader import load_script
 
 from sysid_bench.bench.experiment import ci_summary, median_ci, small_sample_widen
 from sysid_bench.bench.systems import _ci_rank, _rank_text, _share_bounds
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def _compare():
-    spec = importlib.util.spec_from_file_location("compare_reports",
-                                                  ROOT / "scripts" / "compare_reports.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("compare_reports")
 
 
 def test_median_ci_resamples_cases_and_ignores_row_order():

@@ -182,13 +182,9 @@ def test_calibration_verdict_rests_on_the_cis(hits, verdict):
 
 # -- the README's headline figures are the report's summary cells ---------------------------------
 def _headline():
-    import importlib.util
+    from scripts_loader import load_script
 
-    spec = importlib.util.spec_from_file_location("readme_headline",
-                                                  ROOT / "scripts" / "readme_headline.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("readme_headline")
 
 
 def test_readme_headline_table_is_the_summary_under_its_names():
