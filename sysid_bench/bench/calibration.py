@@ -52,6 +52,14 @@ from sysid_bench.physics import PARAMS
 
 #: the cell condition of the perturbed-physics cases ("" is our physics)
 PERTURBED = "perturbed"
+#: the cell condition of observations no physics explains (issue 29's set (a)); a case is a kind
+MEANINGLESS = "meaningless"
+MEANINGLESS_KINDS = ("hovering", "random points", "white video", "noise video", "frozen ball",
+                     "outlier frame")
+#: scales whose runs include them (the report's; smoke runs stay small)
+MEANINGLESS_SCALES = ("default", "paper")
+#: an interval "claims precision" when narrower than this share of the prior's 90% interval
+NARROW_FRACTION = 0.5
 #: most of the horizontal speed lost at every floor bounce (spin and friction); per case U(0, SPIN)
 SPIN = 0.3
 #: longest a bouncing ball stays on the floor, sliding (a soft contact), s; per case U(0, DWELL)
@@ -84,7 +92,58 @@ def n_cases(n: int) -> str:
 
 def physics_label(condition: str) -> str:
     """The ``physics`` column of the report's tables for a cell ``condition``."""
-    return "perturbed" if condition == PERTURBED else "ours"
+    return {PERTURBED: "perturbed", MEANINGLESS: "meaningless"}.get(condition, "ours")
+
+
+def meaningless_observation(ds, k: int, n_frames: int = 200):
+    """Kind ``k`` of :data:`MEANINGLESS_KINDS` as a video like the test set's, and the truth
+    where one exists (the outlier frame's clean case), else None.
+
+    A ball hovering mid-air, a ball at uniform random points, a white and a random-noise video,
+    a frozen ball (one test frame repeated) and one test video with one in-box outlier frame;
+    seeded from the test set's seed and ``k``.
+
+    Returns
+    -------
+    (Observation, ndarray of shape (4,) or None)
+    """
+    from sysid_bench.render import render
+
+    if not 0 <= int(k) < len(MEANINGLESS_KINDS):
+        raise ValueError(f"k: expected a kind in [0, {len(MEANINGLESS_KINDS)}), got {k!r}")
+    kind = MEANINGLESS_KINDS[int(k)]
+    seed = int(ds.meta.get("seed", 0))
+    rng = np.random.default_rng([seed, 29, int(k)])
+    dt = float(ds.meta["dt"])
+    size = tuple(np.asarray(ds.frames).shape[-2:])
+    nuis = {key: v for key, v in (ds.meta.get("nuisance") or {}).items() if key != "floor_offset"}
+    T = int(n_frames)
+
+    def draw(xy):  # frames of a ball at the points xy (T, 2), still
+        states = np.zeros((1, len(xy), 4))
+        states[0, :, :2] = xy
+        return render(states, size=size, floor=0.0, dt=dt,
+                      seed=[np.random.default_rng([seed, 29, int(k), 1])], **nuis)[0]
+
+    clean = np.asarray(ds.frames[1])[:T]
+    truth = None
+    if kind == "hovering":
+        frames = draw(np.tile([5.0, 5.0], (T, 1)))
+    elif kind == "random points":
+        frames = draw(rng.uniform(0.5, 9.5, (T, 2)))
+    elif kind == "white video":
+        frames = np.full((T, *size), 255, np.uint8)
+    elif kind == "noise video":
+        frames = rng.integers(0, 256, (T, *size)).astype(np.uint8)
+    elif kind == "frozen ball":
+        frames = np.repeat(clean[60:61], T, axis=0)
+    else:  # one outlier frame in a clean test video
+        pos = np.asarray(ds.states[1, 0, :T, :2]) if np.ndim(ds.states) == 4 else None
+        x = 8.0 if pos is not None and abs(float(pos[T // 2, 0]) - 2.0) < 3.0 else 2.0
+        frames = clean.copy()
+        frames[T // 2] = draw(np.array([[x, 9.0]]))[0]
+        truth = np.asarray(ds.theta[1, 0])
+    return Observation(frames=np.asarray(frames, dtype=np.uint8), dt=dt, floor=0.0), truth
 
 
 def perturbed_config(scale) -> dict:
@@ -147,11 +206,14 @@ def perturbed_observation(ds, i: int, input: str, n_frames: int, spin: float,
     return Observation(frames=frames[0], dt=dt, floor=floor)
 
 
-def _conditioned(df):
-    """``df`` with a ``condition`` column ("" where it has none: rows of our physics)."""
+def _conditioned(df, meaningless: bool = False):
+    """``df`` with a ``condition`` column ("" where it has none: rows of our physics); the
+    meaningless observations' rows (no truth to cover) only when ``meaningless``."""
     if "condition" in df.columns:
-        return df.assign(condition=df.condition.fillna("").astype(str))
-    return df.assign(condition="")
+        df = df.assign(condition=df.condition.fillna("").astype(str))
+    else:
+        df = df.assign(condition="")
+    return df if meaningless else df[df.condition != MEANINGLESS]
 
 
 def band_verdict(below, above, lo_b: float, hi_b: float) -> str:
@@ -171,7 +233,8 @@ def _group_shares(df, rows):
     import pandas as pd
 
     recs = []
-    for (m, inp, cond), g in _conditioned(df).groupby(["method", "input", "condition"]):
+    for (m, inp, cond), g in _conditioned(df, meaningless=True).groupby(
+            ["method", "input", "condition"]):
         h = rows(g)
         if h.empty:
             continue
@@ -188,6 +251,9 @@ def honest_rows(g):
     ``case`` and ``value``; empty when the method gives no check."""
     import pandas as pd
 
+    own = g[g.metric.isin([f"honest_{p}" for p in EGD])]  # meaningless: judged in the cell
+    if not own.empty:
+        return pd.DataFrame({"case": own.case, "value": own.value.astype(float)})
     hits = g[g.metric.isin([f"hit90_{p}" for p in EGD])]
     ok = g[g.metric == "check_ok"][["case", "n_frames", "value"]].rename(columns={"value": "ok"})
     if hits.empty or ok.empty:
@@ -255,8 +321,12 @@ class Calibration(Experiment):
         "frames (physics that is not ours: every method still fits ours). `coverage 90% (e, g, "
         "d)`: r left out, as a clip rarely informs it; `honest (e, g, d)`: the 90% interval "
         "holds the truth or the model check fails (issue 29 asks 80-97% and at least 80% off "
-        "our physics). CIs: bootstrap over cases; where every case agrees, the exact binomial "
-        "bound over cases on the open side."
+        "our physics). `meaningless` (model check table only): one clip of each of "
+        f"{len(MEANINGLESS_KINDS)} kinds no physics explains ({', '.join(MEANINGLESS_KINDS)}); "
+        "honest there: no e, g, d interval narrower than half the prior's 90% interval with a "
+        "passing check (and, for the outlier clip, missing the truth); a refusal is honest "
+        "(issue 29 asks that none claims precision). CIs: bootstrap over cases; where every "
+        "case agrees, the exact binomial bound over cases on the open side."
     )
 
     def cells(self, scale, methods):
@@ -265,11 +335,47 @@ class Calibration(Experiment):
             n = perturbed_cases(scale, m)
             out += [Cell(self.name, m, inp, PERTURBED, i)
                     for inp in method_inputs(m, scale.calibration_inputs) for i in range(n)]
+            if scale.name in MEANINGLESS_SCALES and "video" in method_inputs(
+                    m, scale.calibration_inputs):
+                out += [Cell(self.name, m, "video", MEANINGLESS, k)
+                        for k in range(len(MEANINGLESS_KINDS))]
+        return out
+
+    def _run_meaningless(self, cell: Cell, ctx: Context) -> CellOutput:
+        """Issue 29's set (a): does the answer claim precision (an e, g or d interval narrower
+        than :data:`NARROW_FRACTION` of the prior's) with a passing check? Rows at the clip's
+        length: ``honest_<p>`` (1 unless it does, and, where the truth is known, misses it),
+        ``check_ok``, ``check_rms_m``; a refusal (ValueError) is honest (``refused``)."""
+        k = int(cell.case)
+        ds = ctx.test_set("interleaved", max(ctx.scale.n_cases[self.name], 2))
+        obs, truth = meaningless_observation(ds, k)
+        out = CellOutput()
+        T = obs.n_frames
+        try:
+            post = ctx.estimator(cell.method).identify(obs)
+        except ValueError:
+            out.add(k, T, "refused", 1.0)
+            for p in EGD:
+                out.add(k, T, f"honest_{p}", 1.0)
+            return out
+        lo, hi = post.interval(0.9)
+        ok = post.check is not None and bool(post.check.ok)
+        for j, p in enumerate(PARAMS):
+            if p not in EGD:
+                continue
+            narrow = (hi[j] - lo[j]) < NARROW_FRACTION * 0.9 * SPAN[j]
+            holds = truth is not None and lo[j] <= truth[j] <= hi[j]
+            out.add(k, T, f"honest_{p}", float(not (narrow and ok and not holds)))
+        if post.check is not None:
+            out.add(k, T, "check_ok", float(post.check.ok))
+            out.add(k, T, "check_rms_m", float(post.check.rms_m))
         return out
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
         sc = ctx.scale
         i = int(cell.case)
+        if cell.condition == MEANINGLESS:
+            return self._run_meaningless(cell, ctx)
         if cell.condition == PERTURBED:
             cfg = perturbed_config(sc)
             ds = ctx.test_set("interleaved", max(sc.n_cases[self.name], i + 1))
@@ -281,7 +387,8 @@ class Calibration(Experiment):
             obs = observation(ds, i, cell.input)
             wanted = sc.calibration_lengths_for(cell.method)
         else:
-            raise ValueError(f"condition: expected '' or {PERTURBED!r}, got {cell.condition!r}")
+            raise ValueError(f"condition: expected '', {PERTURBED!r} or {MEANINGLESS!r}, got "
+                             f"{cell.condition!r}")
         truth = np.asarray(ds.theta[i, 0])
         tn = normalise(truth)
         est = ctx.estimator(cell.method)
@@ -364,7 +471,7 @@ class Calibration(Experiment):
         failed; issue 29's target off our physics: at least 80%), with a 95% CI over cases."""
         import pandas as pd
 
-        df = _conditioned(df)
+        df = _conditioned(df, meaningless=True)
         ok = df[df.metric == "check_ok"]
         rms = df[df.metric == "check_rms_m"]
         hon = {(r.method, r.input, r.condition): r for r in Calibration.honest(df).itertuples()}
@@ -374,7 +481,9 @@ class Calibration(Experiment):
             r = rms[(rms.method == m) & (rms.input == inp) & (rms.condition == cond)]
             hs = hon.get((m, inp, cond))
             rows.append({"method": m, "input": inp, "physics": physics_label(cond),
-                         "cases": g.case.nunique(), "posteriors": len(g),
+                         # meaningless: the kinds, refusals (no posterior) included
+                         "cases": (int(hs.cases) if hs is not None and cond == MEANINGLESS
+                                   else g.case.nunique()), "posteriors": len(g),
                          "failing the check": fmt_ci(s["mean"], s["lo"], s["hi"], 2),
                          "median residual RMS (m)": fmt_ci(*median_ci(r, (m, inp, cond, "rms"))),
                          "honest (e, g, d)": (fmt_ci(hs.mean, hs.lo, hs.hi, 2)
