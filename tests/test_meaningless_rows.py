@@ -54,8 +54,9 @@ def test_lsq_claims_no_precision_on_meaningless_clips_and_the_table_counts_them(
     assert len(honest) == 3 * len(MEANINGLESS_KINDS) and (honest.value == 1).all()
     # white and noise videos: the tracker finds no ball, lsq refuses by name
     assert set(df[df.metric == "refused"].case) == {2, 3}
-    tab = Calibration.model_check(df).set_index("physics")
+    tables = Calibration().tables(df)
+    tab = tables["model_check"].set_index("physics")
     assert tab.loc["meaningless", "cases"] == len(MEANINGLESS_KINDS)
     assert tab.loc["meaningless", "honest (e, g, d)"].startswith("1 ")
     # the coverage tables have no truth to hold: meaningless rows stay out of them
-    assert Calibration().tables(df).get("calibration", pd.DataFrame()).empty
+    assert tables["calibration"].empty

@@ -518,6 +518,7 @@ class Calibration(Experiment):
 
         if df.empty:
             return {}
+        every = df  # the model check table counts the meaningless clips too
         df = _conditioned(df)
         recs = []
         for (m, inp, cond), g in df.groupby(["method", "input", "condition"]):
@@ -535,7 +536,7 @@ class Calibration(Experiment):
                 rec[lab] = fmt_ci(*median_ci(self._pooled(g, metric), (m, inp, cond, metric)))
             recs.append(rec)
         out = {"calibration": pd.DataFrame(recs)}
-        chk = self.model_check(df)
+        chk = self.model_check(every)
         if len(chk):
             out["model_check"] = chk
         ag = self.agreement(df)
