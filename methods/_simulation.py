@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from methods._tracks import Track, clip_state, start_before_contact  # noqa: F401 (re-export)
+from methods._tracks import Track, clip_state
 from methods._weights import resample
 from sysid_bench import physics
 from sysid_bench._validate import check_positive_int
@@ -33,8 +33,7 @@ __all__ = ["SimulationMethod", "Fit", "forecast_by_simulation", "make_rng", "Sto
            "one_blas_thread", "model_check", "region_box", "region_check",
            "check_posterior", "widen_failed", "widen_to_support", "check_prefixes",
            "uninformed", "widen_uninformed", "refine_fit", "state0_box",
-           "state0_half", "start_before_contact", "widen_by_discrepancy",
-           "residual_tau"]
+           "state0_half", "widen_by_discrepancy", "residual_tau"]
 
 #: ``Check.note`` of a failed check whose intervals were widened
 WIDENED_NOTE = ("intervals widened to at least the prior's: the model at the reported "
@@ -399,11 +398,8 @@ def widen_by_discrepancy(post: Posterior, check: Check, sim: CountingSimulator, 
     if reading not in ("tau", "worst", "scale"):
         raise ValueError(f"reading: expected 'tau', 'worst' or 'scale', got {reading!r}")
     best = np.asarray(best, dtype=np.float64)
-    traj = sim.positions(best[None],
-                         clip_state(np.asarray(state0, dtype=np.float64)[None], track.floor),
-                         track.n_frames, track.dt, float(track.floor))[0]
+    resid = _residuals(sim, best, state0, track.floor, track)
     m = track.mask
-    resid = np.where(m[:, None], traj - np.where(m[:, None], track.positions, 0.0), np.nan)
     seen = track.positions[m]
     r = resid[m].ravel()
     sigma = float(check.noise_m)
@@ -552,15 +548,20 @@ def state0_box(track: Track) -> tuple[np.ndarray, np.ndarray]:
             clip_state(track.state0 + half, track.floor))
 
 
-def _judge(sim: CountingSimulator, theta, state0, floor: float, track: Track,
-           noise_m: float) -> Check:
-    """:class:`Check` of the one trajectory of ``theta`` (4,) from ``state0`` (4,) (1 simulation)."""
+def _residuals(sim: CountingSimulator, theta, state0, floor: float, track: Track) -> np.ndarray:
+    """Residuals (T, 2) of the one trajectory of ``theta`` (4,) from ``state0`` (4,) against
+    ``track``'s positions, NaN where unseen (1 simulation, counted by ``sim``)."""
     traj = sim.positions(np.asarray(theta, dtype=np.float64)[None],
                          clip_state(np.asarray(state0, dtype=np.float64)[None], floor),
                          track.n_frames, track.dt, float(floor))[0]
     m = track.mask[:, None]
-    resid = np.where(m, traj - np.where(m, track.positions, 0.0), np.nan)
-    return Check.from_residuals(resid, float(noise_m))
+    return np.where(m, traj - np.where(m, track.positions, 0.0), np.nan)
+
+
+def _judge(sim: CountingSimulator, theta, state0, floor: float, track: Track,
+           noise_m: float) -> Check:
+    """:class:`Check` of the one trajectory of ``theta`` (4,) from ``state0`` (4,) (1 simulation)."""
+    return Check.from_residuals(_residuals(sim, theta, state0, floor, track), float(noise_m))
 
 
 def model_check(sim: CountingSimulator, theta: np.ndarray, state0: np.ndarray, floor: float,

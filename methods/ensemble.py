@@ -5,9 +5,9 @@ The posterior is the Gaussian position likelihood of :func:`sysid_bench.simulato
 :data:`sysid_bench.physics.PRIOR`. When the initial state is not given it is sampled too, as a
 nuisance with a flat prior on a box of ``state0_box`` standard errors around the state estimated
 from the first tracked frames (see :mod:`methods._tracks`; refitted on the frames before the first
-contact when it was extrapolated back across one, :func:`methods._tracks.start_before_contact` (in ``prepare``),
-``extras["state0_before_contact"]``: a wall bounce in frame 2 put the box 170 errors from the
-truth); so is an unknown floor, on a box of
+contact when it was extrapolated back across one, ``prepare``'s
+:func:`methods._tracks.start_before_contact`, ``extras["state0_before_contact"]``: a wall bounce
+in frame 2 put the box 170 errors from the truth); so is an unknown floor, on a box of
 as many of its standard errors around its estimate. (With the floor fixed at its estimate from
 tracked 28x28 frames, a 1-2 cm error in it put the truth outside the 90% interval of g in 6 of 6
 test videos; sampled, the intervals hold it.)
@@ -43,13 +43,7 @@ import warnings
 
 import numpy as np
 
-from methods._simulation import (
-    Fit,
-    SimulationMethod,
-    Stopwatch,
-    make_rng,
-    one_blas_thread,
-)
+from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng, one_blas_thread
 from methods._tracks import clip_state, prepare
 from sysid_bench import physics
 from sysid_bench._validate import check_number, check_positive_int

@@ -137,11 +137,9 @@ def meaningless_observation(ds, k: int, n_frames: int = 200):
         frames = rng.integers(0, 256, (T, *size)).astype(np.uint8)
     elif kind == "frozen ball":
         frames = np.repeat(clean[60:61], T, axis=0)
-    else:  # one outlier frame in a clean test video
-        pos = np.asarray(ds.states[1, 0, :T, :2]) if np.ndim(ds.states) == 4 else None
-        x = 8.0 if pos is not None and abs(float(pos[T // 2, 0]) - 2.0) < 3.0 else 2.0
+    else:  # one outlier frame in a clean test video: the ball drawn at (2, 9) m mid-clip
         frames = clean.copy()
-        frames[T // 2] = draw(np.array([[x, 9.0]]))[0]
+        frames[T // 2] = draw(np.array([[2.0, 9.0]]))[0]
         truth = np.asarray(ds.theta[1, 0])
     return Observation(frames=np.asarray(frames, dtype=np.uint8), dt=dt, floor=0.0), truth
 
@@ -360,9 +358,8 @@ class Calibration(Experiment):
             return out
         lo, hi = post.interval(0.9)
         ok = post.check is not None and bool(post.check.ok)
-        for j, p in enumerate(PARAMS):
-            if p not in EGD:
-                continue
+        for p in EGD:
+            j = PARAMS.index(p)
             narrow = (hi[j] - lo[j]) < NARROW_FRACTION * 0.9 * SPAN[j]
             holds = truth is not None and lo[j] <= truth[j] <= hi[j]
             out.add(k, T, f"honest_{p}", float(not (narrow and ok and not holds)))

@@ -82,8 +82,8 @@ class Changing(Experiment):
         "from scratch). Error is against the parameters in force at the last observed frame; "
         "'followed' counts changes (of at least 10% of the range) after which the estimate comes "
         "within half the jump of the new value before the next change (with the 95% CI of the "
-        "share, over cases); 'frames' is the median number of frames that took. Changes the estimate was already that close to beforehand "
-        "are not counted. Input: video."
+        "share, over cases); 'frames' is the median number of frames that took. Changes the "
+        "estimate was already that close to beforehand are not counted. Input: video."
     )
 
     def cells(self, scale, methods):

@@ -281,6 +281,7 @@ class Systems(Experiment):
         for (s, m, inp), g in df.groupby(["condition", "method", "input"], sort=True):
             at = g[g.n_frames == last]
             rec = {"system": s, "method": m, "input": inp, "cases": int(g.case.nunique())}
+            n_params = g.metric[g.metric.str.startswith("se_")].nunique()  # trials per case
             for name, rows in ((f"param_mse@{last}", at[at.metric == "se"]),
                                ("forecast_mse@50", g[(g.n_frames == FORECAST_AFTER)
                                                      & (g.metric == "fc_mse")]),
@@ -290,8 +291,7 @@ class Systems(Experiment):
                                ("converged", _converged_rows(at))):
                 c = ci_summary(rows, ["method"]) if len(rows) else None
                 if c is not None and name in ("coverage90", "check_pass", "converged"):
-                    trials = len(g.metric[g.metric.str.startswith("se_")].unique())
-                    c = _share_bounds(c, rows.value, trials if name == "coverage90" else 1)
+                    c = _share_bounds(c, rows.value, n_params if name == "coverage90" else 1)
                 base = name.split("@")[0]
                 rec[name] = float(c["mean"].iloc[0]) if c is not None else np.nan
                 rec[f"{base}_lo"] = float(c["lo"].iloc[0]) if c is not None else np.nan
