@@ -124,3 +124,24 @@ def test_prefixes_that_nothing_explains_stop_searching():
     assert not skipped[0] and sum(skipped) >= len(out) // 2
     sims = [p.extras["check_simulations"] for p in out]
     assert max(s for s, k in zip(sims, skipped) if k) <= 2
+
+
+def test_a_prefix_far_longer_than_the_last_gets_a_full_search(monkeypatch):
+    """Vid2Param's posteriors after 50 and 200 frames of the report's test video 9: the
+    200-frame check used to start warm from the 50-frame fits with 90 simulations a search and
+    failed, though a vector inside the 90% box explains the track (as the 200-frame check
+    alone finds). Only a prefix at most SEARCH_GROWTH times the last starts warm now."""
+    import methods
+    from methods import _simulation
+    from sysid_bench.bench.cases import observation, test_set
+
+    ds = test_set("interleaved", 10, 2024)
+    obs = observation(ds, 9, "video")
+    est = methods.get("vid2param")
+    alone = est.identify_prefixes(obs, [200])[0]
+    assert alone.check.ok
+    after_50 = est.identify_prefixes(obs, [50, 200])[1]
+    assert after_50.check.ok
+    # the old rule (every later prefix warm, whatever it grew by) fails it
+    monkeypatch.setattr(_simulation, "SEARCH_GROWTH", float("inf"))
+    assert not est.identify_prefixes(obs, [50, 200])[1].check.ok
