@@ -60,3 +60,29 @@ def test_lsq_claims_no_precision_on_meaningless_clips_and_the_table_counts_them(
     assert tab.loc["meaningless", "honest (e, g, d)"].startswith("1 ")
     # the coverage tables have no truth to hold: meaningless rows stay out of them
     assert tables["calibration"].empty
+
+
+@pytest.mark.parametrize("z, honest", [(1.8, 1.0), (4.0, 0.0)])
+def test_the_outlier_clip_counts_an_answer_the_outlier_moved_not_an_ordinary_miss(
+        tmp_path, monkeypatch, z, honest):
+    """A precise, passing answer on the outlier clip: e off by 1.8 std (a 90% interval misses
+    it, as it misses one truth in ten without an outlier) is honest; off by 4 std (moved by the
+    outlier) is not."""
+    from sysid_bench.estimator import Check, Posterior
+
+    k = MEANINGLESS_KINDS.index("outlier frame")
+    ctx = Context(SCALES["default"], tmp_path, 1)
+    truth = meaningless_observation(ctx.test_set("interleaved", 2), k)[1]
+    std = np.array([0.01, 0.1, 0.002, 0.05])
+
+    class Fixed:
+        def identify(self, obs):
+            mean = truth.copy()
+            mean[0] += z * std[0]
+            return Posterior(mean=mean, std=std, check=Check(0.01, 0.02, True, 400))
+
+    monkeypatch.setattr(Context, "estimator", lambda self, method, **kw: Fixed())
+    out = Calibration().run(Cell("calibration", "lsq", "video", MEANINGLESS, k), ctx)
+    got = {r.metric: r.value for r in out.rows}
+    assert got["honest_e"] == honest
+    assert got["honest_g"] == got["honest_d"] == 1.0

@@ -60,6 +60,11 @@ MEANINGLESS_KINDS = ("hovering", "random points", "white video", "noise video", 
 MEANINGLESS_SCALES = ("default", "paper")
 #: an interval "claims precision" when narrower than this share of the prior's 90% interval
 NARROW_FRACTION = 0.5
+#: the outlier clip (a clean video but for one frame) has a truth: a precise, passing answer is
+#: honest there when this central interval holds it. 99%, not 90%: the rule asks whether the
+#: outlier moved the answer (nuts' g by 44 std before issue 29), and a 90% interval misses
+#: one truth in ten with no outlier at all (sindy's on that video: e at z = 1.8, clean or not)
+OUTLIER_HOLD_LEVEL = 0.99
 #: most of the horizontal speed lost at every floor bounce (spin and friction); per case U(0, SPIN)
 SPIN = 0.3
 #: longest a bouncing ball stays on the floor, sliding (a soft contact), s; per case U(0, DWELL)
@@ -322,7 +327,8 @@ class Calibration(Experiment):
         "our physics). `meaningless` (model check table only): one clip of each of "
         f"{len(MEANINGLESS_KINDS)} kinds no physics explains ({', '.join(MEANINGLESS_KINDS)}); "
         "honest there: no e, g, d interval narrower than half the prior's 90% interval with a "
-        "passing check (and, for the outlier clip, missing the truth); a refusal is honest "
+        "passing check (and, for the outlier clip, its 99% interval missing the truth: a 90% "
+        "interval misses one truth in ten without an outlier); a refusal is honest "
         "(issue 29 asks that none claims precision). CIs: bootstrap over cases; where every "
         "case agrees, the exact binomial bound over cases on the open side."
     )
@@ -342,7 +348,8 @@ class Calibration(Experiment):
     def _run_meaningless(self, cell: Cell, ctx: Context) -> CellOutput:
         """Issue 29's set (a): does the answer claim precision (an e, g or d interval narrower
         than :data:`NARROW_FRACTION` of the prior's) with a passing check? Rows at the clip's
-        length: ``honest_<p>`` (1 unless it does, and, where the truth is known, misses it),
+        length: ``honest_<p>`` (1 unless it does, and, where the truth is known, its
+        :data:`OUTLIER_HOLD_LEVEL` interval misses it),
         ``check_ok``, ``check_rms_m``; a refusal (ValueError) is honest (``refused``)."""
         k = int(cell.case)
         ds = ctx.test_set("interleaved", max(ctx.scale.n_cases[self.name], 2))
@@ -357,11 +364,12 @@ class Calibration(Experiment):
                 out.add(k, T, f"honest_{p}", 1.0)
             return out
         lo, hi = post.interval(0.9)
+        lo99, hi99 = post.interval(OUTLIER_HOLD_LEVEL)
         ok = post.check is not None and bool(post.check.ok)
         for p in EGD:
             j = PARAMS.index(p)
             narrow = (hi[j] - lo[j]) < NARROW_FRACTION * 0.9 * SPAN[j]
-            holds = truth is not None and lo[j] <= truth[j] <= hi[j]
+            holds = truth is not None and lo99[j] <= truth[j] <= hi99[j]
             out.add(k, T, f"honest_{p}", float(not (narrow and ok and not holds)))
         if post.check is not None:
             out.add(k, T, "check_ok", float(post.check.ok))
