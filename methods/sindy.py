@@ -131,6 +131,9 @@ def reject_outliers(positions: np.ndarray, dt: float) -> np.ndarray:
 #: 0.108 against 0.77 from cubics on 5 frames, and their standard errors held 94% of the
 #: truths at +/- 1.645)
 _BOUNCE_FRAMES = 15
+#: on a clean track (noise under 1 mm) the 5 frames nearest the contact, cubics: longer fits
+#: there show drag's bias (-0.005 in e at 15 frames) and no noise to average away
+_CLEAN_BOUNCE_FRAMES = 5
 _OUTLIER_Z = 3.0  # a bounce ratio this many robust scatters off the median is dropped
 _MIN_RATIO_SE = 2e-3
 
@@ -164,11 +167,12 @@ def free_flight(runs, positions: np.ndarray, dt: float, noise: float) -> list[tu
     return kept
 
 
-def _side_fit(t: np.ndarray, y: np.ndarray, noise: float):
+def _side_fit(t: np.ndarray, y: np.ndarray, noise: float, cubic_from: int = 8):
     """Polynomial fit of one side of a bounce: coefficients (highest first) and their covariance
     (residual variance, at least the track's noise squared, times ``(X^T X)^-1``). A cubic
-    where there are 8 frames or more (it takes up drag's curvature), else a parabola."""
-    deg = 3 if len(t) >= 8 else 2
+    where there are ``cubic_from`` frames or more (it takes up drag's curvature), else a
+    parabola."""
+    deg = 3 if len(t) >= cubic_from else 2
     X = np.vander(t, deg + 1)
     coef, *_ = np.linalg.lstsq(X, y, rcond=None)
     resid = y - X @ coef
@@ -192,7 +196,7 @@ def _contact_ratio(ca: np.ndarray, cb: np.ndarray, lo: float, hi: float) -> floa
 
 
 def bounce_ratios(positions: np.ndarray, dt: float, seg, noise: float,
-                  k: int = _BOUNCE_FRAMES) -> tuple[np.ndarray, np.ndarray]:
+                  k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Vertical velocity ratio at every floor bounce seen, and its standard error.
 
     Each pair of consecutive free-flight runs (``seg.flight_all``, 3 frames or more, that
@@ -210,6 +214,8 @@ def bounce_ratios(positions: np.ndarray, dt: float, seg, noise: float,
     seg : methods._tracks.Segments
     noise : float
         The track's position noise (m): the least residual scatter assumed.
+    k : int, optional
+        Frames fitted on each side; default 15, or 5 on a clean track (``noise`` < 1 mm).
 
     Returns
     -------
@@ -217,14 +223,18 @@ def bounce_ratios(positions: np.ndarray, dt: float, seg, noise: float,
     """
     ratios, ses = [], []
     runs = free_flight(seg.flight_all, positions, dt, noise)
+    clean = noise < _CLEAN_NOISE
+    if k is None:
+        k = _CLEAN_BOUNCE_FRAMES if clean else _BOUNCE_FRAMES
+    cubic_from = 5 if clean else 8
     for (a0, a1), (b0, b1) in zip(runs[:-1], runs[1:]):
         if b0 - a1 > 3 or not seg.floor_hit[max(a1 - 1, 0): b0 + 1].any():
             continue
         ia = np.arange(max(a0, a1 - k), a1)
         ib = np.arange(b0, min(b1, b0 + k))
         tm = 0.5 * (a1 - 1 + b0) * dt  # centred times: conditioning
-        ca, cov_a = _side_fit(ia * dt - tm, positions[ia, 1], noise)
-        cb, cov_b = _side_fit(ib * dt - tm, positions[ib, 1], noise)
+        ca, cov_a = _side_fit(ia * dt - tm, positions[ia, 1], noise, cubic_from)
+        cb, cov_b = _side_fit(ib * dt - tm, positions[ib, 1], noise, cubic_from)
         lo, hi = (a1 - 1) * dt - tm, b0 * dt - tm
         r0 = _contact_ratio(ca, cb, lo, hi)
         if not np.isfinite(r0):
