@@ -155,24 +155,18 @@ def free_flight(runs, positions: np.ndarray, dt: float, noise: float) -> list[tu
     kept = []
     for a, b in runs:
         t = np.arange(a, b) * dt
-        t = t - t.mean()
-        X = np.vander(t, 3)
-        y = positions[a:b, 1]
-        coef, *_ = np.linalg.lstsq(X, y, rcond=None)
-        resid = y - X @ coef
-        s2 = max(float(resid @ resid) / max(b - a - 3, 1), noise**2)
-        se = 2.0 * float(np.sqrt(s2 * np.linalg.pinv(X.T @ X)[0, 0]))
+        coef, cov = _side_fit(t - t.mean(), positions[a:b, 1], noise, deg=2)
+        se = 2.0 * float(np.sqrt(cov[0, 0]))  # of y'' = 2a
         if 2.0 * float(coef[0]) - 3.0 * se <= _FLIGHT_CURVATURE:
             kept.append((a, b))
     return kept
 
 
-def _side_fit(t: np.ndarray, y: np.ndarray, noise: float, cubic_from: int = 8):
-    """Polynomial fit of one side of a bounce: coefficients (highest first) and their covariance
-    (residual variance, at least the track's noise squared, times ``(X^T X)^-1``). A cubic
-    where there are ``cubic_from`` frames or more (it takes up drag's curvature), else a
-    parabola."""
-    deg = 3 if len(t) >= cubic_from else 2
+def _side_fit(t: np.ndarray, y: np.ndarray, noise: float, deg: int):
+    """Polynomial fit of heights ``y(t)``: coefficients (highest first) and their covariance,
+    the residual variance (at least ``noise`` squared) times ``(X^T X)^-1``. (Least squares on
+    the Vandermonde matrix, as the bounce fits were measured with; ``_tracks._polyfit`` is
+    ``np.polyfit`` and moves the checks' searches in the last digits.)"""
     X = np.vander(t, deg + 1)
     coef, *_ = np.linalg.lstsq(X, y, rcond=None)
     resid = y - X @ coef
@@ -233,8 +227,9 @@ def bounce_ratios(positions: np.ndarray, dt: float, seg, noise: float,
         ia = np.arange(max(a0, a1 - k), a1)
         ib = np.arange(b0, min(b1, b0 + k))
         tm = 0.5 * (a1 - 1 + b0) * dt  # centred times: conditioning
-        ca, cov_a = _side_fit(ia * dt - tm, positions[ia, 1], noise, cubic_from)
-        cb, cov_b = _side_fit(ib * dt - tm, positions[ib, 1], noise, cubic_from)
+        # a cubic takes up drag's curvature where there are frames enough for it
+        ca, cov_a = _side_fit(ia * dt - tm, positions[ia, 1], noise, 3 if len(ia) >= cubic_from else 2)
+        cb, cov_b = _side_fit(ib * dt - tm, positions[ib, 1], noise, 3 if len(ib) >= cubic_from else 2)
         lo, hi = (a1 - 1) * dt - tm, b0 * dt - tm
         r0 = _contact_ratio(ca, cb, lo, hi)
         if not np.isfinite(r0):
@@ -475,14 +470,13 @@ class SINDy(Estimator):
                 if active.size:
                     c[np.ix_(active, active)] = s2 * np.linalg.pinv(theta[:, active].T @ theta[:, active])
                 cov.append(c * _CORR_INFLATION**2)
-            mean[1], mean[2] = _g_d(coef, theta)
+            mean[1], d = _g_d(coef, theta)
             std[1] = np.sqrt(cov[1][0, 0])
-            sxx = float(theta[:, 1] @ theta[:, 1])
-            syy = float(theta[:, 2] @ theta[:, 2])
-            if sxx + syy > 0:
+            if np.isfinite(d):  # some flight frame moves: the drag features weigh d
+                sxx = float(theta[:, 1] @ theta[:, 1])
+                syy = float(theta[:, 2] @ theta[:, 2])
+                mean[2] = d
                 std[2] = np.sqrt(cov[0][1, 1] * sxx**2 + cov[1][2, 2] * syy**2) / (sxx + syy)
-            else:
-                mean[2] = PRIOR_MEAN[2]
             # the frames of one segment share its smoothing and its bounces' errors; segments
             # are what is independent: never claim less than their jackknife spread
             jk = _segment_jackknife(coef, theta, A, _blocks(lengths, stencil))
