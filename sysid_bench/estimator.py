@@ -61,6 +61,8 @@ __all__ = [
     "DT_RANGE",
     "BOX_MARGIN",
     "MIN_FRAME_SIDE",
+    "check_frame",
+    "check_stream_floor",
 ]
 
 #: Longest forecast any method makes (frames): 100 s at the paper's 20 frames/s, ten videos.
@@ -588,6 +590,71 @@ def prior_posterior(n_samples: int = 0, seed=0, **extras) -> Posterior:
 POSITION_NOW = "position_now_m"
 
 
+def check_frame(frame, name: str = "frame") -> np.ndarray:
+    """One video frame as a stream takes it: ``ValueError`` naming ``name`` unless it is a real
+    numeric (H, W) array (not bool), both sides at least :data:`MIN_FRAME_SIDE` pixels, and --
+    unless uint8 -- finite with values in [0, 255] (the rules :class:`Observation` applies to
+    ``frames``).
+
+    Returns
+    -------
+    ndarray, shape (H, W)
+        ``np.asarray(frame)``, values and dtype as given (no copy, no conversion: a stream's
+        numbers stay those of the frame it was given).
+    """
+    try:
+        fr = np.asarray(frame)
+    except Exception as exc:  # ragged nested lists and the like
+        raise ValueError(f"{name}: expected an (H, W) numeric array, got {type(frame).__name__} "
+                         f"({exc})") from None
+    if fr.dtype != np.uint8 and (fr.dtype == object or fr.dtype == np.bool_
+                                 or not np.issubdtype(fr.dtype, np.number)
+                                 or np.iscomplexobj(fr)):
+        raise ValueError(f"{name}: expected a real numeric (H, W) array (uint8, or floats in "
+                         f"[0, 255]), got dtype {fr.dtype} shape {fr.shape}")
+    if fr.ndim != 2:
+        raise ValueError(f"{name}: expected an (H, W) array, got shape {fr.shape}")
+    if min(fr.shape) < MIN_FRAME_SIDE:
+        raise ValueError(f"{name}: expected a frame of at least {MIN_FRAME_SIDE}x{MIN_FRAME_SIDE} "
+                         f"pixels, got shape {fr.shape}")
+    if fr.dtype != np.uint8:
+        bad = ~np.isfinite(fr)
+        if bad.any():
+            what = "NaN" if np.isnan(fr[bad]).any() else "inf"
+            raise ValueError(f"{name}: expected finite values in [0, 255], got {what} in "
+                             f"{int(bad.sum())} pixels")
+        lo, hi = fr.min(), fr.max()
+        if lo < 0 or hi > 255:
+            raise ValueError(f"{name}: expected values in [0, 255], got [{lo:g}, {hi:g}]")
+    return fr
+
+
+def check_stream_floor(floor) -> float | None:
+    """A stream forecast's ``floor`` offset: None, or a finite number of metres within
+    ``+-physics.FLOOR_MAX`` (what an Observation's floor may be); ``ValueError`` naming it."""
+    if floor is None:
+        return None
+    return check_number(floor, "floor", lo=-FLOOR_MAX, hi=FLOOR_MAX, unit="m")
+
+
+def _checking_push(push):
+    @functools.wraps(push)
+    def wrapper(self, frame, *args, **kwargs):
+        # before the stream's own push touches its state: a refused frame leaves it as it was
+        return push(self, check_frame(frame, "frame"), *args, **kwargs)
+
+    return wrapper
+
+
+def _checking_stream_forecast(forecast):
+    @functools.wraps(forecast)
+    def wrapper(self, horizon, floor=None, *args, **kwargs):
+        horizon = check_horizon(horizon, MAX_HORIZON)
+        return forecast(self, horizon, check_stream_floor(floor), *args, **kwargs)
+
+    return wrapper
+
+
 class Stream(abc.ABC):
     """Online identification: push one frame at a time, read the posterior after each.
 
@@ -597,7 +664,21 @@ class Stream(abc.ABC):
     (a push costs the same at every frame) declares ``online`` (:mod:`sysid_bench.spec`);
     :func:`sysid_bench.testing.check_estimator` checks all of this. The interception policy
     and the online-cost table read streams only through it.
+
+    The base checks, for every stream, what its own ``push`` and ``forecast`` are given before
+    they run: the frame (:func:`check_frame`: a real numeric (H, W) array, finite, in [0, 255],
+    at least ``MIN_FRAME_SIDE`` a side; the stream itself checks it matches the frames before
+    it), ``horizon`` in ``[1, MAX_HORIZON]`` and ``floor`` (:func:`check_stream_floor`). A
+    refused frame raises ``ValueError`` naming ``frame`` and leaves the stream as it was.
     """
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        # every stream gets the shared argument checks without calling them itself
+        if "push" in cls.__dict__:
+            cls.push = _checking_push(cls.__dict__["push"])
+        if "forecast" in cls.__dict__:
+            cls.forecast = _checking_stream_forecast(cls.__dict__["forecast"])
 
     @abc.abstractmethod
     def reset(self) -> None:
@@ -619,7 +700,8 @@ class Stream(abc.ABC):
         -------
         ndarray, shape (2,)
             ``(x, y)`` in metres, in the stream's own frame (for a model that infers the floor
-            from the bounces, heights above that floor); NaN where the ball is not known.
+            from the bounces, heights above that floor); NaN where the ball is not known. On a
+            system with K > 1 tracked points, the first point's.
         """
         raise NotImplementedError(f"{type(self).__name__} does not report a position")
 
@@ -631,14 +713,15 @@ class Stream(abc.ABC):
         horizon : int
             Frames to predict, in ``[1, MAX_HORIZON]``.
         floor : float, optional
-            Offset added to the forecast heights, which are in the stream's own frame (that of
-            :meth:`position`); 0 when None.
+            Offset (m) added to the forecast heights, which are in the stream's own frame (that
+            of :meth:`position`); 0 when None. At most ``physics.FLOOR_MAX`` in magnitude.
 
         Returns
         -------
         Forecast
-            ``mean`` and ``std`` of shape (horizon, 2); ``extras[POSITION_NOW]`` (2,) is where
-            the forecast's fit puts the ball at the latest frame, in the same frame.
+            ``mean`` and ``std`` of shape (horizon, 2) ((horizon, K, 2) on a system with K > 1
+            tracked points); ``extras[POSITION_NOW]`` (2,) is where the forecast's fit puts the
+            ball (the first point) at the latest frame, in the same frame.
         """
         raise NotImplementedError(f"{type(self).__name__} does not forecast")
 
@@ -655,35 +738,78 @@ class Stream(abc.ABC):
 class LoopStream(Stream):
     """Stream for methods with no recurrent state: re-identifies on all frames so far.
 
-    Cost grows with the number of frames; Vid2Param's own stream is constant per frame.
+    Cost grows with the number of frames; Vid2Param's own stream is constant per frame. The
+    observations it builds are of the estimator's own system (``estimator.system``, the ball
+    when it has none), with ``dt`` and ``floor``; before the estimator's ``min_frames`` frames
+    it answers that system's prior.
+
+    Parameters
+    ----------
+    estimator : Estimator
+    dt : float
+        Seconds between frames, in ``DT_RANGE``.
+    floor : float, optional
+        The observation's floor (m), as ``Observation.floor``; None: unknown.
     """
 
     def __init__(self, estimator: Estimator, dt: float = 0.05, floor: float | None = None):
+        if not isinstance(estimator, Estimator):
+            raise ValueError(f"estimator: expected an Estimator, got {type(estimator).__name__}")
         self.estimator = estimator
-        self.dt = dt
-        self.floor = floor
-        self._frames: list[np.ndarray] = []
+        self.dt = check_number(dt, "dt", lo=DT_RANGE[0], hi=DT_RANGE[1], unit="s")
+        self.floor = None if floor is None else check_number(
+            floor, "floor", lo=-FLOOR_MAX, hi=FLOOR_MAX, unit="m")
+        self.reset()
+
+    @property
+    def system(self) -> str:
+        """The registered system the estimator identifies (``"ball"`` when it names none)."""
+        sys_ = getattr(self.estimator, "system", "ball")
+        return sys_ if isinstance(sys_, str) else _system_name(sys_)
 
     def reset(self) -> None:
-        self._frames = []
+        self._frames: list[np.ndarray] = []
         self._last: Posterior | None = None
 
     @property
     def n_frames(self) -> int:
         return len(self._frames)
 
+    def _observation(self) -> Observation:
+        """Every frame pushed, as an Observation of the estimator's system."""
+        return Observation(frames=np.stack(self._frames), dt=self.dt, floor=self.floor,
+                           system=self.system)
+
+    def _prior(self, note: str) -> Posterior:
+        """The system's uniform prior as a Posterior (the ball's: :func:`prior_posterior`)."""
+        if self.system == "ball":
+            return prior_posterior(note=note)
+        from sysid_bench import systems  # local: the ball's streams never need the registry
+
+        sys_ = systems.get(self.system)
+        lo, hi = np.asarray(sys_.prior_lo, float), np.asarray(sys_.prior_hi, float)
+        return Posterior(mean=0.5 * (lo + hi), std=(hi - lo) / np.sqrt(12.0),
+                         extras={"n_simulations": 0, "wall_s": 0.0, "note": note},
+                         system=sys_.name)
+
     def check(self) -> Posterior:
         """The latest posterior: ``identify``'s, checked already (the prior's before
         ``min_frames`` frames)."""
         if self._last is None:
-            raise ValueError("check: push at least one frame first")
+            raise ValueError("check: push at least one frame first (stream.push(frame))")
         return self._last
 
     def position(self) -> np.ndarray:
-        """The ball tracked in the latest frame (:func:`sysid_bench.tracking.track`; a method
+        """The ball (on another system: the first tracked point) tracked in the latest frame
+        (the ball: :func:`sysid_bench.tracking.track`; else the system's ``track``; a method
         re-identifying from scratch keeps no filtered state), NaN before the first frame."""
         if not self._frames:
             return np.full(2, np.nan)
+        if self.system != "ball":
+            from sysid_bench import systems
+
+            return np.asarray(systems.get(self.system).track(self._frames[-1][None]),
+                              dtype=np.float64)[0, 0]
         from sysid_bench.tracking import track  # local: as in observed_positions
 
         return track(self._frames[-1][None], floor=0.0 if self.floor is None else self.floor)[0]
@@ -692,29 +818,26 @@ class LoopStream(Stream):
         """The estimator's forecast on every frame pushed, heights shifted by ``floor``;
         ``extras[POSITION_NOW]`` is :meth:`position`."""
         if not self._frames:
-            raise ValueError("forecast: push at least one frame first")
-        obs = Observation(frames=np.stack(self._frames), dt=self.dt, floor=self.floor)
-        fc = self.estimator.forecast(obs, horizon)
+            raise ValueError("forecast: push at least one frame first (stream.push(frame))")
+        fc = self.estimator.forecast(self._observation(), horizon)
         off = np.array([0.0, 0.0 if floor is None else float(floor)])
         now = self.position() + off
         return Forecast(mean=fc.mean + off, std=fc.std, samples=None if fc.samples is None
                         else fc.samples + off, extras={**fc.extras, POSITION_NOW: now})
 
     def push(self, frame: np.ndarray) -> Posterior:
+        """Add one (H, W) frame (checked by the base, and here against the first frame's shape;
+        a refused frame is not kept) and re-identify on every frame so far."""
         fr = np.asarray(frame)
-        if fr.ndim != 2:
-            raise ValueError(f"frame: expected an (H, W) array, got shape {fr.shape}")
         if self._frames and fr.shape != self._frames[0].shape:
             raise ValueError(
                 f"frame: expected shape {self._frames[0].shape} like the earlier frames, got {fr.shape}"
             )
         self._frames.append(fr)
         if len(self._frames) < self.estimator.min_frames:
-            self._last = prior_posterior(
-                note=f"fewer than {self.estimator.min_frames} frames: the prior")
+            self._last = self._prior(f"fewer than {self.estimator.min_frames} frames: the prior")
         else:
-            obs = Observation(frames=np.stack(self._frames), dt=self.dt, floor=self.floor)
-            self._last = self.estimator.identify(obs)
+            self._last = self.estimator.identify(self._observation())
         return self._last
 
 
