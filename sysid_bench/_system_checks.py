@@ -111,7 +111,7 @@ def check_system_same_seed_same_bytes(system: System) -> None:
     assert all(np.array_equal(x, y) for x, y in zip(a, b)), "sample_*: same seed, different draws"
     s1 = system.simulate(*a, n_frames=40)
     s2 = system.simulate(*b, n_frames=40)
-    assert s1.tobytes() == s2.tobytes(), "simulate: same input, different bytes"
+    assert s1.tobytes() == s2.tobytes(), "simulate: nondeterministic: same input, different bytes"
     nuis = dict(blur=0.5, occlusion=0.1, drop=0.05, noise=8.0)
     f1 = system.render(s1, a[0], seed=7, **nuis)
     f2 = system.render(s2, b[0], seed=7, **nuis)
@@ -176,6 +176,26 @@ def check_system_jax_twin(system: System) -> None:
         assert err <= JAX_TOL_M, f"jax twin vs NumPy: {err:.3g} m (> {JAX_TOL_M:g})"
 
 
+def check_system_default_scene(system: System) -> None:
+    import dataclasses
+
+    from sysid_bench.systems import Scene
+
+    st = system.scene_type
+    assert isinstance(st, type) and issubclass(st, Scene) and dataclasses.is_dataclass(st), (
+        f"scene_type: expected a Scene dataclass, got {st!r}"
+    )
+    assert st.__dataclass_params__.frozen, f"scene_type: expected a frozen dataclass, got {st.__name__}"
+    default = system.default_scene
+    assert default == st() == system.scene(), "scene: the default scene is not scene_type()"
+    theta, state0 = _cases(system, 3, seed=23)
+    a = _simulate(system, theta, state0, n_frames=30)  # nondeterminism named first
+    b = system.simulate(theta, state0, n_frames=30, scene=default)
+    assert a.tobytes() == b.tobytes(), "simulate: scene=default_scene differs from scene=None"
+    pa, pb = system.observe(a, theta), system.observe(a, theta, scene=default)
+    assert pa.tobytes() == pb.tobytes(), "observe: scene=default_scene differs from scene=None"
+
+
 def check_system_splits_leak_free(system: System) -> None:
     for split, allowed in (("train", SUBRANGES_TRAIN), ("test", SUBRANGES_TEST)):
         th = system.sample_theta(500, np.random.default_rng(19), split)
@@ -220,6 +240,7 @@ _CHECKS: tuple[Callable[[System], None], ...] = (
     check_system_reference,
     check_system_render_track_round_trip,
     check_system_jax_twin,
+    check_system_default_scene,
     check_system_splits_leak_free,
     check_system_bad_input_raises,
 )

@@ -5,17 +5,19 @@ simulator and observation together, and DeepMind's Hamiltonian suite has one mod
 system). The subclass declares its parameters, prior, state, tracked points and default view as
 class attributes, and implements five hooks:
 
-``_simulate(theta, state0, n_frames, dt)``
+``_simulate(theta, state0, n_frames, dt, scene=None)``
     The NumPy simulator: validated float64 ``theta`` (B, T, P) (parameters held from frame t to
     t+1) and ``state0`` (B, S) in, states (B, T, S) out, frame 0 = ``state0``, events located
-    exactly. This is the one source of the system's physics.
+    exactly. This is the one source of the system's physics. ``scene`` (an instance of
+    :attr:`System.scene_type`, validated; see :mod:`sysid_bench.systems._scene`) is the geometry;
+    a hook without the keyword is called without it, for the default scene only.
 ``sample_state0(n, rng, theta=None)``
     Initial states from the system's documented ranges. ``theta`` (n, P), optional, is the
     trajectories' parameters, for a system whose initial state is defined relative to a
     parameter (the spring's ``x0 = L0 + s0``); other systems ignore it (or omit the keyword:
     callers pass it only where the signature has it, see :meth:`System.sample_cases`).
-``_observe(states, theta)``
-    States (B, T, S) to the K tracked points' positions (B, T, K, 2) in metres.
+``_observe(states, theta, scene=None)``
+    States (B, T, S) to the K tracked points' positions (B, T, K, 2) in metres (in ``scene``).
 ``_render(points, states, theta, size, **nuisance)``
     Frames (B, T, H, W) uint8; most systems draw discs through :mod:`sysid_bench.systems._draw`.
 ``_track(frames)``
@@ -25,8 +27,9 @@ plus, for the reference checks and NUTS, ``reference(theta, state0, n_frames, dt
 event-driven ``scipy.integrate.solve_ivp`` at tight tolerance, one trajectory) and a JAX twin named
 by ``jax_twin = "module:function"`` (imported only when asked for, so JAX loads only for NUTS).
 
-The public methods validate at the boundary (shapes, NaN/inf, the documented envelope) and
-raise ``ValueError`` naming the argument and the system; the hooks receive clean arrays.
+The public methods validate at the boundary (shapes, empty batches, ragged lists, NaN/inf, the
+documented envelope, the scene's type, frame sizes) and raise ``ValueError`` (``TypeError`` for
+a scene of the wrong type) naming the argument and the system; the hooks receive clean arrays.
 """
 
 from __future__ import annotations
