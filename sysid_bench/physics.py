@@ -9,6 +9,11 @@ centre moves in the box ``[0, BOX_WIDTH] x [floor, floor + BOX_WIDTH]``:
 * rolling: a floor rebound slower than ``ROLL_SPEED`` leaves the ball on the floor with ``vy = 0``
   and ``ax = -r sign(vx)`` (no drag) until ``vx`` reaches 0, where it stops for good.
 
+The walls and the floor are the design's by default; ``simulate(..., floor=None)`` has no floor
+(free fall) and ``walls=(left, right)`` moves the walls or ``walls=None`` removes them (free in
+x): the scene of ``systems.get("ball").simulate(..., scene=BallScene(...))``. With the defaults
+every number is as it was (the kernel takes the walls as arguments, compared the same way).
+
 Integration is classical RK4 with ``SUBSTEPS`` steps per frame, one ball at a time in scalar code
 compiled by numba (cached on disk after the first call of a machine). A step
 that crosses a contact is cut at the contact: the contact time ``tau`` is the root of
