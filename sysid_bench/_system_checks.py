@@ -55,16 +55,39 @@ def check_system_declarations(system: System) -> None:
     assert system.noise_m > 0, f"noise_m: expected > 0, got {system.noise_m}"
 
 
+def _simulate(system: System, theta, state0, **kw) -> np.ndarray:
+    """``simulate`` twice on the same input: a difference is nondeterminism, named as such
+    before any check compares two different calls (and blames what differs between them)."""
+    a = system.simulate(theta, state0, **kw)
+    b = system.simulate(theta, state0, **kw)
+    assert np.shape(a) == np.shape(b) and np.asarray(a).tobytes() == np.asarray(b).tobytes(), (
+        "simulate: nondeterministic: the same theta, state0 and arguments gave different states"
+    )
+    return a
+
+
+def _observe(system: System, states, theta) -> np.ndarray:
+    """``observe`` of finite states, its positions checked finite (a NaN is observe's defect,
+    not the simulator's)."""
+    pts = system.observe(states, theta)
+    if np.isfinite(states).all():
+        bad = ~np.isfinite(np.asarray(pts, dtype=np.float64))
+        assert not bad.any(), (
+            f"observe: non-finite positions ({int(bad.sum())} of {bad.size} values) from finite states"
+        )
+    return pts
+
+
 def check_system_shapes(system: System) -> None:
     theta, state0 = _cases(system, 3)
     t, p, s, k = 20, system.n_params, system.n_state, system.n_points
-    states = system.simulate(theta, state0, n_frames=t)
+    states = _simulate(system, theta, state0, n_frames=t)
     assert states.shape == (3, t, s), f"simulate: expected {(3, t, s)}, got {states.shape}"
     assert states.dtype == np.float64, f"simulate: expected float64, got {states.dtype}"
     varying = np.repeat(theta[:, None, :], t, axis=1)
     same = system.simulate(varying, state0, n_frames=t)
     assert np.array_equal(same, states), "simulate: constant (B, T, P) theta differs from (B, P)"
-    pts = system.observe(states, theta)
+    pts = _observe(system, states, theta)
     assert pts.shape == (3, t, k, 2), f"observe: expected {(3, t, k, 2)}, got {pts.shape}"
     frames = system.render(states, theta)
     h, w = system.size
@@ -78,7 +101,7 @@ def check_system_shapes(system: System) -> None:
 
 def check_system_frame0_is_state0(system: System) -> None:
     theta, state0 = _cases(system)
-    states = system.simulate(theta, state0, n_frames=5)
+    states = _simulate(system, theta, state0, n_frames=5)
     assert np.array_equal(states[:, 0], state0), "simulate: frame 0 is not state0"
 
 
@@ -88,7 +111,7 @@ def check_system_same_seed_same_bytes(system: System) -> None:
     assert all(np.array_equal(x, y) for x, y in zip(a, b)), "sample_*: same seed, different draws"
     s1 = system.simulate(*a, n_frames=40)
     s2 = system.simulate(*b, n_frames=40)
-    assert s1.tobytes() == s2.tobytes(), "simulate: same input, different bytes"
+    assert s1.tobytes() == s2.tobytes(), "simulate: nondeterministic: same input, different bytes"
     nuis = dict(blur=0.5, occlusion=0.1, drop=0.05, noise=8.0)
     f1 = system.render(s1, a[0], seed=7, **nuis)
     f2 = system.render(s2, b[0], seed=7, **nuis)
@@ -97,15 +120,16 @@ def check_system_same_seed_same_bytes(system: System) -> None:
 
 def check_system_refining_dt_converges(system: System) -> None:
     theta, state0 = _cases(system, seed=5)
-    coarse = system.observe(system.simulate(theta, state0, n_frames=101, dt=0.05), theta)
-    fine = system.observe(system.simulate(theta, state0, n_frames=201, dt=0.025), theta)[:, ::2]
+    coarse = _observe(system, _simulate(system, theta, state0, n_frames=101, dt=0.05), theta)
+    fine = _observe(system, _simulate(system, theta, state0, n_frames=201, dt=0.025), theta)[:, ::2]
     err = float(np.abs(coarse - fine).max())
     assert err <= 1e-5, f"simulate: halving dt moved the positions by {err:.3g} m (> 1e-5 m)"
 
 
 def check_system_reference(system: System) -> None:
     theta, state0 = _cases(system, 3, seed=11)
-    ours = system.simulate(theta, state0, n_frames=_T)
+    ours = _simulate(system, theta, state0, n_frames=_T)
+    _observe(system, ours, theta)
     for i in range(theta.shape[0]):
         try:
             ref = system.reference(theta[i], state0[i], n_frames=_T)
@@ -120,8 +144,8 @@ def check_system_reference(system: System) -> None:
 
 def check_system_render_track_round_trip(system: System) -> None:
     theta, state0 = _cases(system, 4, seed=13)
-    states = system.simulate(theta, state0, n_frames=60)
-    pts = system.observe(states, theta)
+    states = _simulate(system, theta, state0, n_frames=60)
+    pts = _observe(system, states, theta)
     frames = system.render(states, theta)
     sx, sy = (system.size[1] / (system.extent[1] - system.extent[0]),
               system.size[0] / (system.extent[3] - system.extent[2]))
@@ -143,12 +167,33 @@ def check_system_jax_twin(system: System) -> None:
         return
     f = system.jax_simulate()
     theta, state0 = _cases(system, 3, seed=17)
-    ours = system.simulate(theta, state0, n_frames=_T)
+    ours = _simulate(system, theta, state0, n_frames=_T)
+    _observe(system, ours, theta)
     for i in range(theta.shape[0]):
         twin = np.asarray(f(theta[i], state0[i], _T, 0.05))  # float64 NumPy in: twins run in x64
         d = system.observe(ours[i : i + 1], theta[i : i + 1]) - system.observe(twin[None], theta[i : i + 1])
         err = float(np.abs(d).max())
         assert err <= JAX_TOL_M, f"jax twin vs NumPy: {err:.3g} m (> {JAX_TOL_M:g})"
+
+
+def check_system_default_scene(system: System) -> None:
+    import dataclasses
+
+    from sysid_bench.systems import Scene
+
+    st = system.scene_type
+    assert isinstance(st, type) and issubclass(st, Scene) and dataclasses.is_dataclass(st), (
+        f"scene_type: expected a Scene dataclass, got {st!r}"
+    )
+    assert st.__dataclass_params__.frozen, f"scene_type: expected a frozen dataclass, got {st.__name__}"
+    default = system.default_scene
+    assert default == st() == system.scene(), "scene: the default scene is not scene_type()"
+    theta, state0 = _cases(system, 3, seed=23)
+    a = _simulate(system, theta, state0, n_frames=30)  # nondeterminism named first
+    b = system.simulate(theta, state0, n_frames=30, scene=default)
+    assert a.tobytes() == b.tobytes(), "simulate: scene=default_scene differs from scene=None"
+    pa, pb = system.observe(a, theta), system.observe(a, theta, scene=default)
+    assert pa.tobytes() == pb.tobytes(), "observe: scene=default_scene differs from scene=None"
 
 
 def check_system_splits_leak_free(system: System) -> None:
@@ -195,6 +240,7 @@ _CHECKS: tuple[Callable[[System], None], ...] = (
     check_system_reference,
     check_system_render_track_round_trip,
     check_system_jax_twin,
+    check_system_default_scene,
     check_system_splits_leak_free,
     check_system_bad_input_raises,
 )

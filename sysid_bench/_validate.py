@@ -141,13 +141,50 @@ def check_flag(value, name: str) -> bool:
     return bool(value)
 
 
-def check_seed(seed) -> np.random.Generator:
-    """Turn an int seed, ``None`` or a Generator into a Generator."""
+def check_seed(seed, name: str = "seed") -> np.random.Generator:
+    """Turn an int seed >= 0, ``None`` or a Generator into a Generator (``name`` is the
+    argument's name in the message: ``rng`` where the caller calls it that)."""
     if isinstance(seed, np.random.Generator):
         return seed
-    if seed is None or isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+    if seed is None:
         return np.random.default_rng(seed)
-    raise ValueError(f"seed: expected an int, None or numpy.random.Generator, got {seed!r}")
+    if isinstance(seed, (int, np.integer)) and not isinstance(seed, (bool, np.bool_)):
+        if seed < 0:  # NumPy's own answer ("expected non-negative integer") names nothing
+            raise ValueError(f"{name}: expected a seed >= 0, None or numpy.random.Generator, got {seed}")
+        return np.random.default_rng(seed)
+    raise ValueError(f"{name}: expected an int seed >= 0, None or numpy.random.Generator, "
+                     f"got {type(seed).__name__} {seed!r}")
+
+
+def check_batch(arr: np.ndarray, name: str, what: str = "rows") -> None:
+    """Refuse an empty batch (``arr.shape[0] == 0``) naming ``name``: a (0, P) array is nearly
+    always a filter that kept nothing, and NumPy would answer it later with a reduction error."""
+    if arr.ndim == 0 or arr.shape[0] == 0:
+        raise ValueError(f"{name}: expected a batch of at least one row of {what}, got an empty "
+                         f"batch of shape {arr.shape}")
+
+
+#: Most pixels a call may ask to draw in all (B x T x H x W): 2**30 is 1 GiB of uint8 frames and
+#: 4 GiB of the float32 the drawing works in. A size beyond it is almost always a typo
+#: ((100000, 100000) asked for 186 GiB) and is refused before anything is allocated.
+FRAME_BUDGET = 2**30
+#: Longest side of one frame, pixels.
+SIDE_MAX = 2**14
+
+
+def check_frame_budget(shape, name: str = "size") -> None:
+    """Refuse frames of ``shape`` (B, T, H, W) whose drawing would need more than
+    :data:`FRAME_BUDGET` pixels, or a side above :data:`SIDE_MAX`, naming ``name``."""
+    b, t, h, w = (int(v) for v in shape)
+    if max(h, w) > SIDE_MAX:
+        raise ValueError(f"{name}: expected frames of at most {SIDE_MAX} pixels a side, got {h} x {w}")
+    total = b * t * h * w
+    if total > FRAME_BUDGET:
+        raise ValueError(
+            f"{name}: expected at most 2**30 pixels to draw in all ({FRAME_BUDGET * 5 / 2**30:.0f} "
+            f"GiB with the float32 drawing), got {b} x {t} frames of {h} x {w} = {total:.3g} "
+            f"pixels; draw fewer or smaller frames, or in batches"
+        )
 
 
 def check_number(value, name: str, *, lo: float | None = None, hi: float | None = None,

@@ -103,6 +103,15 @@ class Observation:
         as K = 1 and stored as (T, 1, 2)), ``state0`` is its state (S,), and positions are
         checked against the system's view instead of the ball's box. The ball keeps (T, 2)
         ((T, 1, 2) is accepted and stored as (T, 2)).
+    scene : sysid_bench.systems.Scene, optional
+        The system's known geometry in metres (``systems.get(system).scene(...)``: the ball's
+        floor and walls, the pendulum's pivot, the spring's anchor, the collision track's ends
+        and the pucks' half-sizes). ``None`` means the system's default scene (the design's
+        numbers). Checked on construction: another system's scene or a non-scene is a
+        ``TypeError``, a non-finite value a ``ValueError``; the ball's ``floor``, where both are
+        given, must equal the scene's. With a scene other than the default, positions and
+        ``state0`` are checked against the scene (the walls and floor that exist, the state
+        bounds it implies) instead of the default box or view.
     """
 
     frames: np.ndarray | None = None
@@ -111,6 +120,17 @@ class Observation:
     floor: float | None = None
     state0: np.ndarray | None = None
     system: str = "ball"
+    scene: Any = None
+
+    def _checked_scene(self):
+        """The validated scene (None stays None) and whether it is the system's default."""
+        if self.scene is None:
+            return None, True
+        from sysid_bench import systems  # local: only an observation with a scene needs it
+
+        sys_ = systems.get(self.system)
+        sc = sys_.check_scene(self.scene, "scene")
+        return sc, sc == sys_.default_scene
 
     def __post_init__(self) -> None:
         if self.frames is None and self.positions is None:
@@ -140,6 +160,7 @@ class Observation:
             if self.system != "ball":
                 self._post_init_system()
                 return
+        self.scene, default_scene = self._checked_scene()
         if self.positions is not None:
             pos = as_float_array(self.positions, "positions", ndim=(2, 3), last=2, allow_nan=True)
             if pos.ndim == 3:  # the ball's one tracked point as (T, 1, 2)
@@ -161,11 +182,17 @@ class Observation:
         if self.floor is not None:
             # the simulator's bound (physics.FLOOR_MAX): every method simulates this floor
             self.floor = check_number(self.floor, "floor", lo=-FLOOR_MAX, hi=FLOOR_MAX, unit="m")
+            if (self.scene is not None and self.scene.floor is not None
+                    and self.scene.floor != self.floor):
+                raise ValueError(f"floor: expected the scene's floor {self.scene.floor:g} m (or "
+                                 f"None), got {self.floor:g}")
+        check = _check_in_box if default_scene else _check_in_ball_scene
+        where = self.floor if default_scene else self.scene
         if self.positions is not None:
-            _check_in_box(self.positions, self.floor, "positions")
+            check(self.positions, where, "positions")
         if self.state0 is not None:
             self.state0 = as_float_array(self.state0, "state0", ndim=1, last=4)
-            _check_in_box(self.state0[None, :2], self.floor, "state0")
+            check(self.state0[None, :2], where, "state0")
             v = float(np.abs(self.state0[2:]).max())
             if v > V_MAX:  # the simulator's bound: methods simulate from this state
                 raise ValueError(f"state0: expected |vx|, |vy| <= {V_MAX:g} m/s (physics.V_MAX), "
@@ -177,6 +204,7 @@ class Observation:
 
         sys_ = systems.get(self.system)  # ValueError listing the known systems
         self.system = sys_.name
+        self.scene, default_scene = self._checked_scene()
         if self.positions is not None:
             pos = as_float_array(self.positions, "positions", ndim=(2, 3), last=2, allow_nan=True)
             if pos.ndim == 2:
@@ -193,14 +221,17 @@ class Observation:
                     "positions: expected as many rows as frames "
                     f"({self.frames.shape[0]}), got {pos.shape[0]}"
                 )
-            _check_in_view(pos.reshape(-1, 2), sys_, "positions")
+            if default_scene:
+                _check_in_view(pos.reshape(-1, 2), sys_, "positions")
+            else:  # the scene moves the world: only a wrong unit can still be caught
+                _check_within(pos.reshape(-1, 2), "positions")
             self.positions = pos
         self.dt = check_number(self.dt, "dt", lo=DT_RANGE[0], hi=DT_RANGE[1], unit="s")
         if self.floor is not None:
             self.floor = check_number(self.floor, "floor", unit="m")
         if self.state0 is not None:
             s0 = as_float_array(self.state0, "state0", ndim=1, last=sys_.n_state)
-            self.state0 = sys_.check_state0(s0[None], "state0")[0]
+            self.state0 = sys_.check_state0(s0[None], "state0", scene=self.scene)[0]
 
     @property
     def points(self) -> np.ndarray | None:
@@ -221,7 +252,7 @@ class Observation:
         return None if self.frames is None else tuple(self.frames.shape[1:])
 
     def prefix(self, n: int) -> Observation:
-        """The first ``n`` frames of this observation (same dt, floor and state0)."""
+        """The first ``n`` frames of this observation (same dt, floor, state0 and scene)."""
         n = check_positive_int(n, "n")
         if n > self.n_frames:
             raise ValueError(f"n: expected at most {self.n_frames} frames, got {n}")
@@ -232,6 +263,7 @@ class Observation:
             floor=self.floor,
             state0=self.state0,
             system=self.system,
+            scene=self.scene,
         )
 
 
@@ -258,6 +290,33 @@ def _check_in_box(pos: np.ndarray, floor: float | None, name: str) -> None:
         raise ValueError(
             f"{what}: y spanning at most {BOX_WIDTH:g} m, got y in [{y.min():.4g}, {y.max():.4g}]"
         )
+
+
+def _check_within(pos: np.ndarray, name: str) -> None:
+    """Points (N, 2) (NaN = unseen) within the scenes' :data:`~sysid_bench.systems._scene.COORD_MAX`."""
+    from sysid_bench.systems._scene import COORD_MAX
+
+    seen = pos[np.isfinite(pos).all(axis=1)]
+    if seen.size and np.abs(seen).max() > COORD_MAX:
+        raise ValueError(f"{name}: expected points within {COORD_MAX:g} m of the scene's origin, "
+                         f"got up to {np.abs(seen).max():.4g} m")
+
+
+def _check_in_ball_scene(pos: np.ndarray, scene, name: str) -> None:
+    """The ball's positions (N, 2) in a scene of its own: between its walls and above its floor
+    (where it has them) within :data:`BOX_MARGIN`."""
+    _check_within(pos, name)
+    seen = pos[np.isfinite(pos).all(axis=1)]
+    if not seen.size:
+        return
+    m = BOX_MARGIN
+    x, y = seen[:, 0], seen[:, 1]
+    if scene.walls is not None and (x.min() < scene.walls[0] - m or x.max() > scene.walls[1] + m):
+        raise ValueError(f"{name}: expected x within {m:g} m of the scene's walls {scene.walls}, "
+                         f"got x in [{x.min():.4g}, {x.max():.4g}]")
+    if scene.floor is not None and y.min() < scene.floor - m:
+        raise ValueError(f"{name}: expected y above the scene's floor {scene.floor:g} m (within "
+                         f"{m:g} m), got y down to {y.min():.4g}")
 
 
 def _system_name(system) -> str:

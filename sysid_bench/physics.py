@@ -9,6 +9,11 @@ centre moves in the box ``[0, BOX_WIDTH] x [floor, floor + BOX_WIDTH]``:
 * rolling: a floor rebound slower than ``ROLL_SPEED`` leaves the ball on the floor with ``vy = 0``
   and ``ax = -r sign(vx)`` (no drag) until ``vx`` reaches 0, where it stops for good.
 
+The walls and the floor are the design's by default; ``simulate(..., floor=None)`` has no floor
+(free fall) and ``walls=(left, right)`` moves the walls or ``walls=None`` removes them (free in
+x): the scene of ``systems.get("ball").simulate(..., scene=BallScene(...))``. With the defaults
+every number is as it was (the kernel takes the walls as arguments, compared the same way).
+
 Integration is classical RK4 with ``SUBSTEPS`` steps per frame, one ball at a time in scalar code
 compiled by numba (cached on disk after the first call of a machine). A step
 that crosses a contact is cut at the contact: the contact time ``tau`` is the root of
@@ -121,6 +126,8 @@ MAX_FRAMES = 1_000_000
 #: design's physics is at ~0.015.
 DRAG_STEP = 0.5
 
+#: The design's walls, ``(0, BOX_WIDTH)``: ``simulate``'s default ``walls``.
+_BOX = (0.0, BOX_WIDTH)
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
 #: ``PRIOR`` as arrays in ``PARAMS`` order, defined here once: bounds, width, and the mean and
@@ -170,8 +177,13 @@ def check_theta(theta, n_frames: int | None = None, name: str = "theta") -> np.n
     return th
 
 
-def check_state0(state0, floor, name: str = "state0") -> np.ndarray:
-    """Validate initial states (B, 4): inside the box above ``floor`` (B,), speeds up to ``V_MAX``."""
+def check_state0(state0, floor, name: str = "state0", walls=_BOX) -> np.ndarray:
+    """Validate initial states (B, 4): inside the box above ``floor`` (B,), speeds up to ``V_MAX``.
+
+    With other ``walls`` (a validated ``(left, right)`` or None) or no floor (``floor`` all
+    ``-inf``), x must lie between the walls (if any), y above the floor (if any), and both
+    within ``FLOOR_MAX`` of the origin; the design's box keeps its own check below.
+    """
     s0 = as_float_array(state0, name, ndim=2, last=4)
     x, y = s0[:, 0], s0[:, 1]
     vmax = float(np.abs(s0[:, 2:]).max(initial=0.0))
@@ -179,6 +191,10 @@ def check_state0(state0, floor, name: str = "state0") -> np.ndarray:
         raise ValueError(
             f"{name}: expected |vx|, |vy| <= {V_MAX:g} m/s (physics.V_MAX), got {vmax:g}"
         )
+    floor = np.broadcast_to(np.asarray(floor, dtype=np.float64), y.shape)
+    if walls != _BOX or not np.isfinite(floor).all():
+        _check_state0_scene(x, y, floor, walls, name)
+        return s0
     if (x < 0).any() or (x > BOX_WIDTH).any():
         raise ValueError(
             f"{name}: expected x in [0, {BOX_WIDTH:g}] (inside the box), got x in [{x.min():g}, {x.max():g}]"
@@ -190,6 +206,30 @@ def check_state0(state0, floor, name: str = "state0") -> np.ndarray:
             f"got y - floor in [{rel.min():g}, {rel.max():g}]"
         )
     return s0
+
+
+def _check_state0_scene(x, y, floor, walls, name) -> None:
+    big = float(np.abs(np.concatenate([x, y])).max(initial=0.0))
+    if big > FLOOR_MAX:
+        raise ValueError(f"{name}: expected |x|, |y| <= {FLOOR_MAX:g} m (physics.FLOOR_MAX), got {big:g}")
+    if walls is not None and ((x < walls[0]).any() or (x > walls[1]).any()):
+        raise ValueError(
+            f"{name}: expected x between the walls {tuple(walls)}, got x in [{x.min():g}, {x.max():g}]"
+        )
+    rel = y - floor
+    if (rel < 0).any():
+        raise ValueError(f"{name}: expected y >= floor (above the floor), got y - floor down to {rel.min():g}")
+
+
+def _check_walls(walls):
+    """``walls`` as a tuple ``(left, right)`` of floats, or None (no walls)."""
+    if walls is None:
+        return None
+    w = as_float_array(walls, "walls", ndim=1)
+    if w.shape != (2,) or not w[0] < w[1] or np.abs(w).max() > FLOOR_MAX:
+        raise ValueError(f"walls: expected None or (left, right) metres with left < right, both "
+                         f"within {FLOOR_MAX:g} m (physics.FLOOR_MAX), got {walls!r}")
+    return (float(w[0]), float(w[1]))
 
 
 def _check_floor(floor, batch: int) -> np.ndarray:
@@ -295,12 +335,12 @@ def _rk4(x, y, vx, vy, h, cx, cy, k):
 
 
 @_njit
-def _event(vx, xn, yn, vxn, roll, cx, fl):
+def _event(vx, xn, yn, vxn, roll, cx, fl, wl, wr):
     """Does a span from velocity ``vx`` to state (xn, yn, vxn) cross a wall or the floor, or stop
     a rolling ball? In flight vy never turns from down to up and vx never changes sign, and
     rolling is a constant deceleration, so a first contact stays visible at the end of a longer
     span."""
-    if xn < 0.0 or xn > BOX_WIDTH:
+    if xn < wl or xn > wr:
         return True
     if roll:
         return cx != 0.0 and vxn * vx <= 0.0
@@ -345,19 +385,20 @@ def _forces(roll, vx, g, d, r):
 
 
 @_njit
-def _contact(x, y, vx, vy, xn, yn, hs, cx, cy, k, fl, roll, e, g, d, r, rem, spin, dwell):
+def _contact(x, y, vx, vy, xn, yn, hs, cx, cy, k, fl, roll, e, g, d, r, rem, spin, dwell, wl, wr):
     """Move a ball to its first contact within its step ``hs`` (which ends at (xn, yn)) and
     apply it. Returns the new state, rolling flag and the time ``tau`` consumed.
 
     ``spin`` and ``dwell`` are the perturbations of :func:`simulate_perturbed` (0 for the
     design's physics, where they change nothing: ``(1 - 0) * vx`` is ``vx`` exactly); ``rem``
-    is the time left in the frame, which bounds a dwell.
+    is the time left in the frame, which bounds a dwell. ``wl``, ``wr`` are the walls
+    (``-inf``, ``inf`` for none: then no wall is ever flagged).
     """
-    left = xn < 0.0
-    wall = left or xn > BOX_WIDTH
+    left = xn < wl
+    wall = left or xn > wr
     down = yn < fl and not roll
     stop = roll and not wall  # a rolling ball flagged without a wall can only be stopping
-    wall_x = 0.0 if left else BOX_WIDTH
+    wall_x = wl if left else wr
     # A ball may reach the floor and a wall in one step: solve both, keep the earlier.
     t_floor = _contact_time(x, y, vx, vy, hs, cx, cy, k, True, fl) if down else np.inf
     t_wall = _contact_time(x, y, vx, vy, hs, cx, cy, k, False, wall_x) if wall else np.inf
@@ -376,7 +417,7 @@ def _contact(x, y, vx, vy, xn, yn, hs, cx, cy, k, fl, roll, e, g, d, r, rem, spi
         elif dwell > 0.0:
             # soft contact: the ball stays on the floor for `dwell`, sliding at vx
             slide = min(dwell, rem - tau)
-            x = min(max(x + vx * slide, 0.0), BOX_WIDTH)
+            x = min(max(x + vx * slide, wl), wr)
             tau += slide
     if t_wall <= tau:
         x = wall_x
@@ -387,7 +428,7 @@ def _contact(x, y, vx, vy, xn, yn, hs, cx, cy, k, fl, roll, e, g, d, r, rem, spi
 
 
 @_njit
-def _advance_frame(x, y, vx, vy, roll, fl, e, g, d, r, dt, spin, dwell):
+def _advance_frame(x, y, vx, vy, roll, fl, e, g, d, r, dt, spin, dwell, wl, wr):
     """Advance one ball by ``dt`` in ``SUBSTEPS`` RK4 steps, each contact at its exact time.
 
     The plain steps run first; from the start of the first step that holds a contact, the rest
@@ -398,7 +439,7 @@ def _advance_frame(x, y, vx, vy, roll, fl, e, g, d, r, dt, spin, dwell):
     rem = 0.0
     for s in range(SUBSTEPS):
         xn, yn, vxn, vyn = _rk4(x, y, vx, vy, h, cx, cy, k)
-        if _event(vx, xn, yn, vxn, roll, cx, fl):
+        if _event(vx, xn, yn, vxn, roll, cx, fl, wl, wr):
             rem = dt - s * h
             break
         x, y, vx, vy = xn, yn, vxn, vyn
@@ -407,12 +448,12 @@ def _advance_frame(x, y, vx, vy, roll, fl, e, g, d, r, dt, spin, dwell):
     for _ in range(_MAX_STEPS):
         hs = min(rem, h)
         xn, yn, vxn, vyn = _rk4(x, y, vx, vy, hs, cx, cy, k)
-        if not _event(vx, xn, yn, vxn, roll, cx, fl):
+        if not _event(vx, xn, yn, vxn, roll, cx, fl, wl, wr):
             x, y, vx, vy = xn, yn, vxn, vyn
             rem = rem - hs
         else:
             x, y, vx, vy, roll, tau = _contact(
-                x, y, vx, vy, xn, yn, hs, cx, cy, k, fl, roll, e, g, d, r, rem, spin, dwell
+                x, y, vx, vy, xn, yn, hs, cx, cy, k, fl, roll, e, g, d, r, rem, spin, dwell, wl, wr
             )
             cx, cy, k = _forces(roll, vx, g, d, r)
             rem -= tau
@@ -422,9 +463,11 @@ def _advance_frame(x, y, vx, vy, roll, fl, e, g, d, r, dt, spin, dwell):
 
 
 @_njit
-def _simulate_kernel(th, s0, fl, pert, dt, out):
+def _simulate_kernel(th, s0, fl, pert, dt, out, wl, wr):
     """Fill ``out`` (n_frames, 4, B) from ``s0`` (4, B); ``th`` is (1, 4, B) or (n_frames, 4, B);
-    ``pert`` (2, B) is (spin, dwell) per ball, zeros for the design's physics.
+    ``pert`` (2, B) is (spin, dwell) per ball, zeros for the design's physics; ``wl``, ``wr``
+    the walls (0 and ``BOX_WIDTH`` in the design; ``-inf``, ``inf`` for none) and ``fl`` (B,)
+    the floors (``-inf`` for none: the ball falls freely).
 
     Each frame runs in two passes over the balls. The first takes every ball's plain
     ``SUBSTEPS`` steps with no branches, so the compiler vectorises it across balls (SIMD), and
@@ -457,7 +500,7 @@ def _simulate_kernel(th, s0, fl, pert, dt, out):
                 x, y, vx, vy = _rk4(x, y, vx, vy, h, cx, cy, k)
             # _event over the whole frame (a first contact stays visible at its end)
             flag[b] = (
-                (x < 0.0) | (x > BOX_WIDTH) | ((rl == 0.0) & (y < fl[b]))
+                (x < wl) | (x > wr) | ((rl == 0.0) & (y < fl[b]))
                 | ((rl != 0.0) & (cx != 0.0) & (vx * v0x <= 0.0))
             )
             NX[b], NY[b], NVX[b], NVY[b] = x, y, vx, vy
@@ -465,7 +508,7 @@ def _simulate_kernel(th, s0, fl, pert, dt, out):
             if flag[b] != 0.0:
                 x, y, vx, vy, rb = _advance_frame(
                     X[b], Y[b], VX[b], VY[b], R[b] != 0.0, fl[b],
-                    th[i, 0, b], G[b], D[b], RR[b], dt, pert[0, b], pert[1, b],
+                    th[i, 0, b], G[b], D[b], RR[b], dt, pert[0, b], pert[1, b], wl, wr,
                 )
                 NX[b], NY[b], NVX[b], NVY[b] = x, y, vx, vy
                 R[b] = 1.0 if rb else 0.0
@@ -476,7 +519,8 @@ def _simulate_kernel(th, s0, fl, pert, dt, out):
 _CHUNK = 8192
 
 
-def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0) -> np.ndarray:
+def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0, *,
+             walls=_BOX) -> np.ndarray:
     """Simulate a batch of bouncing balls and return their states at the frame times.
 
     Parameters
@@ -490,8 +534,11 @@ def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0)
         Frames to return, frame 0 included.
     dt : float
         Seconds between frames.
-    floor : float or array_like, shape (B,)
-        Floor height per ball.
+    floor : float, array_like of shape (B,), or None
+        Floor height per ball; None: no floor (the ball falls freely).
+    walls : (float, float) or None
+        x of the left and right walls, m; None: no walls (free in x). The default is the
+        design's box, ``(0, BOX_WIDTH)``; with it (and a floor) every number is as before.
 
     Returns
     -------
@@ -507,8 +554,8 @@ def simulate(theta, state0, n_frames: int = N_FRAMES, dt: float = DT, floor=0.0)
         ``DRAG_STEP``, more than ``CONTACTS_MAX`` possible contacts per frame; and, as a last
         guard, for any non-finite result.
     """
-    th, s0, fl, n_frames, dt = _check_inputs(theta, state0, n_frames, dt, floor)
-    out = _run(th, s0, fl, np.zeros((2, s0.shape[0])), n_frames, dt)
+    th, s0, fl, n_frames, dt, walls = _check_inputs(theta, state0, n_frames, dt, floor, walls)
+    out = _run(th, s0, fl, np.zeros((2, s0.shape[0])), n_frames, dt, walls)
     _check_finite(out, th, s0, fl, dt)
     return out
 
@@ -521,11 +568,13 @@ def check_dt(dt) -> float:
     return dt
 
 
-def check_step(th, s0, fl, dt) -> None:
+def check_step(th, s0, fl, dt, walls=_BOX, n_frames: int | None = None) -> None:
     """Raise unless every ball's frame is one the integrator resolves: drag per RK4 step at
     most ``DRAG_STEP`` and at most ``CONTACTS_MAX`` contacts per frame (see both).
 
-    ``th`` (B, 4) or (B, T, 4), ``s0`` (B, 4), ``fl`` (B,), all validated.
+    ``th`` (B, 4) or (B, T, 4), ``s0`` (B, 4), ``fl`` (B,), all validated; ``walls`` validated
+    (None: no wall hits); a ball without a floor (``fl`` = ``-inf``) falls for ``n_frames``
+    frames, which bounds its speed.
     """
     if not len(s0):
         return
@@ -533,7 +582,13 @@ def check_step(th, s0, fl, dt) -> None:
         d, g = th[..., 2].max(axis=1), th[..., 1].min(axis=1)
     else:
         d, g = th[:, 2], th[:, 1]
-    v = np.sqrt(s0[:, 2] ** 2 + s0[:, 3] ** 2 + 2.0 * np.abs(g) * (s0[:, 1] - fl))
+    if np.isfinite(fl).all():
+        drop = s0[:, 1] - fl
+    else:  # no floor: the drop is bounded by the fall over the clip (drag only slows it)
+        span = (n_frames if n_frames is not None else N_FRAMES) * dt
+        drop = np.where(np.isfinite(fl), s0[:, 1] - fl,
+                        np.abs(s0[:, 3]) * span + 0.5 * np.abs(g) * span**2)
+    v = np.sqrt(s0[:, 2] ** 2 + s0[:, 3] ** 2 + 2.0 * np.abs(g) * drop)
     step = d * v * (dt / SUBSTEPS)
     worst = int(np.argmax(step))
     if step[worst] > DRAG_STEP:
@@ -543,7 +598,11 @@ def check_step(th, s0, fl, dt) -> None:
             f"has d = {d[worst]:g}, speed up to {v[worst]:g} m/s, dt = {dt:g}: {step[worst]:.3g}. "
             f"Use a smaller dt or d"
         )
-    hits = 1.25 * dt * np.abs(g) / (2.0 * ROLL_SPEED) + v * dt / BOX_WIDTH + 1.0
+    if walls == _BOX:
+        hits = 1.25 * dt * np.abs(g) / (2.0 * ROLL_SPEED) + v * dt / BOX_WIDTH + 1.0
+    else:
+        bounces = np.where(np.isfinite(fl), 1.25 * dt * np.abs(g) / (2.0 * ROLL_SPEED), 0.0)
+        hits = bounces + (0.0 if walls is None else v * dt / (walls[1] - walls[0]) + 1.0)
     worst = int(np.argmax(hits))
     if hits[worst] > CONTACTS_MAX:
         raise ValueError(
@@ -632,13 +691,17 @@ def _fast_inputs(theta, state0, n_frames, dt, floor):
     return theta, state0, fl, n_frames, float(dt)
 
 
-def _check_inputs(theta, state0, n_frames, dt, floor):
-    """Validate ``simulate``'s arguments; returns (theta, state0, floor (B,), n_frames, dt)."""
-    fast = _fast_inputs(theta, state0, n_frames, dt, floor)
-    return fast if fast is not None else _check_inputs_full(theta, state0, n_frames, dt, floor)
+def _check_inputs(theta, state0, n_frames, dt, floor, walls=_BOX):
+    """Validate ``simulate``'s arguments; returns (theta, state0, floor (B,), n_frames, dt,
+    walls); a missing floor is ``-inf``, missing walls None."""
+    if walls is _BOX or walls == _BOX:  # the design's box: the fast path as before
+        fast = _fast_inputs(theta, state0, n_frames, dt, floor)
+        if fast is not None:
+            return fast + (_BOX,)
+    return _check_inputs_full(theta, state0, n_frames, dt, floor, walls)
 
 
-def _check_inputs_full(theta, state0, n_frames, dt, floor):
+def _check_inputs_full(theta, state0, n_frames, dt, floor, walls=_BOX):
     """Every check of ``simulate``'s arguments, each raising with its own message."""
     n_frames = check_positive_int(n_frames, "n_frames")
     if n_frames > MAX_FRAMES:
@@ -652,14 +715,16 @@ def _check_inputs_full(theta, state0, n_frames, dt, floor):
         raise ValueError(
             f"theta: expected {B} rows to match state0 (B={B}), got shape {th.shape}"
         )
-    fl = _check_floor(floor, B)
-    s0 = check_state0(s0, fl)
-    check_step(th, s0, fl, dt)
-    return th, s0, fl, n_frames, dt
+    walls = _check_walls(walls)
+    fl = np.full(B, -np.inf) if floor is None else _check_floor(floor, B)
+    s0 = check_state0(s0, fl, walls=walls)
+    check_step(th, s0, fl, dt, walls=walls, n_frames=n_frames)
+    return th, s0, fl, n_frames, dt, walls
 
 
-def _run(th, s0, fl, pert, n_frames, dt):
+def _run(th, s0, fl, pert, n_frames, dt, walls=_BOX):
     """The kernel over chunks of balls; arguments validated, ``pert`` (2, B)."""
+    wl, wr = (-np.inf, np.inf) if walls is None else (float(walls[0]), float(walls[1]))
     B = s0.shape[0]
     out = np.empty((B, n_frames, 4))
     for b0 in range(0, B, _CHUNK):
@@ -668,13 +733,13 @@ def _run(th, s0, fl, pert, n_frames, dt):
         scratch = np.empty((n_frames, 4, b1 - b0))  # contiguous: one compiled specialisation
         _simulate_kernel(np.ascontiguousarray(part.transpose(1, 2, 0)),
                          np.ascontiguousarray(s0[b0:b1].T), np.ascontiguousarray(fl[b0:b1]),
-                         np.ascontiguousarray(pert[:, b0:b1]), dt, scratch)
+                         np.ascontiguousarray(pert[:, b0:b1]), dt, scratch, wl, wr)
         out[b0:b1] = scratch.transpose(2, 0, 1)
     return out
 
 
 def simulate_perturbed(theta, state0, spin=0.0, dwell=0.0, n_frames: int = N_FRAMES,
-                       dt: float = DT, floor=0.0) -> np.ndarray:
+                       dt: float = DT, floor=0.0, *, walls=_BOX) -> np.ndarray:
     """``simulate`` with two deviations real balls show and the design's physics does not.
 
     For robustness studies: methods identify with ``simulate``'s model, the videos come from
@@ -682,7 +747,7 @@ def simulate_perturbed(theta, state0, spin=0.0, dwell=0.0, n_frames: int = N_FRA
 
     Parameters
     ----------
-    theta, state0, n_frames, dt, floor
+    theta, state0, n_frames, dt, floor, walls
         As for :func:`simulate`.
     spin : float or array_like, shape (B,)
         Fraction of the horizontal speed lost at each floor bounce (spin and friction), in
@@ -695,7 +760,7 @@ def simulate_perturbed(theta, state0, spin=0.0, dwell=0.0, n_frames: int = N_FRA
     -------
     ndarray, shape (B, n_frames, 4)
     """
-    th, s0, fl, n_frames, dt = _check_inputs(theta, state0, n_frames, dt, floor)
+    th, s0, fl, n_frames, dt, walls = _check_inputs(theta, state0, n_frames, dt, floor, walls)
     B = s0.shape[0]
     pert = np.empty((2, B))
     for j, (name, val, hi) in enumerate((("spin", spin, 1.0), ("dwell", dwell, dt))):
@@ -705,6 +770,6 @@ def simulate_perturbed(theta, state0, spin=0.0, dwell=0.0, n_frames: int = N_FRA
         if (v < 0).any() or (v >= hi).any():
             raise ValueError(f"{name}: expected values in [0, {hi:g}), got [{v.min():g}, {v.max():g}]")
         pert[j] = v
-    out = _run(th, s0, fl, pert, n_frames, dt)
+    out = _run(th, s0, fl, pert, n_frames, dt, walls)
     _check_finite(out, th, s0, fl, dt)
     return out

@@ -17,9 +17,16 @@ import difflib
 import importlib
 
 from sysid_bench.systems._base import SUBRANGES_TEST, SUBRANGES_TRAIN, System
+from sysid_bench.systems._scene import (
+    BallScene,
+    CollisionScene,
+    PendulumScene,
+    Scene,
+    SpringScene,
+)
 
-__all__ = ["System", "available", "get", "register", "unregister", "SUBRANGES_TRAIN",
-           "SUBRANGES_TEST"]
+__all__ = ["System", "Scene", "BallScene", "PendulumScene", "SpringScene", "CollisionScene",
+           "available", "get", "register", "unregister", "SUBRANGES_TRAIN", "SUBRANGES_TEST"]
 
 _REGISTRY: dict[str, str] = {}
 _INSTANCES: dict[str, System] = {}
@@ -69,10 +76,21 @@ def get(name) -> System:
     if not isinstance(name, str) or name not in _REGISTRY:
         raise _unknown(name)
     if name not in _INSTANCES:
-        module_name, cls_name = _REGISTRY[name].split(":")
-        cls = getattr(importlib.import_module(module_name), cls_name, None)
+        entry = _REGISTRY[name]
+        module_name, cls_name = entry.split(":")
+        try:
+            module = importlib.import_module(module_name)
+        except Exception as exc:  # missing, or raising on import: say which entry and why
+            raise ValueError(
+                f"system: could not import {module_name!r} for the system {name!r} (entry point "
+                f"{entry!r}): {type(exc).__name__}: {exc}"
+            ) from exc
+        cls = getattr(module, cls_name, None)
+        if cls is None:
+            raise ValueError(f"system: module {module_name!r} has no {cls_name!r} for the system "
+                             f"{name!r} (entry point {entry!r})")
         if not (isinstance(cls, type) and issubclass(cls, System)):
-            raise TypeError(f"{_REGISTRY[name]} is not a System subclass")
+            raise TypeError(f"{entry} is not a System subclass")
         if cls.name != name:
             raise ValueError(f"name: {_REGISTRY[name]} declares name {cls.name!r}, registered as {name!r}")
         _INSTANCES[name] = cls()

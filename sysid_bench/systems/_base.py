@@ -5,17 +5,19 @@ simulator and observation together, and DeepMind's Hamiltonian suite has one mod
 system). The subclass declares its parameters, prior, state, tracked points and default view as
 class attributes, and implements five hooks:
 
-``_simulate(theta, state0, n_frames, dt)``
+``_simulate(theta, state0, n_frames, dt, scene=None)``
     The NumPy simulator: validated float64 ``theta`` (B, T, P) (parameters held from frame t to
     t+1) and ``state0`` (B, S) in, states (B, T, S) out, frame 0 = ``state0``, events located
-    exactly. This is the one source of the system's physics.
+    exactly. This is the one source of the system's physics. ``scene`` (an instance of
+    :attr:`System.scene_type`, validated; see :mod:`sysid_bench.systems._scene`) is the geometry;
+    a hook without the keyword is called without it, for the default scene only.
 ``sample_state0(n, rng, theta=None)``
     Initial states from the system's documented ranges. ``theta`` (n, P), optional, is the
     trajectories' parameters, for a system whose initial state is defined relative to a
     parameter (the spring's ``x0 = L0 + s0``); other systems ignore it (or omit the keyword:
     callers pass it only where the signature has it, see :meth:`System.sample_cases`).
-``_observe(states, theta)``
-    States (B, T, S) to the K tracked points' positions (B, T, K, 2) in metres.
+``_observe(states, theta, scene=None)``
+    States (B, T, S) to the K tracked points' positions (B, T, K, 2) in metres (in ``scene``).
 ``_render(points, states, theta, size, **nuisance)``
     Frames (B, T, H, W) uint8; most systems draw discs through :mod:`sysid_bench.systems._draw`.
 ``_track(frames)``
@@ -25,22 +27,31 @@ plus, for the reference checks and NUTS, ``reference(theta, state0, n_frames, dt
 event-driven ``scipy.integrate.solve_ivp`` at tight tolerance, one trajectory) and a JAX twin named
 by ``jax_twin = "module:function"`` (imported only when asked for, so JAX loads only for NUTS).
 
-The public methods validate at the boundary (shapes, NaN/inf, the documented envelope) and
-raise ``ValueError`` naming the argument and the system; the hooks receive clean arrays.
+The public methods validate at the boundary (shapes, empty batches, ragged lists, NaN/inf, the
+documented envelope, the scene's type, frame sizes) and raise ``ValueError`` (``TypeError`` for
+a scene of the wrong type) naming the argument and the system; the hooks receive clean arrays.
 """
 
 from __future__ import annotations
 
 import abc
+import functools
 import importlib
 import inspect
 from typing import ClassVar
 
 import numpy as np
 
-from sysid_bench._validate import as_float_array, check_positive_int, check_seed
+from sysid_bench._validate import (
+    as_float_array,
+    check_batch,
+    check_frame_budget,
+    check_positive_int,
+    check_seed,
+)
+from sysid_bench.systems._scene import Scene
 
-__all__ = ["System", "SUBRANGES_TRAIN", "SUBRANGES_TEST"]
+__all__ = ["System", "Scene", "SUBRANGES_TRAIN", "SUBRANGES_TEST"]
 
 #: The paper's leak-free interleaved split: each parameter's prior range is cut into 10 equal
 #: sub-ranges numbered 0-9 from the low end; training draws from the even ones, testing from the
@@ -98,6 +109,17 @@ class System(abc.ABC):
     jax_twin : str
         ``"module:function"`` of the JAX twin (``theta (P,), state0 (S,), n_frames, dt -> (T, S)``),
         or ``""`` when the system has none.
+    scene_type : type
+        The frozen dataclass of the system's geometry (:class:`Scene` or a subclass);
+        ``scene_type()`` is the default scene (the design's numbers), see :meth:`scene`.
+    min_size : (int, int)
+        Smallest frames ``(H, W)`` that ``render`` draws and ``track`` reads: below it the
+        object does not fit the frame (``track`` would answer NaN or noise).
+
+    Every public method validates its arguments here, once for all systems (a user's included):
+    ``simulate``, ``observe``, ``render`` and ``track`` are defined on this class, and a
+    subclass's ``sample_state0`` is wrapped on definition (:meth:`__init_subclass__`) so ``n``,
+    ``rng`` and ``theta`` are checked before the system's own code runs.
     """
 
     name: ClassVar[str] = ""
@@ -111,6 +133,14 @@ class System(abc.ABC):
     size: ClassVar[tuple[int, int]] = (28, 28)
     noise_m: ClassVar[float] = 0.01
     jax_twin: ClassVar[str] = ""
+    scene_type: ClassVar[type[Scene]] = Scene
+    min_size: ClassVar[tuple[int, int]] = (4, 4)
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        fn = cls.__dict__.get("sample_state0")
+        if fn is not None and not getattr(fn, "_checked", False):
+            cls.sample_state0 = _checked_sample_state0(fn)
 
     # ------------------------------------------------------------------------------------------
     # the prior
@@ -185,15 +215,16 @@ class System(abc.ABC):
     # ------------------------------------------------------------------------------------------
     # validation at the public boundary
     def check_theta(self, theta, n_frames: int | None = None, name: str = "theta") -> np.ndarray:
-        """Validate parameters: float64 (B, P) or (B, n_frames, P) inside :attr:`envelope`."""
+        """Validate parameters: float64 (B, P) or (B, n_frames, P), B >= 1, inside :attr:`envelope`."""
         p = self.n_params
-        arr = np.asarray(theta) if not isinstance(theta, np.ndarray) else theta
+        arr = _as_array(theta, name)
         if getattr(arr, "ndim", 0) in (2, 3) and arr.shape[-1] != p:
             raise ValueError(
                 f"{name}: expected the {self.name} system's {p} parameters {self.params} on the "
                 f"last axis, got shape {arr.shape}"
             )
-        th = as_float_array(theta, name, ndim=(2, 3), last=p)
+        th = as_float_array(arr, name, ndim=(2, 3), last=p)
+        check_batch(th, name, f"the {self.name} system's parameters")
         if th.ndim == 3 and n_frames is not None and th.shape[1] != n_frames:
             raise ValueError(
                 f"{name}: expected (B, n_frames={n_frames}, {p}) for time-varying parameters of "
@@ -210,28 +241,74 @@ class System(abc.ABC):
                 )
         return th
 
-    def check_state0(self, state0, name: str = "state0") -> np.ndarray:
-        """Validate initial states: float64 (B, S) inside :attr:`state_bounds`."""
+    def check_state0(self, state0, name: str = "state0", scene: Scene | None = None) -> np.ndarray:
+        """Validate initial states: float64 (B, S), B >= 1, inside :meth:`state_bounds_for`
+        ``(scene)`` (:attr:`state_bounds` for the default scene)."""
         s = self.n_state
-        arr = np.asarray(state0) if not isinstance(state0, np.ndarray) else state0
+        arr = _as_array(state0, name)
         if getattr(arr, "ndim", 0) == 2 and arr.shape[-1] != s:
             raise ValueError(
                 f"{name}: expected the {self.name} system's state {self.state} ({s} values) on "
                 f"the last axis, got shape {arr.shape}"
             )
-        s0 = as_float_array(state0, name, ndim=2, last=s)
+        s0 = as_float_array(arr, name, ndim=2, last=s)
+        check_batch(s0, name, f"the {self.name} system's initial states")
+        sc = self.check_scene(scene)
+        bounds = self.state_bounds_for(sc)
         for i, q in enumerate(self.state):
-            if q not in self.state_bounds:
+            if q not in bounds:
                 continue
-            a, b = self.state_bounds[q]
+            a, b = bounds[q]
             col = s0[:, i]
             if col.size and (col.min() < a or col.max() > b):
                 raise ValueError(
-                    f"{name}: expected {q} in [{a:g}, {b:g}] for the {self.name} system, "
+                    f"{name}: expected {q} in [{a:g}, {b:g}] for the {self.name} system"
+                    f"{'' if sc == self.default_scene else ' in this scene'}, "
                     f"got values in [{col.min():g}, {col.max():g}]"
                 )
-        self._check_state0_extra(s0, name)
+        if _takes(self._check_state0_extra, "scene"):
+            self._check_state0_extra(s0, name, scene=sc)
+        else:
+            self._check_state0_extra(s0, name)
         return s0
+
+    # ------------------------------------------------------------------------------------------
+    # the scene
+    @property
+    def default_scene(self) -> Scene:
+        """The design's geometry: ``scene_type()``."""
+        return self.scene_type()
+
+    def scene(self, **overrides) -> Scene:
+        """The system's scene with ``overrides`` (its fields by name), e.g.
+        ``get("ball").scene(walls=None, floor=0.3)``; no overrides gives :attr:`default_scene`.
+
+        Raises ``ValueError`` naming a field the scene does not have or a value it cannot hold.
+        """
+        return self.default_scene.replace(**overrides)
+
+    def check_scene(self, scene, name: str = "scene") -> Scene:
+        """``scene`` validated for this system: None is :attr:`default_scene`; else an instance
+        of :attr:`scene_type` with finite values (``TypeError`` for another system's scene)."""
+        if scene is None:
+            return self.default_scene
+        if not isinstance(scene, self.scene_type):
+            other = getattr(scene, "system", "")
+            got = (f"the {other} system's {type(scene).__name__}" if isinstance(scene, Scene) and other
+                   else f"{type(scene).__name__} {scene!r}"[:200])
+            raise TypeError(
+                f"{name}: expected a {self.scene_type.__name__} for the {self.name} system "
+                f"(systems.get({self.name!r}).scene(...)) or None, got {got}"
+            )
+        vals = scene.values()
+        if not np.isfinite(vals).all():  # only reachable past the constructor (object.__setattr__)
+            raise ValueError(f"{name}: expected finite metres in the {self.name} system's scene, got {scene!r}")
+        return scene
+
+    def state_bounds_for(self, scene: Scene) -> dict[str, tuple[float, float]]:
+        """The bounds of ``state0`` in ``scene`` (a system whose state is in world metres shifts
+        them with its geometry); :attr:`state_bounds` by default."""
+        return self.state_bounds
 
     def _check_state0_extra(self, state0: np.ndarray, name: str) -> None:
         """Checks beyond per-variable bounds (e.g. an ordering); raise ``ValueError``."""
@@ -251,18 +328,22 @@ class System(abc.ABC):
 
     # ------------------------------------------------------------------------------------------
     # the public API
-    def simulate(self, theta, state0, n_frames: int = 200, dt: float = 0.05) -> np.ndarray:
+    def simulate(self, theta, state0, n_frames: int = 200, dt: float = 0.05,
+                 scene: Scene | None = None) -> np.ndarray:
         """Simulate a batch of trajectories.
 
         Parameters
         ----------
         theta : ndarray, shape (B, P) or (B, n_frames, P)
             Parameters in :attr:`params` order; a time-varying ``theta[:, t]`` holds from frame
-            t to frame t+1.
+            t to frame t+1. B >= 1.
         state0 : ndarray, shape (B, S)
         n_frames : int
         dt : float
             Seconds between frames.
+        scene : Scene, optional
+            The geometry (an instance of :attr:`scene_type`, see :meth:`scene`); None is
+            :attr:`default_scene`, which gives the design's numbers bit for bit.
 
         Returns
         -------
@@ -270,43 +351,77 @@ class System(abc.ABC):
             States at the frame times; frame 0 is ``state0``.
         """
         n_frames, dt = self._check_frames_dt(n_frames, dt)
+        sc = self.check_scene(scene)
         th = self.check_theta(theta, n_frames)
-        s0 = self.check_state0(state0)
+        s0 = self.check_state0(state0, scene=sc)
         if th.shape[0] != s0.shape[0]:
             raise ValueError(
                 f"state0: expected one row per theta row ({th.shape[0]}), got {s0.shape[0]}"
             )
         if th.ndim == 2:
             th = np.broadcast_to(th[:, None, :], (th.shape[0], n_frames, th.shape[1]))
-        out = self._simulate(np.ascontiguousarray(th), np.ascontiguousarray(s0), n_frames, dt)
+        args = (np.ascontiguousarray(th), np.ascontiguousarray(s0), n_frames, dt)
+        out = self._call_hook(self._simulate, args, sc, "simulate")
         if not np.isfinite(out).all():
             raise RuntimeError(f"{self.name}: the simulation produced non-finite states")
         return out
 
-    def observe(self, states, theta) -> np.ndarray:
-        """Positions of the K tracked points, shape (B, T, K, 2), metres, from states (B, T, S)."""
-        st = as_float_array(states, "states", ndim=3, last=self.n_state, allow_nan=True)
+    def observe(self, states, theta, scene: Scene | None = None) -> np.ndarray:
+        """Positions of the K tracked points, shape (B, T, K, 2), metres, from states (B, T, S)
+        in ``scene`` (None = :attr:`default_scene`)."""
+        st = as_float_array(_as_array(states, "states"), "states", ndim=3, last=self.n_state,
+                            allow_nan=True)
         th = self.check_theta(theta)
         if th.shape[0] != st.shape[0]:
             raise ValueError(f"theta: expected one row per video ({st.shape[0]}), got {th.shape[0]}")
-        return self._observe(st, th)
+        return self._call_hook(self._observe, (st, th), self.check_scene(scene), "observe")
+
+    def _call_hook(self, hook, args, scene: Scene, what: str):
+        """``hook(*args, scene=scene)`` where the hook takes a scene; a hook written without one
+        (a user's system) is called without it, for the default scene only."""
+        if _takes(hook, "scene"):
+            return hook(*args, scene=scene)
+        if scene != self.default_scene:
+            raise ValueError(f"scene: the {self.name} system's {what} takes no scene (its _{what} "
+                             f"hook has no scene argument), got {scene!r}")
+        return hook(*args)
 
     def render(self, states, theta, size=None, **nuisance) -> np.ndarray:
-        """Frames (B, T, H, W) uint8 of states (B, T, S); nuisances as :func:`_draw.finish`."""
-        st = as_float_array(states, "states", ndim=3, last=self.n_state)
+        """Frames (B, T, H, W) uint8 of states (B, T, S); nuisances as :func:`_draw.finish`.
+
+        ``size`` (H, W) must be at least :attr:`min_size` (the object must fit) and the frames
+        at most :data:`sysid_bench._validate.FRAME_BUDGET` pixels in all; both are refused
+        before anything is allocated.
+        """
+        st = as_float_array(_as_array(states, "states"), "states", ndim=3, last=self.n_state)
         th = self.check_theta(theta)
         if th.shape[0] != st.shape[0]:
             raise ValueError(f"theta: expected one row per video ({st.shape[0]}), got {th.shape[0]}")
         from sysid_bench.render import check_size
 
         size = self.size if size is None else check_size(size)
+        self._check_min_size(size, "size")
+        check_frame_budget((st.shape[0], st.shape[1]) + tuple(size), "size")
         return self._render(self._observe(st, th), st, th, size, **nuisance)
 
+    def _check_min_size(self, hw, name: str) -> None:
+        mh, mw = self.min_size
+        if hw[0] < mh or hw[1] < mw:
+            raise ValueError(
+                f"{name}: expected frames of at least {mh} x {mw} pixels (H x W) for the "
+                f"{self.name} system (smaller ones cannot hold its object), got {hw[0]} x {hw[1]}"
+            )
+
     def track(self, frames) -> np.ndarray:
-        """Positions (T, K, 2) in metres of the K tracked points in frames (T, H, W); NaN = unseen."""
-        fr = np.asarray(frames)
+        """Positions (T, K, 2) in metres of the K tracked points in frames (T, H, W); NaN = unseen.
+
+        Frames smaller than :attr:`min_size` are refused (the object cannot be in them)."""
+        fr = _as_array(frames, "frames")
         if fr.ndim != 3:
             raise ValueError(f"frames: expected a (T, H, W) array, got shape {fr.shape}")
+        if fr.shape[0] == 0:
+            raise ValueError(f"frames: expected at least one frame, got shape {fr.shape}")
+        self._check_min_size(fr.shape[1:], "frames")
         if fr.dtype != np.uint8:
             fr = as_float_array(fr, "frames", ndim=3)
             if fr.size and (fr.min() < 0 or fr.max() > 255):
@@ -393,3 +508,41 @@ class System(abc.ABC):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, params={self.params}, K={self.n_points})"
+
+
+def _as_array(value, name: str):
+    """``np.asarray(value)``, a ragged or unconvertible value answered naming ``name``."""
+    if isinstance(value, np.ndarray):
+        return value
+    try:
+        return np.asarray(value)
+    except (ValueError, TypeError):
+        raise ValueError(f"{name}: expected a rectangular numeric array, got a ragged or "
+                         f"non-numeric {type(value).__name__}") from None
+
+
+def _takes(fn, arg: str) -> bool:
+    try:
+        return arg in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+def _checked_sample_state0(fn):
+    """``sample_state0`` with its arguments checked first (n >= 1; rng a seed >= 0, None or a
+    Generator; theta, where given, (n, P) finite and inside the envelope), for every system."""
+
+    @functools.wraps(fn)
+    def sample_state0(self, n, rng=None, *args, **kwargs):
+        n = check_positive_int(n, "n")
+        rng = check_seed(rng, "rng")
+        theta = kwargs.get("theta", args[0] if args else None)
+        if theta is not None:
+            th = self.check_theta(theta, name="theta")
+            if th.shape != (n, self.n_params):
+                raise ValueError(f"theta: expected shape ({n}, {self.n_params}) (one row per "
+                                 f"initial state of the {self.name} system), got {th.shape}")
+        return fn(self, n, rng, *args, **kwargs)
+
+    sample_state0._checked = True
+    return sample_state0

@@ -68,6 +68,7 @@ from sysid_bench._validate import (
 )
 from sysid_bench.systems import _draw
 from sysid_bench.systems._base import System
+from sysid_bench.systems._scene import CollisionScene
 
 __all__ = ["Collision", "R", "TRACK", "LEVEL1", "LEVEL2", "MAX_EVENTS"]
 
@@ -99,20 +100,22 @@ def _sign(v):
 
 
 @_njit
-def _event_times(x1, v1, x2, v2, mu):
-    """Times from now of (contact, wall 1, wall 2, stop 1, stop 2); inf where none."""
+def _event_times(x1, v1, x2, v2, mu, xl, xr, gap):
+    """Times from now of (contact, wall 1, wall 2, stop 1, stop 2); inf where none. ``xl``, ``xr``
+    are where the centres touch the walls, ``gap`` the centres' distance at contact (the
+    design's XL, XR and 2R; other values from a scene)."""
     inf = np.inf
     # puck-puck: gap(t) = g - s t + c t^2 / 2 with closing speed s and c = a2 - a1
-    g = max(x2 - x1 - 2.0 * R, 0.0)
+    g = max(x2 - x1 - gap, 0.0)
     s = v1 - v2
     c = mu * (_sign(v1) - _sign(v2))
     disc = s * s - 2.0 * c * g
     tp = 2.0 * g / (s + math.sqrt(disc)) if (s > 0.0 and disc >= 0.0) else inf
     # walls: distance d covered at speed |v| decelerating by mu
-    d1 = max(x1 - XL, 0.0)
+    d1 = max(x1 - xl, 0.0)
     disc1 = v1 * v1 - 2.0 * mu * d1
     tw1 = 2.0 * d1 / (-v1 + math.sqrt(disc1)) if (v1 < 0.0 and disc1 >= 0.0) else inf
-    d2 = max(XR - x2, 0.0)
+    d2 = max(xr - x2, 0.0)
     disc2 = v2 * v2 - 2.0 * mu * d2
     tw2 = 2.0 * d2 / (v2 + math.sqrt(disc2)) if (v2 > 0.0 and disc2 >= 0.0) else inf
     ts1 = abs(v1) / mu if (v1 != 0.0 and mu > 0.0) else inf
@@ -129,7 +132,7 @@ def _move(x, v, t, mu):
 
 
 @_njit
-def _advance_frame(x1, v1, x2, v2, lq, eb, mu, ew, dt):
+def _advance_frame(x1, v1, x2, v2, lq, eb, mu, ew, dt, xl, xr, gap):
     """One frame of exact event stepping; returns the state and the number of passes made
     (MAX_EVENTS + 1 when the frame was not finished)."""
     # fast path: no stop within the frame and both pucks clear of the walls and of each other at
@@ -138,14 +141,14 @@ def _advance_frame(x1, v1, x2, v2, lq, eb, mu, ew, dt):
     if (v1 == 0.0 or abs(v1) > mu * dt) and (v2 == 0.0 or abs(v2) > mu * dt):
         y1, u1 = _move(x1, v1, dt, mu)
         y2, u2 = _move(x2, v2, dt, mu)
-        if y1 > XL and y2 < XR and y2 - y1 > 2.0 * R:
+        if y1 > xl and y2 < xr and y2 - y1 > gap:
             return y1, u1, y2, u2, 1
     rem = dt
     n = 0
     while rem > 0.0:
         if n > MAX_EVENTS:
             return x1, v1, x2, v2, n
-        tp, tw1, tw2, ts1, ts2 = _event_times(x1, v1, x2, v2, mu)
+        tp, tw1, tw2, ts1, ts2 = _event_times(x1, v1, x2, v2, mu, xl, xr, gap)
         te = min(min(min(tp, tw1), min(tw2, ts1)), ts2)
         if te < rem:
             x1, v1 = _move(x1, v1, te, mu)
@@ -157,10 +160,10 @@ def _advance_frame(x1, v1, x2, v2, lq, eb, mu, ew, dt):
                 v1 = u1
                 v2 = u2
             elif tw1 <= te:
-                x1 = XL
+                x1 = xl
                 v1 = -ew * v1
             elif tw2 <= te:
-                x2 = XR
+                x2 = xr
                 v2 = -ew * v2
             elif ts1 <= te:
                 v1 = 0.0
@@ -177,8 +180,15 @@ def _advance_frame(x1, v1, x2, v2, lq, eb, mu, ew, dt):
 
 @_njit
 def _simulate_kernel(th, s0, dt, out):
-    """th (B, T, 4), s0 (B, 4) -> out (B, T, 4); returns the first trajectory that needed more
-    than MAX_EVENTS events in a frame, or -1."""
+    """th (B, T, 4), s0 (B, 4) -> out (B, T, 4) on the design's track; returns the first
+    trajectory that needed more than MAX_EVENTS events in a frame, or -1."""
+    return _simulate_kernel_scene(th, s0, dt, out, XL, XR, 2.0 * R)
+
+
+@_njit
+def _simulate_kernel_scene(th, s0, dt, out, xl, xr, gap):
+    """:func:`_simulate_kernel` with the walls' contact positions ``xl``, ``xr`` and the contact
+    distance ``gap`` as arguments (a scene's)."""
     nb, nt = out.shape[0], out.shape[1]
     for b in range(nb):
         x1, v1, x2, v2 = s0[b, 0], s0[b, 1], s0[b, 2], s0[b, 3]
@@ -189,7 +199,7 @@ def _simulate_kernel(th, s0, dt, out):
         for t in range(1, nt):
             x1, v1, x2, v2, n = _advance_frame(
                 x1, v1, x2, v2, th[b, t - 1, 0], th[b, t - 1, 1], th[b, t - 1, 2],
-                th[b, t - 1, 3], dt,
+                th[b, t - 1, 3], dt, xl, xr, gap,
             )
             if n > MAX_EVENTS:
                 return b
@@ -281,20 +291,39 @@ class Collision(System):
     size = (16, 128)
     noise_m = 0.01
     jax_twin = "sysid_bench.systems.collision_jax:simulate"
+    scene_type = CollisionScene
+    #: below 6 x 48 the pucks (0.5 m in 10 m) are under 2.4 px and the tracker loses them
+    min_size = (6, 48)
+
+    @staticmethod
+    def _contacts(scene) -> tuple[float, float, float]:
+        """(xl, xr, gap): where the centres touch the walls, and each other, in ``scene``."""
+        (a, b), (r1, r2) = scene.ends, scene.half_sizes
+        return a + r1, b - r2, r1 + r2
+
+    def state_bounds_for(self, scene):
+        if scene == self.default_scene:
+            return self.state_bounds
+        xl, xr, gap = self._contacts(scene)
+        return dict(self.state_bounds, x1=(xl, xr - gap), x2=(xl + gap, xr))
 
     # ------------------------------------------------------------------------------------------
-    def _check_state0_extra(self, state0, name):
+    def _check_state0_extra(self, state0, name, scene=None):
+        contact = 2.0 * R if scene is None else self._contacts(scene)[2]
         gap = state0[:, 2] - state0[:, 0]
-        if gap.size and gap.min() < 2.0 * R - GAP_SLACK:
+        if gap.size and gap.min() < contact - GAP_SLACK:
             i = int(np.argmin(gap))
             raise ValueError(
-                f"{name}: expected x2 - x1 >= 2R = {2 * R:g} m (the pucks do not overlap) for the "
-                f"{self.name} system, got x2 - x1 = {gap[i]:g} in row {i}"
+                f"{name}: expected x2 - x1 >= r1 + r2 = {contact:g} m (the pucks do not overlap) "
+                f"for the {self.name} system, got x2 - x1 = {gap[i]:g} in row {i}"
             )
 
-    def _simulate(self, theta, state0, n_frames, dt):
+    def _simulate(self, theta, state0, n_frames, dt, scene=None):
         out = np.empty((state0.shape[0], n_frames, 4), dtype=np.float64)
-        bad = _simulate_kernel(theta, state0, float(dt), out)
+        if scene is None or scene == self.default_scene:
+            bad = _simulate_kernel(theta, state0, float(dt), out)
+        else:
+            bad = _simulate_kernel_scene(theta, state0, float(dt), out, *self._contacts(scene))
         if bad >= 0:
             raise RuntimeError(
                 f"{self.name}: trajectory {bad} needs more than {MAX_EVENTS} contacts in one frame "
@@ -311,12 +340,13 @@ class Collision(System):
         lo = np.array([1.0, 1.0, 6.0, -4.0])
         return lo + 3.0 * u
 
-    def _observe(self, states, theta):
+    def _observe(self, states, theta, scene=None):
         b, t = states.shape[:2]
         out = np.empty((b, t, 2, 2), dtype=np.float64)
         out[..., 0, 0] = states[..., 0]
         out[..., 1, 0] = states[..., 2]
-        out[..., :, 1] = R
+        # each tracked point is a puck's centre, its half-size above the track
+        out[..., :, 1] = R if scene is None else np.asarray(scene.half_sizes)
         return out
 
     # ------------------------------------------------------------------------------------------

@@ -90,6 +90,7 @@ import numpy as np
 from sysid_bench._validate import as_float_array, check_positive_int, check_seed
 from sysid_bench.systems import _draw
 from sysid_bench.systems._base import System, use_parallel
+from sysid_bench.systems._scene import PendulumScene
 
 __all__ = [
     "Pendulum",
@@ -298,10 +299,14 @@ class Pendulum(System):
     size = (64, 64)
     noise_m = 0.01
     jax_twin = "sysid_bench.systems.pendulum_jax:simulate"
+    scene_type = PendulumScene
+    #: the smallest frames with room for the bob (drawn >= 1.5 px) and its swing
+    min_size = (8, 8)
 
     # ------------------------------------------------------------------------------------------
     # physics
-    def _simulate(self, theta, state0, n_frames, dt):
+    def _simulate(self, theta, state0, n_frames, dt, scene=None):
+        # the state is angular: the pivot moves the bob (observe), not the motion
         out = np.empty((state0.shape[0], n_frames, 2))
         kernel = _kernel_parallel if use_parallel(state0.shape[0]) else _kernel
         kernel(theta, state0, dt, n_substeps(dt), out)
@@ -376,11 +381,13 @@ class Pendulum(System):
 
     # ------------------------------------------------------------------------------------------
     # camera
-    def _observe(self, states, theta):
+    def _observe(self, states, theta, scene=None):
         L = theta[:, None, 1] if theta.ndim == 2 else theta[:, : states.shape[1], 1]
         out = np.empty(states.shape[:2] + (1, 2))
         out[..., 0, 0] = L * np.sin(states[..., 0])
         out[..., 0, 1] = -L * np.cos(states[..., 0])
+        if scene is not None and scene.pivot != (0.0, 0.0):  # the default adds nothing (bit for bit)
+            out[..., 0, :] += np.asarray(scene.pivot)
         return out
 
     def jax_observe(self, states, theta):

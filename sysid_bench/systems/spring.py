@@ -74,6 +74,7 @@ import numpy as np
 from sysid_bench._validate import as_float_array, check_positive_int, check_seed
 from sysid_bench.systems import _draw
 from sysid_bench.systems._base import System, use_parallel
+from sysid_bench.systems._scene import SpringScene
 
 __all__ = ["Spring", "SUBSTEPS", "STEP_MAX", "BLOCK_RADIUS", "DIM_LEVEL", "S0_RANGE", "V0_RANGE"]
 
@@ -207,10 +208,27 @@ class Spring(System):
     size = (16, 64)
     noise_m = 0.01
     jax_twin = "sysid_bench.systems.spring_jax:simulate"
+    scene_type = SpringScene
+    #: the smallest frames with room for the block (3 px at the default 16 x 64)
+    min_size = (4, 16)
+
+    def state_bounds_for(self, scene):
+        ax = scene.anchor[0]
+        if ax == 0.0:
+            return self.state_bounds
+        lo, hi = self.state_bounds["x"]
+        return dict(self.state_bounds, x=(lo + ax, hi + ax))
 
     # ------------------------------------------------------------------------------------------
     # simulation
-    def _simulate(self, theta, state0, n_frames, dt):
+    def _simulate(self, theta, state0, n_frames, dt, scene=None):
+        ax = 0.0 if scene is None else scene.anchor[0]
+        if ax != 0.0:  # the kernel measures x from the anchor; the default skips the shift
+            state0 = state0.copy()
+            state0[:, 0] -= ax
+            out = self._simulate(theta, state0, n_frames, dt)
+            out[..., 0] += ax
+            return out
         self._check_step(theta, state0, dt)
         B = state0.shape[0]
         out = np.empty((B, n_frames, 2))
@@ -379,9 +397,11 @@ class Spring(System):
 
     # ------------------------------------------------------------------------------------------
     # camera
-    def _observe(self, states, theta):
+    def _observe(self, states, theta, scene=None):
         out = np.zeros(states.shape[:2] + (1, 2))
         out[..., 0, 0] = states[..., 0]
+        if scene is not None and scene.anchor[1] != 0.0:  # the block runs level with its anchor
+            out[..., 0, 1] = scene.anchor[1]
         return out
 
     def _render(self, points, states, theta, size, **nuisance):
