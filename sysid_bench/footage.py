@@ -506,7 +506,7 @@ def _background(frames: np.ndarray, max_frames: int = 150) -> np.ndarray:
 
 
 def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
-              max_gap: int = 5, progress: bool = False) -> BallTrack:
+              max_gap: int = 5, progress: bool = False, reset_on_loss: bool = False) -> BallTrack:
     """Follow the ball through ``frames`` by background subtraction.
 
     Parameters
@@ -522,6 +522,10 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
         acquired afresh (on the roundest blob of plausible size).
     progress : bool
         tqdm bar over the frames.
+    reset_on_loss : bool
+        Forget the sizes seen when the track is lost for more than ``max_gap`` frames (real
+        footage: a hand followed before the ball is let go). Off by default: the suite's
+        renders and MuJoCo scenes are tracked as they always were.
 
     Returns
     -------
@@ -535,7 +539,7 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
     # the noise of the signed difference (robust: 1.4826 MAD), as tracking.track measures it
     sigma = float(noise_level((fr[:: max(1, t_n // 20)] - bg).ravel()))
     thr = max(float(min_contrast), noise_k * sigma)
-    pix, radii = _follow(fr, bg, thr, max_gap, progress)
+    pix, radii = _follow(fr, bg, thr, max_gap, progress, reset_on_loss)
     # A ball that sits or rolls slowly over the same pixels for more than half the clip is in
     # the median, and then invisible there. When the ball is consistently brighter (darker)
     # than the scene, a low (high) quantile over time is the scene wherever the ball covered a
@@ -556,14 +560,18 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
             q = np.percentile(fr[idx], 10 if sign.mean() > 0 else 90, axis=0).astype(np.float32)
             r = float(np.nanmedian(radii))
             if (np.abs(q - bg) > thr).sum() >= 0.05 * np.pi * r * r:
-                pix, radii = _follow(fr, q, thr, max_gap, progress)
+                pix, radii = _follow(fr, q, thr, max_gap, progress, reset_on_loss)
     found = np.isfinite(pix).all(axis=1)
     radius = float(np.nanmedian(radii)) if found.any() else float("nan")
     return BallTrack(pixels=pix, radius=radius, found=found, radii=radii)
 
 
-def _follow(fr, bg, thr, max_gap, progress):
-    """One tracking pass over ``fr`` against background ``bg``: centres (T, 2), radii (T,)."""
+def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False):
+    """One tracking pass over ``fr`` against background ``bg``: centres (T, 2), radii (T,).
+
+    ``reset_on_loss``: a track lost for more than ``max_gap`` frames forgets the sizes seen so
+    far, so an object of another size followed for a while (a hand holding the ball) does not
+    gate the ball out for the rest of the clip (:func:`find_object`)."""
     from scipy import ndimage
     from tqdm.auto import tqdm
 
@@ -572,6 +580,7 @@ def _follow(fr, bg, thr, max_gap, progress):
     radii = np.full(t_n, np.nan)
     areas: list[float] = []
     last: list[tuple[int, np.ndarray]] = []  # (frame, centre) of the last detections
+    since = 0  # sizes are taken from frames since (reset_on_loss: the last re-acquisition)
     for t in tqdm(range(t_n), desc="finding the ball", unit="frame", disable=not progress,
                   leave=False):
         signed = fr[t] - bg
@@ -582,6 +591,8 @@ def _follow(fr, bg, thr, max_gap, progress):
         lab, n = ndimage.label(mask)
         if n == 0:
             continue
+        if reset_on_loss and areas and (not last or t - last[-1][0] > max_gap):
+            areas, since = [], t
         idx = np.arange(1, n + 1)
         area = ndimage.sum_labels(np.ones_like(diff), lab, idx)
         cen = np.array(ndimage.center_of_mass(diff, lab, idx))[:, ::-1] + 0.5  # (col, row)
@@ -621,7 +632,7 @@ def _follow(fr, bg, thr, max_gap, progress):
         # that barely differs from the wall counts as much as the dark bottom. The expected
         # radius is the recent balls'; on (re)acquisition the blob's (and its pieces') own,
         # then the covered area's.
-        found_r = radii[np.isfinite(radii)][-20:]
+        found_r = radii[since:][np.isfinite(radii[since:])][-20:]
         if found_r.size:
             r_exp, centre = float(np.median(found_r)), cen[k]
         else:
@@ -868,22 +879,134 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False) -> BallT
     Returns
     -------
     BallTrack
-        In the source frame's pixels; "not seen" frames NaN.
+        In the source frame's pixels; "not seen" frames NaN, as are frames whose blob is not
+        the object's size (a hand: more than half the median radius off it). A lost track
+        forgets the sizes seen before (``find_ball(..., reset_on_loss=True)``).
     """
     fr = np.asarray(frames)
     if fr.ndim != 3 or fr.shape[0] < 1:
         raise ValueError(f"frames: expected a (T, H, W) array, got shape {fr.shape}")
     k = max(1, math.ceil(max(fr.shape[1:]) / int(max_side)))
     if k == 1:
-        return find_ball(fr, progress=progress)
+        trk = find_ball(fr, progress=progress, reset_on_loss=True)
+        return _consistent(_minor_radii(fr, trk))
     h, w = (fr.shape[1] // k) * k, (fr.shape[2] // k) * k
     small = np.empty((fr.shape[0], h // k, w // k), dtype=np.float32)
     for i in range(0, fr.shape[0], 64):  # in chunks: a float copy of 1080p frames is 8 MB each
         blk = fr[i:i + 64, :h, :w].astype(np.float32)
         small[i:i + 64] = blk.reshape(len(blk), h // k, k, w // k, k).mean(axis=(2, 4))
-    trk = find_ball(small, progress=progress)
-    return BallTrack(pixels=trk.pixels * k, radius=trk.radius * k, found=trk.found,
-                     radii=None if trk.radii is None else trk.radii * k)
+    trk = find_ball(small, progress=progress, reset_on_loss=True)
+    trk = BallTrack(pixels=trk.pixels * k, radius=trk.radius * k, found=trk.found,
+                    radii=None if trk.radii is None else trk.radii * k)
+    return _consistent(_minor_radii(fr, trk))
+
+
+def _minor_radii(frames, trk: BallTrack) -> BallTrack:
+    """Each frame's radius from the object's narrowest extent, at the source's resolution.
+
+    Motion blur stretches a moving ball along its path (a 21 px ball at 3 m/s and 1/30 s
+    exposure looks 30 px long), so its area overstates its size; across the path it keeps its
+    width. A uniform disc of radius r has variance r**2 / 4 along every axis, so the radius is
+    ``2 sqrt(smallest eigenvalue)`` of the covariance of the pixels covered, each weighted by
+    the fraction covered (its difference from the background over the object's own, the
+    faint texture below a tenth of it left out).
+    """
+    fr = np.asarray(frames)
+    t_n, h, w = fr.shape
+    found = np.flatnonzero(trk.found)
+    if found.size == 0:
+        return trk
+    idx = np.unique(np.linspace(0, t_n - 1, min(t_n, 31)).astype(int))
+    bg = np.median(fr[idx], axis=0).astype(np.float32)
+    radii = np.array(trk.radii, dtype=np.float64, copy=True)
+    for t in found:
+        c, r = trk.pixels[t]
+        rad = float(trk.radii[t])
+        half = int(math.ceil(2.0 * rad + 3))
+        c0, c1 = max(0, int(c) - half), min(w, int(c) + half + 1)
+        r0, r1 = max(0, int(r) - half), min(h, int(r) + half + 1)
+        d = np.abs(fr[t, r0:r1, c0:c1].astype(np.float32) - bg[r0:r1, c0:c1])
+        yy, xx = np.mgrid[r0:r1, c0:c1] + 0.5
+        inner = np.hypot(xx - c, yy - r) <= 0.5 * rad
+        if not inner.any():
+            continue
+        peak = float(np.median(d[inner]))
+        if peak <= 0:
+            continue
+        wgt = np.where(d > 0.1 * peak, np.clip(d / peak, 0.0, 1.0), 0.0)
+        # only the blob around the centre: texture elsewhere in the window is not the object
+        from scipy import ndimage
+
+        lab, _ = ndimage.label(wgt > 0)
+        centre_lab = lab[min(max(int(r) - r0, 0), r1 - r0 - 1), min(max(int(c) - c0, 0),
+                                                                    c1 - c0 - 1)]
+        if centre_lab == 0:
+            continue
+        wgt = np.where(lab == centre_lab, wgt, 0.0)
+        sw = wgt.sum()
+        mx, my = (wgt * xx).sum() / sw, (wgt * yy).sum() / sw
+        cxx = (wgt * (xx - mx) ** 2).sum() / sw
+        cyy = (wgt * (yy - my) ** 2).sum() / sw
+        cxy = (wgt * (xx - mx) * (yy - my)).sum() / sw
+        lam = 0.5 * (cxx + cyy) - math.sqrt(0.25 * (cxx - cyy) ** 2 + cxy ** 2)
+        if lam > 0:
+            radii[t] = 2.0 * math.sqrt(lam)
+    return BallTrack(pixels=trk.pixels, radius=float(np.nanmedian(radii)), found=trk.found,
+                     radii=radii)
+
+
+def _consistent(trk: BallTrack, tol: float = 0.5) -> BallTrack:
+    """Frames whose blob is not the object's size (off the track's median radius by more than
+    ``tol`` of it: a hand, a person crossing) become "not seen" rather than a position."""
+    r = np.asarray(trk.radii, dtype=np.float64)
+    if not trk.found.any():
+        return trk
+    med = float(np.nanmedian(r))
+    ok = trk.found & (np.abs(r - med) <= tol * med)
+    pix = np.where(ok[:, None], trk.pixels, np.nan)
+    radii = np.where(ok, r, np.nan)
+    return BallTrack(pixels=pix, radius=float(np.nanmedian(radii)) if ok.any() else float("nan"),
+                     found=ok, radii=radii)
+
+
+def _floor_from_bounces(pix, radii) -> tuple[float, int]:
+    """The floor's row from where the ball's bounces turn: ``(row, n_bounces)``.
+
+    Around each turn of the track (a lowest point) a parabola is fitted to the frames before
+    and one to the frames after; they meet at the contact, between frames (at 20 frames/s a
+    ball at 4 m/s is 20 cm above the floor in the frame nearest its bounce). The floor is the
+    median contact's row plus the ball's radius; NaN when no turn has three frames either side.
+    """
+    seen = np.flatnonzero(np.isfinite(pix).all(axis=1))
+    t_all, row = seen.astype(np.float64), pix[seen, 1]
+    rad = np.where(np.isfinite(radii[seen]), radii[seen], np.nanmedian(radii))
+    contacts = []
+    for j in range(1, len(seen) - 1):
+        if not (row[j] >= row[j - 1] and row[j] >= row[j + 1] and row[j] > min(row[j - 1],
+                                                                                row[j + 1])):
+            continue
+        best = None
+        for split in (j + 1, j):  # the turn frame before the contact, or after it
+            lft = np.arange(max(0, split - 4), split)
+            rgt = np.arange(split, min(len(seen), split + 4))
+            if len(lft) < 3 or len(rgt) < 3 or t_all[rgt[0]] - t_all[lft[-1]] > 3:
+                continue
+            p1 = np.polyfit(t_all[lft], row[lft], 2, full=True)
+            p2 = np.polyfit(t_all[rgt], row[rgt], 2, full=True)
+            roots = np.roots(p1[0] - p2[0])
+            roots = roots[np.isreal(roots)].real
+            roots = roots[(roots >= t_all[lft[-1]] - 1e-9) & (roots <= t_all[rgt[0]] + 1e-9)]
+            if roots.size == 0:
+                continue
+            res = float(np.sum(p1[1]) + np.sum(p2[1])) if len(p1[1]) and len(p2[1]) else 0.0
+            c = float(np.polyval(p1[0], roots[0]))
+            if best is None or res < best[0]:
+                best = (res, c + float(rad[j]))
+        if best is not None:
+            contacts.append(best[1])
+    if not contacts:
+        return float("nan"), 0
+    return float(np.median(contacts)), len(contacts)
 
 
 def _check_size(diam_m: float, option: str, how: str) -> None:
@@ -973,12 +1096,18 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
     if system == "ball":
         rad_m = r_px / s
         if floor_row is None:
-            bottoms = pix[seen, 1] + (track.radii[seen] if track.radii is not None else r_px)
-            fr_row = float(np.max(bottoms))
-            rows = pix[seen, 1]
-            turns = int(np.sum((rows[1:-1] > rows[:-2]) & (rows[1:-1] >= rows[2:])))
-            placement["floor_row"] = (f"estimated {fr_row:.1f}: the lowest the ball's bottom "
-                                      f"reached ({turns} turns of the track)")
+            radii = np.asarray(track.radii if track.radii is not None
+                               else np.full(len(pix), r_px), dtype=np.float64)
+            fr_row, n_b = _floor_from_bounces(pix, radii)
+            bottom = float(np.nanmax(pix[seen, 1] + np.where(np.isfinite(radii[seen]),
+                                                              radii[seen], r_px)))
+            if math.isfinite(fr_row) and fr_row >= bottom - 1.0:
+                placement["floor_row"] = (f"estimated {fr_row:.1f}: where the track's parabolas "
+                                          f"meet at {n_b} bounces")
+            else:
+                fr_row = bottom
+                placement["floor_row"] = (f"estimated {fr_row:.1f}: the lowest the ball's bottom "
+                                          "reached (no bounce with three frames either side)")
         else:
             fr_row = float(floor_row)
             if not math.isfinite(fr_row):
