@@ -24,6 +24,14 @@ experiment on them; it knows no method.
 4. :func:`observe` turns the track into the Observation a method takes: tracked positions in
    metres (floor at 0), or frames re-drawn at them in a video model's view
    (:func:`model_frames`; see ``docs/video.md`` for why re-drawing rather than cropping).
+5. A real camera's clip of any system (issue 38): :func:`find_object` follows the object at
+   any resolution ("not seen" where it is not, or where a blob is not its size), and
+   :func:`camera_for` builds the :class:`Camera` (pixels to metres in the system's world
+   frame) from a given scale, the object's known size frame by frame, or a pendulum's known
+   length and the arc its bob sweeps; the scale's uncertainty widens the intervals
+   (:func:`widen_for_scale`). :func:`parse_known` and :func:`parse_prior` read what the user
+   knows; :func:`check_out_folder` keeps ``--out`` from overwriting files identify did not
+   write.
 """
 
 from __future__ import annotations
