@@ -900,9 +900,10 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False) -> BallT
         return _consistent(_minor_radii(fr, trk))
     h, w = (fr.shape[1] // k) * k, (fr.shape[2] // k) * k
     small = np.empty((fr.shape[0], h // k, w // k), dtype=np.float32)
-    for i in range(0, fr.shape[0], 64):  # in chunks: a float copy of 1080p frames is 8 MB each
-        blk = fr[i:i + 64, :h, :w].astype(np.float32)
-        small[i:i + 64] = blk.reshape(len(blk), h // k, k, w // k, k).mean(axis=(2, 4))
+    for i in range(0, fr.shape[0], 64):  # in chunks, summed in integers (4x faster than mean)
+        blk = fr[i:i + 64, :h, :w]
+        tot = blk.reshape(len(blk), h // k, k, w // k, k).sum(axis=(2, 4), dtype=np.uint32)
+        small[i:i + 64] = tot.astype(np.float32) / float(k * k)
     trk = find_ball(small, progress=progress, reset_on_loss=True)
     trk = BallTrack(pixels=trk.pixels * k, radius=trk.radius * k, found=trk.found,
                     radii=None if trk.radii is None else trk.radii * k)
@@ -925,7 +926,6 @@ def _minor_radii(frames, trk: BallTrack) -> BallTrack:
     if found.size == 0:
         return trk
     idx = np.unique(np.linspace(0, t_n - 1, min(t_n, 31)).astype(int))
-    bg = np.median(fr[idx], axis=0).astype(np.float32)
     radii = np.array(trk.radii, dtype=np.float64, copy=True)
     for t in found:
         c, r = trk.pixels[t]
@@ -933,7 +933,11 @@ def _minor_radii(frames, trk: BallTrack) -> BallTrack:
         half = int(math.ceil(2.0 * rad + 3))
         c0, c1 = max(0, int(c) - half), min(w, int(c) + half + 1)
         r0, r1 = max(0, int(r) - half), min(h, int(r) + half + 1)
-        d = np.abs(fr[t, r0:r1, c0:c1].astype(np.float32) - bg[r0:r1, c0:c1])
+        if r1 <= r0 or c1 <= c0:
+            continue
+        # the background of this window only (a median of 31 whole 1080p frames took seconds)
+        bg = np.median(fr[idx, r0:r1, c0:c1], axis=0).astype(np.float32)
+        d = np.abs(fr[t, r0:r1, c0:c1].astype(np.float32) - bg)
         yy, xx = np.mgrid[r0:r1, c0:c1] + 0.5
         inner = np.hypot(xx - c, yy - r) <= 0.5 * rad
         if not inner.any():
