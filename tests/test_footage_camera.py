@@ -226,3 +226,25 @@ def test_object_never_found_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "found in 0 of 20 frames" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow  # ~5 s alone (16 s on the shared machine): an lsq fit of 100 frames
+def test_spring_stored_sideways_with_anchor(tmp_path, capsys):
+    """A spring filmed at 200 px/m, its anchor at column 20, stored turned 90 deg
+    counter-clockwise: ``--rotate 90`` turns it back and w2, c, L0 come out."""
+    pytest.importorskip("av")
+    from sysid_bench import systems
+    from sysid_bench.cli import main
+
+    sp = systems.get("spring")
+    theta = np.array([[12.0, 2.0, 0.1, 1.4]])
+    xy = sp.observe(sp.simulate(theta, np.array([[1.8, 0.0]]), 100), theta)[0][:, 0]
+    pix = np.stack([20 + 200 * xy[:, 0], 100 - 200 * xy[:, 1]], 1)
+    fr = _disc_frames(pix, 6.0, (200, 480))
+    path = footage.write_video(tmp_path / "side.mp4", np.rot90(fr, k=1, axes=(1, 2)).copy())
+    out = tmp_path / "o"
+    assert main(["identify", str(path), "--system", "spring", "--rotate", "90", "--px-per-m",
+                 "200", "--anchor", "20", "--method", "lsq", "--every", "100", "--out",
+                 str(out), "--no-progress"]) == 0, capsys.readouterr().err
+    last = json.loads((out / "estimates.json").read_text())["estimates"][-1]
+    assert abs(last["w2_mean"] - 12.0) < 0.05 * 12.0 and abs(last["L0_mean"] - 1.4) < 0.02
