@@ -29,21 +29,32 @@ from pathlib import Path
 
 import numpy as np
 
+from sysid_bench.estimator import Observation
 from sysid_bench.footage import (  # the core half (files, geometry, the tracker), re-exported
     _PROGRESS_FRAMES,
     MODEL_FPS,
+    OBJECT_SIZE_RANGE_M,
+    OUT_MARKER,
     BallTrack,
     Clip,
     Geometry,
     VideoError,
+    camera_for,
+    check_out_folder,
     find_ball,
+    find_object,
     geometry_from_options,
+    knowledge_record,
     model_frames,
     observe,
+    parse_known,
+    parse_prior,
     read_video,
+    rotate_frames,
+    widen_for_scale,
     write_video,
 )
-from sysid_bench.physics import PARAMS, PRIOR
+from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
 
 __all__ = [
     "MODEL_FPS",
@@ -139,7 +150,10 @@ def default_method() -> str:
 
 def identify_video(path, *, method: str | None = None, checkpoint: str | None = None,
                    geometry: dict | None = None, every: int | None = None, horizon: int = 20,
-                   seed: int = 0, progress: bool | None = None) -> IdentifyResult:
+                   seed: int = 0, progress: bool | None = None, camera: dict | None = None,
+                   rotate: int = 0, start: float | None = None, end: float | None = None,
+                   capture_fps: float | None = None, known: dict | None = None,
+                   prior: dict | None = None) -> IdentifyResult:
     """Identify ``(e, g, d, r)`` frame by frame from a video file.
 
     Parameters
@@ -162,6 +176,20 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         Frames forecast after the last one (for ``track.png``).
     seed : int
     progress : bool, optional
+    camera : dict, optional
+        A real camera instead of the renderer's framing: keyword options of
+        :func:`sysid_bench.footage.camera_for` (``px_per_m`` or ``object_size_m``;
+        ``floor_row``, ``walls``), exclusive with ``geometry``. Positions are then the ball's
+        true metres (floor at 0; with no walls, the track mid-way in the 10 m box), and the
+        scale's uncertainty widens the intervals of g, d and r.
+    rotate : {0, 90, 180, 270}
+        Degrees clockwise to turn frames stored sideways.
+    start, end, capture_fps : float, optional
+        The window (seconds) and the capture rate of a slow-motion file
+        (:func:`read_video`).
+    known, prior : dict, optional
+        What the user knows (:func:`sysid_bench.footage.parse_known`, ``parse_prior``):
+        recorded under ``knowledge`` with whether the method held them.
 
     Returns
     -------
@@ -183,14 +211,35 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         raise ValueError(f"method: expected one of {', '.join(methods.available())}, got "
                          f"{method!r}")
     est = _estimator(method, checkpoint, seed)  # bad options fail before the file is read
-    clip = read_video(path, progress=progress)
-    t_n, h, w = clip.frames.shape
+    if camera and geometry and any(v is not None for v in geometry.values()):
+        raise ValueError("camera: give a camera (px_per_m, object_size_m, walls) or the "
+                         "renderer's box geometry (corners, wall_col), not both")
+    clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps)
+    frames = rotate_frames(clip.frames, int(rotate))
+    t_n, h, w = frames.shape
     # progress bars on long files, on a terminal (or when asked)
     show = (sys.stderr.isatty() if progress is None else bool(progress)) and t_n > _PROGRESS_FRAMES
     is_video = getattr(type(est), "input_kind", "positions") == "frames"
     size = tuple(est.frame_size) if is_video else None
-    obs, pos, trk, geo = observe(clip.frames, size, geometry, dt=1.0 / clip.fps, progress=show)
     notes = list(clip.notes)
+    cam = None
+    if camera:
+        trk = find_object(frames, progress=show)
+        if trk.n_found < 3:
+            raise VideoError(f"{path}: the ball was found in {trk.n_found} of {t_n} frames; "
+                             "the camera and the methods need a track (at least 3 frames)")
+        cam = camera_for("ball", trk, (h, w), **camera, known=known, rotate=int(rotate))
+        pos = cam.to_metres(trk.pixels)
+        if is_video:
+            obs = Observation(frames=model_frames(pos, size), dt=1.0 / clip.fps, floor=0.0)
+            notes.append(f"{method} saw the tracked ball re-drawn in its {size[1]}x{size[0]} "
+                         "view of the 10 m box at the camera's true scale")
+        else:
+            obs = Observation(positions=np.clip(pos, 0.0, BOX_WIDTH), dt=1.0 / clip.fps,
+                              floor=0.0)
+        geo = cam
+    else:
+        obs, pos, trk, geo = observe(frames, size, geometry, dt=1.0 / clip.fps, progress=show)
     found = trk.n_found > 0
     if is_video and not found:
         notes.append("the ball was never found: the model saw black frames only and "
@@ -254,6 +303,11 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         "model_view": None if size is None else [size[1], size[0]],
         "input": "re-drawn model frames" if is_video else "tracked positions",
         "geometry": geo.as_dict(),
+        "camera": None if cam is None else cam.as_dict(),
+        "rotate": int(rotate),
+        "window_s": [start, end],
+        "capture_fps": capture_fps,
+        "knowledge": knowledge_record(known or {}, prior or {}, method),
         "ball_found": found,
         "frames_with_ball": trk.n_found,
         "ball_radius_px": None if not found else trk.radius,
@@ -265,6 +319,10 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         "check": None if last_check is None else {**last_check.as_dict(),
                                                   "note": last_check.note},
     }
+    if cam is not None and cam.scale_rel_std > 0:
+        std = widen_for_scale("ball", PARAMS, mean, std, cam.scale_rel_std)
+        notes.append(f"the scale's {100 * cam.scale_rel_std:.2g}% uncertainty is added to the "
+                     "std of g, d and r")
     res = IdentifyResult(mean, std, pos, fmean, fstd, info, check)
     res.info["estimated"] = estimated
     return res
@@ -333,7 +391,7 @@ def write_outputs(res: IdentifyResult, out) -> Path:
     """
     import csv
 
-    out = Path(out)
+    out = check_out_folder(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     dt = 1.0 / res.info["model_fps"]
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
@@ -343,7 +401,8 @@ def write_outputs(res: IdentifyResult, out) -> Path:
             wr = csv.DictWriter(f, fieldnames=list(rows[0]))
             wr.writeheader()
             wr.writerows(rows)
-        info = {k: v for k, v in res.info.items() if k != "estimated"}
+        info = {"written_by": OUT_MARKER,
+                **{k: v for k, v in res.info.items() if k != "estimated"}}
         info["estimates"] = rows
         info["forecast"] = None if res.forecast_mean is None else {
             "after_frame": len(rows) - 1, "mean": res.forecast_mean.tolist(),
@@ -380,38 +439,90 @@ def _finite(x):
 
 
 # -- command line ---------------------------------------------------------------------------------
+#: Each placement or camera option and the systems it means something for; given on another
+#: system it is refused with one line, never ignored.
+OPTION_SYSTEMS = {
+    "px_per_m": ("ball", "pendulum", "spring"),
+    "object_size_m": ("ball", "pendulum", "spring"),
+    "floor_row": ("ball",),
+    "walls": ("ball",),
+    "wall_col": ("ball",),
+    "corners": ("ball",),
+    "ball_radius_px": ("ball",),
+    "pivot": ("pendulum",),
+    "anchor": ("spring",),
+    "track": (),
+    "checkpoint": ("ball",),
+    "horizon": ("ball",),
+}
+#: Options that mean something on a system but are not built there yet, with why.
+_NOT_YET = {
+    "collision": "the collision clip is read as its renderer frames it (two pucks on a 10 m "
+                 "track); a camera for it needs the track's ends and each cart's half-length "
+                 "held as the scene (issue 38, part 1)",
+}
+
+
+def _flag(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
 def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The ``identify VIDEO`` options on a ``sysid-bench`` subcommand parser
     (``sysid_bench.cli.SUBCOMMANDS``)."""
     p.add_argument("video", help="video file (any format FFmpeg reads)")
     p.add_argument("--system", default="ball",
-                   help="the system seen (sysid_bench.systems.available(); default ball); "
-                        "another system's clip is taken to be framed as its renderer draws it")
+                   help="the system seen (sysid_bench.systems.available(); default ball)")
     p.add_argument("--method", default=None,
                    help="identifying method (default: the first registered one that reads "
-                        "frames)")
+                        "frames; with a camera on another system, the first position method)")
     p.add_argument("--checkpoint", default=None, choices=("28x28", "camera"),
-                   help="the model of a method that takes a checkpoint: 28x28 (its default) or "
-                        "camera (100x50 view)")
+                   help="ball: the model of a method that takes a checkpoint: 28x28 (its "
+                        "default) or camera (100x50 view)")
     p.add_argument("--out", default=None,
-                   help="output folder (default: runs/identify/<video name>_<method>/, never a "
-                        "committed file)")
-    g = p.add_argument_group("geometry (default: framed as the suite's renderer)")
-    g.add_argument("--px-per-m", type=float, default=None, help="pixels per metre")
-    g.add_argument("--floor-row", type=float, default=None, help="row of the floor's surface")
+                   help="output folder (default: runs/identify/<video name>_<method>/); an "
+                        "existing non-empty folder is refused unless it holds a previous "
+                        "identify's output")
+    t = p.add_argument_group("time and orientation")
+    t.add_argument("--start", type=float, default=None, help="seconds to skip (a hand in view)")
+    t.add_argument("--end", type=float, default=None, help="seconds where the clip ends")
+    t.add_argument("--fps", type=float, default=None,
+                   help="capture rate of a slow-motion file (overrides the container's)")
+    t.add_argument("--rotate", type=float, default=None, metavar="{90,180,270}",
+                   help="degrees clockwise to turn a video stored sideways")
+    c = p.add_argument_group(
+        "camera (any not given is estimated from the clip where physics fixes it, or absent)")
+    c.add_argument("--px-per-m", type=float, default=None, help="scale, pixels per metre")
+    c.add_argument("--object-size-m", type=float, default=None,
+                   help="the tracked object's true diameter (m): the scale frame by frame")
+    c.add_argument("--floor-row", type=float, default=None, help="ball: row of the floor")
+    c.add_argument("--walls", type=float, nargs=2, default=None, metavar=("C1", "C2"),
+                   help="ball: columns of the left and right walls")
+    c.add_argument("--pivot", type=float, nargs=2, default=None, metavar=("C", "R"),
+                   help="pendulum: the pivot's column and row (default: from the bob's arc)")
+    c.add_argument("--anchor", type=float, default=None, metavar="C",
+                   help="spring: the anchor's column")
+    c.add_argument("--track", type=float, nargs=2, default=None, metavar=("C1", "C2"),
+                   help="collision: the track's ends (not yet built: refused)")
+    g = p.add_argument_group("the renderer's box (ball; default: framed as the suite's renderer)")
     g.add_argument("--wall-col", type=float, default=None, help="column of the left wall")
     g.add_argument("--corners", type=float, nargs=4, default=None,
                    metavar=("C1", "R1", "C2", "R2"),
                    help="the floor's corners with the left and right walls, px")
     g.add_argument("--ball-radius-px", type=float, default=None,
                    help="ball radius in px (default: measured, or the renderer's)")
+    k = p.add_argument_group("what you know")
+    k.add_argument("--known", action="append", default=[], metavar="NAME=VALUE",
+                   help="a parameter's known value (e.g. g=-9.81, L=0.62); repeatable")
+    k.add_argument("--prior", action="append", default=[], metavar="NAME=LO:HI",
+                   help="a parameter's range (e.g. w2=20:80); repeatable")
     from sysid_bench._validate import SEED_MAX, arg_number
     from sysid_bench.estimator import MAX_HORIZON
 
     p.add_argument("--every", type=arg_number(1, None, integer=True), default=None,
                    help="frames between estimates of a non-streaming method")
-    p.add_argument("--horizon", type=arg_number(1, MAX_HORIZON, integer=True), default=20,
-                   help=f"frames forecast, 1 to {MAX_HORIZON} (default 20)")
+    p.add_argument("--horizon", type=arg_number(1, MAX_HORIZON, integer=True), default=None,
+                   help=f"ball: frames forecast, 1 to {MAX_HORIZON} (default 20)")
     p.add_argument("--seed", type=arg_number(0, SEED_MAX, integer=True), default=0)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(fn=run)
@@ -425,27 +536,137 @@ def default_out(video, method: str) -> Path:
     return Path("runs") / "identify" / f"{Path(video).stem}_{method}"
 
 
-def _run_system(args) -> int:
-    """``identify --system S`` for a system other than the ball (:mod:`video_systems`)."""
+def check_options(args) -> tuple[str, dict, dict]:
+    """Refuse every option that means nothing for ``args.system`` or is out of range.
+
+    Returns
+    -------
+    system : str
+        The registered name.
+    known, prior : dict
+        Parsed ``--known`` and ``--prior``.
+
+    Raises
+    ------
+    ValueError
+        One line naming the option (``--pivot``, ``--rotate``, ...).
+    """
     from sysid_bench import systems
-    from sysid_bench.video_systems import identify_system_video, write_system_outputs
 
     name = systems.get(args.system).name  # unknown names: ValueError with "did you mean"
+    for dest, where in OPTION_SYSTEMS.items():
+        v = getattr(args, dest, None)
+        if v is None:
+            continue
+        if name in where:
+            continue
+        if name in _NOT_YET and dest not in ("checkpoint", "horizon", "ball_radius_px",
+                                             "floor_row", "wall_col", "corners", "walls",
+                                             "pivot", "anchor"):
+            raise ValueError(f"{_flag(dest)}: not yet for the {name} system: {_NOT_YET[name]}")
+        meant = ", ".join(where) if where else "the collision system (not yet built)"
+        raise ValueError(f"{_flag(dest)}: means nothing for the {name} system (it is for "
+                         f"{meant})")
+    if args.rotate is not None and args.rotate not in (90, 180, 270):
+        raise ValueError(f"--rotate: expected 90, 180 or 270 (degrees clockwise), got "
+                         f"{args.rotate:g}")
+    if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
+        raise ValueError(f"--fps: expected a capture rate > 0 frames/s, got {args.fps:g}")
+    for dest in ("start", "end"):
+        v = getattr(args, dest)
+        if v is not None and not (math.isfinite(v) and v >= 0):
+            raise ValueError(f"{_flag(dest)}: expected seconds >= 0, got {v:g}")
+    if args.start is not None and args.end is not None and args.end <= args.start:
+        raise ValueError(f"--end: expected a time after --start {args.start:g} s, got "
+                         f"{args.end:g} s")
+    if args.px_per_m is not None and args.object_size_m is not None:
+        raise ValueError("--object-size-m: give either --px-per-m or --object-size-m, not both")
+    for dest in ("px_per_m", "object_size_m"):
+        v = getattr(args, dest)
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise ValueError(f"{_flag(dest)}: expected a number > 0, got {v:g}")
+    if args.object_size_m is not None and not (OBJECT_SIZE_RANGE_M[0] <= args.object_size_m
+                                               <= OBJECT_SIZE_RANGE_M[1]):
+        lo, hi = OBJECT_SIZE_RANGE_M
+        raise ValueError(f"--object-size-m: expected an object {lo:g} to {hi:g} m across, got "
+                         f"{args.object_size_m:g} m")
+    if (args.walls is not None or args.object_size_m is not None) and (
+            args.corners is not None or args.wall_col is not None):
+        raise ValueError("--walls: give a camera (--px-per-m, --object-size-m, --walls) or the "
+                         "renderer's box (--corners, --wall-col), not both")
+    known = parse_known(name, args.known)
+    prior = parse_prior(name, args.prior, known)
+    return name, known, prior
+
+
+def _camera_options(args, system: str, known: dict) -> dict | None:
+    """The :func:`camera_for` options given, or None for the renderer's framing."""
+    scale = args.px_per_m is not None or args.object_size_m is not None
+    if system == "ball":
+        legacy = args.wall_col is not None or args.corners is not None
+        if legacy or not (scale or args.walls is not None):
+            return None
+        if not scale:
+            raise ValueError("--walls: the scale is not known: give --px-per-m or "
+                             "--object-size-m with it")
+        return {"px_per_m": args.px_per_m, "object_size_m": args.object_size_m,
+                "floor_row": args.floor_row, "walls": args.walls}
+    opts = {"px_per_m": args.px_per_m, "object_size_m": args.object_size_m}
+    if system == "pendulum":
+        opts["pivot"] = args.pivot
+    if system == "spring":
+        opts["anchor"] = args.anchor
+    by_length = system == "pendulum" and "L" in known
+    if not any(v is not None for v in opts.values()) and not by_length:
+        return None  # framed as the system's renderer draws it
+    if not scale and not by_length:
+        placed = next(_flag(k) for k, v in opts.items() if v is not None)
+        raise ValueError(f"{placed}: the {system}'s scale is not known: give --px-per-m or "
+                         "--object-size-m" + (" or --known L=..." if system == "pendulum"
+                                              else ""))
+    return opts
+
+
+def _one_line(exc: Exception, args) -> str:
+    """The error's line with the option named as the command line spells it."""
+    msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    head, sep, rest = msg.partition(":")
+    if sep and head in {*OPTION_SYSTEMS, "known", "prior", "out", "rotate", "start", "end",
+                        "capture_fps", "every", "horizon"}:
+        return f"{_flag('fps' if head == 'capture_fps' else head)}:{rest}"
+    if head == "geometry":  # the renderer's box: name the options that placed it
+        given = [_flag(d) for d in ("px_per_m", "floor_row", "wall_col", "corners",
+                                    "ball_radius_px") if getattr(args, d, None) is not None]
+        if given:
+            return f"{'/'.join(given)}: {msg}"
+    return msg
+
+
+def _run_system(args, name: str, known: dict, prior: dict, camera: dict | None,
+                out: Path) -> int:
+    """``identify --system S`` for a system other than the ball (:mod:`video_systems`)."""
+    from sysid_bench.video_systems import identify_system_video, write_system_outputs
+
     res = identify_system_video(args.video, name, method=args.method, every=args.every or 10,
-                                progress=None if not args.no_progress else False)
+                                progress=None if not args.no_progress else False,
+                                camera=camera, rotate=int(args.rotate or 0), start=args.start,
+                                end=args.end, capture_fps=args.fps, known=known, prior=prior)
     method = res["info"]["method"]
-    out = Path(args.out) if args.out else default_out(args.video, f"{name}_{method}")
+    out = out if args.out else default_out(args.video, f"{name}_{method}")
     write_system_outputs(res, out)
+    for n in res["info"]["notes"]:
+        print(f"note: {n}", file=sys.stderr)
     chk = res["check"][np.isfinite(res["check"][:, 0])]
     if len(chk) and not chk[-1, 0]:
         print(f"warning: the model does not explain this video: {method}'s fit misses the "
               f"track by {chk[-1, 1]:.3g} m RMS against an assumed noise of {chk[-1, 2]:.3g} m",
               file=sys.stderr)
     last = np.flatnonzero(np.isfinite(res["mean"][:, 0]))[-1]
+    where = res["info"].get("camera") or {}
     print(f"{args.video}: {name}, {method} after {last + 1} frames: "
           + ", ".join(f"{p} = {m:.4g} ± {s:.2g}" for p, m, s in
                       zip(res["info"]["params"], res["mean"][last], res["std"][last]))
-          + f"; wrote {out}/")
+          + (f"; {where['mapping']}" if where else "") + f"; wrote {out}/")
     return 0
 
 
@@ -457,22 +678,31 @@ def run(args) -> int:
     try:
         if args.every is not None and args.every < 1:
             raise ValueError(f"every: expected an int >= 1, got {args.every}")
-        if args.horizon < 1:
+        if args.horizon is not None and args.horizon < 1:
             raise ValueError(f"horizon: expected an int >= 1, got {args.horizon}")
-        if args.system != "ball":
-            return _run_system(args)
+        name, known, prior = check_options(args)
+        camera = _camera_options(args, name, known)
+        out = Path(args.out) if args.out else None
+        if out is not None:
+            check_out_folder(out)  # before any work: a folder of other files is refused
+        if name != "ball":
+            return _run_system(args, name, known, prior, camera, out)
         if args.method is None:
             args.method = default_method()
-        out = Path(args.out) if args.out else default_out(args.video, args.method)
+        out = out or default_out(args.video, args.method)
+        horizon = 20 if args.horizon is None else args.horizon
         res = identify_video(args.video, method=args.method, checkpoint=args.checkpoint,
-                             geometry=geometry, every=args.every, horizon=args.horizon,
-                             seed=args.seed, progress=None if not args.no_progress else False)
+                             geometry=None if camera else geometry, every=args.every,
+                             horizon=horizon, seed=args.seed,
+                             progress=None if not args.no_progress else False, camera=camera,
+                             rotate=int(args.rotate or 0), start=args.start, end=args.end,
+                             capture_fps=args.fps, known=known, prior=prior)
         write_outputs(res, out)
     except VideoError as exc:
         print(f"sysid-bench identify: {exc}", file=sys.stderr)
         return 2
     except ValueError as exc:
-        print(f"sysid-bench identify: {args.video}: {exc}", file=sys.stderr)
+        print(f"sysid-bench identify: {args.video}: {_one_line(exc, args)}", file=sys.stderr)
         return 2
     except NotImplementedError as exc:  # dmd: no parameters to identify
         print(f"sysid-bench identify: {args.video}: {args.method} cannot identify: {exc}",
@@ -483,6 +713,9 @@ def run(args) -> int:
         return 3
     for n in res.info["notes"]:
         print(f"note: {n}", file=sys.stderr)
+    kn = res.info["knowledge"]
+    if kn["note"]:
+        print(f"note: --known/--prior {kn['note']}", file=sys.stderr)
     chk = res.info.get("check")
     if chk is not None and not chk["check_ok"]:
         print(f"warning: the model does not explain this video: {res.info['method']}'s fit "

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sysid_bench.footage import VideoError
+
 __all__ = ["identify_system_video", "write_system_outputs", "resize_frames"]
 
 
@@ -52,9 +54,51 @@ def _default_method(system: str) -> str:
     raise ValueError(f"system: no registered method identifies the {system} system")
 
 
+def _position_method(system: str) -> str:
+    """The first registered contender that identifies ``system`` from tracked positions."""
+    import methods
+
+    for n in methods.available():
+        sp = methods.spec(n)
+        if not sp.identifies or sp.input_kind == "frames":
+            continue
+        try:
+            methods.get(n, system=system).fit(None)
+        except (NotImplementedError, ValueError, ImportError):
+            continue
+        return n
+    raise ValueError(f"system: no registered position method identifies the {system} system")
+
+
 def identify_system_video(path, system: str, *, method: str | None = None, every: int = 10,
-                          progress=None) -> dict:
+                          progress=None, camera: dict | None = None, rotate: int = 0,
+                          start: float | None = None, end: float | None = None,
+                          capture_fps: float | None = None, known: dict | None = None,
+                          prior: dict | None = None) -> dict:
     """Identify the parameters of ``system`` from a video file.
+
+    Parameters
+    ----------
+    path : str or Path
+    system : str
+    method : str, optional
+        Default: the first identifying contender (frame methods first; with a camera, the
+        first position method).
+    every : int
+        Frames between estimates.
+    progress : bool, optional
+    camera : dict, optional
+        A real camera (:func:`sysid_bench.footage.camera_for`'s ``px_per_m``,
+        ``object_size_m``, ``pivot``, ``anchor``): the object is followed at the file's
+        resolution (:func:`~sysid_bench.footage.find_object`) and its track mapped to the
+        system's world (the pendulum relative to its pivot, y up; the spring from its anchor).
+        None: the clip is framed as the system's renderer draws it.
+    rotate : {0, 90, 180, 270}
+    start, end, capture_fps : float, optional
+        :func:`~sysid_bench.footage.read_video`'s window and capture rate.
+    known, prior : dict, optional
+        What the user knows; the pendulum's ``L`` fixes the scale from the bob's arc.
+        Recorded under ``knowledge``.
 
     Returns
     -------
@@ -65,15 +109,42 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
     import methods
     from sysid_bench import systems
     from sysid_bench.estimator import Observation
-    from sysid_bench.footage import read_video
+    from sysid_bench.footage import (
+        camera_for,
+        find_object,
+        knowledge_record,
+        read_video,
+        rotate_frames,
+        widen_for_scale,
+    )
 
     sys_ = systems.get(system)
-    clip = read_video(path, progress=progress)
-    frames = resize_frames(clip.frames, sys_.size)
-    name = method or _default_method(sys_.name)
+    if camera is not None and method is not None and methods.spec(method).input_kind == "frames":
+        raise ValueError(f"method: {method} reads frames drawn as the {sys_.name}'s renderer "
+                         "draws them; on a camera's clip give a position method (e.g. lsq)")
+    clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps)
+    turned = rotate_frames(clip.frames, int(rotate))
+    notes = list(clip.notes)
+    cam = None
+    if camera is None:
+        frames = resize_frames(turned, sys_.size)
+        name = method or _default_method(sys_.name)
+        obs = Observation(frames=frames, system=sys_.name, dt=1.0 / clip.fps)
+        points = sys_.track(frames)
+    else:
+        trk = find_object(turned, progress=bool(progress))
+        if trk.n_found < 3:
+            raise VideoError(f"{path}: the {sys_.name}'s object was found in {trk.n_found} of "
+                             f"{len(turned)} frames; the camera and the methods need a track "
+                             "(at least 3 frames)")
+        cam = camera_for(sys_.name, trk, turned.shape[1:], **camera, known=known,
+                         rotate=int(rotate))
+        points = cam.to_metres(trk.pixels)[:, None, :]
+        name = method or _position_method(sys_.name)
+        obs = Observation(positions=points, system=sys_.name, dt=1.0 / clip.fps)
+        notes.append(f"{name} saw the tracked object in metres ({cam.describe()})")
     est = methods.get(name, system=sys_.name)
     est.fit(None)
-    obs = Observation(frames=frames, system=sys_.name)
     t = obs.n_frames
     lengths = sorted({*range(every, t + 1, every), t})
     lengths = [n for n in lengths if n >= max(3, getattr(est.spec(), "min_frames", 3))]
@@ -87,12 +158,36 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
         mean[n - 1], std[n - 1] = post.mean, post.std
         if post.check is not None:
             check[n - 1] = (float(post.check.ok), post.check.rms_m, post.check.noise_m)
-    points = sys_.track(frames)
+    if cam is not None and cam.scale_rel_std > 0:
+        std = widen_for_scale(sys_.name, sys_.params, mean, std, cam.scale_rel_std)
+        notes.append(f"the scale's {100 * cam.scale_rel_std:.2g}% uncertainty is added to the "
+                     "std of every parameter with a length in its unit")
+    know = knowledge_record(known or {}, prior or {}, name)
+    if know["note"]:
+        notes.append(f"--known/--prior {know['note']}")
     info = {"file": str(path), "system": sys_.name, "method": name, "params": list(sys_.params),
             "model_fps": clip.fps, "frames": t, "source_fps": clip.source_fps,
-            "size": list(sys_.size), "extent": list(sys_.extent), "notes": list(clip.notes),
-            "points_seen": int(np.isfinite(points).all(axis=(1, 2)).sum())}
+            "size": list(sys_.size), "extent": list(sys_.extent), "notes": notes,
+            "points_seen": int(np.isfinite(points).all(axis=(1, 2)).sum()),
+            "input": "tracked positions (camera)" if cam is not None else
+            ("frames (renderer framing)" if methods.spec(name).input_kind == "frames"
+             else "tracked positions (renderer framing)"),
+            "camera": None if cam is None else cam.as_dict(), "rotate": int(rotate),
+            "window_s": [start, end], "capture_fps": capture_fps, "knowledge": know}
     return {"mean": mean, "std": std, "check": check, "points": points, "info": info}
+
+
+def _finite(x):
+    """JSON without NaN: NaN and inf become null; arrays become lists."""
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return [_finite(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
 
 
 def _plot(res: dict, path: Path, dt: float) -> None:
@@ -122,9 +217,9 @@ def _plot(res: dict, path: Path, dt: float) -> None:
 
 def write_system_outputs(res: dict, out) -> Path:
     """``estimates.csv``, ``estimates.json`` and ``track.png`` into ``out``, all or nothing."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"out: expected a folder, got the file {out}")
+    from sysid_bench.footage import OUT_MARKER, check_out_folder
+
+    out = check_out_folder(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     dt = 1.0 / res["info"]["model_fps"]
     params = res["info"]["params"]
@@ -148,7 +243,8 @@ def write_system_outputs(res: dict, out) -> Path:
         clean = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v)
                   for k, v in r.items()} for r in rows]
         with open(tmp / "estimates.json", "w") as f:
-            json.dump({**res["info"], "estimates": clean}, f, indent=1)
+            json.dump({"written_by": OUT_MARKER, **_finite(res["info"]), "estimates": clean}, f,
+                      indent=1)
         _plot(res, tmp / "track.png", dt)
         if not out.exists():
             os.replace(tmp, out)

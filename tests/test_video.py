@@ -268,10 +268,16 @@ def test_cli_bad_file_one_line_no_outputs(tmp_path, make, message):
 
 def test_cli_bad_geometry_and_existing_out_untouched(tmp_path, video_file):
     out = tmp_path / "out"
+    r = _cli(video_file, "--method", "lsq", "--out", out, "--px-per-m", "500", "--wall-col", "0")
+    line = r.stderr.strip()
+    assert r.returncode == 2 and "outside" in line and len(line.splitlines()) == 1
+    assert "--px-per-m/--wall-col" in line  # the options that placed the box are named
+    assert not out.exists()
+    # a folder of files identify did not write is refused before any work, untouched
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    r = _cli(video_file, "--method", "lsq", "--out", out, "--px-per-m", "500")
-    assert r.returncode == 2 and "outside" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    r = _cli(video_file, "--method", "lsq", "--out", out)
+    assert r.returncode == 2 and "--out" in r.stderr and "keep.txt" in r.stderr
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
 
 
