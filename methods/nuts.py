@@ -95,7 +95,8 @@ from numpyro.infer.hmc import hmc
 from numpyro.infer.util import potential_energy
 from scipy.optimize import minimize
 
-from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng
+from methods._points import Points, SimulationOnSystems, SystemFit
+from methods._simulation import Fit, Stopwatch, make_rng
 from methods._tracks import clip_state, prepare
 from sysid_bench import physics
 from sysid_bench import physics_jax as pj
@@ -103,7 +104,6 @@ from sysid_bench._validate import check_positive_int
 from sysid_bench.estimator import Observation, Posterior
 from sysid_bench.physics import PRIOR_LO, PRIOR_SPAN
 from sysid_bench.simulator import (
-    DEFAULT_SIGMA,
     CountingSimulator,
     check_sigma,
     gaussian_loglik,
@@ -435,11 +435,15 @@ def _search(sim, track, sigma, free, rng, n, rounds, n_starts, floor_box=None):
     return [_logit(pool_v[i]) for i in starts], {"search_best_loglik": float(pool_ll[order[0]])}
 
 
-class NUTS(SimulationMethod):
-    """NumPyro's No-U-Turn sampler on the JAX simulator.
+class NUTS(SimulationOnSystems):
+    """NumPyro's No-U-Turn sampler on the JAX simulator (the ball) or on a system's JAX twin
+    (any other registered system that has one, :mod:`methods._nuts_points`; one without is n/a:
+    ``NotImplementedError``).
 
     Parameters
     ----------
+    system : str
+        A registered system (:func:`sysid_bench.systems.available`).
     num_warmup : int
         Warm-up (step size and mass matrix adaptation) iterations per chain.
     num_samples : int
@@ -447,14 +451,22 @@ class NUTS(SimulationMethod):
     num_chains : int
         Chains, run one after another (``chain_method="sequential"``: vectorised chains would
         lose the simulator's skip of contact-free frames, and the machine has 2 cores).
-    sigma : float
-        Position noise standard deviation (m) of the likelihood, fixed.
-    n_init : int
-        Simulations per round of the starting-point search.
+    sigma : float, optional
+        Position noise standard deviation (m) of the likelihood, fixed; None:
+        ``DEFAULT_SIGMA`` on the ball, the system's :func:`methods._points.default_sigma`
+        elsewhere.
+    n_init : int, optional
+        Simulations per round of the starting-point search (another system: of the whole
+        search); None: 1000 on the ball, 2000 elsewhere.
     search_rounds : int
         Rounds of that cross-entropy search (the first draws from the prior).
-    n_starts : int
-        Best search points each refined by L-BFGS; the lowest potential wins.
+    n_starts : int, optional
+        Best search points each refined by L-BFGS; the lowest potential wins. None: 3 on the
+        ball, 5 elsewhere (see :func:`methods._nuts_points.fit_points`).
+    max_opt_evals : int
+        Another system only: residual evaluations of the least-squares refinement of each start.
+    max_extensions : int
+        Another system only: blocks of ``num_samples`` more draws an unconverged chain may add.
     dense_mass : bool
         Adapt a dense mass matrix in the whitened coordinates (diagonal by default: the Laplace
         whitening already removes the correlations).
@@ -502,23 +514,29 @@ class NUTS(SimulationMethod):
         "frame_bucket": 100,
     }
 
+    per_system_defaults = {"n_init": (1000, 2000), "n_starts": (3, 5)}
+
     def __init__(
         self,
         *,
+        system: str = "ball",
         num_warmup: int = 200,
         num_samples: int = 300,
         num_chains: int = 1,
-        sigma: float = DEFAULT_SIGMA,
-        n_init: int = 1000,
+        sigma: float | None = None,
+        n_init: int | None = None,
         search_rounds: int = 4,
-        n_starts: int = 3,
+        n_starts: int | None = None,
+        max_opt_evals: int = 100,
         dense_mass: bool = False,
         target_accept: float = 0.85,
         max_tree_depth: int = 6,
         n_forecast: int = 200,
         frame_bucket: int = 50,
+        max_extensions: int = 2,
         seed: int = 0,
     ):
+        self.system = system
         self.num_warmup = num_warmup
         self.num_samples = num_samples
         self.num_chains = num_chains
@@ -526,11 +544,13 @@ class NUTS(SimulationMethod):
         self.n_init = n_init
         self.search_rounds = search_rounds
         self.n_starts = n_starts
+        self.max_opt_evals = max_opt_evals
         self.dense_mass = dense_mass
         self.target_accept = target_accept
         self.max_tree_depth = max_tree_depth
         self.n_forecast = n_forecast
         self.frame_bucket = frame_bucket
+        self.max_extensions = max_extensions
         self.seed = seed
 
     def _validate(self) -> None:
@@ -541,10 +561,11 @@ class NUTS(SimulationMethod):
     def _check(self):
         for k in (
             "num_warmup", "num_samples", "num_chains", "n_init", "search_rounds", "n_starts",
-            "max_tree_depth", "n_forecast", "frame_bucket",
+            "max_opt_evals", "max_tree_depth", "n_forecast", "frame_bucket",
         ):
-            check_positive_int(getattr(self, k), k)
-        sigma = check_sigma(self.sigma)
+            check_positive_int(self._hp(k), k)
+        check_positive_int(self.max_extensions, "max_extensions", minimum=0)
+        sigma = check_sigma(self._sigma())
         try:
             ta = float(self.target_accept)
         except (TypeError, ValueError):
@@ -596,7 +617,8 @@ class NUTS(SimulationMethod):
 
         # 1. global: cross-entropy search with batched NumPy simulations (starts as lsq does)
         starts, search_info = _search(
-            sim, track, sigma, free, rng, int(self.n_init), int(self.search_rounds), int(self.n_starts),
+            sim, track, sigma, free, rng, int(self._hp("n_init")), int(self.search_rounds),
+            int(self._hp("n_starts")),
             floor_box,
         )
 
@@ -686,7 +708,14 @@ class NUTS(SimulationMethod):
         floors = fls.reshape(-1) if free_floor else track.floor
         return Fit(post, flat, s0s.reshape(-1, 4), floors, track, sim, sw)
 
+    def _fit_points(self, obs: Observation, part: Points) -> SystemFit:
+        """Another system: :func:`methods._nuts_points.fit_points` (the system's JAX twin)."""
+        from methods._nuts_points import fit_points  # it imports this module
+
+        return fit_points(self, obs, part)
+
 
 def _logit(u):
     u = np.clip(np.asarray(u, dtype=np.float64), _EPS, 1.0 - _EPS)
     return np.log(u) - np.log1p(-u)
+

@@ -1,6 +1,7 @@
-"""NUTS on any registered system: the reference posterior, through the system's JAX twin.
+"""NUTS on any registered system other than the ball: the reference posterior, through the
+system's JAX twin (what :class:`methods.nuts.NUTS` composes with :mod:`methods._points` there).
 
-The model is :mod:`methods._system_fit`'s: the K tracked points are the twin's states seen
+The model is :mod:`methods._points`'s: the K tracked points are the twin's states seen
 through the system's observation, plus independent Gaussian noise of a fixed ``sigma`` per
 coordinate (default ``1.2 * system.noise_m``); a uniform prior on the prior box and, when
 ``Observation.state0`` is not given, on the initial-state box that ``state0_from_track`` gives
@@ -10,7 +11,7 @@ coordinates (an unconstrained space; the uniform prior there has density
 
 How it runs, as the ball's ``nuts`` (:mod:`methods.nuts`, whose Laplace step it reuses):
 
-1. the cross-entropy search and least-squares refinement of :mod:`methods._system_fit` (batched
+1. the cross-entropy search and least-squares refinement of :mod:`methods._points` (batched
    NumPy simulations) find the basin;
 2. L-BFGS and Newton steps on the JAX potential (exact gradients, forward mode through the
    twin) give the mode and the Laplace covariance ``L L^T`` in logit coordinates;
@@ -54,13 +55,12 @@ from jax import lax
 from numpyro.diagnostics import effective_sample_size, split_gelman_rubin
 from numpyro.infer.hmc import hmc
 
+from methods._points import Points, SystemFit, _system, refine, search, sq_error
 from methods._simulation import Stopwatch, make_rng
-from methods._system_fit import SystemFit, SystemFitMethod, _system, refine, search, sq_error
-from methods.nuts import NUTS, _bucket, _laplace, _logit, _Potential
-from sysid_bench._validate import check_positive_int
+from methods.nuts import _bucket, _laplace, _logit, _Potential
 from sysid_bench.estimator import Observation
 
-__all__ = ["SystemNUTS", "jax_observer"]
+__all__ = ["fit_points", "jax_observer"]
 
 _EPS = 1e-6
 
@@ -235,149 +235,106 @@ def _diagnose(th):
     return np.asarray(split_gelman_rubin(th)), np.asarray(effective_sample_size(th))
 
 
-class SystemNUTS(SystemFitMethod):
-    """NumPyro's NUTS on a system's JAX twin; hyperparameters as the ball's ``nuts`` (with
-    ``system``, ``max_opt_evals``, the refinement's budget, and ``max_extensions``, the blocks
-    of ``num_samples`` more draws an unconverged chain may add, added). The search refines 5
-    starts by default (the ball's 3): on the pendulum, where a small change of ``b`` and ``mu``
-    moves the frame at which the bob sticks, 3 refined starts left one of two test cases in a
-    wrong local mode 16 posterior std from the truth."""
+def fit_points(est, obs: Observation, part: Points) -> SystemFit:
+    """:class:`methods.nuts.NUTS` on a system other than the ball (``est`` its instance, ``part``
+    the generic points likelihood it composes): NumPyro's NUTS on the system's JAX twin. The
+    search refines 5 starts by default (the ball's 3): on the pendulum, where a small change of
+    ``b`` and ``mu`` moves the frame at which the bob sticks, 3 refined starts left one of two
+    test cases in a wrong local mode 16 posterior std from the truth."""
+    sw = Stopwatch()
+    prob = part.problem(obs)
+    system = prob.system
+    if not system.jax_twin:
+        raise NotImplementedError(f"nuts is n/a on the {system.name} system: it has no JAX twin")
+    jax_observer(system)  # n/a early, before any work
+    P, D, free = prob.P, prob.ndim, prob.free
+    T = prob.n_sim_frames
+    Tb = _bucket(T, int(est.frame_bucket))
+    rng = make_rng(est.seed, 0)
 
-    _declared_by = NUTS
+    # 1. the basin: search and least squares on batched NumPy simulations
+    starts, info = search(prob, rng, int(est._hp("n_init")), int(est.search_rounds),
+                          int(est._hp("n_starts")))
+    u_opt, _, opt = refine(prob, starts, int(est.max_opt_evals))
 
-    def __init__(self, *, system: str = "spring", num_warmup: int = 200, num_samples: int = 300,
-                 num_chains: int = 1, sigma: float | None = None, n_init: int = 2000,
-                 search_rounds: int = 4, n_starts: int = 5, max_opt_evals: int = 100,
-                 dense_mass: bool = False, target_accept: float = 0.85, max_tree_depth: int = 6,
-                 n_forecast: int = 200, frame_bucket: int = 50, max_extensions: int = 2,
-                 seed: int = 0):
-        self.system = system
-        self.num_warmup = num_warmup
-        self.num_samples = num_samples
-        self.num_chains = num_chains
-        self.sigma = sigma
-        self.n_init = n_init
-        self.search_rounds = search_rounds
-        self.n_starts = n_starts
-        self.max_opt_evals = max_opt_evals
-        self.dense_mass = dense_mass
-        self.target_accept = target_accept
-        self.max_tree_depth = max_tree_depth
-        self.n_forecast = n_forecast
-        self.frame_bucket = frame_bucket
-        self.max_extensions = max_extensions
-        self.seed = seed
+    # 2. the mode and curvature of the potential in logit coordinates
+    obs_pad = np.zeros((Tb,) + prob.obs.shape[1:])
+    mask = np.zeros((Tb,) + prob.mask.shape[1:], bool)
+    obs_pad[:T] = np.where(prob.mask[..., None], prob.obs, 0.0)
+    mask[:T] = prob.mask
+    base = (jnp.asarray(obs_pad), jnp.asarray(mask), jnp.asarray(prob.sigma, jnp.float64),
+            jnp.asarray(prob.track.state0), jnp.asarray(prob.plo), jnp.asarray(prob.pspan),
+            jnp.asarray(prob.slo), jnp.asarray(np.maximum(prob.sspan, 1e-12)))
+    cfg = (system.name, Tb, float(prob.track.dt), P)
+    pe_vg, init, blocks = _compiled(cfg, free, int(est.num_warmup), int(est.num_samples),
+                             bool(est.dense_mass), float(est.target_accept),
+                             int(est.max_tree_depth))
+    pot = _Potential(pe_vg, base, D)
+    x0 = _logit(np.clip(u_opt, _EPS, 1 - _EPS))
+    x_map, cov, lap = _laplace(pot, [x0])
+    chol = np.linalg.cholesky(cov)
 
-    def _validate(self) -> None:
-        super()._validate()
-        for k in ("num_warmup", "num_samples", "num_chains", "n_init", "search_rounds",
-                  "n_starts", "max_opt_evals", "max_tree_depth", "frame_bucket"):
-            check_positive_int(getattr(self, k), k)
-        check_positive_int(self.max_extensions, "max_extensions", minimum=0)
-        try:
-            ta = float(self.target_accept)
-        except (TypeError, ValueError):
-            ta = np.nan
-        if not 0.0 < ta < 1.0:
-            raise ValueError(f"target_accept: expected a probability in (0, 1), got {self.target_accept!r}")
-        if not isinstance(self.dense_mass, (bool, np.bool_)):
-            raise ValueError(f"dense_mass: expected True or False, got {self.dense_mass!r}")
-
-    def _fit(self, obs: Observation) -> SystemFit:
-        sw = Stopwatch()
-        prob = self._problem(obs)
-        system = prob.system
-        if not system.jax_twin:
-            raise NotImplementedError(f"nuts is n/a on the {system.name} system: it has no JAX twin")
-        jax_observer(system)  # n/a early, before any work
-        P, D, free = prob.P, prob.ndim, prob.free
-        T = prob.n_sim_frames
-        Tb = _bucket(T, int(self.frame_bucket))
-        rng = make_rng(self.seed, 0)
-
-        # 1. the basin: search and least squares on batched NumPy simulations
-        starts, info = search(prob, rng, int(self.n_init), int(self.search_rounds),
-                              int(self.n_starts))
-        u_opt, _, opt = refine(prob, starts, int(self.max_opt_evals))
-
-        # 2. the mode and curvature of the potential in logit coordinates
-        obs_pad = np.zeros((Tb,) + prob.obs.shape[1:])
-        mask = np.zeros((Tb,) + prob.mask.shape[1:], bool)
-        obs_pad[:T] = np.where(prob.mask[..., None], prob.obs, 0.0)
-        mask[:T] = prob.mask
-        base = (jnp.asarray(obs_pad), jnp.asarray(mask), jnp.asarray(prob.sigma, jnp.float64),
-                jnp.asarray(prob.track.state0), jnp.asarray(prob.plo), jnp.asarray(prob.pspan),
-                jnp.asarray(prob.slo), jnp.asarray(np.maximum(prob.sspan, 1e-12)))
-        cfg = (system.name, Tb, float(prob.track.dt), P)
-        pe_vg, init, blocks = _compiled(cfg, free, int(self.num_warmup), int(self.num_samples),
-                                 bool(self.dense_mass), float(self.target_accept),
-                                 int(self.max_tree_depth))
-        pot = _Potential(pe_vg, base, D)
-        x0 = _logit(np.clip(u_opt, _EPS, 1 - _EPS))
-        x_map, cov, lap = _laplace(pot, [x0])
-        chol = np.linalg.cholesky(cov)
-
-        # 3. NUTS in whitened coordinates, chains one after another; while R-hat or ESS miss
-        #    their bounds, every chain draws num_samples more (the adapted kernel continues)
-        nc, nw, ns = int(self.num_chains), int(self.num_warmup), int(self.num_samples)
-        data = base + (jnp.asarray(x_map), jnp.asarray(chol))
-        keys = jax.random.split(jax.random.PRNGKey(int(self.seed)), nc)
-        states, zs, steps, divs = [], [], [], []
+    # 3. NUTS in whitened coordinates, chains one after another; while R-hat or ESS miss
+    #    their bounds, every chain draws num_samples more (the adapted kernel continues)
+    nc, nw, ns = int(est.num_chains), int(est.num_warmup), int(est.num_samples)
+    data = base + (jnp.asarray(x_map), jnp.asarray(chol))
+    keys = jax.random.split(jax.random.PRNGKey(int(est.seed)), nc)
+    states, zs, steps, divs = [], [], [], []
+    for c in range(nc):
+        z0 = np.zeros(D) if c == 0 else 0.5 * rng.standard_normal(D)
+        state = init(keys[c], jnp.asarray(z0), data)
+        state, (_, st_w, _) = blocks[nw](state, data)
+        state, (zc, st, dv) = blocks[ns](state, data)
+        states.append(state)
+        zs.append([np.asarray(zc)])
+        steps.append([np.asarray(st_w), np.asarray(st)])
+        divs.append([np.asarray(dv)])
+    n_ext = 0
+    while True:
+        z = np.stack([np.concatenate(zc) for zc in zs])
+        x = x_map + z @ chol.T
+        th, s0 = (np.asarray(a) for a in _physical(jnp.asarray(x), data, free, P))
+        rhat, ess = _diagnose(th)
+        if (np.all(rhat < 1.05) and np.all(ess >= 50)) or n_ext >= int(est.max_extensions):
+            break
+        n_ext += 1
         for c in range(nc):
-            z0 = np.zeros(D) if c == 0 else 0.5 * rng.standard_normal(D)
-            state = init(keys[c], jnp.asarray(z0), data)
-            state, (_, st_w, _) = blocks[nw](state, data)
-            state, (zc, st, dv) = blocks[ns](state, data)
-            states.append(state)
-            zs.append([np.asarray(zc)])
-            steps.append([np.asarray(st_w), np.asarray(st)])
-            divs.append([np.asarray(dv)])
-        n_ext = 0
-        while True:
-            z = np.stack([np.concatenate(zc) for zc in zs])
-            x = x_map + z @ chol.T
-            th, s0 = (np.asarray(a) for a in _physical(jnp.asarray(x), data, free, P))
-            rhat, ess = _diagnose(th)
-            if (np.all(rhat < 1.05) and np.all(ess >= 50)) or n_ext >= int(self.max_extensions):
-                break
-            n_ext += 1
-            for c in range(nc):
-                states[c], (zc, st, dv) = blocks[ns](states[c], data)
-                zs[c].append(np.asarray(zc))
-                steps[c].append(np.asarray(st))
-                divs[c].append(np.asarray(dv))
-        sizes = [float(st.adapt_state.step_size) for st in states]
-        steps = np.stack([np.concatenate(sc) for sc in steps])
-        div = np.stack([np.concatenate(dc) for dc in divs])
-        flat, s0_flat = th.reshape(-1, P), s0.reshape(-1, prob.S)
-        n_div = int(div.sum())
-        problems = []
-        if not np.all(rhat < 1.05):
-            problems.append(f"R-hat {np.round(rhat, 3).tolist()} not all < 1.05")
-        if not np.all(ess >= 50):
-            problems.append(f"ESS {np.round(ess, 1).tolist()} not all >= 50")
-        if n_div / div.size >= 0.02:
-            problems.append(f"{n_div} divergent transitions ({100 * n_div / div.size:.1f}%)")
-        th_map, s0_map = (np.asarray(a) for a in _physical(jnp.asarray(x_map), data, free, P))
-        check = prob.check(flat.mean(0), s0_flat.mean(0))
-        map_pts = prob.points(_unit(prob, th_map, s0_map))
-        rms = float(np.sqrt(sq_error(map_pts, prob.obs, prob.mask)[0] / max(prob.n_coords, 1)))
-        if rms > 3.0 * prob.sigma:
-            problems.append(f"the mode misses the track by {rms:.3g} m RMS "
-                            f"(> 3 sigma = {3 * prob.sigma:.3g} m)")
-        prob.sim.n_simulations += pot.n + int(steps.sum()) + nc
-        extras = {
-            "n_simulations": int(prob.sim.n_simulations), "wall_s": sw(),
-            "rhat": dict(zip(system.params, rhat.tolist())),
-            "ess": dict(zip(system.params, ess.tolist())),
-            "divergences": n_div, "mean_tree_size": float(steps[:, nw:].mean()),
-            "extensions": n_ext, "num_samples_kept": int(z.shape[1]),
-            "step_size": float(np.mean(sizes)), "converged": not problems,
-            "warning": "; ".join(problems), "map_rms_m": rms, "sigma": prob.sigma,
-            "state0_sampled": free, **info, **opt, **lap, **prob.track.describe(),
-        }
-        post = self._posterior(prob, flat.mean(0), flat.std(0, ddof=1), flat, extras, check)
-        return SystemFit(post, flat, s0_flat, None, prob, sw)
+            states[c], (zc, st, dv) = blocks[ns](states[c], data)
+            zs[c].append(np.asarray(zc))
+            steps[c].append(np.asarray(st))
+            divs[c].append(np.asarray(dv))
+    sizes = [float(st.adapt_state.step_size) for st in states]
+    steps = np.stack([np.concatenate(sc) for sc in steps])
+    div = np.stack([np.concatenate(dc) for dc in divs])
+    flat, s0_flat = th.reshape(-1, P), s0.reshape(-1, prob.S)
+    n_div = int(div.sum())
+    problems = []
+    if not np.all(rhat < 1.05):
+        problems.append(f"R-hat {np.round(rhat, 3).tolist()} not all < 1.05")
+    if not np.all(ess >= 50):
+        problems.append(f"ESS {np.round(ess, 1).tolist()} not all >= 50")
+    if n_div / div.size >= 0.02:
+        problems.append(f"{n_div} divergent transitions ({100 * n_div / div.size:.1f}%)")
+    th_map, s0_map = (np.asarray(a) for a in _physical(jnp.asarray(x_map), data, free, P))
+    check = prob.check(flat.mean(0), s0_flat.mean(0))
+    map_pts = prob.points(_unit(prob, th_map, s0_map))
+    rms = float(np.sqrt(sq_error(map_pts, prob.obs, prob.mask)[0] / max(prob.n_coords, 1)))
+    if rms > 3.0 * prob.sigma:
+        problems.append(f"the mode misses the track by {rms:.3g} m RMS "
+                        f"(> 3 sigma = {3 * prob.sigma:.3g} m)")
+    prob.sim.n_simulations += pot.n + int(steps.sum()) + nc
+    extras = {
+        "n_simulations": int(prob.sim.n_simulations), "wall_s": sw(),
+        "rhat": dict(zip(system.params, rhat.tolist())),
+        "ess": dict(zip(system.params, ess.tolist())),
+        "divergences": n_div, "mean_tree_size": float(steps[:, nw:].mean()),
+        "extensions": n_ext, "num_samples_kept": int(z.shape[1]),
+        "step_size": float(np.mean(sizes)), "converged": not problems,
+        "warning": "; ".join(problems), "map_rms_m": rms, "sigma": prob.sigma,
+        "state0_sampled": free, **info, **opt, **lap, **prob.track.describe(),
+    }
+    post = part.posterior(prob, flat.mean(0), flat.std(0, ddof=1), flat, extras, check)
+    return SystemFit(post, flat, s0_flat, None, prob, sw)
 
 
 def _unit(prob, theta, state0):
