@@ -24,7 +24,7 @@ Every method is one class that runs on each system it declares (``systems``, a t
 or ``"any"``; :mod:`sysid_bench.spec`), picked by its ``system`` hyperparameter: on the ball it
 runs the ball's machinery (:mod:`methods._simulation`, :mod:`methods._tracks`), on another system
 it composes the generic likelihood on the system's tracked points (:mod:`methods._points`; nuts
-adds :mod:`methods._nuts_points`, the system's JAX twin) or, for sindy, the system's feature
+samples through the system's JAX twin) or, for sindy, the system's feature
 library (:mod:`methods._sindy_libraries`). lsq, bo, emcee, nuts, dmd and prior declare
 ``"any"`` (a system a user registers included; nuts answers n/a where the system has no JAX
 twin); sindy the ball, the pendulum and the spring. A system a method does not declare raises

@@ -391,7 +391,7 @@ def test_fingerprint_covers_the_shared_sources():
 
     names = {f.as_posix().split("/sysid_bench/")[-1].split("/methods/")[-1]
              for f in fingerprint_files("lsq")}
-    assert {"lsq.py", "_points.py", "_nuts_points.py", "_simulation.py", "_tracks.py"} <= names
+    assert {"lsq.py", "_points.py", "_simulation.py", "_tracks.py"} <= names
     assert {"systems/pendulum.py", "physics.py", "simulator.py"} <= names
     files = fingerprint_files("vid2param")
     assert any(f.suffix == ".pt" for f in files) and len(files) == len(set(files))

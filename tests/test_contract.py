@@ -109,7 +109,11 @@ def test_checks_do_not_depend_on_their_order(name):
     for order in (checks[::-1], random.Random(3).sample(checks, len(checks))):
         for _, run in order:
             run()
-    for check_name, _ in checks:  # each alone, on a fresh estimator
+    # each alone, on a fresh estimator (the per-system checks build a fresh estimator for their
+    # system anyway, and ran out of order above: not a third time, to keep this test quick)
+    for check_name, _ in checks:
+        if check_name.startswith("check_on_system_"):
+            continue
         fresh = methods.get(name, **methods.spec(name).contract_options)
         dict(estimator_checks(fresh))[check_name]()
 
