@@ -289,3 +289,42 @@ def test_a_known_initial_state_is_used_as_given():
         Observation(positions=pts, state0=state0, system="spring"))
     assert post.extras["state0_known"] and np.allclose(post.extras["state0"], state0)
     assert np.all(np.abs(post.mean - theta) < 4 * post.std + 1e-9)
+
+
+# ------------------------------------------------------------------------------------------
+# a system a user registers: the methods that declare "any" run on it with no other change
+@pytest.fixture
+def decay(tmp_path, monkeypatch):
+    import re
+    import sys
+    from pathlib import Path
+
+    doc = Path(__file__).resolve().parents[1] / "docs" / "adding-a-system.md"
+    module = re.findall(r"```python\n(.*?)```", doc.read_text(), flags=re.S)[0]
+    (tmp_path / "toy_decay_methods.py").write_text(module)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    systems.register("decay", "toy_decay_methods:Decay")
+    yield "decay"
+    systems.unregister("decay")
+    sys.modules.pop("toy_decay_methods", None)
+
+
+def test_a_registered_system_gets_every_method_that_declares_any(decay):
+    from methods import NotAvailable
+    from sysid_bench.testing import check_estimator, estimator_checks
+
+    system = systems.get(decay)
+    rng = np.random.default_rng(5)
+    theta = system.sample_theta(1, rng, "test")
+    state0 = system.sample_state0(1, rng)
+    pts = system.observe(system.simulate(theta, state0, n_frames=60), theta)[0]
+    obs = Observation(positions=pts, state0=state0[0], system=decay)  # it tracks no start
+    est = methods.get("lsq", system=decay, **CHEAP["lsq"])
+    post = est.identify(obs)
+    _check_posterior(post, system)
+    assert post.check is not None
+    _check_forecast(est.forecast(obs, 7), system, 7)
+    check_estimator(methods.get("prior"))  # its checks include the new system's
+    assert "check_on_system_decay" in dict(estimator_checks(methods.get("prior")))
+    with pytest.raises(NotAvailable, match="sindy is n/a on the decay system"):
+        methods.get("sindy", system=decay)
