@@ -184,7 +184,8 @@ class Emcee(SimulationOnSystems):
     scale_cases = {"smoke": 1}
     scale_options = {"smoke": {"n_walkers": 20, "n_steps": 20, "n_burn": 10}}
     #: cheap budgets for check_estimator (same code path)
-    contract_options = {"n_walkers": 18, "n_steps": 12, "n_burn": 4, "n_init": 100, "max_opt_evals": 10}
+    contract_options = {"n_walkers": 18, "n_steps": 12, "n_burn": 4, "n_init": 100, "max_opt_evals": 10,
+                        "search_rounds": 2, "n_starts": 1}
     per_system_defaults = {"n_init": (500, 2000), "max_opt_evals": (60, 100)}
 
     def __init__(

@@ -106,7 +106,7 @@ class LSQ(SimulationOnSystems):
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)
     figure_order = 3
     #: cheap budgets for check_estimator (same code path)
-    contract_options = {"n_samples": 200, "max_opt_evals": 20}
+    contract_options = {"n_samples": 200, "search_rounds": 2, "n_starts": 1, "max_opt_evals": 20}
 
     def __init__(
         self,
