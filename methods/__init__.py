@@ -20,11 +20,17 @@ import the modules they run or draw anyway.
 >>> est = methods.get("lsq", n_samples=500)          # doctest: +SKIP
 >>> est = methods.get("nuts", system="pendulum")    # doctest: +SKIP
 
-On the systems other than the ball (:mod:`sysid_bench.systems`) a method runs through the class
-its registration names as ``on_systems``: lsq, bo, emcee and nuts share one generic likelihood on
-the system's tracked points (:mod:`methods._system_fit`, :mod:`methods._system_nuts`), sindy has a
-feature library per system (:mod:`methods._system_sindy`), dmd forecasts the points of any system;
-a method without one (Vid2Param: no model shipped for that system) raises :class:`NotAvailable`.
+Every method is one class that runs on each system it declares (``systems``, a tuple of names
+or ``"any"``; :mod:`sysid_bench.spec`), picked by its ``system`` hyperparameter: on the ball it
+runs the ball's machinery (:mod:`methods._simulation`, :mod:`methods._tracks`), on another system
+it composes the generic likelihood on the system's tracked points (:mod:`methods._points`; nuts
+samples through the system's JAX twin) or, for sindy, the system's feature
+library (:mod:`methods._sindy_libraries`). lsq, bo, emcee, nuts, dmd and prior declare
+``"any"`` (a system a user registers included; nuts answers n/a where the system has no JAX
+twin); sindy the ball, the pendulum and the spring. A system a method does not declare raises
+:class:`NotAvailable`. Vid2Param is the last method still in two classes: its registration names
+the class for the other systems (``on_systems``, :mod:`methods.vid2param.system_estimator`),
+which raises :class:`NotAvailable` where no model is shipped.
 """
 
 from __future__ import annotations
@@ -59,8 +65,8 @@ class Registration:
     entry_point: str
     requires: tuple[str, ...] = ()
     reference: bool = False
-    #: ``"module:Class"`` of the method on the systems other than the ball (the class takes a
-    #: ``system`` hyperparameter); ``""``: the method runs on the ball only (n/a elsewhere)
+    #: Vid2Param only (its network per system is still a second class): ``"module:Class"`` of
+    #: the method on the systems other than the ball; ``""``: the class's ``systems`` decide
     on_systems: str = ""
 
 
@@ -71,8 +77,9 @@ def register(name: str, entry_point: str, requires=(), reference: bool = False,
              on_systems: str = "") -> None:
     """Add a method. ``entry_point`` is ``"package.module:ClassName"``; nothing is imported.
 
-    ``on_systems`` is the ``"module:Class"`` that runs the method on the other registered
-    systems (see :func:`get`); leave it empty for a ball-only method.
+    The class declares the systems it runs on (``systems``); ``on_systems`` (a second
+    ``"module:Class"`` for the other systems) is left for Vid2Param's per-system networks:
+    leave it empty.
     """
     if not isinstance(name, str) or not name:
         raise ValueError(f"name: expected a non-empty str, got {name!r}")
@@ -96,18 +103,13 @@ register("vid2param", "methods.vid2param:Vid2Param", requires=("torch",),
          on_systems="methods.vid2param.system_estimator:SystemVid2Param")
 register("vid2param-physics", "methods.vid2param:Vid2ParamPhysics", requires=("torch",))
 register("vid2param-changing", "methods.vid2param:Vid2ParamChanging", requires=("torch",))
-register("nuts", "methods.nuts:NUTS", requires=("jax", "numpyro"),
-         on_systems="methods._system_nuts:SystemNUTS")
-register("emcee", "methods.ensemble:Emcee", requires=("emcee",),
-         on_systems="methods._system_fit:SystemEmcee")
-register("lsq", "methods.lsq:LSQ", on_systems="methods._system_fit:SystemLSQ")
-register("bo", "methods.bo:BayesOpt", requires=("skopt",),
-         on_systems="methods._system_fit:SystemBO")
-register("sindy", "methods.sindy:SINDy", requires=("pysindy",),
-         on_systems="methods._system_sindy:SystemSINDy")
-register("dmd", "methods.dmd:DMD", requires=("pydmd",), on_systems="methods._system_fit:SystemDMD")
-register("prior", "methods.prior:PriorOnly", reference=True,
-         on_systems="methods._system_fit:SystemPrior")
+register("nuts", "methods.nuts:NUTS", requires=("jax", "numpyro"))
+register("emcee", "methods.ensemble:Emcee", requires=("emcee",))
+register("lsq", "methods.lsq:LSQ")
+register("bo", "methods.bo:BayesOpt", requires=("skopt",))
+register("sindy", "methods.sindy:SINDy", requires=("pysindy",))
+register("dmd", "methods.dmd:DMD", requires=("pydmd",))
+register("prior", "methods.prior:PriorOnly", reference=True)
 
 
 #: Commands the methods ship, run by ``sysid-bench NAME ...`` with the rest of the command line:
@@ -177,46 +179,54 @@ def _import_class(spec: Registration, entry_point: str) -> type[Estimator]:
 
 
 def get_class(name: str, system: str = "ball") -> type[Estimator]:
-    """Import and return the class registered under ``name`` (for ``system``).
+    """Import and return the class registered under ``name`` that runs on ``system``.
 
     Raises
     ------
     ValueError
-        An unknown method or system, or a method that does not run on ``system`` (n/a).
+        An unknown method or system, or a method that does not run on ``system``
+        (:class:`NotAvailable`, n/a: the class does not declare it).
     """
     if name not in _REGISTRY:
         raise _unknown(name)
-    spec = _REGISTRY[name]
+    reg = _REGISTRY[name]
     if isinstance(system, str) and system == "ball":
-        return _import_class(spec, spec.entry_point)
+        return _import_class(reg, reg.entry_point)
     from sysid_bench import systems
 
     sys_name = systems.get(system).name  # ValueError listing the known systems
+    cls = _import_class(reg, reg.entry_point)
     if sys_name == "ball":
-        return _import_class(spec, spec.entry_point)
-    if not spec.on_systems:
-        raise NotAvailable(
-            f"system: {name!r} is n/a on the {sys_name} system: no model is shipped for it "
-            f"({name} runs on the ball only)"
-        )
-    return _import_class(spec, spec.on_systems)
+        return cls
+    if reg.on_systems:  # Vid2Param's networks per system (the last second class)
+        return _import_class(reg, reg.on_systems)
+    declared = cls.spec().systems
+    if declared == "any" or sys_name in declared:
+        return cls
+    reason = getattr(cls, "na_reason", None)
+    if callable(reason):
+        raise NotAvailable(reason(sys_name))
+    if tuple(declared) == ("ball",):
+        raise NotAvailable(f"system: {name!r} is n/a on the {sys_name} system: no model is "
+                           f"shipped for it ({name} runs on the ball only)")
+    raise NotAvailable(f"system: {name!r} is n/a on the {sys_name} system: it runs on "
+                       f"{', '.join(declared)}")
 
 
 def get(name: str, system: str = "ball", **options) -> Estimator:
     """A ready-to-use estimator for ``system``; ``options`` are its keyword hyperparameters.
 
-    ``system`` is a registered system name (:func:`sysid_bench.systems.available`). The ball
-    gets the method's own class; another system the class registered as ``on_systems`` (the
-    simulation methods' generic path, :mod:`methods._system_fit`), built with ``system=``.
-    A method with none (Vid2Param: no model shipped for that system) raises
-    :class:`NotAvailable` (a ``ValueError`` and a ``NotImplementedError``, so recorded as n/a).
+    ``system`` is a registered system name (:func:`sysid_bench.systems.available`): the method's
+    one class, built with ``system=`` (a class that runs on the ball only takes none). A system
+    the method does not declare (``systems``) raises :class:`NotAvailable` (a ``ValueError``
+    and a ``NotImplementedError``, so recorded as n/a).
     """
     cls = get_class(name, system)
     if not (isinstance(system, str) and system == "ball"):
         from sysid_bench import systems
 
         sys_name = systems.get(system).name
-        if sys_name != "ball":
+        if sys_name != "ball" or "system" in cls._param_names():
             options = {**options, "system": sys_name}
     try:
         return cls(**options)

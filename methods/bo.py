@@ -21,6 +21,12 @@ squares with the parameters held: bo does not search the start) against the seen
 the intervals to what the data supports (:func:`methods._simulation.widen_to_support`: to hold
 the best fit a local least-squares refinement from the mean finds, or to at least the prior's
 when even that fit fails); its simulations are in ``extras["check_simulations"]``.
+
+On any other registered system (``system=``; the generic points likelihood of
+:mod:`methods._points`): the same search of the log mean squared point error over the P
+parameters in [0, 1], the initial state held at its estimate, spread from the GP surrogate over
+prior draws with tempered likelihood weights; a failed model check widens the intervals to the
+prior.
 """
 
 from __future__ import annotations
@@ -29,14 +35,15 @@ import warnings
 
 import numpy as np
 
-from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng, one_blas_thread
+from methods._points import Points, SimulationOnSystems, SystemFit, prepare_system
+from methods._simulation import Fit, Stopwatch, make_rng, one_blas_thread
 from methods._tracks import clip_state, prepare
 from methods._weights import resample, tempered_weights
 from sysid_bench import physics
 from sysid_bench._validate import check_positive_int
 from sysid_bench.estimator import Observation, Posterior
 from sysid_bench.physics import PRIOR_MEAN, PRIOR_STD
-from sysid_bench.simulator import DEFAULT_SIGMA, CountingSimulator, check_sigma, mean_sq_error
+from sysid_bench.simulator import CountingSimulator, check_sigma, mean_sq_error
 
 __all__ = ["BayesOpt"]
 
@@ -45,11 +52,13 @@ _DESIGNS = ("random", "sobol", "halton", "hammersly", "lhs", "grid")
 _ACQUISITIONS = ("EI", "PI", "LCB", "gp_hedge")
 
 
-class BayesOpt(SimulationMethod):
+class BayesOpt(SimulationOnSystems):
     """Gaussian-process Bayesian optimisation (scikit-optimize) of the trajectory fit.
 
     Parameters
     ----------
+    system : str
+        A registered system (:func:`sysid_bench.systems.available`); the class runs on any.
     n_calls : int
         Objective evaluations (one simulation each), initial design included.
     n_initial_points : int
@@ -60,8 +69,10 @@ class BayesOpt(SimulationMethod):
         skopt design of the initial points. ``"sobol"``: on 20 test cases (known initial state,
         clean positions) it halved the normalised MSE on e, g, d against ``"random"``
         (0.015-0.024 vs 0.027-0.041 over three seeds).
-    sigma : float
-        Position noise (m) of the likelihood used to turn the surrogate into a spread.
+    sigma : float, optional
+        Position noise (m) of the likelihood used to turn the surrogate into a spread; None:
+        ``DEFAULT_SIGMA`` on the ball, the system's :func:`methods._points.default_sigma`
+        elsewhere.
     n_surrogate : int
         Prior draws scored by the surrogate for that spread.
     min_ess : int
@@ -91,16 +102,18 @@ class BayesOpt(SimulationMethod):
     def __init__(
         self,
         *,
+        system: str = "ball",
         n_calls: int = 20,
         n_initial_points: int = 10,
         acq_func: str = "EI",
         initial_point_generator: str = "sobol",
-        sigma: float = DEFAULT_SIGMA,
+        sigma: float | None = None,
         n_surrogate: int = 4096,
         min_ess: int = 20,
         n_forecast: int = 64,
         seed: int = 0,
     ):
+        self.system = system
         self.n_calls = n_calls
         self.n_initial_points = n_initial_points
         self.acq_func = acq_func
@@ -120,7 +133,6 @@ class BayesOpt(SimulationMethod):
         min_ess = check_positive_int(self.min_ess, "min_ess", minimum=2)
         check_positive_int(self.n_surrogate, "n_surrogate", minimum=min_ess)
         check_positive_int(self.n_forecast, "n_forecast")
-        check_sigma(self.sigma)
         if self.initial_point_generator not in _DESIGNS:
             raise ValueError(f"initial_point_generator: expected one of {', '.join(_DESIGNS)}, "
                              f"got {self.initial_point_generator!r}")
@@ -145,7 +157,7 @@ class BayesOpt(SimulationMethod):
             raise ValueError(f"n_initial_points: expected at most n_calls={n_calls}, got {n_init}")
         n_sur = check_positive_int(self.n_surrogate, "n_surrogate")
         min_ess = check_positive_int(self.min_ess, "min_ess")
-        sigma = check_sigma(self.sigma)
+        sigma = check_sigma(self._sigma())
         if self.initial_point_generator not in ("random", "sobol", "halton", "hammersly", "lhs", "grid"):
             raise ValueError(
                 "initial_point_generator: expected one of random, sobol, halton, hammersly, lhs, grid, "
@@ -223,3 +235,62 @@ class BayesOpt(SimulationMethod):
         track = fit.track
         s0 = track.state0 + track.state0_std * rng.standard_normal((len(idx), 4))
         return clip_state(s0, track.floor)
+
+    def _fit_points(self, obs: Observation, part: Points) -> SystemFit:
+        """Another system: the GP search with the start held at its estimate (see the module)."""
+        from skopt import gp_minimize
+
+        clock = Stopwatch()
+        track = prepare_system(obs, part.system, part.min_frames)
+        fixed = Observation(positions=track.positions, dt=track.dt, state0=track.state0,
+                            system=track.system.name)
+        prob = part.problem(fixed)  # the start held at its estimate: P dimensions only
+        prob.track.input_kind, prob.track.state0_known = track.input_kind, track.state0_known
+        rng = make_rng(self.seed, 0)
+        P, n_sur = prob.P, int(self.n_surrogate)
+
+        def objective(u):
+            sse = min(prob.sse(np.asarray(u, dtype=np.float64)[None])[0], 1e6)  # refused: 1e6
+            return float(np.log(max(sse / max(prob.n_coords, 1), 1e-12)))
+
+        info = {"ok": True, "message": ""}
+        try:
+            with warnings.catch_warnings(), one_blas_thread():
+                warnings.simplefilter("ignore", UserWarning)  # re-proposed points
+                res = gp_minimize(objective, [(0.0, 1.0)] * P, n_calls=int(self.n_calls),
+                                  n_initial_points=int(self.n_initial_points),
+                                  acq_func=self.acq_func, random_state=int(rng.integers(2**31)),
+                                  initial_point_generator=self.initial_point_generator)
+        except (ValueError, np.linalg.LinAlgError, RuntimeError, FloatingPointError) as exc:
+            res = None
+            info.update(ok=False, message=f"gp_minimize failed: {exc}")
+        if res is None:
+            u = rng.random((n_sur, P))
+            w = np.full(n_sur, 1.0 / n_sur)
+            u_best, best_mse, ess, beta = np.full(P, 0.5), np.inf, float(n_sur), 0.0
+        else:
+            u = np.vstack([rng.random((n_sur, P)), np.asarray(res.x_iters, dtype=np.float64)])
+            model = res.models[-1] if res.models else None
+            if model is not None:
+                log_mse = model.predict(res.space.transform(u.tolist()))
+                log_mse[n_sur:] = res.func_vals
+            else:
+                u = np.asarray(res.x_iters, dtype=np.float64)
+                log_mse = np.asarray(res.func_vals, dtype=np.float64)
+            u_best, best_mse = np.asarray(res.x, dtype=np.float64), float(np.exp(res.fun))
+            sigma_eff = max(prob.sigma, np.sqrt(best_mse))
+            w, beta, ess = tempered_weights(-0.5 * prob.n_coords * np.exp(log_mse) / sigma_eff**2,
+                                            int(self.min_ess))
+            info["sigma_eff"] = float(sigma_eff)
+        samples, _ = prob.split(u)
+        mean, s0 = prob.split(u_best)
+        std = np.sqrt(np.sum(w[:, None] * (samples - mean) ** 2, axis=0))
+        idx = resample(w, max(min(n_sur // 4, 1024), 1), rng)
+        check = prob.check(mean, s0)
+        extras = {"n_simulations": prob.sim.n_simulations, "wall_s": clock(),
+                  "best_rmse": float(np.sqrt(best_mse)) if np.isfinite(best_mse) else None,
+                  "ess": ess, "beta": beta, "state0": s0.tolist(), **info,
+                  **prob.track.describe()}
+        post = part.posterior(prob, mean, std, samples[idx], extras, check)
+        return SystemFit(post, samples, np.broadcast_to(s0, (len(samples), prob.S)).copy(), w,
+                         prob, clock)

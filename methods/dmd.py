@@ -14,6 +14,10 @@ the series)) and forecasts them; its RMS error over the first ``k`` steps is the
 ``k`` (held constant beyond ``h``), never below the in-sample reconstruction RMS.
 
 DMD identifies no physical parameters: ``identify`` raises ``NotImplementedError``.
+
+On any other registered system the series is the 2K coordinates of its K tracked points
+(tracked with the system's own ``track`` when only frames are given); the forecast is (H, 2)
+for one point, (H, K, 2) for K > 1.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import warnings
 
 import numpy as np
 
+from methods._points import check_system_param, prepare_system, system_of
 from methods._simulation import one_blas_thread
 from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, observed_positions
 
@@ -34,6 +39,8 @@ class DMD(Estimator):
 
     Parameters
     ----------
+    system : str
+        A registered system (:func:`sysid_bench.systems.available`); the class runs on any.
     delays : int
         Time-delay embedding depth ``d`` of ``HankelDMD``; 0 picks ``min(n // 2, 60)`` for a
         series of ``n`` frames.
@@ -59,8 +66,11 @@ class DMD(Estimator):
     cost = 2
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)
     figure_order = 6
+    systems = "any"
 
-    def __init__(self, *, delays: int = 0, svd_rank: float = 0.99999, stabilize: bool = True, seed: int = 0):
+    def __init__(self, *, system: str = "ball", delays: int = 0, svd_rank: float = 0.99999,
+                 stabilize: bool = True, seed: int = 0):
+        self.system = system
         self.delays = delays
         self.svd_rank = svd_rank
         self.stabilize = stabilize
@@ -68,6 +78,7 @@ class DMD(Estimator):
 
     def _validate(self) -> None:
         super()._validate()
+        check_system_param(self)
         d = self.delays
         if isinstance(d, bool) or not isinstance(d, (int, np.integer)) or d < 0:
             raise ValueError(f"delays: expected an integer >= 0 (0 = automatic), got {d!r}")
@@ -125,8 +136,11 @@ class DMD(Estimator):
         Forecast
             mean/std (horizon, 2), no samples; ``extras`` holds ``n_simulations`` (0),
             ``wall_s``, ``delays``, ``rank`` and the ``insample_rms``/``backtest_rms`` (m).
+            Another system: the points, (horizon, 2) or (horizon, K, 2) for K > 1.
         """
         t0 = time.perf_counter()
+        if self.system != "ball":
+            return self._forecast_points(obs, horizon, t0)
         if not isinstance(obs, Observation):
             raise ValueError(f"obs: expected a sysid_bench.estimator.Observation, got {type(obs).__name__}")
         pos = observed_positions(obs, min_seen=3)
@@ -138,6 +152,18 @@ class DMD(Estimator):
             "input": "positions" if obs.positions is not None else "frames",
         }
         return Forecast(mean=mean, std=std, samples=None, extras=extras)
+
+    def _forecast_points(self, obs: Observation, horizon: int, t0: float) -> Forecast:
+        """The forecast of the K tracked points of a system other than the ball."""
+        system = system_of(self.system)
+        track = prepare_system(obs, system, self.min_frames)
+        pos = track.positions.reshape(track.n_frames, -1)  # (T, 2K)
+        mean, std, info = self._forecast_series(pos, horizon)
+        K = system.n_points
+        shape = (horizon, 2) if K == 1 else (horizon, K, 2)
+        extras = {"n_simulations": 0, "wall_s": time.perf_counter() - t0, **info,
+                  "input": track.input_kind}
+        return Forecast(mean=mean.reshape(shape), std=std.reshape(shape), extras=extras)
 
     def _forecast_series(self, pos: np.ndarray, horizon: int):
         """Forecast of a series ``pos`` (T, C) of C coordinates (the ball's C = 2; a system's

@@ -34,6 +34,12 @@ simulated from the mean of the draws' initial states (and floors) against the se
 the intervals to what the data supports (:func:`methods._simulation.widen_to_support`: to hold
 the best fit a local least-squares refinement from the mean finds, or to at least the prior's
 when even that fit fails); its simulations are in ``extras["check_simulations"]``.
+
+On any other registered system (``system=``; the generic points likelihood of
+:mod:`methods._points`): walkers start from the Laplace approximation at the optimum that the
+cross-entropy search (``n_init`` simulations over ``search_rounds`` rounds) and ``least_squares``
+from its ``n_starts`` best points find; the same moves, diagnostics and convergence rule (no
+``tau_reliable``); a failed model check widens the intervals to the prior.
 """
 
 from __future__ import annotations
@@ -43,14 +49,14 @@ import warnings
 
 import numpy as np
 
-from methods._simulation import Fit, SimulationMethod, Stopwatch, make_rng, one_blas_thread
+from methods._points import Points, SimulationOnSystems, SystemFit, draw_inside, refine, search
+from methods._simulation import Fit, Stopwatch, make_rng, one_blas_thread
 from methods._tracks import clip_state, prepare
 from sysid_bench import physics
 from sysid_bench._validate import check_number, check_positive_int
 from sysid_bench.estimator import Observation, Posterior
 from sysid_bench.physics import PRIOR_SPAN as SPAN
 from sysid_bench.simulator import (
-    DEFAULT_SIGMA,
     CountingSimulator,
     check_sigma,
     gaussian_loglik,
@@ -131,26 +137,34 @@ class _Problem:
         return r.reshape(pos.shape[0], -1)
 
 
-class Emcee(SimulationMethod):
+class Emcee(SimulationOnSystems):
     """Ensemble MCMC (``emcee``) of the physical parameters, started at the likelihood's peak.
 
     Parameters
     ----------
+    system : str
+        A registered system (:func:`sysid_bench.systems.available`); the class runs on any.
     n_walkers : int
-        Walkers (even, at least twice the dimension: 4, or 8 with an unknown initial state).
+        Walkers (even, at least twice the dimension: 4, or 8 with an unknown initial state;
+        another system: its parameters plus, when unknown, its state variables).
     n_steps : int
         Steps per walker, burn-in included.
     n_burn : int
         Steps discarded.
-    sigma : float
-        Position noise standard deviation (m) of the likelihood.
-    n_init : int
-        Prior draws simulated in one batch to find the start of the local optimiser.
-    max_opt_evals : int
-        Residual evaluations allowed to ``scipy.optimize.least_squares``.
+    sigma : float, optional
+        Position noise standard deviation (m) of the likelihood; None: ``DEFAULT_SIGMA`` on the
+        ball, the system's :func:`methods._points.default_sigma` elsewhere.
+    n_init : int, optional
+        Prior draws simulated in one batch to find the start of the local optimiser (another
+        system: simulations of the search); None: 500 on the ball, 2000 elsewhere.
+    max_opt_evals : int, optional
+        Residual evaluations allowed to ``scipy.optimize.least_squares``; None: 60 on the
+        ball, 100 elsewhere.
     state0_box : float
-        Half-width, in standard errors of the estimate, of the flat prior on an unknown initial
-        state or floor.
+        The ball only: half-width, in standard errors of the estimate, of the flat prior on an
+        unknown initial state or floor (elsewhere the box comes from the system).
+    search_rounds, n_starts : int
+        Another system only: rounds of the search and best distinct points refined.
     n_forecast : int
         Posterior samples simulated forward by ``forecast``.
     progress : bool
@@ -170,22 +184,28 @@ class Emcee(SimulationMethod):
     scale_cases = {"smoke": 1}
     scale_options = {"smoke": {"n_walkers": 20, "n_steps": 20, "n_burn": 10}}
     #: cheap budgets for check_estimator (same code path)
-    contract_options = {"n_walkers": 18, "n_steps": 12, "n_burn": 4, "n_init": 100, "max_opt_evals": 10}
+    contract_options = {"n_walkers": 18, "n_steps": 12, "n_burn": 4, "n_init": 100, "max_opt_evals": 10,
+                        "search_rounds": 2, "n_starts": 1}
+    per_system_defaults = {"n_init": (500, 2000), "max_opt_evals": (60, 100)}
 
     def __init__(
         self,
         *,
+        system: str = "ball",
         n_walkers: int = 32,
         n_steps: int = 120,
         n_burn: int = 40,
-        sigma: float = DEFAULT_SIGMA,
-        n_init: int = 500,
-        max_opt_evals: int = 60,
+        sigma: float | None = None,
+        n_init: int | None = None,
+        max_opt_evals: int | None = None,
         state0_box: float = 20.0,
+        search_rounds: int = 4,
+        n_starts: int = 5,
         n_forecast: int = 64,
         progress: bool = False,
         seed: int = 0,
     ):
+        self.system = system
         self.n_walkers = n_walkers
         self.n_steps = n_steps
         self.n_burn = n_burn
@@ -193,13 +213,14 @@ class Emcee(SimulationMethod):
         self.n_init = n_init
         self.max_opt_evals = max_opt_evals
         self.state0_box = state0_box
+        self.search_rounds = search_rounds
+        self.n_starts = n_starts
         self.n_forecast = n_forecast
         self.progress = progress
         self.seed = seed
 
     def _validate(self) -> None:
         super()._validate()
-        check_sigma(self.sigma)
         n_walkers = check_positive_int(self.n_walkers, "n_walkers", minimum=8)
         if n_walkers % 2:
             raise ValueError(f"n_walkers: expected an even number >= 8, got {n_walkers}")
@@ -207,8 +228,10 @@ class Emcee(SimulationMethod):
         n_burn = check_positive_int(self.n_burn, "n_burn", minimum=0)
         if n_burn >= n_steps:
             raise ValueError(f"n_burn: expected fewer than n_steps={n_steps}, got {n_burn}")
-        check_positive_int(self.n_init, "n_init")
-        check_positive_int(self.max_opt_evals, "max_opt_evals")
+        for k in ("n_init", "max_opt_evals"):
+            check_positive_int(self._hp(k), k)
+        for k in ("search_rounds", "n_starts"):
+            check_positive_int(getattr(self, k), k)
         check_positive_int(self.n_forecast, "n_forecast")
         check_number(self.state0_box, "state0_box", lo=1e-9)
 
@@ -217,7 +240,7 @@ class Emcee(SimulationMethod):
         """Best prior draw, refined by least squares; returns (z_opt, laplace_cov, opt_info)."""
         from scipy.optimize import least_squares
 
-        n_init = check_positive_int(self.n_init, "n_init")
+        n_init = check_positive_int(self._hp("n_init"), "n_init")
         z = np.zeros((n_init, prob.ndim))
         z[:, :4] = rng.random((n_init, 4))
         pos = prob.simulate(z)
@@ -244,7 +267,7 @@ class Emcee(SimulationMethod):
             with one_blas_thread():
                 res = least_squares(
                     fun, z0, jac=jac, bounds=(prob.lo, prob.hi), method="dogbox",
-                    max_nfev=check_positive_int(self.max_opt_evals, "max_opt_evals"),
+                    max_nfev=check_positive_int(self._hp("max_opt_evals"), "max_opt_evals"),
                 )
             z_opt, J = res.x, res.jac
             info.update(opt_status=int(res.status), opt_message=str(res.message), opt_cost=float(res.cost))
@@ -289,7 +312,7 @@ class Emcee(SimulationMethod):
         import emcee
 
         clock = Stopwatch()
-        sigma = check_sigma(self.sigma)
+        sigma = check_sigma(self._sigma())
         n_walkers = check_positive_int(self.n_walkers, "n_walkers")
         n_steps = check_positive_int(self.n_steps, "n_steps")
         n_burn = check_positive_int(self.n_burn, "n_burn", minimum=0)
@@ -360,3 +383,58 @@ class Emcee(SimulationMethod):
         }
         post = Posterior(mean=theta.mean(axis=0), std=std, samples=theta, extras=extras)
         return Fit(post, theta, np.asarray(s0), floors, track, sim, clock)
+
+    def _fit_points(self, obs: Observation, part: Points) -> SystemFit:
+        """Another system: walkers from the Laplace approximation at the refined optimum."""
+        import emcee
+
+        clock = Stopwatch()
+        prob = part.problem(obs)
+        nw, D = int(self.n_walkers), prob.ndim
+        if nw < 2 * D:
+            raise ValueError(f"n_walkers: expected an even number >= {2 * D} for {D} dimensions "
+                             f"on the {prob.system.name} system, got {nw}")
+        rng = make_rng(self.seed, 0)
+        starts, info = search(prob, rng, int(self._hp("n_init")), int(self.search_rounds),
+                              int(self.n_starts))
+        u_opt, cov, opt = refine(prob, starts, int(self._hp("max_opt_evals")))
+        p0 = draw_inside(u_opt, cov, nw, rng)
+        sampler = emcee.EnsembleSampler(
+            nw, D, prob.log_prob, vectorize=True,
+            moves=[(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)],
+        )
+        state = emcee.State(p0, random_state=np.random.RandomState(rng.integers(2**31)).get_state())
+        sampler.run_mcmc(state, int(self.n_steps), progress=bool(self.progress))
+        burn = int(self.n_burn)
+        chain = sampler.get_chain(discard=burn, flat=True)
+        kept = int(self.n_steps) - burn
+        log = logging.getLogger("emcee.autocorr")
+        level = log.level
+        log.setLevel(logging.ERROR)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                tau = sampler.get_autocorr_time(discard=burn, quiet=True)
+            except (emcee.autocorr.AutocorrError, ValueError, FloatingPointError) as exc:
+                tau = np.full(D, np.nan)
+                info["tau_error"] = str(exc)
+            finally:
+                log.setLevel(level)
+        tau_max = float(np.nanmax(tau)) if np.isfinite(tau).any() else np.inf
+        acc = float(np.mean(sampler.acceptance_fraction))
+        converged = bool(0.05 <= acc <= 0.9 and kept >= 10 * tau_max)
+        theta, s0 = prob.split(chain)
+        std = theta.std(axis=0)
+        lap = np.sqrt(np.diag(cov)[: prob.P]) * prob.pspan
+        if not converged:
+            std = np.maximum(std, lap)
+        check = prob.check(theta.mean(axis=0), np.asarray(s0).mean(axis=0))
+        extras = {
+            "n_simulations": prob.sim.n_simulations, "wall_s": clock(), "acceptance": acc,
+            "tau": tau[: prob.P].tolist(), "ess": float(nw * kept / tau_max)
+            if np.isfinite(tau_max) else 0.0, "converged": converged,
+            "laplace_std": lap.tolist(), "n_dim": D, "sigma": prob.sigma, **info, **opt,
+            **prob.track.describe(),
+        }
+        post = part.posterior(prob, theta.mean(axis=0), std, theta, extras, check)
+        return SystemFit(post, theta, np.asarray(s0), None, prob, clock)

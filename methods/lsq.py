@@ -27,15 +27,23 @@ supports (:func:`methods._simulation.widen_to_support`): to hold a best fit that
 at least the prior's (samples: prior draws). Measured on the report's 20 test videos (200 frames):
 residual RMS median 0.008 m, 0 checks failed (unrefined: 0.2 m, 20 failed); the refinement
 costs ~200-400 simulations and ~0.1 s per case.
+
+On any other registered system (``system=``; the generic points likelihood of
+:mod:`methods._points`): the cross-entropy search (``n_samples`` simulations over
+``search_rounds`` rounds), then ``least_squares`` from its ``n_starts`` best distinct points
+(``max_opt_evals`` each); mean the optimum, spread its Laplace approximation (widened by the
+residual RMS when that exceeds ``sigma``), samples drawn from it inside the box; a failed model
+check widens the intervals to the prior. (Best-of-a-batch alone cannot resolve periods over 200
+frames of an oscillator.)
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from methods._points import Points, SimulationOnSystems, SystemFit, draw_inside, refine, search
 from methods._simulation import (
     Fit,
-    SimulationMethod,
     Stopwatch,
     make_rng,
     refine_fit,
@@ -48,7 +56,6 @@ from sysid_bench import physics
 from sysid_bench._validate import check_positive_int
 from sysid_bench.estimator import Observation, Posterior
 from sysid_bench.simulator import (
-    DEFAULT_SIGMA,
     CountingSimulator,
     check_sigma,
     gaussian_loglik,
@@ -58,17 +65,22 @@ from sysid_bench.simulator import (
 __all__ = ["LSQ"]
 
 
-
-class LSQ(SimulationMethod):
-    """Best of a batch of prior draws by trajectory fit.
+class LSQ(SimulationOnSystems):
+    """Best of a batch of prior draws by trajectory fit (the ball); least squares from a
+    cross-entropy search (any other system). See the module.
 
     Parameters
     ----------
+    system : str
+        A registered system (:func:`sysid_bench.systems.available`); the class runs on any.
     n_samples : int
         Prior draws simulated in one batch (the paper: 2000; 5000 for its real videos); at
         least ``min_ess``, so that the reported spread rests on that many effective draws.
-    sigma : float
-        Position noise standard deviation (m) of the likelihood that weights the draws.
+        Another system: simulations of the search.
+    sigma : float, optional
+        Position noise standard deviation (m) of the likelihood that weights the draws; None:
+        ``DEFAULT_SIGMA`` on the ball, the system's :func:`methods._points.default_sigma`
+        elsewhere.
     min_ess : int
         Fewest effective draws the weights are tempered to (sets the reported spread's floor);
         at least 2.
@@ -77,6 +89,9 @@ class LSQ(SimulationMethod):
         best-of-a-batch.
     max_refine : int
         Most simulations the refinement may use.
+    search_rounds, n_starts, max_opt_evals : int
+        Another system only: rounds of the search, best distinct points refined, residual
+        evaluations per refinement.
     n_forecast : int
         Weighted draws resampled for a forecast.
     seed : int
@@ -91,30 +106,39 @@ class LSQ(SimulationMethod):
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)
     figure_order = 3
     #: cheap budgets for check_estimator (same code path)
-    contract_options = {"n_samples": 200}
+    contract_options = {"n_samples": 200, "search_rounds": 2, "n_starts": 1, "max_opt_evals": 20}
 
     def __init__(
         self,
         *,
+        system: str = "ball",
         n_samples: int = 2000,
-        sigma: float = DEFAULT_SIGMA,
+        sigma: float | None = None,
         min_ess: int = 20,
         refine: bool = True,
         max_refine: int = 900,
+        search_rounds: int = 4,
+        n_starts: int = 5,
+        max_opt_evals: int = 100,
         n_forecast: int = 64,
         seed: int = 0,
     ):
+        self.system = system
         self.n_samples = n_samples
         self.sigma = sigma
         self.min_ess = min_ess
         self.refine = refine
         self.max_refine = max_refine
+        self.search_rounds = search_rounds
+        self.n_starts = n_starts
+        self.max_opt_evals = max_opt_evals
         self.n_forecast = n_forecast
         self.seed = seed
 
     def _validate(self) -> None:
         super()._validate()
-        check_sigma(self.sigma)
+        for k in ("search_rounds", "n_starts", "max_opt_evals"):
+            check_positive_int(getattr(self, k), k)
         min_ess = check_positive_int(self.min_ess, "min_ess", minimum=2)
         # fewer draws than min_ess cannot carry the tempered weights: the spread would be that
         # of a handful of draws (0 from one), a confident answer the search has not earned
@@ -135,7 +159,7 @@ class LSQ(SimulationMethod):
         """
         clock = Stopwatch()
         n = check_positive_int(self.n_samples, "n_samples")
-        sigma = check_sigma(self.sigma)
+        sigma = check_sigma(self._sigma())
         min_ess = check_positive_int(self.min_ess, "min_ess")
         rng = make_rng(self.seed, 0)
         track = prepare(obs)
@@ -179,3 +203,28 @@ class LSQ(SimulationMethod):
         post = Posterior(mean=mean, std=std, samples=theta[idx], extras=extras)
         return Fit(post, theta, np.asarray(s0), track.floor, track, sim, clock, weights=w,
                    state0_point=np.asarray(s0_point), floor_point=track.floor)
+
+    def _fit_points(self, obs: Observation, part: Points) -> SystemFit:
+        """Another system: search, refinement, Laplace spread (see the module)."""
+        clock = Stopwatch()
+        prob = part.problem(obs)
+        rng = make_rng(self.seed, 0)
+        starts, info = search(prob, rng, int(self.n_samples), int(self.search_rounds),
+                              int(self.n_starts))
+        u, cov, opt = refine(prob, starts, int(self.max_opt_evals))
+        rms = prob.rms(u)
+        # a fit worse than the noise: the spread grows with it (the model explains less)
+        inflate = max(1.0, rms / prob.sigma) ** 2
+        cov = cov * inflate
+        theta, s0 = prob.split(u)
+        draws = draw_inside(u, cov, max(int(self.n_samples) // 4, 50), rng)
+        th_d, s0_d = prob.split(draws)
+        std = np.minimum(np.sqrt(np.diag(cov)[: prob.P]), np.sqrt(1.0 / 12.0)) * prob.pspan
+        check = prob.check(theta, s0)
+        extras = {
+            "n_simulations": prob.sim.n_simulations, "wall_s": clock(), "best_rmse": rms,
+            "sigma": prob.sigma, "cov_inflation": inflate, "state0": s0.tolist(),
+            **info, **opt, **prob.track.describe(),
+        }
+        post = part.posterior(prob, theta, std, th_d, extras, check)
+        return SystemFit(post, th_d, np.asarray(s0_d), None, prob, clock)

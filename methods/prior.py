@@ -1,7 +1,8 @@
 """A reference method that ignores the data and answers with the prior.
 
 It is the floor every method must beat (its normalised MSE is what guessing scores) and lets the
-contract test run on a method with no dependencies.
+contract test run on a method with no dependencies. It runs on any registered system: the
+system's uniform prior, and a forecast that holds the last seen points.
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ import time
 
 import numpy as np
 
+from methods._points import check_system_param, prepare_system, system_of
+from methods._simulation import make_rng
 from sysid_bench._validate import check_positive_int
 from sysid_bench.estimator import (
     Estimator,
@@ -22,10 +25,13 @@ from sysid_bench.estimator import (
 
 
 class PriorOnly(Estimator):
-    """Posterior = uniform prior; forecast = the last seen position, spread over the box.
+    """Posterior = uniform prior; forecast = the last seen position, spread over the box (the
+    ball) or the view (another system).
 
     Parameters
     ----------
+    system : str
+        A registered system (:func:`sysid_bench.systems.available`); the class runs on any.
     n_samples : int
         Prior draws returned as ``Posterior.samples``.
     seed : int
@@ -38,17 +44,30 @@ class PriorOnly(Estimator):
     cost = 0
     inline = True  # microseconds per cell: not worth a worker
     figure_order = 7
+    systems = "any"
 
-    def __init__(self, *, n_samples: int = 256, seed: int = 0):
+    def __init__(self, *, system: str = "ball", n_samples: int = 256, seed: int = 0):
+        self.system = system
         self.n_samples = n_samples
         self.seed = seed
 
     def _validate(self) -> None:
         super()._validate()
+        check_system_param(self)
         check_positive_int(self.n_samples, "n_samples")
 
     def identify(self, obs: Observation) -> Posterior:
         t0 = time.perf_counter()
+        if self.system != "ball":
+            system = system_of(self.system)
+            samples = system.sample_theta(check_positive_int(self.n_samples, "n_samples"),
+                                          make_rng(self.seed, 0))
+            mean = 0.5 * (system.prior_lo + system.prior_hi)
+            std = (system.prior_hi - system.prior_lo) / np.sqrt(12.0)
+            return Posterior(mean=mean, std=std, samples=samples,
+                             extras={"n_simulations": 0, "wall_s": time.perf_counter() - t0,
+                                     "check_reason": "the prior does not look at the observation"},
+                             system=system.name)
         if not isinstance(obs, Observation):
             raise ValueError(f"obs: expected an Observation, got {type(obs).__name__}")
         n = check_positive_int(self.n_samples, "n_samples")
@@ -60,9 +79,29 @@ class PriorOnly(Estimator):
         return post
 
     def forecast(self, obs: Observation, horizon: int) -> Forecast:
+        if self.system != "ball":
+            return self._forecast_points(obs, horizon)
         horizon = check_positive_int(horizon, "horizon")
         pos = observed_positions(obs, min_seen=1)
         last = pos[np.isfinite(pos).all(axis=1)][-1]
         mean = np.repeat(last[None, :], horizon, axis=0)
         std = np.full((horizon, 2), 10.0 / np.sqrt(12.0))
+        return Forecast(mean=mean, std=std, extras={"n_simulations": 0})
+
+    def _forecast_points(self, obs: Observation, horizon: int) -> Forecast:
+        """Another system: its last seen points held, spread over the view; (H, 2) or (H, K, 2)."""
+        system = system_of(self.system)
+        track = prepare_system(obs, system, 1)
+        K = system.n_points
+        last = np.empty((K, 2))
+        for k in range(K):
+            seen = np.flatnonzero(track.mask[:, k])
+            last[k] = track.positions[seen[-1], k] if seen.size else np.nan
+        x0, x1, y0, y1 = system.extent
+        last = np.where(np.isfinite(last), last, [[0.5 * (x0 + x1), 0.5 * (y0 + y1)]])
+        spread = np.array([x1 - x0, y1 - y0]) / np.sqrt(12.0)
+        mean = np.repeat(last[None], horizon, axis=0)
+        std = np.broadcast_to(spread, mean.shape).copy()
+        if K == 1:
+            mean, std = mean[:, 0], std[:, 0]
         return Forecast(mean=mean, std=std, extras={"n_simulations": 0})

@@ -346,21 +346,28 @@ def _segment_jackknife(coef: np.ndarray, theta: np.ndarray, acc: np.ndarray,
 
 
 class SINDy(Estimator):
-    """Hybrid SINDy: pysindy on free flight, velocity ratios at bounces, rolling deceleration.
+    """Hybrid SINDy: pysindy on free flight, velocity ratios at bounces, rolling deceleration
+    (the ball); on another system, the system's feature library
+    (:class:`methods._sindy_libraries.SINDyPoints`: the pendulum and the spring; n/a on the
+    collision, whose parameters act only at contacts).
 
     Parameters
     ----------
-    threshold : float
+    system : str
+        ``"ball"`` or a system with a library (``systems``).
+    threshold : float, optional
         STLSQ sparsity threshold on the coefficients (physical units; must stay below the
-        smallest drag constant, 5e-4, or drag is thresholded away).
+        smallest drag constant, 5e-4, or drag is thresholded away). None: 1e-4 on the ball, 0
+        elsewhere (plain least squares: the libraries are minimal).
     smoothing_window : int, optional
         0 for plain 4th-order finite differences (clean positions); an odd number >= 5 for
         Savitzky-Golay (cubic) smoothed differences over that many frames (noisy positions);
         ``None`` picks 0 when the track's own noise estimate is below 1 mm, else 9 (on 20
         tracked 28x28 test videos: normalised MSE on e, g, d 0.096 with 0, 0.040 with 7,
-        0.033 with 9, 0.038 with 11).
+        0.033 with 9, 0.038 with 11). Another system: None (the library's, 15) or an odd
+        number >= 7 (order 4 Savitzky-Golay).
     min_segment : int
-        Shortest free-flight segment used, in frames.
+        The ball only: shortest free-flight segment used, in frames.
     n_forecast : int
         Draws of parameters and last state simulated by ``forecast``.
     seed : int
@@ -374,26 +381,60 @@ class SINDy(Estimator):
     cost = 4
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)
     figure_order = 5
+    #: the ball and the systems with a feature library (methods._sindy_libraries.LIBRARIES)
+    systems = ("ball", "pendulum", "spring")
 
     def __init__(
         self,
         *,
-        threshold: float = 1e-4,
+        system: str = "ball",
+        threshold: float | None = None,
         smoothing_window: int | None = None,
         min_segment: int = 5,
         n_forecast: int = 32,
         seed: int = 0,
     ):
+        self.system = system
         self.threshold = threshold
         self.smoothing_window = smoothing_window
         self.min_segment = min_segment
         self.n_forecast = n_forecast
         self.seed = seed
 
+    @classmethod
+    def na_reason(cls, system: str) -> str:
+        """Why sindy is n/a on ``system`` (not among ``systems``): said by ``methods.get``."""
+        from methods._sindy_libraries import na_reason
+
+        return na_reason(system)
+
+    def _threshold(self):
+        """``threshold``, None read as this system's default (1e-4 on the ball, else 0)."""
+        if self.threshold is None:
+            return 1e-4 if self.system == "ball" else 0.0
+        return self.threshold
+
+    def _points(self):
+        """The part for a system other than the ball (its feature library)."""
+        from methods._sindy_libraries import SINDyPoints
+
+        return SINDyPoints(system=self.system, threshold=self._threshold(),
+                           smoothing_window=self.smoothing_window, n_forecast=self.n_forecast,
+                           seed=self.seed)
+
     def _validate(self) -> None:
         super()._validate()
-        check_number(self.threshold, "threshold", lo=0.0)
+        from methods._points import check_system_param
+
+        check_system_param(self)
+        check_number(self._threshold(), "threshold", lo=0.0)
         w = self.smoothing_window
+        if self.system != "ball":
+            if w is not None and (isinstance(w, bool) or not isinstance(w, (int, np.integer))
+                                  or w < 7 or w % 2 == 0):
+                raise ValueError(f"smoothing_window: expected None or an odd integer >= 7 on the "
+                                 f"{self.system} system, got {w!r}")
+            w = None
         if w is not None and (isinstance(w, bool) or not isinstance(w, (int, np.integer)) or w < 0
                               or (w and (w < 5 or w % 2 == 0))):
             raise ValueError(f"smoothing_window: expected None, 0 or an odd integer >= 5, got {w!r}")
@@ -418,7 +459,7 @@ class SINDy(Estimator):
         import pysindy as ps
 
         clock = Stopwatch()
-        thr = float(self.threshold)
+        thr = float(self._threshold())
         if not np.isfinite(thr) or thr < 0:
             raise ValueError(f"threshold: expected a number >= 0, got {self.threshold!r}")
         min_seg = check_positive_int(self.min_segment, "min_segment", minimum=3)
@@ -547,8 +588,11 @@ class SINDy(Estimator):
             mean/std (4,), no samples; ``extras`` has the SINDy ``coefficients`` (2, 3) over
             ``features``, the ``equations``, ``bounce_ratios``, which parameters the track
             ``informed`` and which were ``clipped`` into the prior box; ``check`` the model
-            check (see the module), ``extras["check_simulations"]`` its simulations.
+            check (see the module), ``extras["check_simulations"]`` its simulations. Another
+            system: mean/std (P,) from the library's coefficients.
         """
+        if self.system != "ball":
+            return self._points().identify(obs)
         post, track, _ = self._fit(obs)
         sim = CountingSimulator()
         post = check_posterior(post, sim, track, track.state0, track.floor, DEFAULT_SIGMA,
@@ -562,8 +606,11 @@ class SINDy(Estimator):
         Returns
         -------
         Forecast
-            mean/std (horizon, 2); samples (n_forecast, horizon, 2).
+            mean/std (horizon, 2); samples (n_forecast, horizon, 2). Another system: the
+            identified model run on from the last frame's estimated state, (H, 2) or (H, K, 2).
         """
+        if self.system != "ball":
+            return self._points().forecast(obs, horizon)
         m = check_positive_int(self.n_forecast, "n_forecast")
         post, track, clock = self._fit(obs)
         rng = make_rng(self.seed, 1)

@@ -942,6 +942,9 @@ class Estimator(abc.ABC):
     color: str | None = None
     figure_order: int | None = None
     reference_posterior: bool = False
+    #: The systems the method runs on: a tuple of registered names, or ``"any"`` (every
+    #: registered system, one a user registers included); :func:`methods.get` refuses the others
+    systems: tuple | str = ("ball",)
     contract_options: dict = MappingProxyType({})
 
     @classmethod

@@ -30,6 +30,10 @@ attribute              default     meaning
                                    position now and, if the method forecasts, forecasts itself
 ``trains``             False       ``fit`` learns from a training set (sensitivity experiment)
 ``reference_posterior`` False      the posterior calibration compares every other method with
+``systems``            ("ball",)  the systems it runs on: a tuple of registered names, or ``"any"``
+                                   (every registered system, one a user registers included); one
+                                   class answers on each (``methods.get(name, system=S)``) and
+                                   ``check_estimator`` checks it on each
 =====================  ==========  =====================================================================
 
 How the benchmark schedules it (:class:`Schedule`):
@@ -76,7 +80,7 @@ INPUT_KINDS = ("positions", "frames")
 #: the yes/no capabilities (``spec.capabilities`` lists those a method has)
 CAPABILITIES = ("identifies", "forecasts", "streams", "online", "trains")
 #: what a method is
-TRAIT_FIELDS = ("input_kind", "min_frames", *CAPABILITIES, "reference_posterior")
+TRAIT_FIELDS = ("input_kind", "min_frames", *CAPABILITIES, "reference_posterior", "systems")
 #: how the benchmark schedules it
 SCHEDULE_FIELDS = (
     "cost", "scale_cases", "scale_options", "fit_options", "pretrained", "threads_param",
@@ -115,6 +119,8 @@ class Traits:
     online: bool
     trains: bool
     reference_posterior: bool
+    #: registered system names, or ``"any"``
+    systems: tuple | str
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,6 +174,10 @@ class MethodSpec:
         """The declared yes/no capabilities, e.g. ``("identifies", "forecasts")`` (the full
         record of what the method is: ``traits``)."""
         return tuple(c for c in CAPABILITIES if getattr(self.traits, c))
+
+    def runs_on(self, system: str) -> bool:
+        """Whether the method declares ``system`` (a registered name) among its systems."""
+        return self.systems == "any" or system in self.systems
 
     @property
     def expensive(self) -> bool:
@@ -262,6 +272,12 @@ def spec_of(cls, entry_point: str | None = None) -> MethodSpec:
     for a in (*CAPABILITIES, "inline", "online_cost", "reference_posterior"):
         if not isinstance(vals[a], bool):
             raise _bad(cls, a, "True or False", vals[a])
+    sy = vals["systems"]
+    if sy != "any":
+        if (not isinstance(sy, (tuple, list)) or not sy
+                or not all(isinstance(x, str) and x for x in sy) or len(set(sy)) != len(sy)):
+            raise _bad(cls, "systems", '"any" or a non-empty tuple of distinct system names', sy)
+        vals["systems"] = tuple(sy)
     for a in ("min_frames", "cost"):
         v = vals[a]
         if isinstance(v, bool) or not isinstance(v, int) or v < (1 if a == "min_frames" else 0):

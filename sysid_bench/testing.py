@@ -14,6 +14,15 @@ that wants one test per check.
 The checks run the method on one seeded simulated ball (60 frames of 28x28 video with its true
 positions, floor and initial state), so they take what a few identifications of the method take:
 pass cheap hyperparameters (the class's ``contract_options``) for a quick run.
+
+A method that declares other systems (``systems``: a tuple of names, or ``"any"``: every
+registered system) gets one more check per system, ``check_on_system_<name>``: the same class
+built with ``system=<name>`` (the other hyperparameters as given) on one seeded clip of that
+system (:data:`N_OBS_SYSTEM` frames of its tracked points and its initial state,
+:func:`contract_observation`) answers a posterior sized by the system (or n/a with a reason),
+a forecast of its K points, the same answer twice for the same seed, and refuses the ball's
+observation with a ``ValueError`` naming ``obs``. The system's own contract is
+:func:`check_system`.
 """
 
 from __future__ import annotations
@@ -38,10 +47,13 @@ from sysid_bench.estimator import (
 )
 from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
 
-__all__ = ["check_estimator", "estimator_checks", "EstimatorCheckError", "contract_observation"]
+__all__ = ["check_estimator", "estimator_checks", "EstimatorCheckError", "contract_observation",
+           "declared_systems"]
 
 #: frames of the observation the checks use
 N_OBS = 60
+#: frames of a system's observation in the per-system checks (short: they run per system)
+N_OBS_SYSTEM = 40
 #: forecast horizon the checks ask for
 HORIZON = 10
 
@@ -63,9 +75,35 @@ def _ball():
     return states[0], frames, state0[0]
 
 
-def contract_observation(kind: str = "both") -> Observation:
+@lru_cache(maxsize=8)
+def _system_case(name: str):
+    from sysid_bench import systems
+
+    system = systems.get(name)
+    rng = np.random.default_rng([N_OBS_SYSTEM, 37])
+    theta = system.sample_theta(1, rng, "test")
+    try:
+        state0 = system.sample_state0(1, rng, theta=theta)
+    except TypeError:  # a system whose start does not depend on its parameters
+        state0 = system.sample_state0(1, rng)
+    points = system.observe(system.simulate(theta, state0, n_frames=N_OBS_SYSTEM), theta)[0]
+    return points, state0[0]
+
+
+def contract_observation(kind: str = "both", system: str = "ball") -> Observation:
     """The observation the checks use: ``"both"`` (frames, positions, floor and initial state),
-    ``"frames"`` (video only) or ``"positions"`` (positions and floor)."""
+    ``"frames"`` (video only) or ``"positions"`` (positions and floor).
+
+    On another registered ``system``: :data:`N_OBS_SYSTEM` frames of one seeded test-split case,
+    its tracked points with (``"both"``) or without (``"positions"``) the initial state.
+    """
+    if not (isinstance(system, str) and system == "ball"):
+        if kind not in ("both", "positions"):
+            raise ValueError(f"kind: expected 'both' or 'positions' on the {system} system, "
+                             f"got {kind!r}")
+        points, s0 = _system_case(system)
+        return Observation(positions=points.copy(), state0=s0.copy() if kind == "both" else None,
+                           system=system)
     states, frames, s0 = _ball()
     if kind == "frames":
         return Observation(frames=frames.copy())
@@ -388,6 +426,103 @@ def check_frames_only_input(est: Estimator, ctx: dict) -> None:
             _fail("forecast on frames only: expected a Forecast of shape (horizon, 2)")
 
 
+def declared_systems(spec) -> list[str]:
+    """The registered systems a method's ``spec`` declares (``"any"``: every registered one)."""
+    from sysid_bench import systems
+
+    known = systems.available()
+    if spec.systems == "any":
+        return known
+    return [s for s in spec.systems if s in known]
+
+
+def _on_system(est: Estimator, system: str) -> Estimator:
+    if "system" not in est.get_params():
+        _fail(f"declares the {system} system but takes no `system` hyperparameter to run on it")
+    return type(est)(**{**est.get_params(), "system": system})
+
+
+def _check_system_posterior(post, system, where: str) -> None:
+    if not isinstance(post, Posterior):
+        _fail(f"{where}: expected a Posterior, got {type(post).__name__}")
+    P = system.n_params
+    if post.system != system.name:
+        _fail(f"{where}: Posterior.system {post.system!r}, expected {system.name!r}")
+    if post.mean.shape != (P,) or post.std.shape != (P,):
+        _fail(f"{where}: mean/std of shape ({P},) expected, got {post.mean.shape}, {post.std.shape}")
+    if not (np.isfinite(post.mean).all() and np.isfinite(post.std).all()):
+        _fail(f"{where}: non-finite mean {post.mean} or std {post.std}")
+    span = system.prior_hi - system.prior_lo
+    far = (post.mean < system.prior_lo - span) | (post.mean > system.prior_hi + span)
+    if far.any():
+        _fail(f"{where}: {np.asarray(system.params)[far].tolist()} = {post.mean[far]} far outside "
+              "the prior: not physical units, or not the system's params order")
+    if post.samples is not None and (post.samples.ndim != 2 or post.samples.shape[1] != P):
+        _fail(f"{where}: samples of shape (S, {P}) expected, got {post.samples.shape}")
+    n = post.extras.get("n_simulations")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+        _fail(f"{where}: extras['n_simulations'] must be an int >= 0, got {n!r}")
+
+
+def _check_system_forecast(fc, system, horizon: int, obs: Observation, where: str) -> None:
+    if not isinstance(fc, Forecast):
+        _fail(f"{where}: expected a Forecast, got {type(fc).__name__}")
+    K = system.n_points
+    shape = (horizon, 2) if K == 1 else (horizon, K, 2)
+    if fc.mean.shape != shape or fc.std.shape != shape:
+        _fail(f"{where}: mean/std of shape {shape} expected, got {fc.mean.shape}, {fc.std.shape}")
+    if not np.isfinite(fc.mean).all():
+        _fail(f"{where}: non-finite forecast mean")
+    # metres in the system's view: the first forecast points lie near the last ones seen
+    last = np.asarray(obs.points[-1]).reshape(-1, 2)
+    first = np.asarray(fc.mean[0]).reshape(-1, 2)
+    x0, x1, y0, y1 = system.extent
+    gap = float(np.abs(first - last).max())
+    if gap > 0.25 * max(x1 - x0, y1 - y0):
+        _fail(f"{where}: the first forecast points {first.tolist()} are {gap:.3g} m from the last "
+              f"seen {last.tolist()}: not metres in the {system.name}'s view?")
+
+
+def _system_check(name: str) -> Callable[[Estimator, dict], None]:
+    def check(est: Estimator, ctx: dict) -> None:
+        from sysid_bench import systems
+
+        system = systems.get(name)
+        spec = ctx["spec"]
+        obs = contract_observation("both", name)
+        a, b = _on_system(est, name), _on_system(est, name)
+        if spec.identifies:
+            try:
+                pa = a.identify(obs)
+            except NotImplementedError as exc:  # n/a on this system: a sentence saying why
+                _reason(exc)
+                return
+            _check_system_posterior(pa, system, f"identify on the {name} system")
+            _equal(pa, b.identify(obs), f"identify of a clone on the {name} system")
+        else:
+            try:
+                a.identify(obs)
+            except NotImplementedError as exc:
+                _reason(exc)
+            else:
+                _fail(f"declares identifies = False but identify returned on the {name} system")
+        if spec.forecasts:
+            fa = a.forecast(obs, HORIZON)
+            _check_system_forecast(fa, system, HORIZON, obs, f"forecast on the {name} system")
+            if not spec.identifies:  # else the fit it continues was compared above
+                _equal(fa, b.forecast(obs, HORIZON), f"forecast of a clone on the {name} system")
+        # a method built for this system refuses another system's observation
+        _expect_value_error(lambda: a.identify(ctx["obs"]) if spec.identifies
+                            else a.forecast(ctx["obs"], HORIZON), "obs",
+                            f"the {name} system's method given the ball's observation")
+
+    check.__name__ = f"check_on_system_{name}"
+    check.__doc__ = (f"The method on the {name} system: a posterior sized by it (or n/a with a "
+                     "reason), a forecast of its points, the same answer for the same seed, the "
+                     "ball's observation refused.")
+    return check
+
+
 def estimator_checks(estimator: Estimator) -> Iterator[tuple[str, Callable[[], None]]]:
     """The checks that apply to ``estimator``, as ``(name, run)`` pairs.
 
@@ -410,6 +545,7 @@ def estimator_checks(estimator: Estimator) -> Iterator[tuple[str, Callable[[], N
     if spec.identifies:
         chosen += [check_prefixes, check_stream]
     chosen.append(check_frames_only_input)
+    chosen += [_system_check(s) for s in declared_systems(spec) if s != "ball"]
     for fn in chosen:
         def run(fn=fn):
             try:

@@ -100,7 +100,7 @@ def test_set_params_keeps_nothing_it_refused_and_drops_what_a_change_invalidates
     _refused(lambda: est.set_params(seed=-1), "seed")
     assert est.seed == 0
     _refused(lambda: est.set_params(n_samples=50, sigma="x"), "sigma")
-    assert est.get_params()["n_samples"] == 100 and est.sigma == 0.02
+    assert est.get_params()["n_samples"] == 100 and est.sigma is None  # None: DEFAULT_SIGMA
     est.identify(Observation(positions=_track(), floor=0.0))  # still usable
     v = methods.get("vid2param")
     v2 = copy.deepcopy(v)

@@ -385,13 +385,13 @@ def test_workers_share_a_jax_compilation_cache(tmp_path, monkeypatch):
 
 def test_fingerprint_covers_the_shared_sources():
     """A method's fingerprint hashes the private methods modules it may run through (the
-    systems' lsq is methods/_system_fit.py), the systems and the physics: a change there must
+    systems' lsq runs through methods/_points.py), the systems and the physics: a change there must
     recompute its stored cells."""
     from sysid_bench.bench.fingerprint import fingerprint_files
 
     names = {f.as_posix().split("/sysid_bench/")[-1].split("/methods/")[-1]
              for f in fingerprint_files("lsq")}
-    assert {"lsq.py", "_system_fit.py", "_system_nuts.py", "_simulation.py", "_tracks.py"} <= names
+    assert {"lsq.py", "_points.py", "_simulation.py", "_tracks.py"} <= names
     assert {"systems/pendulum.py", "physics.py", "simulator.py"} <= names
     files = fingerprint_files("vid2param")
     assert any(f.suffix == ".pt" for f in files) and len(files) == len(set(files))

@@ -1,4 +1,4 @@
-"""NUTS on the systems (``methods._system_nuts``): extending an unconverged chain.
+"""NUTS on the systems (``methods.nuts``): extending an unconverged chain.
 
 The budgets here are far too small for R-hat and ESS to pass, so the chain must extend as many
 times as allowed and report it; the sampling runs through one JAX compile (marked slow).

@@ -391,7 +391,7 @@ class Pendulum(System):
         return out
 
     def jax_observe(self, states, theta):
-        """The bob in JAX for NUTS (``methods._system_nuts``): states (T, 2), theta (4,) ->
+        """The bob in JAX for NUTS (``methods.nuts``): states (T, 2), theta (4,) ->
         (T, 1, 2); the same map as :meth:`_observe`, which NumPy's in-place writes keep from
         tracing."""
         import jax.numpy as jnp

@@ -1,5 +1,8 @@
 """``sindy`` on the systems other than the ball: one feature library per system, or n/a.
 
+:class:`methods.sindy.SINDy` composes :class:`SINDyPoints` (this module) for a system other than
+the ball; its ``systems`` declaration lists the ball and the systems of :data:`LIBRARIES`.
+
 SINDy regresses a state's derivatives on a library of candidate features (pysindy, STLSQ). What
 the library is, how the state is read from the tracked points and how the coefficients map to
 the physical parameters is the system's; this module holds one :class:`Library` per system it
@@ -32,9 +35,9 @@ parameters and state from their standard errors.
 Model check (``Posterior.check``): SINDy fits derivatives, so a regression can look precise on
 data its model does not explain (a frozen spring gave ``k3 = 0 +- 0``, a wrong ``dt`` a confident
 pendulum). The posterior is therefore checked as the simulation methods' are
-(:class:`methods._system_fit.Problem`'s ``check`` of the system's simulator against the observed
-points, with its noise :func:`~methods._system_fit.default_sigma`): the initial state is fitted
-with the parameters held at the posterior mean (:func:`~methods._system_fit.refine` in a box
+(:class:`methods._points.Problem`'s ``check`` of the system's simulator against the observed
+points, with its noise :func:`~methods._points.default_sigma`): the initial state is fitted
+with the parameters held at the posterior mean (:func:`~methods._points.refine` in a box
 of zero width about the mean; SINDy estimates no initial state), and when that trajectory fails
 the check a parameter vector inside the posterior's 90% interval may pass it (the same refine
 in that box), as the ball's region check. A failed check widens every interval to at least the
@@ -51,6 +54,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from methods._points import (
+    CountingSystemSimulator,
+    Problem,
+    _system,
+    default_sigma,
+    forecast_points,
+    prepare_system,
+    refine,
+)
 from methods._simulation import (
     MEAN_NOTE,
     REGION_LEVEL,
@@ -60,19 +72,10 @@ from methods._simulation import (
     make_rng,
     one_blas_thread,
 )
-from methods._system_fit import (
-    CountingSystemSimulator,
-    Problem,
-    _system,
-    default_sigma,
-    forecast_points,
-    prepare_system,
-    refine,
-)
-from sysid_bench._validate import check_number, check_positive_int
-from sysid_bench.estimator import Check, Estimator, Forecast, Observation, Posterior
+from sysid_bench._validate import check_positive_int
+from sysid_bench.estimator import Check, Forecast, Observation, Posterior
 
-__all__ = ["SystemSINDy", "LIBRARIES", "STILL_OMEGA", "CHECK_EVALS", "model_check"]
+__all__ = ["SINDyPoints", "LIBRARIES", "STILL_OMEGA", "CHECK_EVALS", "model_check", "na_reason"]
 
 #: rad/s: frames of the pendulum slower than this are left out of the regression.
 STILL_OMEGA = 0.3
@@ -332,8 +335,16 @@ def _uninformed(sim, system, theta, state0, track, noise_m: float) -> np.ndarray
     return np.where(np.isfinite(d2), d2 < UNINFORMED_CHI2 * float(noise_m) ** 2, False)
 
 
-class SystemSINDy(Estimator):
-    """SINDy with the system's feature library (see the module docstring).
+def na_reason(system: str) -> str:
+    """Why sindy is n/a on ``system`` (a registered name without a library)."""
+    return _NA.get(system, f"sindy is n/a on the {system} system: no feature library is declared "
+                           "for it (methods._sindy_libraries.LIBRARIES)")
+
+
+class SINDyPoints:
+    """SINDy with the system's feature library (see the module docstring): the part
+    :class:`methods.sindy.SINDy` composes on a system other than the ball (which checks the
+    hyperparameters).
 
     Parameters
     ----------
@@ -349,12 +360,7 @@ class SystemSINDy(Estimator):
     seed : int
     """
 
-    name = "sindy"
-    input_kind = "positions"
     min_frames = 15
-    forecasts = True
-    cost = 4
-    figure_order = 5
 
     def __init__(self, *, system: str = "spring", threshold: float = 0.0,
                  smoothing_window: int | None = None, n_forecast: int = 32, seed: int = 0):
@@ -364,22 +370,10 @@ class SystemSINDy(Estimator):
         self.n_forecast = n_forecast
         self.seed = seed
 
-    def _validate(self) -> None:
-        super()._validate()
-        _system(self.system)
-        check_number(self.threshold, "threshold", lo=0.0)
-        w = self.smoothing_window
-        if w is not None and (isinstance(w, bool) or not isinstance(w, (int, np.integer))
-                              or w < 7 or w % 2 == 0):
-            raise ValueError(f"smoothing_window: expected None or an odd integer >= 7, got {w!r}")
-        check_positive_int(self.n_forecast, "n_forecast")
-
     def _library(self, system) -> Library:
         lib = LIBRARIES.get(system.name)
         if lib is None:
-            raise NotImplementedError(_NA.get(system.name, (
-                f"sindy is n/a on the {system.name} system: no feature library is declared for "
-                "it (methods._system_sindy.LIBRARIES)")))
+            raise NotImplementedError(na_reason(system.name))
         return lib
 
     def _fit(self, obs: Observation):

@@ -1,0 +1,579 @@
+"""The generic points likelihood: what a simulation method composes on a system other than the ball.
+
+Every method is one class (``methods.get(name, system=S)``); on the ball it runs the ball's own
+machinery (:mod:`methods._simulation`, :mod:`methods._tracks`), on any other registered system
+(:mod:`sysid_bench.systems`) it composes the parts below, which need nothing but the
+:class:`~sysid_bench.systems.System` interface (so a system a user registers gets them too):
+
+* :class:`SystemTrack`: the observation as the methods see it: the K tracked points (T, K, 2)
+  (tracked from the frames with the system's own ``track`` when only frames are given), which
+  points were seen, and the initial state: ``Observation.state0`` when known, else the
+  system's ``state0_from_track`` estimate and the box around it (intersected with the system's
+  ``state_bounds``) inside which it is searched or sampled;
+* :class:`CountingSystemSimulator`: ``system.simulate`` then ``system.observe``, counting one
+  simulation per trajectory as :class:`sysid_bench.simulator.CountingSimulator` does;
+* :class:`Problem`: the likelihood. Observed points are the simulated ones plus independent
+  Gaussian noise of a fixed ``sigma`` per coordinate (default :func:`default_sigma`, the
+  system's ``noise_m`` and a fifth more for tracking error); unseen points contribute nothing;
+  the prior is uniform on the prior box and on the initial-state box. Coordinates ``u`` in the
+  unit cube: the P parameters mapped by the prior, then (when unknown) the S state variables
+  mapped by their box;
+* :func:`search` (cross-entropy rounds of batched simulations) and :func:`refine`
+  (``scipy.optimize.least_squares`` from the best points, Jacobians by forward differences in one
+  simulated batch) with the Laplace covariance at the optimum: the start of lsq, emcee and nuts
+  on the systems;
+* :class:`Points`: the part a method holds for one system (its track, problem, posterior and
+  forecast), and :class:`SimulationOnSystems`, the base of the simulation methods that picks the
+  ball's machinery or :class:`Points` by the ``system`` hyperparameter.
+
+What each method does with them is in its own module (``_fit_points`` of :mod:`methods.lsq`,
+:mod:`methods.bo`, :mod:`methods.ensemble`, :mod:`methods.nuts`).
+
+Forecasts are (H, 2) for a system with one tracked point and (H, K, 2) for K > 1.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from methods._simulation import SimulationMethod, Stopwatch, make_rng, one_blas_thread
+from methods._weights import resample
+from sysid_bench._validate import check_positive_int
+from sysid_bench.estimator import Check, Forecast, Observation, Posterior
+from sysid_bench.simulator import DEFAULT_SIGMA, SimulationBudgetExceeded, check_sigma
+
+__all__ = [
+    "SystemTrack", "CountingSystemSimulator", "Problem", "SystemFit", "Points",
+    "SimulationOnSystems", "default_sigma", "prepare_system", "search", "refine", "draw_inside",
+    "forecast_points", "system_of", "check_system_param",
+]
+
+#: ``sigma`` default: the system's ``noise_m`` times this (tracking error on top of the noise).
+SIGMA_FACTOR = 1.2
+_FD_STEP = 1e-6  # forward-difference step in the unit coordinates
+_REFUSED = 1e4  # whitened residual of a point the system refused to simulate
+_U_EPS = 1e-9
+
+
+def default_sigma(system) -> float:
+    """The likelihood's noise (m) on ``system`` when none is given: ``SIGMA_FACTOR * noise_m``."""
+    return float(SIGMA_FACTOR * system.noise_m)
+
+
+def _system(name):
+    from sysid_bench import systems
+
+    return systems.get(name)
+
+
+# ------------------------------------------------------------------------------------------
+# the observation
+@dataclass
+class SystemTrack:
+    """The observation of one system as a position method sees it.
+
+    Attributes
+    ----------
+    system : System
+    positions : ndarray, shape (T, K, 2)
+        Metres, NaN where a point is unseen.
+    mask : ndarray of bool, shape (T, K)
+    dt : float
+    state0 : ndarray, shape (S,)
+        The known initial state, or the estimate from the track.
+    state0_known : bool
+    lo, hi : ndarray, shape (S,)
+        The box searched / sampled for an unknown initial state (``lo == hi == state0`` when known).
+    input_kind : str
+        ``"positions"`` or ``"frames"`` (tracked with ``system.track``).
+    """
+
+    system: object
+    positions: np.ndarray
+    mask: np.ndarray
+    dt: float
+    state0: np.ndarray
+    state0_known: bool
+    lo: np.ndarray
+    hi: np.ndarray
+    input_kind: str
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def n_seen(self) -> int:
+        """Seen coordinates / 2 (points seen over all frames)."""
+        return int(self.mask.sum())
+
+    def describe(self) -> dict:
+        return {"input": self.input_kind, "state0_known": self.state0_known,
+                "state0_estimate": self.state0.tolist(), "system": self.system.name}
+
+
+def prepare_system(obs: Observation, system, min_seen: int = 3) -> SystemTrack:
+    """The :class:`SystemTrack` of ``obs`` (positions as given, else ``system.track(frames)``).
+
+    Raises
+    ------
+    ValueError
+        Fewer than ``min_seen`` frames with a seen point.
+    """
+    if obs.positions is not None:
+        pos, kind = np.array(obs.points, dtype=np.float64), "positions"
+    else:
+        pos, kind = np.asarray(system.track(obs.frames), dtype=np.float64), "frames"
+    mask = np.isfinite(pos).all(axis=-1)
+    n_seen = int(mask.any(axis=1).sum())
+    if n_seen < min_seen:
+        raise ValueError(
+            f"positions: expected the {system.name} system's points seen in at least {min_seen} "
+            f"frames, got {n_seen} of {pos.shape[0]}"
+        )
+    blo = np.array([system.state_bounds.get(q, (-np.inf, np.inf))[0] for q in system.state])
+    bhi = np.array([system.state_bounds.get(q, (-np.inf, np.inf))[1] for q in system.state])
+    if obs.state0 is not None:
+        s0 = np.asarray(obs.state0, dtype=np.float64)
+        return SystemTrack(system, pos, mask, float(obs.dt), s0, True, s0.copy(), s0.copy(), kind)
+    est, half = system.state0_from_track(pos, float(obs.dt))
+    est, half = np.asarray(est, dtype=np.float64), np.abs(np.asarray(half, dtype=np.float64))
+    lo = np.maximum(est - half, blo)
+    hi = np.minimum(est + half, bhi)
+    hi = np.maximum(hi, lo + 1e-9)  # an estimate on a bound still leaves a box
+    est = np.clip(est, lo, hi)
+    return SystemTrack(system, pos, mask, float(obs.dt), est, False, lo, hi, kind)
+
+
+# ------------------------------------------------------------------------------------------
+# the simulator and the likelihood
+class CountingSystemSimulator:
+    """``system.simulate`` and ``system.observe``, one simulation counted per trajectory.
+
+    Parameters
+    ----------
+    system : System
+    max_simulations : int, optional
+        Budget; a batch that would exceed it raises ``SimulationBudgetExceeded``.
+    """
+
+    def __init__(self, system, max_simulations: int | None = None) -> None:
+        self.system = system
+        self.max_simulations = max_simulations
+        self.n_simulations = 0
+
+    def __call__(self, theta, state0, n_frames: int, dt: float) -> np.ndarray:
+        """States (B, n_frames, S) of theta (B, P) from state0 (B, S)."""
+        b = int(np.shape(theta)[0])
+        if self.max_simulations is not None and self.n_simulations + b > self.max_simulations:
+            raise SimulationBudgetExceeded(
+                f"max_simulations: a batch of {b} would exceed the budget of "
+                f"{self.max_simulations} simulations ({self.n_simulations} used)"
+            )
+        out = self.system.simulate(theta, state0, n_frames=n_frames, dt=dt)
+        self.n_simulations += b
+        return out
+
+    def points(self, theta, state0, n_frames: int, dt: float) -> np.ndarray:
+        """The K tracked points (B, n_frames, K, 2) of the simulated trajectories.
+
+        A row the system refuses to simulate (``ValueError``: outside what its model is for,
+        e.g. the spring's block reaching the wall) is NaN: a search or a sampler only proposes
+        it, so it scores as impossible instead of failing the batch. The batch is split in
+        halves until the refused rows are alone.
+        """
+        theta = np.asarray(theta, dtype=np.float64)
+        state0 = np.asarray(state0, dtype=np.float64)
+        out = np.full((theta.shape[0], n_frames, self.system.n_points, 2), np.nan)
+        self._fill(out, theta, state0, np.arange(theta.shape[0]), n_frames, dt)
+        return out
+
+    def _fill(self, out, theta, state0, rows, n_frames, dt) -> None:
+        try:
+            st = self(theta[rows], state0[rows], n_frames, dt)
+        except ValueError:
+            if rows.size == 1:
+                return
+            half = rows.size // 2
+            self._fill(out, theta, state0, rows[:half], n_frames, dt)
+            self._fill(out, theta, state0, rows[half:], n_frames, dt)
+            return
+        out[rows] = self.system.observe(st, theta[rows])
+
+
+def sq_error(pts: np.ndarray, obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Sum of squared errors (...) of points (..., T, K, 2) over the seen (T, K) coordinates."""
+    m = mask[..., None]
+    diff = np.where(m, pts - np.where(m, obs, 0.0), 0.0)
+    return np.sum(diff * diff, axis=(-3, -2, -1))
+
+
+class Problem:
+    """Likelihood and prior of one track, in unit coordinates ``u`` (D,) = (P [+ S],).
+
+    Parameters
+    ----------
+    track : SystemTrack
+    sigma : float
+        Noise standard deviation (m) per coordinate.
+    sim : CountingSystemSimulator
+    """
+
+    def __init__(self, track: SystemTrack, sigma: float, sim: CountingSystemSimulator):
+        sys_ = track.system
+        self.track, self.sigma, self.sim, self.system = track, float(sigma), sim, sys_
+        self.P, self.S = sys_.n_params, sys_.n_state
+        self.free = not track.state0_known
+        self.ndim = self.P + (self.S if self.free else 0)
+        self.plo, self.pspan = sys_.prior_lo, sys_.prior_hi - sys_.prior_lo
+        self.slo, self.sspan = track.lo, track.hi - track.lo
+        rows = np.flatnonzero(track.mask.any(axis=1))
+        self.n_sim_frames = int(rows[-1]) + 1  # nothing after the last seen frame matters
+        self.obs = track.positions[: self.n_sim_frames]
+        self.mask = track.mask[: self.n_sim_frames]
+        self.n_coords = 2 * int(self.mask.sum())
+
+    @property
+    def u_state0(self) -> np.ndarray:
+        """The initial-state estimate in unit coordinates (S,)."""
+        return np.clip((self.track.state0 - self.slo) / self.sspan, 0.0, 1.0)
+
+    def split(self, u: np.ndarray):
+        """(..., D) -> theta (..., P), state0 (..., S) in physical units."""
+        u = np.clip(np.asarray(u, dtype=np.float64), 0.0, 1.0)
+        theta = self.plo + self.pspan * u[..., : self.P]
+        if self.free:
+            s0 = self.slo + self.sspan * u[..., self.P :]
+        else:
+            s0 = np.broadcast_to(self.track.state0, theta.shape[:-1] + (self.S,))
+        return theta, s0
+
+    def points(self, u: np.ndarray, n_frames: int | None = None) -> np.ndarray:
+        """Simulated points (B, n, K, 2) of u (B, D)."""
+        theta, s0 = self.split(np.atleast_2d(u))
+        n = self.n_sim_frames if n_frames is None else n_frames
+        return self.sim.points(theta, np.ascontiguousarray(s0), n, self.track.dt)
+
+    def sse(self, u: np.ndarray) -> np.ndarray:
+        """Sum of squared errors (B,) of u (B, D); inf where the system refused to simulate."""
+        out = sq_error(self.points(u), self.obs, self.mask)
+        return np.where(np.isfinite(out), out, np.inf)
+
+    def loglik(self, sse: np.ndarray, sigma: float | None = None) -> np.ndarray:
+        """Gaussian log-likelihood of sums of squared errors (up to the normaliser)."""
+        s = self.sigma if sigma is None else sigma
+        return -0.5 * np.asarray(sse) / s**2
+
+    def log_prob(self, u: np.ndarray) -> np.ndarray:
+        """Vectorised log-posterior (B,) of u (B, D): -inf outside the unit cube."""
+        u = np.atleast_2d(u)
+        out = np.full(u.shape[0], -np.inf)
+        ok = np.all((u >= 0.0) & (u <= 1.0), axis=1)
+        if ok.any():
+            out[ok] = self.loglik(self.sse(u[ok]))
+        return out
+
+    def residuals(self, u: np.ndarray) -> np.ndarray:
+        """Whitened residuals (B, n_coords) of u (B, D)."""
+        pts = self.points(u)
+        r = (pts[:, self.mask] - self.obs[self.mask]) / self.sigma
+        # a refused simulation: far worse than any trajectory, still finite for the optimiser
+        return np.nan_to_num(r.reshape(pts.shape[0], -1), nan=_REFUSED)
+
+    def rms(self, u: np.ndarray) -> float:
+        """RMS point residual (m) of one u (D,)."""
+        return float(np.sqrt(self.sse(u[None])[0] / max(self.n_coords, 1)))
+
+    def check(self, theta: np.ndarray, state0: np.ndarray, note: str = "") -> Check:
+        """:class:`Check` of the trajectory of theta (P,) from state0 (S,) (all frames)."""
+        pts = self.sim.points(theta[None], state0[None], self.track.n_frames, self.track.dt)[0]
+        res = np.where(self.track.mask[..., None], pts - self.track.positions, np.nan)
+        return Check.from_residuals(res, self.sigma, note=note)
+
+
+# ------------------------------------------------------------------------------------------
+# finding the posterior's peak
+def search(prob: Problem, rng: np.random.Generator, n: int, rounds: int, n_starts: int):
+    """Cross-entropy search: the best ``n_starts`` distinct points (D,) found, best first.
+
+    Round 0 draws the parameters from the prior with the initial state at its estimate; each
+    later round draws ``n`` points from a Gaussian fitted to the best 5% (at least 10) seen so
+    far (the state's spread starting from its box). Periods and events make the likelihood
+    rugged far from its peak, so a local method needs a start in the right basin.
+    """
+    D, P = prob.ndim, prob.P
+    per = max(n // max(rounds, 1), 10)
+    u = np.empty((per, D))
+    u[:, :P] = rng.random((per, P))
+    if prob.free:
+        u[:, P:] = prob.u_state0
+    pool_u, pool_f = np.empty((0, D)), np.empty(0)
+    n_elite = max(10, per // 20)
+    for r in range(max(rounds, 1)):
+        pool_u = np.concatenate((pool_u, u))
+        pool_f = np.concatenate((pool_f, prob.sse(u)))
+        if r == rounds - 1:
+            break
+        elite = pool_u[np.argsort(pool_f)[:n_elite]]
+        cov = np.cov(elite.T) + np.diag(np.full(D, 1e-10))
+        if prob.free and r == 0:  # the state has not varied yet: start from its whole box
+            cov[P:, :] = cov[:, P:] = 0.0
+            cov[P:, P:] = np.diag(np.full(D - P, 1.0 / 12.0))
+        u = np.clip(rng.multivariate_normal(elite.mean(0), cov, size=per, method="eigh"), 0.0, 1.0)
+    order = np.argsort(pool_f)
+    starts: list[int] = []
+    for i in order:
+        if len(starts) == n_starts:
+            break
+        if all(np.abs(pool_u[i] - pool_u[j]).max() > 1e-3 for j in starts):
+            starts.append(int(i))
+    return [pool_u[i].copy() for i in starts], {"search_best_rms_m": float(
+        np.sqrt(pool_f[order[0]] / max(prob.n_coords, 1)))}
+
+
+def refine(prob: Problem, starts, max_evals: int):
+    """Local least squares from each start; the lowest cost wins, with its Laplace covariance.
+
+    Returns
+    -------
+    u : ndarray, shape (D,)
+    cov : ndarray, shape (D, D)
+        ``(J^T J)^-1`` of the whitened residuals in unit coordinates, flat directions and every
+        marginal capped at the uniform prior's variance (1/12).
+    info : dict
+    """
+    from scipy.optimize import least_squares
+
+    D = prob.ndim
+    lo, hi = np.zeros(D), np.ones(D)
+    steps = _FD_STEP * np.eye(D)
+
+    def fun(x):
+        return prob.residuals(x[None])[0]
+
+    def jac(x):
+        sgn = np.where(x + _FD_STEP > hi, -1.0, 1.0)  # step inward at the upper bound
+        r = prob.residuals(np.vstack([x, x + sgn[:, None] * steps]))
+        return ((r[1:] - r[0]) / (sgn[:, None] * _FD_STEP)).T
+
+    best, info = None, {"opt_status": None, "opt_message": ""}
+    for x0 in starts:
+        try:
+            with one_blas_thread():
+                res = least_squares(fun, np.clip(x0, lo, hi), jac=jac, bounds=(lo, hi),
+                                    method="trf", x_scale="jac", max_nfev=max_evals)
+        except (ValueError, np.linalg.LinAlgError, RuntimeError) as exc:  # report, do not raise
+            info["opt_message"] = f"least_squares failed: {exc}"
+            continue
+        if best is None or res.cost < best.cost:
+            best = res
+    if best is None:
+        u = np.asarray(starts[0], dtype=np.float64)
+        J = jac(u)
+        info["opt_status"] = -99
+    else:
+        u, J = np.asarray(best.x), np.asarray(best.jac)
+        info.update(opt_status=int(best.status), opt_message=str(best.message),
+                    opt_nfev=int(best.nfev))
+    H = J.T @ J
+    w, V = np.linalg.eigh(H)
+    prior_var = 1.0 / 12.0
+    var = np.where(w > 1.0 / prior_var, 1.0 / np.maximum(w, 1e-300), prior_var)
+    cov = (V * var) @ V.T
+    d = np.sqrt(np.minimum(np.diag(cov), prior_var) / np.maximum(np.diag(cov), 1e-300))
+    return u, cov * np.outer(d, d), info
+
+
+def draw_inside(mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` draws of N(mean, cov) inside the unit cube (redrawn; clipped after 50 tries)."""
+    out = np.empty((n, mean.size))
+    need = np.arange(n)
+    for _ in range(50):
+        cand = rng.multivariate_normal(mean, cov, size=need.size, method="eigh")
+        ok = np.all((cand >= 0.0) & (cand <= 1.0), axis=1)
+        out[need[ok]] = cand[ok]
+        need = need[~ok]
+        if need.size == 0:
+            return out
+    out[need] = np.clip(rng.multivariate_normal(mean, cov, size=need.size, method="eigh"), 0, 1)
+    return out
+
+
+def forecast_points(sim, system, theta, state0, n_frames: int, dt: float, horizon: int,
+                    extras: dict) -> Forecast:
+    """Continue draws theta (N, P) from state0 (N, S) past ``n_frames`` observed frames.
+
+    Returns
+    -------
+    Forecast
+        (horizon, 2) for one tracked point, (horizon, K, 2) for K > 1; samples (N, ...).
+    """
+    pts = sim.points(theta, np.ascontiguousarray(state0), n_frames + horizon, dt)[:, n_frames:]
+    ok = np.isfinite(pts).all(axis=(1, 2, 3))  # draws the system refused to run on are dropped
+    if not ok.any():
+        raise RuntimeError(f"the {system.name} system refused every forecast draw")
+    pts = pts[ok]
+    if system.n_points == 1:
+        pts = pts[:, :, 0]
+    ex = dict(extras)
+    ex["n_simulations"] = sim.n_simulations
+    return Forecast(mean=pts.mean(axis=0), std=pts.std(axis=0), samples=pts, extras=ex)
+
+
+# ------------------------------------------------------------------------------------------
+# the part a method composes for one system
+@dataclass
+class SystemFit:
+    """What a fit found: the posterior, draws a forecast resamples (with their initial states)
+    and their weights (None: equally weighted samples), the problem and the clock."""
+
+    posterior: Posterior
+    theta: np.ndarray
+    state0: np.ndarray
+    weights: np.ndarray | None
+    prob: Problem
+    clock: Stopwatch
+
+
+def system_of(name):
+    """The registered system ``name`` (``ValueError`` listing the known ones)."""
+    return _system(name)
+
+
+class Points:
+    """The generic points likelihood on one system, as a method composes it.
+
+    Parameters
+    ----------
+    system : System
+    sigma : float
+        Noise (m) of the likelihood per coordinate.
+    min_frames : int
+        Fewest frames with a seen point the method accepts.
+    seed : int
+        The method's seed (the prior draws of a widened posterior).
+    """
+
+    def __init__(self, system, sigma: float, min_frames: int = 3, seed: int = 0) -> None:
+        self.system = system
+        self.sigma = float(sigma)
+        self.min_frames = int(min_frames)
+        self.seed = seed
+
+    def track(self, obs: Observation) -> SystemTrack:
+        """The :class:`SystemTrack` of ``obs``."""
+        return prepare_system(obs, self.system, self.min_frames)
+
+    def problem(self, obs: Observation) -> Problem:
+        """The likelihood of ``obs`` with a fresh simulation counter."""
+        return Problem(self.track(obs), self.sigma, CountingSystemSimulator(self.system))
+
+    def posterior(self, prob: Problem, mean, std, samples, extras, check) -> Posterior:
+        """The posterior; where its model check failed, widened to the prior (the track is not
+        explained by the mean's trajectory, so no interval narrower than the prior's is claimed:
+        the mean stays, ``std`` becomes at least the prior's, the samples are prior draws, and
+        ``check.note`` and ``extras["widened"]`` say so)."""
+        if check is not None and not check.ok:
+            system = prob.system
+            lo, hi = system.prior_lo, system.prior_hi
+            rng = np.random.default_rng([int(self.seed or 0), len(samples)])
+            samples = lo + (hi - lo) * rng.random((len(samples), len(lo)))
+            std = np.maximum(np.asarray(std, dtype=float), (hi - lo) / np.sqrt(12.0))
+            note = "intervals widened to the prior: the model does not explain the track"
+            check = dataclasses.replace(check, note=f"{check.note}; {note}" if check.note else note)
+            extras = {**extras, "widened": "prior"}
+        return Posterior(mean=mean, std=std, samples=samples, extras=extras, check=check,
+                         system=prob.system.name)
+
+    def forecast(self, fit: SystemFit, n_forecast: int, horizon: int) -> Forecast:
+        """Points of the ``horizon`` frames after the fitted observation: ``n_forecast`` draws of
+        the fit (with their initial states) continued past the last frame; (H, 2), or
+        (H, K, 2) for K > 1."""
+        m = check_positive_int(n_forecast, "n_forecast")
+        rng = make_rng(self.seed, 1)
+        if fit.weights is not None:
+            idx = resample(fit.weights, m, rng)
+        else:
+            idx = rng.choice(len(fit.theta), size=m, replace=len(fit.theta) < m)
+        prob = fit.prob
+        fc = forecast_points(prob.sim, prob.system, fit.theta[idx], fit.state0[idx],
+                             prob.track.n_frames, prob.track.dt, horizon,
+                             {"posterior_extras": fit.posterior.extras})
+        fc.extras["wall_s"] = fit.clock()
+        return fc
+
+
+class SimulationOnSystems(SimulationMethod):
+    """Base of the simulation methods, one class on every system.
+
+    A subclass takes a ``system`` hyperparameter (a registered name, default ``"ball"``) and
+    ``sigma`` (None: the system's default noise), implements ``_fit`` (the ball, with
+    :mod:`methods._simulation`) and ``_fit_points(obs, part)`` (any other system, with the
+    :class:`Points` part built here); ``identify`` and ``forecast`` pick the one for
+    ``system``. ``per_system_defaults`` maps a hyperparameter whose None means a default that
+    differs on the ball and on the other systems to ``(ball's, the others')``.
+    """
+
+    systems = "any"
+    per_system_defaults: dict = {}
+
+    def _validate(self) -> None:
+        super()._validate()
+        check_system_param(self)
+        if self.sigma is not None:
+            check_sigma(self.sigma)
+        check_positive_int(self.n_forecast, "n_forecast")
+
+    def _on_ball(self) -> bool:
+        return self.system == "ball"
+
+    def _hp(self, name: str):
+        """Hyperparameter ``name``, its None read as this system's default."""
+        v = getattr(self, name)
+        if v is None and name in self.per_system_defaults:
+            ball, other = self.per_system_defaults[name]
+            return ball if self._on_ball() else other
+        return v
+
+    def _sigma(self) -> float:
+        """The likelihood's noise (m): ``sigma``, else the ball's ``DEFAULT_SIGMA`` or the
+        system's :func:`default_sigma`."""
+        if self.sigma is not None:
+            return check_sigma(self.sigma)
+        return DEFAULT_SIGMA if self._on_ball() else default_sigma(_system(self.system))
+
+    def _points(self) -> Points:
+        return Points(_system(self.system), self._sigma(), self.min_frames, self.seed)
+
+    def _fit_points(self, obs: Observation, part: Points) -> SystemFit:  # pragma: no cover
+        raise NotImplementedError
+
+    def identify(self, obs: Observation) -> Posterior:
+        """Posterior over the system's parameters (``system.params`` order), with its model
+        check (the ball: see :meth:`SimulationMethod.identify`)."""
+        if self._on_ball():
+            return self._fit(obs).checked(self._sigma())
+        return self._fit_points(obs, self._points()).posterior
+
+    def forecast(self, obs: Observation, horizon: int) -> Forecast:
+        """Positions (the ball, (H, 2)) or points ((H, 2), or (H, K, 2) for K > 1) of the
+        ``horizon`` frames after ``obs``: ``n_forecast`` draws of the fit continued."""
+        if self._on_ball():
+            return super().forecast(obs, horizon)
+        part = self._points()
+        return part.forecast(self._fit_points(obs, part), self.n_forecast, horizon)
+
+
+def check_system_param(est) -> None:
+    """``est.system``: a registered name among the systems the class declares."""
+    name = est.system
+    if not isinstance(name, str):
+        raise ValueError(f"system: expected a registered system name (str), got {name!r}")
+    _system(name)  # ValueError listing the known systems
+    declared = type(est).systems
+    if declared != "any" and name not in declared:
+        raise ValueError(f"system: expected one of {', '.join(declared)} ({est.name} runs on "
+                         f"those), got {name!r}")
