@@ -193,6 +193,13 @@ def check_prefixes(posts: list, obs: Observation, lengths, noise_m: float,
                 info.update(best_sse=prev["best_sse"], region=prev["region"],
                             support=prev["support"])
                 searched_n = prev["searched_n"]
+            if info.get("support") is None and prev is not None and prev["support"] is not None:
+                # the last best fit found stays the start of the next support search: a prefix
+                # passed inside its box leaves none, and a later failure searching from the
+                # box's edge with the warm budget missed fits it held (the README's clip:
+                # from 110 frames on, widened to the prior though a fit explains the track)
+                info["support"] = _moved(sim, prev["support"], start - prev["start"],
+                                         track.dt, prev["floor"])
             prev = {"start": start, "n": int(n), "floor": float(track.floor), "ok": bool(post.check.ok),
                     "searched_n": searched_n, **info}
         except ValueError as exc:

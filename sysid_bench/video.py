@@ -278,7 +278,12 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
             estimated[n - 1] = True
             if p.check is not None:
                 check[n - 1] = (float(p.check.ok), p.check.rms_m, p.check.noise_m)
-                last_check = p.check
+                last_check = {**p.check.as_dict(), "note": p.check.note}
+                if not p.check.ok and "support_rms_m" in p.extras:
+                    # failed, but a best fit near the answer explains the track: the model
+                    # explains the video, the method's answer does not (intervals hold the fit)
+                    last_check.update(support_fit=[float(v) for v in p.extras["support_fit"]],
+                                      support_rms_m=float(p.extras["support_rms_m"]))
     # rows between estimates carry the last one forward
     for i in range(1, t_n):
         if not estimated[i] and np.isfinite(mean[i - 1]).all():
@@ -316,8 +321,7 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         "notes": notes,
         "horizon": int(horizon),
         # the last estimate's model check (None: the method cannot tell)
-        "check": None if last_check is None else {**last_check.as_dict(),
-                                                  "note": last_check.note},
+        "check": last_check,
     }
     if cam is not None and cam.scale_rel_std > 0:
         std = widen_for_scale("ball", PARAMS, mean, std, cam.scale_rel_std)
@@ -717,7 +721,14 @@ def run(args) -> int:
     if kn["note"]:
         print(f"note: --known/--prior {kn['note']}", file=sys.stderr)
     chk = res.info.get("check")
-    if chk is not None and not chk["check_ok"]:
+    if chk is not None and not chk["check_ok"] and "support_fit" in chk:
+        fit = ", ".join(f"{p} = {v:.4g}" for p, v in zip(PARAMS, chk["support_fit"]))
+        print(f"warning: {res.info['method']}'s answer does not explain this video: its fit "
+              f"misses the track by {chk['check_rms_m']:.3g} m RMS against an assumed noise of "
+              f"{chk['check_noise_m']:.3g} m, and the best fit near it ({fit}) explains it "
+              f"({chk['support_rms_m']:.3g} m RMS); intervals widened to hold that fit",
+              file=sys.stderr)
+    elif chk is not None and not chk["check_ok"]:
         print(f"warning: the model does not explain this video: {res.info['method']}'s fit "
               f"misses the track by {chk['check_rms_m']:.3g} m RMS against an assumed noise of "
               f"{chk['check_noise_m']:.3g} m; intervals widened to at least the prior's, or read "

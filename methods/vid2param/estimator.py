@@ -89,7 +89,8 @@ def _check_frames_array(frames, expected_hw, name: str, ndim: int) -> np.ndarray
     """Frames as a NumPy array of a supported dtype and the checkpoint's size.
 
     uint8, or any real integer/float dtype with values in [0, 255]; bool, complex, object and
-    strings are refused, as are NaN/inf and a frame size other than ``expected_hw``.
+    strings are refused, as are NaN/inf, a frame size other than ``expected_hw`` and an empty
+    batch or video (a zero before the frame axes).
     """
     fr = np.asarray(frames)
     if fr.dtype == np.bool_ or not (np.issubdtype(fr.dtype, np.integer)
@@ -100,6 +101,10 @@ def _check_frames_array(frames, expected_hw, name: str, ndim: int) -> np.ndarray
     if fr.ndim != ndim:
         want = "(H, W)" if ndim == 2 else ("(T, H, W)" if ndim == 3 else "(N, T, H, W)")
         raise ValueError(f"{name}: expected a {want} array, got shape {fr.shape}")
+    if 0 in fr.shape[:-2]:
+        # an empty batch or video: nothing to identify (numpy's own error names no argument)
+        want = "at least one frame" if ndim == 3 else "at least one video of at least one frame"
+        raise ValueError(f"{name}: expected {want}, got an empty array of shape {fr.shape}")
     if tuple(fr.shape[-2:]) != tuple(expected_hw):
         raise ValueError(
             f"{name}: the checkpoint was trained on {expected_hw[0]}x{expected_hw[1]} (HxW) frames, "
