@@ -13,12 +13,11 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from sysid_bench._io import atomic_folder
 
 __all__ = ["identify_system_video", "write_system_outputs", "resize_frames"]
 
@@ -125,7 +124,6 @@ def write_system_outputs(res: dict, out) -> Path:
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"out: expected a folder, got the file {out}")
-    out.parent.mkdir(parents=True, exist_ok=True)
     dt = 1.0 / res["info"]["model_fps"]
     params = res["info"]["params"]
     rows = []
@@ -139,8 +137,8 @@ def write_system_outputs(res: dict, out) -> Path:
         for k in range(res["points"].shape[1]):
             r[f"x{k + 1}_m"], r[f"y{k + 1}_m"] = (float(v) for v in res["points"][i, k])
         rows.append(r)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
+
+    def write(tmp: Path) -> None:
         with open(tmp / "estimates.csv", "w", newline="") as f:
             wr = csv.DictWriter(f, fieldnames=list(rows[0]))
             wr.writeheader()
@@ -150,12 +148,7 @@ def write_system_outputs(res: dict, out) -> Path:
         with open(tmp / "estimates.json", "w") as f:
             json.dump({**res["info"], "estimates": clean}, f, indent=1)
         _plot(res, tmp / "track.png", dt)
-        if not out.exists():
-            os.replace(tmp, out)
-        else:
-            for name in ("estimates.csv", "estimates.json", "track.png"):
-                os.replace(tmp / name, out / name)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+
+    # files of an existing ``out`` this did not write are kept; the three are replaced together
+    atomic_folder(out, write, keep_others=True)
     return out
