@@ -264,6 +264,9 @@ def main(argv=None) -> int:
     except OSError as exc:  # an unwritable --out / --run-dir, a full disk, no scheduler
         print(f"error: {os_error_line(exc)}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt as exc:  # Ctrl-C: one line (a run says what is stored), no traceback
+        print(str(exc) or "interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

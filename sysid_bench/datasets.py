@@ -53,7 +53,6 @@ dtypes and byte sizes) is written last and the directory is moved into place wit
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -62,7 +61,7 @@ from typing import Any
 import numpy as np
 
 from sysid_bench import __version__, physics
-from sysid_bench._io import atomic_write
+from sysid_bench._io import atomic_write, replace_folder
 from sysid_bench._validate import check_positive_int
 from sysid_bench.estimator import Observation
 from sysid_bench.render import check_size, render
@@ -553,16 +552,7 @@ def generate(
     }
     (tmp / "progress.json").unlink()
     _write_json(tmp / "meta.json", {**cfg, "config": cfg, "complete": True, "arrays": arrays})
-    if path.exists():  # overwrite: move the old one aside first, then drop it
-        old = path.with_name(f".{path.name}.old")
-        if old.exists():
-            shutil.rmtree(old)
-        os.replace(path, old)
-        os.replace(tmp, path)
-        shutil.rmtree(old)
-    else:
-        os.replace(tmp, path)
-    return path
+    return replace_folder(tmp, path)  # overwrite: the old one moved aside, then dropped
 
 
 def load(path, mmap: bool = True) -> Dataset:

@@ -20,15 +20,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import shutil
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from sysid_bench._io import atomic_folder
 from sysid_bench.estimator import Observation
 from sysid_bench.footage import (  # the core half (files, geometry, the tracker), re-exported
     _PROGRESS_FRAMES,
@@ -389,17 +387,17 @@ def _plot(res: IdentifyResult, path: Path, dt: float) -> None:
 def write_outputs(res: IdentifyResult, out) -> Path:
     """Write ``estimates.csv``, ``estimates.json`` and ``track.png`` into ``out``, all or nothing.
 
-    The three files are written into a temporary folder beside ``out``; a new ``out`` is then
-    that folder renamed, an existing one receives the finished files by rename. On any error
-    the temporary folder is removed and ``out`` is as it was.
+    The three files are written into a temporary folder beside ``out`` that then takes its
+    place whole (:func:`sysid_bench._io.atomic_folder`). On any error the temporary folder is
+    removed and ``out`` is as it was.
     """
     import csv
 
     out = check_out_folder(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     dt = 1.0 / res.info["model_fps"]
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
+
+    def write(tmp: Path) -> None:
         rows = _rows(res, dt)
         with open(tmp / "estimates.csv", "w", newline="") as f:
             wr = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -414,16 +412,10 @@ def write_outputs(res: IdentifyResult, out) -> Path:
         with open(tmp / "estimates.json", "w") as f:
             json.dump(_finite(info), f, indent=1)
         _plot(res, tmp / "track.png", dt)
-        if out.exists() and not out.is_dir():
-            raise ValueError(f"out: expected a folder, got the file {out}")
-        if not out.exists():
-            os.replace(tmp, out)
-        else:
-            for name in ("estimates.csv", "estimates.json", "track.png"):
-                os.replace(tmp / name, out / name)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+
+    # files in an existing ``out`` that this did not write are kept (design: --out never
+    # overwrites a file it did not write); the three are replaced together
+    atomic_folder(out, write, keep_others=True)
     return out
 
 

@@ -13,13 +13,11 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from sysid_bench._io import atomic_folder
 from sysid_bench.footage import VideoError
 
 __all__ = ["identify_system_video", "write_system_outputs", "resize_frames"]
@@ -234,8 +232,8 @@ def write_system_outputs(res: dict, out) -> Path:
         for k in range(res["points"].shape[1]):
             r[f"x{k + 1}_m"], r[f"y{k + 1}_m"] = (float(v) for v in res["points"][i, k])
         rows.append(r)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
+
+    def write(tmp: Path) -> None:
         with open(tmp / "estimates.csv", "w", newline="") as f:
             wr = csv.DictWriter(f, fieldnames=list(rows[0]))
             wr.writeheader()
@@ -246,12 +244,7 @@ def write_system_outputs(res: dict, out) -> Path:
             json.dump({"written_by": OUT_MARKER, **_finite(res["info"]), "estimates": clean}, f,
                       indent=1)
         _plot(res, tmp / "track.png", dt)
-        if not out.exists():
-            os.replace(tmp, out)
-        else:
-            for name in ("estimates.csv", "estimates.json", "track.png"):
-                os.replace(tmp / name, out / name)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+
+    # files of an existing ``out`` this did not write are kept; the three are replaced together
+    atomic_folder(out, write, keep_others=True)
     return out

@@ -1,6 +1,7 @@
 """One helper writes files atomically (``sysid_bench._io.atomic_write``): no module of the
-package, the methods or the scripts renames a temporary file of its own. The folders that are
-moved into place whole (a dataset, an identify run's outputs) are not files and are listed."""
+package, the methods or the scripts renames a temporary file of its own; folders moved into place
+whole (a dataset, an identify run's outputs) go through ``atomic_folder``/``replace_folder``
+(issue 37: three hand-written copies wrote file by file into an existing folder)."""
 
 from __future__ import annotations
 
@@ -9,13 +10,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 #: a rename or a temporary file made by hand
-HAND_WRITTEN = re.compile(r"\bos\.(replace|rename)\(|\bmkstemp\(|NamedTemporaryFile\(")
+HAND_WRITTEN = re.compile(r"\bos\.(replace|rename)\(|\bmkstemp\(|\bmkdtemp\(|NamedTemporaryFile\(|"
+                          r"\bshutil\.move\(")
 #: where it is allowed, and why
 ALLOWED = {
-    "sysid_bench/_io.py": "the helper itself",
-    "sysid_bench/datasets.py": "a dataset folder moved into place whole",
-    "sysid_bench/video.py": "identify's output folder moved into place whole",
-    "sysid_bench/video_systems.py": "identify --system's output folder moved into place whole",
+    "sysid_bench/_io.py": "the helpers themselves",
 }
 
 
@@ -37,5 +36,6 @@ def test_no_hand_written_temp_file_and_rename():
 def test_the_scan_sees_a_hand_written_rename(tmp_path, monkeypatch):
     monkeypatch.setitem(globals(), "ROOT", tmp_path)
     f = tmp_path / "w.py"
-    f.write_text("import os\nfd, t = tempfile.mkstemp()\nos.replace(t, 'x')\n# os.replace(a, b)\n")
-    assert [h.split(":")[1] for h in _hand_written([f])] == ["2", "3"]
+    f.write_text("import os\nfd, t = tempfile.mkstemp()\nos.replace(t, 'x')\n# os.replace(a, b)\n"
+                 "d = tempfile.mkdtemp()\n")
+    assert [h.split(":")[1] for h in _hand_written([f])] == ["2", "3", "5"]

@@ -11,6 +11,7 @@ from sysid_bench.bench.store import (
     Row,
     Store,
     StoreConfigError,
+    StoreCorruptError,
     StoreFormatError,
 )
 
@@ -105,6 +106,42 @@ def test_other_grid_config_is_refused(tmp_path):
         Store(path, {**CFG, "seed": 2})
     with Store(path) as s:  # read-only use needs no config
         assert len(s.results()) == 3
+
+
+@pytest.mark.parametrize("garbage", ["{not json", "[1, 2]", "null", None])
+def test_a_damaged_grid_config_is_refused_reading_or_writing(tmp_path, garbage):
+    """Issue 37: ``report --from-store`` of a store whose grid_config was garbage rendered it
+    (exit 0). The config says which cases the cells are of: without it they cannot be trusted."""
+    path = tmp_path / "r.sqlite"
+    with Store(path, CFG) as s:
+        s.add_cell("c3", KEY, _rows())
+    con = sqlite3.connect(path)
+    if garbage is None:
+        con.execute("DELETE FROM meta WHERE key='grid_config'")
+    else:
+        con.execute("UPDATE meta SET value=? WHERE key='grid_config'", (garbage,))
+    con.commit()
+    con.close()
+    for cfg in (None, CFG):
+        with pytest.raises(StoreCorruptError, match="grid_config") as e:
+            Store(path, cfg)
+        assert "\n" not in str(e.value) and str(path) in str(e.value)
+
+
+def test_report_from_a_store_with_a_garbage_grid_config_exits_non_zero(tmp_path, capsys):
+    from sysid_bench.cli import main
+
+    path = tmp_path / "r.sqlite"
+    with Store(path, CFG) as s:
+        s.add_cell("c3", KEY, _rows())
+    con = sqlite3.connect(path)
+    con.execute("UPDATE meta SET value='{garbage' WHERE key='grid_config'")
+    con.commit()
+    con.close()
+    assert main(["report", "--from-store", str(path), "--out", str(tmp_path / "rep")]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "grid_config" in err[0] and str(path) in err[0]
+    assert not (tmp_path / "rep" / "REPORT.md").exists()
 
 
 def test_invocations_are_recorded(tmp_path):

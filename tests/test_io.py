@@ -99,3 +99,70 @@ def test_bad_content_names_the_argument(tmp_path):
     with pytest.raises(ValueError, match="content: expected bytes, str or a callable.*int"):
         atomic_write(tmp_path / "z", 3)
     assert list(tmp_path.iterdir()) == []
+
+
+def _write_three(tag):
+    def write(d):
+        for name in ("estimates.csv", "estimates.json", "track.png"):
+            (d / name).write_text(f"{tag} {name}")
+    return write
+
+
+def test_atomic_folder_new_and_replaced_whole(tmp_path):
+    out = tmp_path / "sub" / "out"
+    assert _io.atomic_folder(out, _write_three("v1")) == out
+    assert (out / "track.png").read_text() == "v1 track.png"
+    (out / "notes.txt").write_text("mine")
+    (out / "keep").mkdir()
+    (out / "keep" / "a.txt").write_text("a")
+    _io.atomic_folder(out, _write_three("v2"), keep_others=True)
+    assert {p.read_text() for p in out.glob("estimates.*")} == {"v2 estimates.csv",
+                                                                 "v2 estimates.json"}
+    # files it did not write are kept; nothing temporary is left beside the folder
+    assert (out / "notes.txt").read_text() == "mine" and (out / "keep" / "a.txt").read_text() == "a"
+    assert sorted(p.name for p in out.parent.iterdir()) == ["out"]
+    _io.atomic_folder(out, _write_three("v3"))  # keep_others=False: exactly what was written
+    assert sorted(p.name for p in out.iterdir()) == ["estimates.csv", "estimates.json", "track.png"]
+
+
+def test_atomic_folder_failing_writer_leaves_the_old_folder_unmixed(tmp_path):
+    out = tmp_path / "out"
+    _io.atomic_folder(out, _write_three("v1"))
+
+    def half(d):  # the old code wrote file by file into ``out``: a failure left a mix
+        (d / "estimates.csv").write_text("v2 estimates.csv")
+        raise RuntimeError("plot failed")
+
+    with pytest.raises(RuntimeError, match="plot failed"):
+        _io.atomic_folder(out, half, keep_others=True)
+    assert {p.read_text() for p in out.iterdir()} == {f"v1 {n}" for n in
+                                                     ("estimates.csv", "estimates.json", "track.png")}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_atomic_folder_swap_failure_puts_the_old_folder_back(tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    _io.atomic_folder(out, _write_three("v1"))
+    real = os.replace
+    calls = []
+
+    def flaky(a, b):
+        calls.append((a, b))
+        if len(calls) == 2:  # the rename of the new folder into place
+            raise OSError(errno.EACCES, "Permission denied")
+        return real(a, b)
+
+    monkeypatch.setattr(_io.os, "replace", flaky)
+    with pytest.raises(PermissionError, match=f"cannot write {out}"):
+        _io.atomic_folder(out, _write_three("v2"))
+    monkeypatch.undo()
+    assert (out / "track.png").read_text() == "v1 track.png"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_atomic_folder_refuses_a_file_target(tmp_path):
+    f = tmp_path / "f"
+    f.write_text("x")
+    with pytest.raises(ValueError, match="path: expected a folder"):
+        _io.atomic_folder(f, _write_three("v1"))
+    assert f.read_text() == "x"

@@ -257,7 +257,13 @@ def get_scale(name: str | Scale) -> Scale:
 def _dataset(split: str, variant: str, n: int, seed: int, options: tuple):
     from sysid_bench.datasets import make_dataset
 
-    return make_dataset(split, n, seed, variant=variant, **dict(options))
+    ds = make_dataset(split, n, seed, variant=variant, **dict(options))
+    # cached per worker process and shared by its cells: read-only (as a loaded dataset's
+    # memory maps are), so no cell can change the videos of the cells after it (issue 37)
+    for a in (ds.frames, ds.states, ds.theta, ds.labels, ds.floor, *ds.extras.values()):
+        if isinstance(a, np.ndarray):
+            a.setflags(write=False)
+    return ds
 
 
 def test_set(variant: str, n: int, seed: int, **options):

@@ -288,8 +288,10 @@ def small_sample_widen(values, lo: float, hi: float) -> tuple[float, float]:
     n = v.size
     if n < 2 or n >= SMALL_N:
         return lo, hi
-    half = float(stats.t.ppf(0.975, n - 1) * v.std(ddof=1) / np.sqrt(n))
-    t_lo, t_hi = float(v.mean()) - half, float(v.mean()) + half
+    mean, sem = float(v.mean()), float(stats.sem(v))
+    # (equal values: no spread, and scipy answers NaN for a zero scale)
+    t_lo, t_hi = ((mean, mean) if sem == 0.0 else
+                  (float(x) for x in stats.t.interval(0.95, n - 1, loc=mean, scale=sem)))
     if (v >= 0).all():
         t_lo = max(t_lo, 0.0)
         if (v <= 1).all():
@@ -386,15 +388,16 @@ def share_ci(rows):
     pandas.Series
         ``mean``, ``lo``, ``hi``, ``n``.
     """
+    from scipy import stats
+
     per_case = rows.groupby("case").value.mean().reset_index().assign(k=0)
     s = ci_summary(per_case, ["k"]).iloc[0].copy()
     n = len(per_case)
     if n:
-        bound = 0.025 ** (1.0 / n)
         if (per_case.value >= 1.0).all():
-            s["lo"] = min(s["lo"], bound)
+            s["lo"] = min(s["lo"], stats.binomtest(n, n).proportion_ci(0.95, "exact").low)
         elif (per_case.value <= 0.0).all():
-            s["hi"] = max(s["hi"], 1.0 - bound)
+            s["hi"] = max(s["hi"], stats.binomtest(0, n).proportion_ci(0.95, "exact").high)
     return s
 
 

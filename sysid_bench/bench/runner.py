@@ -395,6 +395,12 @@ def _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline, p
             else:
                 with _sigterm_as_exit():
                     _run_local(todo, sc, run_dir, workers, set(inline), write, threads)
+        except KeyboardInterrupt:
+            # one line for the command line (cli prints it), not a traceback per process
+            n = sum(counts.values())
+            raise KeyboardInterrupt(
+                f"interrupted: {n} cells computed and stored this time, {len(todo) - n} not; "
+                f"run the same command again to resume from the store {store.path}") from None
         finally:
             bar.close()
         return {"store": store.path, "cells": len(grid), "already": len(grid) - len(todo),
@@ -439,8 +445,9 @@ def _run_local(todo, sc, run_dir, workers, inline, write, threads=1) -> None:
                                                    initializer=_end_with_parent,
                                                    initargs=(os.getpid(),))
                     broken = False
-                futs.update({pool.submit(execute, c, sc, str(run_dir), threads): (c, pool)
-                             for c in pooled})
+                with _children_ignore_sigint():  # (the workers start at the first submit)
+                    futs.update({pool.submit(execute, c, sc, str(run_dir), threads): (c, pool)
+                                 for c in pooled})
                 pooled = []
             finished, _ = wait(futs, return_when=FIRST_COMPLETED)
             for f in finished:
@@ -475,6 +482,27 @@ def _run_local(todo, sc, run_dir, workers, inline, write, threads=1) -> None:
 _PARENT_POLL_S = 0.5
 
 
+@contextlib.contextmanager
+def _children_ignore_sigint():
+    """Processes started in this block ignore SIGINT (the disposition survives their exec).
+
+    Ctrl-C reaches every process of the terminal's group: each spawned worker printed its own
+    KeyboardInterrupt traceback (bad-input-turn4). The run alone handles it: it stops the
+    workers (:func:`_terminate`) and says in one line what is stored.
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
 def _end_with_parent(parent_pid: int) -> None:
     """Pool initializer: end this worker when the run that spawned it dies.
 
@@ -497,6 +525,9 @@ def _end_with_parent(parent_pid: int) -> None:
             pass
     if os.getppid() != parent_pid:  # the parent died before the guards were set
         os._exit(1)
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle
 
     def watch() -> None:
         while os.getppid() == parent_pid:

@@ -312,6 +312,7 @@ class Store:
                     f"version of sysid-bench reads format {STORE_FORMAT}; re-run into a new "
                     "store (another --run-dir) or use the sysid-bench version that wrote it"
                 )
+            self._stored_grid_config()  # a damaged one is refused here, reading or writing
         elif grid_config is None:
             raise StoreFormatError(f"path: {str(self.path)!r} is not a sysid-bench results store")
         con.executescript(_SCHEMA)
@@ -329,7 +330,7 @@ class Store:
                         ("created", str(time.time())),
                     ],
                 )
-            elif json.loads(have[0]) != json.loads(want):
+            elif self._stored_grid_config() != json.loads(want):
                 raise StoreConfigError(
                     f"grid_config: the store {str(self.path)!r} was made with {have[0]}, this run "
                     f"asks for {want}; its cases would differ, so results would mix. Use another "
@@ -348,8 +349,22 @@ class Store:
     # -- metadata ---------------------------------------------------------------------------
     @property
     def grid_config(self) -> dict | None:
+        """What the store's cells were made with (:meth:`Scale.grid_config`)."""
+        return self._stored_grid_config()
+
+    def _stored_grid_config(self) -> dict:
+        """The stored grid_config; a missing or unreadable one is :class:`StoreCorruptError`
+        (it says which cases the cells are of: without it they cannot be trusted, issue 37)."""
         r = self._con.execute("SELECT value FROM meta WHERE key='grid_config'").fetchone()
-        return None if r is None else json.loads(r[0])
+        if r is None:
+            raise _corrupt(self.path, "its meta table has no grid_config")
+        try:
+            cfg = json.loads(r[0])
+        except (TypeError, ValueError):
+            cfg = None
+        if not isinstance(cfg, dict):
+            raise _corrupt(self.path, f"its grid_config is not a JSON object: {str(r[0])[:60]!r}")
+        return cfg
 
     def record_invocation(self, info: Mapping) -> int:
         """Append what this run was started with (config, commit, versions); returns its id."""
