@@ -778,8 +778,10 @@ def train(
         log(f"init from {tc.init}: {len(loaded)} tensors copied, fresh: {skipped}")
     log(f"Vid2Param: {count_parameters(net)} parameters, device {dev}, threads "
         f"{torch.get_num_threads()}, steps {start}->{tc.steps}, batch {tc.batch}")
-    # fresh chunks are drawn ahead only when a chunk outlasts its drawing's share of the run
-    prefetch = dataset is None and tc.steps - start > feed_steps_per_chunk(tc)
+    # a fresh chunk is drawn ahead only when this run will step into another chunk
+    last = min(tc.steps, stop_at if stop_at is not None else tc.steps) - 1
+    per = feed_steps_per_chunk(tc)
+    prefetch = dataset is None and last // per > start // per
     feed = _Feed(tc, mc.targets, dataset, system=mc.system, prefetch=prefetch)
     if mc.system != "ball" and tc.perturb:
         raise ValueError(f"perturb: the ball's physics deviations, expected None for the "
