@@ -888,3 +888,29 @@ def test_stream_check_judges_as_identify_does(est, tiny_data):
     assert checked.check is not None and checked.check.ok == whole.check.ok
     np.testing.assert_allclose(checked.check.rms_m, whole.check.rms_m, rtol=1e-3)
     np.testing.assert_allclose(checked.mean, whole.mean, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("system", ["ball", "pendulum"])
+def test_feed_drawn_ahead_gives_the_same_batches(system):
+    """A chunk drawn on the background thread is the chunk the step would have drawn: the
+    batches of three chunks are bitwise those of the synchronous feed."""
+    from methods.vid2param.train import _Feed
+
+    tc = TrainConfig(steps=6, batch=2, n_frames=12, val_n=0, chunk=4,
+                     size=(28, 28) if system == "ball" else (32, 32))
+    names = TINY.targets if system == "ball" else V2PConfig.preset(system).targets
+    plain, ahead = _Feed(tc, names, system=system), _Feed(tc, names, system=system, prefetch=True)
+    for step in range(6):  # 2 steps a chunk
+        (f0, t0), (f1, t1) = plain.batch(step), ahead.batch(step)
+        assert np.array_equal(f0, f1) and np.array_equal(t0, t1)
+        if step % 2 == 0:  # the next chunk is under way while this one trains
+            assert ahead._ahead is not None and ahead._ahead[0] == step // 2 + 1
+    ahead.close()
+    assert ahead._ahead is None
+
+
+def test_training_threads_never_exceed_the_usable_cores(monkeypatch):
+    from methods.vid2param import train as tr
+
+    monkeypatch.setattr(tr, "usable_cores", lambda: 2)
+    assert [tr.train_threads(n) for n in (1, 2, 4, 16)] == [1, 2, 2, 2]

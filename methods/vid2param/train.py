@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import re
 import sys
 import time
@@ -280,6 +281,31 @@ def load_matching(net: Vid2ParamNet, path) -> tuple[list[str], list[str]]:
     return loaded, skipped
 
 
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask; ``os.cpu_count`` elsewhere)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # no affinity call (macOS, Windows)
+        return max(1, os.cpu_count() or 1)
+
+
+def train_threads(threads: int) -> int:
+    """The torch threads a CPU run uses for ``TrainConfig.threads``: at most the usable cores.
+
+    More threads than free cores is the training step's worst case: OpenMP's threads wait for
+    each other at every one of the ~10^4 small operations of a step, and a descheduled thread
+    stalls the rest (on 2 cores shared with ~6 other busy processes, a pendulum step of 8
+    videos took 69-98 s wall with 2 threads, 4.5-5.2 s with 1; docs/vid2param-training-speed.md).
+    The systems' presets ask for 4 (a GPU machine's data threads).
+    """
+    return max(1, min(int(threads), usable_cores()))
+
+
+def feed_steps_per_chunk(tc: TrainConfig) -> int:
+    """Optimiser steps one fresh chunk feeds (``chunk * chunk_epochs // batch``)."""
+    return max(1, tc.chunk * tc.chunk_epochs // tc.batch)
+
+
 def _lr_at(step: int, tc: TrainConfig) -> float:
     if step < tc.warmup:
         return tc.lr * (step + 1) / tc.warmup
@@ -291,12 +317,15 @@ class _Feed:
     """Batches of (frames, targets), a pure function of (seed, step).
 
     With ``dataset`` given, chunk k is epoch k over that dataset; else chunk k is a fresh draw
-    of ``chunk`` videos from the train split with seed ``chunk_seed(data_seed, k)``.
+    of ``chunk`` videos from the train split with seed ``chunk_seed(data_seed, k)``. With
+    ``prefetch`` chunk k + 1 is drawn on a background thread while chunk k's batches train (the
+    same batches; ``close`` ends the thread).
     """
 
     def __init__(self, tc: TrainConfig, targets: tuple[str, ...], dataset=None,
-                 system: str = "ball"):
+                 system: str = "ball", prefetch: bool = False):
         self.tc, self.names, self.system = tc, targets, system
+        self.prefetch = bool(prefetch)
         self.fixed = dataset
         if dataset is not None:
             self.frames = np.asarray(dataset.frames)
@@ -310,21 +339,63 @@ class _Feed:
             self.per_chunk = tc.chunk * tc.chunk_epochs // tc.batch
         self.k = None
         self.supervised = None
+        self._ahead = None  # (k, thread, result box) of the chunk drawn in the background
+
+    def _draw(self, k: int, workers: int) -> tuple[np.ndarray, np.ndarray]:
+        """Chunk k's frames (N, T, H, W) and targets (N, T, K): a function of (data_seed, k)
+        only (the videos do not depend on ``workers``)."""
+        tc = self.tc
+        seed = chunk_seed(tc.data_seed, k)
+        if self.system != "ball":
+            ds = make_system_split(self.system, "train", tc.chunk, seed, tc.n_frames,
+                                   tc.size, tc.nuisance, workers=workers)
+        else:
+            ds = make_split("train", tc.chunk, seed, tc.size, tc.nuisance, tc.n_frames,
+                            variant=tc.variant, **(tc.variant_options or {}))
+        if tc.perturb:
+            ds = perturb_dataset(ds, seed=seed, **tc.perturb)
+        return np.asarray(ds.frames), targets_from_dataset(ds, self.names)
+
+    def _draw_ahead(self, k: int) -> None:
+        """Start drawing chunk k on one background thread, so the steps of the chunk before it
+        do not wait for it when it is due (a pendulum chunk of 1600 videos is minutes of one
+        core; the renderers' array work releases the GIL). A daemon thread: a run that stops
+        early (``max_minutes``) does not wait for a chunk it will not use."""
+        import threading
+
+        box: dict = {}
+
+        def work() -> None:
+            try:
+                box["out"] = self._draw(k, 1)
+            except BaseException as e:  # re-raised by the step that needs the chunk
+                box["error"] = e
+
+        th = threading.Thread(target=work, name="vid2param-feed", daemon=True)
+        th.start()
+        self._ahead = (k, th, box)
+
+    def _take_ahead(self) -> tuple[np.ndarray, np.ndarray]:
+        _, th, box = self._ahead
+        th.join()
+        if "error" in box:
+            raise box["error"]
+        return box["out"]
+
+    def close(self) -> None:
+        """Forget a chunk being drawn ahead (its daemon thread ends with the process)."""
+        self._ahead = None
 
     def _load_chunk(self, k: int) -> None:
         tc = self.tc
         if self.fixed is None:
-            seed = chunk_seed(tc.data_seed, k)
-            if self.system != "ball":
-                ds = make_system_split(self.system, "train", tc.chunk, seed, tc.n_frames,
-                                       tc.size, tc.nuisance, workers=tc.threads)
-            else:
-                ds = make_split("train", tc.chunk, seed, tc.size, tc.nuisance, tc.n_frames,
-                                variant=tc.variant, **(tc.variant_options or {}))
-            if tc.perturb:
-                ds = perturb_dataset(ds, seed=seed, **tc.perturb)
-            self.frames = np.asarray(ds.frames)
-            self.targets = targets_from_dataset(ds, self.names)
+            if self._ahead is not None and self._ahead[0] == k:
+                self.frames, self.targets = self._take_ahead()
+            else:  # the first chunk (or a jump): all usable cores draw it, nothing else runs
+                self.frames, self.targets = self._draw(k, train_threads(tc.threads))
+            self._ahead = None
+            if self.prefetch:
+                self._draw_ahead(k + 1)
         # a label equal in every video of the chunk (a fixed parameter) is not supervised
         spread = np.ptp(self.targets.reshape(-1, self.targets.shape[-1]), axis=0)
         self.supervised = None if (spread > 0).all() else spread > 0
@@ -669,7 +740,7 @@ def train(
         raise ValueError("time_schedule: expected max_minutes with it, got max_minutes=None")
     dev = resolve_device(device)
     if dev.type == "cpu":
-        torch.set_num_threads(int(tc.threads))
+        torch.set_num_threads(train_threads(tc.threads))
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     state_path = Path(out) / "state.pt" if out is not None else None
     start, wall0, history = 0, 0.0, []
@@ -707,7 +778,11 @@ def train(
         log(f"init from {tc.init}: {len(loaded)} tensors copied, fresh: {skipped}")
     log(f"Vid2Param: {count_parameters(net)} parameters, device {dev}, threads "
         f"{torch.get_num_threads()}, steps {start}->{tc.steps}, batch {tc.batch}")
-    feed = _Feed(tc, mc.targets, dataset, system=mc.system)
+    # a fresh chunk is drawn ahead only when this run will step into another chunk
+    last = min(tc.steps, stop_at if stop_at is not None else tc.steps) - 1
+    per = feed_steps_per_chunk(tc)
+    prefetch = dataset is None and last // per > start // per
+    feed = _Feed(tc, mc.targets, dataset, system=mc.system, prefetch=prefetch)
     if mc.system != "ball" and tc.perturb:
         raise ValueError(f"perturb: the ball's physics deviations, expected None for the "
                          f"{mc.system} system, got {tc.perturb!r}")
@@ -798,6 +873,7 @@ def train(
     else:
         step = tc.steps
     bar.close()
+    feed.close()
     done = step >= tc.steps
     stopped = None if done else ("stop_at" if stop_at is not None and step >= stop_at
                                  else "max_minutes")
