@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sysid_bench.bench.calibration import reference_method
 from sysid_bench.bench.experiment import (
     Cell,
     CellOutput,
@@ -92,13 +93,11 @@ def system_case(system: str, i: int, n: int, seed: int, input_kind: str):
     return obs, theta[i], points[i]
 
 
-#: the reference posterior every other method's mean is compared with
-REFERENCE = "nuts"
-
-
-def _gap_to_reference(df, system: str, method: str, n_frames: int):
+def _gap_to_reference(df, system: str, method: str, n_frames: int, reference: str | None):
     """Per case: the mean squared distance (normalised units) between ``method``'s and the
-    reference's posterior means, on the cases both identified after ``n_frames`` frames.
+    ``reference`` method's posterior means (the one declaring ``reference_posterior``,
+    :func:`~sysid_bench.bench.calibration.reference_method`), on the cases both identified after
+    ``n_frames`` frames.
 
     Returns
     -------
@@ -108,11 +107,11 @@ def _gap_to_reference(df, system: str, method: str, n_frames: int):
     import pandas as pd
 
     empty = pd.DataFrame({"method": [], "case": [], "value": []})
-    if method == REFERENCE:
+    if reference is None or method == reference:
         return empty
     sub = df[(df.condition == system) & (df.n_frames == n_frames) & df.metric.str.startswith("u_")]
     a = sub[sub.method == method].set_index(["case", "metric"]).value
-    b = sub[sub.method == REFERENCE].set_index(["case", "metric"]).value
+    b = sub[sub.method == reference].set_index(["case", "metric"]).value
     both = a.index.intersection(b.index)
     if not len(both):
         return empty
@@ -302,6 +301,7 @@ class Systems(Experiment):
         import pandas as pd
 
         last = max(SYSTEM_LENGTHS)
+        reference = reference_method(df.method.unique())
         recs = []
         for (s, m, inp), g in df.groupby(["condition", "method", "input"], sort=True):
             at = g[g.n_frames == last]
@@ -312,7 +312,7 @@ class Systems(Experiment):
                                                      & (g.metric == "fc_mse")]),
                                ("coverage90", at[at.metric == "cov90"]),
                                ("check_pass", at[at.metric == "check_ok"]),
-                               ("nuts_gap", _gap_to_reference(df, s, m, last)),
+                               ("ref_gap", _gap_to_reference(df, s, m, last, reference)),
                                ("converged", _converged_rows(at))):
                 c = ci_summary(rows, ["method"]) if len(rows) else None
                 if c is not None and name in ("coverage90", "check_pass", "converged"):
@@ -352,6 +352,7 @@ class Systems(Experiment):
             return {}
         t = self.summary(df)
         last = max(SYSTEM_LENGTHS)
+        reference = reference_method(df.method.unique())
 
         def ci(r, name, digits=3):
             base = name.split("@")[0]
@@ -366,7 +367,7 @@ class Systems(Experiment):
                  "coverage 90%": ci(r, "coverage90", 2),
                  "check passes": ci(r, "check_pass", 2),
                  "chains converged": ci(r, "converged", 2),
-                 f"gap to {REFERENCE}": ci(r, "nuts_gap"),
+                 f"gap to {reference}": ci(r, "ref_gap"),
                  "s / identification": num(r.s_per_id, ".3g"),
                  "rank": _rank_text(r["rank"], r["rank_worst"])} for _, r in t.iterrows()]
         return {"systems_summary": pd.DataFrame(rows)}
