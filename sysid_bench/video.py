@@ -709,8 +709,8 @@ def run(args) -> int:
         return 3
     for n in res.info["notes"]:
         print(f"note: {n}", file=sys.stderr)
-    kn = res.info["knowledge"]
-    if kn["note"]:
+    kn = res.info.get("knowledge") or {}
+    if kn.get("note"):
         print(f"note: --known/--prior {kn['note']}", file=sys.stderr)
     chk = res.info.get("check")
     if chk is not None and not chk["check_ok"] and "support_fit" in chk:
