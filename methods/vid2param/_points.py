@@ -61,7 +61,13 @@ class PointsModel:
                              "runs the ball's own model)")
         if est.checkpoint is None:
             path = SYSTEM_CHECKPOINTS.get(sys_.name)
-            if path is None or not path.is_file():
+            if path is None:  # a system registered by a user: its model is theirs to give
+                raise NotAvailable(
+                    f"system: 'vid2param' is n/a on the {sys_.name} system: no model is shipped "
+                    f"for it (pass checkpoint=F, a Vid2Param model trained for {sys_.name}: "
+                    f"`sysid-bench train --system {sys_.name} --out runs/v2p_{sys_.name} "
+                    f"--export F`)")
+            if not path.is_file():
                 raise NotAvailable(
                     f"system: 'vid2param' is n/a on the {sys_.name} system: no model is shipped "
                     f"for it (no Vid2Param model is shipped for {sys_.name}; train one with "
