@@ -25,12 +25,13 @@ or ``"any"``; :mod:`sysid_bench.spec`), picked by its ``system`` hyperparameter:
 runs the ball's machinery (:mod:`methods._simulation`, :mod:`methods._tracks`), on another system
 it composes the generic likelihood on the system's tracked points (:mod:`methods._points`; nuts
 samples through the system's JAX twin) or, for sindy, the system's feature
-library (:mod:`methods._sindy_libraries`). lsq, bo, emcee, nuts, dmd and prior declare
+library (:mod:`methods._sindy_libraries`), or, for vid2param, the system's network
+(:mod:`methods.vid2param._points`). lsq, bo, emcee, nuts, dmd, prior and vid2param declare
 ``"any"`` (a system a user registers included; nuts answers n/a where the system has no JAX
-twin); sindy the ball, the pendulum and the spring. A system a method does not declare raises
-:class:`NotAvailable`. Vid2Param is the last method still in two classes: its registration names
-the class for the other systems (``on_systems``, :mod:`methods.vid2param.system_estimator`),
-which raises :class:`NotAvailable` where no model is shipped.
+twin, vid2param where no model is shipped or given: ``checkpoint=F``); sindy the ball, the
+pendulum and the spring; vid2param-physics and vid2param-changing the ball. A system a method
+does not declare raises :class:`NotAvailable`, and so does a method whose ``check_available()``
+finds it cannot run there (:func:`get` calls it).
 """
 
 from __future__ import annotations
@@ -65,31 +66,23 @@ class Registration:
     entry_point: str
     requires: tuple[str, ...] = ()
     reference: bool = False
-    #: Vid2Param only (its network per system is still a second class): ``"module:Class"`` of
-    #: the method on the systems other than the ball; ``""``: the class's ``systems`` decide
-    on_systems: str = ""
 
 
 _REGISTRY: dict[str, Registration] = {}
 
 
-def register(name: str, entry_point: str, requires=(), reference: bool = False,
-             on_systems: str = "") -> None:
+def register(name: str, entry_point: str, requires=(), reference: bool = False) -> None:
     """Add a method. ``entry_point`` is ``"package.module:ClassName"``; nothing is imported.
 
-    The class declares the systems it runs on (``systems``); ``on_systems`` (a second
-    ``"module:Class"`` for the other systems) is left for Vid2Param's per-system networks:
-    leave it empty.
+    The class declares the systems it runs on (``systems``).
     """
     if not isinstance(name, str) or not name:
         raise ValueError(f"name: expected a non-empty str, got {name!r}")
     if not isinstance(entry_point, str) or entry_point.count(":") != 1:
         raise ValueError(f"entry_point: expected 'module:Class', got {entry_point!r}")
-    if not isinstance(on_systems, str) or (on_systems and on_systems.count(":") != 1):
-        raise ValueError(f"on_systems: expected '' or 'module:Class', got {on_systems!r}")
     if name in _REGISTRY:
         raise ValueError(f"name: {name!r} is already registered ({_REGISTRY[name].entry_point})")
-    _REGISTRY[name] = Registration(name, entry_point, tuple(requires), bool(reference), on_systems)
+    _REGISTRY[name] = Registration(name, entry_point, tuple(requires), bool(reference))
 
 
 def unregister(name: str) -> None:
@@ -99,8 +92,7 @@ def unregister(name: str) -> None:
     del _REGISTRY[name]
 
 
-register("vid2param", "methods.vid2param:Vid2Param", requires=("torch",),
-         on_systems="methods.vid2param.system_estimator:SystemVid2Param")
+register("vid2param", "methods.vid2param:Vid2Param", requires=("torch",))
 register("vid2param-physics", "methods.vid2param:Vid2ParamPhysics", requires=("torch",))
 register("vid2param-changing", "methods.vid2param:Vid2ParamChanging", requires=("torch",))
 register("nuts", "methods.nuts:NUTS", requires=("jax", "numpyro"))
@@ -198,8 +190,6 @@ def get_class(name: str, system: str = "ball") -> type[Estimator]:
     cls = _import_class(reg, reg.entry_point)
     if sys_name == "ball":
         return cls
-    if reg.on_systems:  # Vid2Param's networks per system (the last second class)
-        return _import_class(reg, reg.on_systems)
     declared = cls.spec().systems
     if declared == "any" or sys_name in declared:
         return cls
@@ -219,7 +209,9 @@ def get(name: str, system: str = "ball", **options) -> Estimator:
     ``system`` is a registered system name (:func:`sysid_bench.systems.available`): the method's
     one class, built with ``system=`` (a class that runs on the ball only takes none). A system
     the method does not declare (``systems``) raises :class:`NotAvailable` (a ``ValueError``
-    and a ``NotImplementedError``, so recorded as n/a).
+    and a ``NotImplementedError``, so recorded as n/a); so does a declared one where the
+    estimator's ``check_available()``, if it has one, finds it cannot run with these options
+    (Vid2Param without a model for the system).
     """
     cls = get_class(name, system)
     if not (isinstance(system, str) and system == "ball"):
@@ -229,9 +221,14 @@ def get(name: str, system: str = "ball", **options) -> Estimator:
         if sys_name != "ball" or "system" in cls._param_names():
             options = {**options, "system": sys_name}
     try:
-        return cls(**options)
+        est = cls(**options)
     except TypeError as exc:
         params = cls._param_names()
         raise ValueError(
             f"options: {name!r} takes keyword hyperparameters {params}, got {sorted(options)} ({exc})"
         ) from exc
+    # a method that must load something to know whether it runs here (a network per system)
+    ready = getattr(est, "check_available", None)
+    if callable(ready):
+        ready()
+    return est

@@ -1,5 +1,6 @@
 """Vid2Param on the systems other than the ball: one network and stages for K points and P
-parameters, one command that trains a system's model, its estimator, and n/a without a model."""
+parameters, one command that trains a system's model, the one estimator class on it
+(``Vid2Param(system=S)``), n/a without a model, and a user's system with a checkpoint given."""
 
 from __future__ import annotations
 
@@ -11,9 +12,11 @@ import pytest
 torch = pytest.importorskip("torch")
 
 import methods  # noqa: E402
+from methods.vid2param import Vid2Param  # noqa: E402
+from methods.vid2param._points import SYSTEM_CHECKPOINTS  # noqa: E402
 from methods.vid2param.data import make_system_split  # noqa: E402
 from methods.vid2param.model import V2PConfig, Vid2ParamNet, position_names  # noqa: E402
-from methods.vid2param.system_estimator import SYSTEM_CHECKPOINTS  # noqa: E402
+from sysid_bench.datasets import make_dataset  # noqa: E402
 from sysid_bench.estimator import Observation  # noqa: E402
 
 #: a tiny network: small enough that two CPU steps take about a second
@@ -91,6 +94,7 @@ def test_one_command_trains_exports_and_the_estimator_answers(collision_ckpt):
     assert card["config"]["system"] == "collision" and card["train"]["step"] == 2
     assert [s["name"] for s in card["stages"]] == ["std_scale"]
     est = methods.get("vid2param", system="collision", checkpoint=str(collision_ckpt))
+    assert type(est) is Vid2Param and est.get_params()["system"] == "collision"
     ds = make_system_split("collision", "test", 2, 3, n_frames=24)
     obs = Observation(frames=ds.frames[0], dt=0.05, system="collision")
     post = est.identify(obs)
@@ -126,10 +130,21 @@ def test_one_point_system_trains_identifies_streams_and_forecasts(tmp_path):
     card = json.loads(out.with_suffix(".json").read_text())
     assert card["config"]["system"] == "spring" and card["train"]["step"] == 2
     est = methods.get("vid2param", system="spring", checkpoint=str(out))
+    assert type(est) is Vid2Param
     ds = make_system_split("spring", "test", 1, 4, n_frames=12)
     obs = Observation(frames=ds.frames[0], dt=0.05, system="spring")
     post = est.identify(obs)
-    assert post.mean.shape == (4,) and post.samples.shape == (256, 4) and (post.std > 0).all()
+    assert post.mean.shape == (4,) and post.samples.shape == (200, 4) and (post.std > 0).all()
+    # the one class's n_samples (200; the per-system class drew 256): the same draws, fewer
+    more = methods.get("vid2param", system="spring", checkpoint=str(out), n_samples=256)
+    assert np.array_equal(more.identify(obs).samples[:200], post.samples)
+    # the ball's own parts are refused on the spring, naming them
+    with pytest.raises(NotImplementedError, match="filtered_track reads the ball's model"):
+        est.filtered_track(ds.frames[0])
+    with pytest.raises(NotImplementedError, match="sysid-bench train --system spring"):
+        est.fit(make_dataset("train", 1, 0, n_frames=5))
+    with pytest.raises(ValueError, match="forecast: expected 'latent'"):
+        Vid2Param(system="spring", forecast="physics")
     assert len(est.identify_prefixes(obs, [3, 12])) == 2
     fc = est.forecast(obs, 5)
     assert fc.mean.shape == (5, 2) and fc.std.shape == (5, 2)
@@ -150,6 +165,90 @@ def test_no_shipped_model_is_na_with_the_command():
         with pytest.raises(methods.NotAvailable, match=f"no Vid2Param model is shipped for "
                                                        f"{name}; train one with"):
             methods.get("vid2param", system=name)
+        # the constructor only stores: the model is looked for on first use, n/a there too
+        est = Vid2Param(system=name)
+        assert est.get_params()["system"] == name and getattr(est, "points_", None) is None
+        with pytest.raises(methods.NotAvailable, match="no model is shipped"):
+            est.identify(Observation(frames=np.zeros((5, *est_size(name)), np.uint8),
+                                     system=name))
+
+
+def est_size(name):
+    from sysid_bench import systems
+
+    return systems.get(name).size
+
+
+def test_one_class_declares_every_system_and_the_balls_variants_the_ball():
+    """vid2param is one class on any system (a checkpoint per system); vid2param-physics and
+    -changing are the ball's (its physics, its changing-parameter model)."""
+    from methods.vid2param import Vid2ParamChanging, Vid2ParamPhysics
+
+    assert methods.spec("vid2param").systems == "any"
+    for name in ("pendulum", "spring", "collision"):
+        assert methods.get_class("vid2param", system=name) is Vid2Param
+    for cls, name in ((Vid2ParamPhysics, "vid2param-physics"),
+                      (Vid2ParamChanging, "vid2param-changing")):
+        assert methods.spec(name).systems == ("ball",)
+        with pytest.raises(methods.NotAvailable, match="runs on the ball only"):
+            methods.get(name, system="spring")
+        with pytest.raises(ValueError, match="system: expected one of ball"):
+            cls(system="spring")
+    assert Vid2Param().get_params()["system"] == "ball"
+    assert not hasattr(methods.Registration("x", "a:B"), "on_systems")
+
+
+@pytest.fixture
+def user_system(tmp_path, monkeypatch):
+    """The ``decay`` system of docs/adding-a-system.md, registered as a user would."""
+    import re
+    import sys
+    from pathlib import Path
+
+    from sysid_bench import systems
+
+    doc = Path(__file__).resolve().parents[1] / "docs" / "adding-a-system.md"
+    module = re.findall(r"```python\n(.*?)```", doc.read_text(), flags=re.S)[0]
+    (tmp_path / "toy_decay_v2p.py").write_text(module)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    systems.register("decay", "toy_decay_v2p:Decay")
+    yield "decay"
+    systems.unregister("decay")
+    sys.modules.pop("toy_decay_v2p", None)
+
+
+def test_a_users_system_loads_its_checkpoint(user_system, tmp_path):
+    """Issue 39, 4: a model for a system a user registered loads with
+    ``methods.get("vid2param", system=S, checkpoint=F)`` and answers in its units (an
+    untrained tiny network here: reachability and shapes, not accuracy)."""
+    from methods.vid2param.checkpoint import FORMAT, FORMAT_VERSION, save_atomic
+    from methods.vid2param.model import system_targets
+    from sysid_bench import systems
+    from sysid_bench.testing import estimator_checks
+
+    sys_ = systems.get(user_system)
+    with pytest.raises(methods.NotAvailable, match="n/a on the decay system: no model is shipped for it .pass checkpoint=F"):
+        methods.get("vid2param", system=user_system)
+    assert "check_on_system_decay" in dict(estimator_checks(methods.get("vid2param")))
+    torch.manual_seed(0)
+    cfg = V2PConfig(system=user_system, targets=system_targets(user_system),
+                    frame_size=sys_.size, roll_features=False, physics_prior=False,
+                    hidden=8, feat=8, channels=[4], latent=6)
+    f = save_atomic({"format": FORMAT, "format_version": FORMAT_VERSION,
+                     "config": cfg.to_dict(), "state_dict": Vid2ParamNet(cfg).state_dict()},
+                    tmp_path / "v2p_decay.pt")
+    est = methods.get("vid2param", system=user_system, checkpoint=str(f), n_samples=16)
+    ds = make_system_split(user_system, "test", 1, 0, n_frames=10)
+    obs = Observation(frames=ds.frames[0], system=user_system)
+    post = est.identify(obs)
+    assert post.system == user_system and post.mean.shape == (2,)
+    assert post.samples.shape == (16, 2)
+    assert ((post.mean >= sys_.prior_lo) & (post.mean <= sys_.prior_hi)).all()
+    assert est.forecast(obs, 4).mean.shape == (4, 2)
+    st = est.stream()
+    for fr in ds.frames[0]:
+        last = st.push(fr)
+    np.testing.assert_allclose(last.mean, post.mean, rtol=1e-4, atol=1e-4)
 
 
 def test_the_benchmark_threads_option_reaches_the_n_a_sentence():

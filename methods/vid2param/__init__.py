@@ -1,7 +1,8 @@
 """Vid2Param: online system identification from video with a physics-supervised VRNN.
 
 ``Vid2Param`` is the ``Estimator`` (``methods.get("vid2param")`` loads the shipped 28x28
-checkpoint): the network followed by its named stages (``methods.vid2param.stages``; each
+checkpoint; ``methods.get("vid2param", system=S, checkpoint=F)`` a model of another system,
+:mod:`methods.vid2param._points`): the network followed by its named stages (``methods.vid2param.stages``; each
 shipped checkpoint's list: ``describe_checkpoints()``, ``sysid-bench list --checkpoints``).
 ``python -m methods.vid2param.train`` trains one and fits its stages. This package, and only
 this one, imports torch.

@@ -1,6 +1,10 @@
 """Vid2Param behind the suite's ``Estimator`` interface.
 
-Identification reads the encoder's posterior over the supervised latent dimensions,
+One class on every system (``system``): on the ball, the paper's model below; on another
+system, the system's network of K points and P parameters (:mod:`methods.vid2param._points`:
+its shipped checkpoint or the one given, n/a without one).
+
+On the ball, identification reads the encoder's posterior over the supervised latent dimensions,
 ``N(mu_enc, sigma_enc)``, after the last frame and maps it from [0, 1] to physical units by
 ``PRIOR``. Forecasting runs the filter with several particles, then unrolls the prior in latent
 space and reads the positions from the position dimensions: no frame is decoded.
@@ -124,11 +128,25 @@ def _check_frames_array(frames, expected_hw, name: str, ndim: int) -> np.ndarray
 class Vid2Param(Estimator):
     """Vid2Param (a VRNN with a physics-supervised latent space), online from video.
 
+    Runs on the ball and on any other registered system for which a checkpoint is shipped or
+    given (``systems = "any"``: a network is trained per system, for a system a user registers
+    too, by ``sysid-bench train --system S --export F``; ``methods.get("vid2param", system=S,
+    checkpoint=F)`` loads it). On a system with no model shipped and none given,
+    ``methods.get`` (and any use) raises :class:`methods.NotAvailable` (n/a) with the command
+    that trains one. Another system's model (:class:`methods.vid2param._points.PointsModel`)
+    answers the system's parameters from the network and its stages, forecasts its K points by
+    the network's latent rollout (``forecast="latent"`` only), streams one frame at a time, and
+    carries no model check; ``fit`` with data, ``batch``, ``fit_steps``, ``fit_lr`` and
+    ``warm_start`` are the ball's.
+
     Parameters
     ----------
+    system : str
+        A registered system (:func:`sysid_bench.systems.available`); ``"ball"`` by default.
     checkpoint : str or Path, optional
         A checkpoint written by ``methods.vid2param.train``, or the name of a shipped one
-        (``SHIPPED_CHECKPOINTS``: ``"28x28"``, ``"camera"``); ``None`` means ``"28x28"``.
+        (``SHIPPED_CHECKPOINTS``: ``"28x28"``, ``"camera"``); ``None`` means ``"28x28"`` on the
+        ball, the system's shipped model (``_points.SYSTEM_CHECKPOINTS``) on another system.
     device : str
         "auto" (CUDA when available, else CPU), "cpu", "cuda", ...
     n_samples : int
@@ -171,6 +189,9 @@ class Vid2Param(Estimator):
     """
 
     name = "vid2param"
+    #: the ball, and every other system for which a checkpoint is shipped or given (a user's
+    #: system included); n/a where there is none (see the class)
+    systems = "any"
     #: frames the model check covers (None: the whole prefix)
     check_window = None
     input_kind = "frames"
@@ -215,6 +236,7 @@ class Vid2Param(Estimator):
     def __init__(
         self,
         *,
+        system: str = "ball",
         checkpoint=None,
         device: str = "auto",
         n_samples: int = 200,
@@ -227,6 +249,7 @@ class Vid2Param(Estimator):
         warm_start: bool = True,
         forecast: str | None = None,
     ):
+        self.system = system
         self.checkpoint = checkpoint
         self.device = device
         self.n_samples = n_samples
@@ -253,7 +276,7 @@ class Vid2Param(Estimator):
     def set_params(self, **params) -> Vid2Param:
         """As ``Estimator.set_params`` (a refused value changes nothing); a new ``checkpoint`` or
         ``device`` drops the loaded network, so the next use loads the one now named."""
-        old = (self.forecast_kind, self.checkpoint, self.device)
+        old = (self.forecast_kind, self.checkpoint, self.device, self.system, self.threads)
         if "forecast" in params:
             self.forecast_kind = params.pop("forecast")
         try:
@@ -261,8 +284,10 @@ class Vid2Param(Estimator):
         except BaseException:
             self.forecast_kind = old[0]
             raise
-        if (self.checkpoint, self.device) != old[1:]:
+        if (self.checkpoint, self.device) != old[1:3]:
             self.net_ = None
+        if (self.checkpoint, self.device, self.system, self.threads) != old[1:]:
+            self.points_ = None  # another system's model, loaded again on next use
         return self
 
     @property
@@ -272,9 +297,16 @@ class Vid2Param(Estimator):
 
     def _validate(self) -> None:
         super()._validate()
+        if not (isinstance(self.system, str) and self.system == "ball"):
+            from methods._points import check_system_param
+
+            check_system_param(self)  # a registered system the class declares
         if self.forecast_kind is not None and self.forecast_kind not in FORECASTS:
             raise ValueError(
                 f"forecast: expected one of {sorted(FORECASTS)}, got {self.forecast_kind!r}")
+        if not self._on_ball() and self.forecast_mode != "latent":
+            raise ValueError(f"forecast: expected 'latent' (the network's rollout) on the "
+                             f"{self.system} system, got {self.forecast_mode!r}")
         # 0: Gaussian posteriors without samples (fast identification); otherwise two at least,
         # since a band from one sample claims a spread it cannot have
         n = check_positive_int(self.n_samples, "n_samples", minimum=0)
@@ -293,6 +325,27 @@ class Vid2Param(Estimator):
                              f"{type(self.checkpoint).__name__} {self.checkpoint!r}")
         # samples and training are keyed by int(seed): a Generator has no such value
         check_seed_value(self.seed, "seed", generator=False)
+
+    # -- another system -------------------------------------------------------------------------
+    def _on_ball(self) -> bool:
+        return isinstance(self.system, str) and self.system == "ball"
+
+    def _model(self):
+        """The system's network and stages (:class:`methods.vid2param._points.PointsModel`),
+        loaded on first use; :class:`methods.NotAvailable` where no model is shipped or given."""
+        if getattr(self, "points_", None) is None:
+            from methods.vid2param._points import PointsModel
+
+            self.points_ = PointsModel(self)
+        return self.points_
+
+    def check_available(self) -> Vid2Param:
+        """Load another system's model now (``methods.get`` calls this), so that a system
+        without one is n/a (:class:`methods.NotAvailable`) and a checkpoint of another system
+        is refused where the method is made; the ball's model loads on first use, as before."""
+        if not self._on_ball():
+            self._model()
+        return self
 
     # -- loading --------------------------------------------------------------------------------
     def _checkpoint_path(self) -> Path:
@@ -348,6 +401,8 @@ class Vid2Param(Estimator):
     @property
     def frame_size(self) -> tuple[int, int]:
         """(H, W) the loaded checkpoint takes."""
+        if not self._on_ball():
+            return self._model().frame_size
         return tuple(self._ensure_net().config.frame_size)
 
     def _index(self) -> list[int]:
@@ -446,6 +501,16 @@ class Vid2Param(Estimator):
         -------
         self
         """
+        if not self._on_ball():
+            if train is not None:
+                from methods.vid2param._points import train_command
+
+                raise NotImplementedError(
+                    f"vid2param fits the ball's network only; train the {self.system} "
+                    f"system's model with `{train_command(self.system)}` and pass "
+                    "checkpoint=F")
+            self._model()
+            return self
         if train is None:
             self._ensure_net()
             return self
@@ -489,13 +554,19 @@ class Vid2Param(Estimator):
     def training_wall_s(self) -> float:
         """Seconds the loaded model's last training run took (its card's ``train.wall_s``, or
         this object's ``fit``); NaN when unknown."""
+        if not self._on_ball():
+            rec = self._model().info.get("train") or {}
+            return float(rec.get("wall_s", float("nan")))
         self._ensure_net()
         info = self.checkpoint_info_ or {}
         rec = info.get("fit") or info.get("train") or {}
         return float(rec.get("wall_s", float("nan")))
 
     def identify(self, obs: Observation) -> Posterior:
-        """Posterior over ``(e, g, d, r)`` after the last frame of ``obs``."""
+        """Posterior over ``(e, g, d, r)`` (the system's parameters) after the last frame of
+        ``obs``."""
+        if not self._on_ball():
+            return self._model().identify(obs)
         return self.identify_prefixes(obs, [obs.n_frames if isinstance(obs, Observation) else 1])[0]
 
     def identify_prefixes(self, obs: Observation, lengths) -> list[Posterior]:
@@ -503,6 +574,8 @@ class Vid2Param(Estimator):
 
         ``extras["wall_s"]`` of each is the time of the pass up to that prefix, pro rata.
         """
+        if not self._on_ball():
+            return self._model().identify_prefixes(obs, lengths)
         return self.identify_prefixes_batch([obs], lengths)[0]
 
     def identify_prefixes_batch(self, observations, lengths,
@@ -510,7 +583,10 @@ class Vid2Param(Estimator):
         """:meth:`identify_prefixes` of many videos, ``batch`` videos per pass of the network
         (the per-frame recurrence run once for a batch instead of once per video: ~50x less
         time for 50 videos on one thread). Videos of unequal length are passed one by one.
-        ``check=False`` skips the model checks (``check`` None; the means are the same)."""
+        ``check=False`` skips the model checks (``check`` None; the means are the same).
+        Another system: one :meth:`identify_prefixes` per video."""
+        if not self._on_ball():
+            return Estimator.identify_prefixes_batch(self, observations, lengths, check)
         obs = list(observations)
         frames = []
         for i, o in enumerate(obs):
@@ -557,6 +633,7 @@ class Vid2Param(Estimator):
         mu, std : ndarray, shape (N, L, 4)
             ``(theta - lo) / (hi - lo)`` scale, ``PARAMS`` order.
         """
+        self._ball_only("normalised_prefixes")
         fr = _check_frames_array(frames, self.frame_size, "frames", 4)
         T = fr.shape[1]
         lengths = [check_positive_int(int(n), "lengths") for n in np.atleast_1d(lengths)]
@@ -589,7 +666,11 @@ class Vid2Param(Estimator):
         -------
         list of Posterior, length N
             ``extras["wall_s"]`` is the batch's time divided by N (the checks' time included).
+            Another system: one network pass, no checks.
         """
+        if not self._on_ball():
+            self._validate()
+            return self._model().identify_batch(frames)
         t0 = time.perf_counter()
         fr = np.asarray(frames)
         T = fr.shape[1] if fr.ndim == 4 else 1
@@ -615,8 +696,11 @@ class Vid2Param(Estimator):
         Returns
         -------
         Forecast
-            mean, std (horizon, 2) and samples (n_samples, horizon, 2), metres.
+            mean, std (horizon, 2) and samples (n_samples, horizon, 2), metres. Another system:
+            its points' mean and std, (horizon, 2) for one point, (horizon, K, 2) for K.
         """
+        if not self._on_ball():
+            return self._model().forecast(obs, horizon)
         frames = self._frames_of(obs)
         horizon = check_positive_int(horizon, "horizon")
         self._check_particles()
@@ -660,6 +744,7 @@ class Vid2Param(Estimator):
         theta_mean, theta_std : ndarray, shape (4,)
             Calibrated posterior of ``(e, g, d, r)`` after the last frame, physical units.
         """
+        self._ball_only("filtered_track")
         fr = _check_frames_array(frames, self.frame_size, "frames", 3)
         return self._track(fr)[:3]
 
@@ -742,6 +827,7 @@ class Vid2Param(Estimator):
         state fit then fits the floor too, from this uniform's spread. Otherwise the floor is
         the track's zero (5 mm).
         """
+        self._ball_only("floor_prior")
         self._ensure_net()
         return floor_prior(self.checkpoint_info_.get("train"))
 
@@ -764,10 +850,19 @@ class Vid2Param(Estimator):
         var = (sd**2).mean(0) + m.var(0)
         return m.mean(0), np.sqrt(var), samples, {"particles": S}
 
-    def stream(self) -> Vid2ParamStream:
-        """A streaming session: ``push`` one frame at a time, constant cost per frame."""
+    def stream(self) -> Stream:
+        """A streaming session: ``push`` one frame at a time, constant cost per frame
+        (:class:`Vid2ParamStream`; another system: :class:`methods.vid2param._points.PointsStream`)."""
+        if not self._on_ball():
+            self._validate()
+            return self._model().stream()
         self._ensure_net()
         return Vid2ParamStream(self)
+
+    def _ball_only(self, what: str) -> None:
+        if not self._on_ball():
+            raise NotImplementedError(f"vid2param's {what} reads the ball's model; on the "
+                                      f"{self.system} system use identify, forecast or stream")
 
 
 class Vid2ParamPhysics(Vid2Param):
@@ -785,6 +880,8 @@ class Vid2ParamPhysics(Vid2Param):
     """
 
     name = "vid2param-physics"
+    #: the ball's physics fitted to the ball's network (no other system has either)
+    systems = ("ball",)
     default_forecast = "physics"
     streams = False
     online = False  # its stream re-fits every prefix
@@ -876,6 +973,8 @@ class Vid2ParamChanging(Vid2Param):
     """
 
     name = "vid2param-changing"
+    #: a ball model fine-tuned on changing parameters (no other system has one)
+    systems = ("ball",)
     default_checkpoint = "changing"
     #: parameters change every 50 frames: one posterior mean explains the last stretch only
     check_window = 50

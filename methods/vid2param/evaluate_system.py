@@ -28,8 +28,9 @@ TEST_SEED = 20261126
 
 def evaluate_system(est, n: int = 100, seed: int = TEST_SEED, lengths=(50, 100, 200),
                     batch: int = 50) -> dict:
-    """Normalised parameter MSE and 90% coverage of ``est`` (a ``SystemVid2Param``) on ``n``
-    test-split videos, after each of ``lengths`` frames.
+    """Normalised parameter MSE and 90% coverage of ``est`` (a system's network,
+    :class:`methods.vid2param._points.PointsModel`) on ``n`` test-split videos, after each of
+    ``lengths`` frames.
 
     Returns
     -------
@@ -79,9 +80,11 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     if a.n < 1:
         raise SystemExit(f"--n: expected an int >= 1, got {a.n}")
-    from methods.vid2param.system_estimator import SystemVid2Param
+    import methods
 
-    est = SystemVid2Param(system=a.system, checkpoint=a.checkpoint, device=a.device)
+    # the system's network and stages (its normalised posteriors are what is scored)
+    est = methods.get("vid2param", system=a.system, checkpoint=a.checkpoint,
+                      device=a.device)._model()
     res = evaluate_system(est, a.n, a.seed)
     res["checkpoint"] = Path(a.checkpoint).name
     text = json.dumps(res, indent=1, sort_keys=True)

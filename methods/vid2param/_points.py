@@ -1,14 +1,17 @@
-"""Vid2Param on the systems other than the ball: the same network and stages, K points, P
-parameters.
+"""Vid2Param on a system other than the ball: the network of a system's K tracked points and
+P parameters, its stages, and the units of its answers.
 
-``methods.get("vid2param", system="pendulum")`` builds :class:`SystemVid2Param`, which loads the
-system's shipped checkpoint (``SYSTEM_CHECKPOINTS``) or the ``checkpoint`` path given. Where no
-model is shipped it raises :class:`methods.NotAvailable` with the command that trains one.
+:class:`methods.vid2param.Vid2Param` composes :class:`PointsModel` when its ``system`` is not
+the ball (``methods.get("vid2param", system="pendulum")``). The model is the system's shipped
+checkpoint (``SYSTEM_CHECKPOINTS``) or the ``checkpoint`` path given (a model trained for a
+system a user registered included: ``sysid-bench train --system S``); where neither exists
+:meth:`PointsModel.load` raises :class:`methods.NotAvailable` with the command that trains one.
 
 The network gives the normalised posterior of the system's parameters (prior units) and of its
 K points' positions (view units, ``extent``); the checkpoint's stages (``std_scale``) act on the
 parameters as on the ball's; the forecast is the network's own latent rollout (the learned
-prior, ``forecast="latent"``), decoded to metres.
+prior, ``forecast="latent"``), decoded to metres. :class:`PointsStream` runs it one frame at a
+time.
 """
 
 from __future__ import annotations
@@ -18,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench.estimator import MAX_HORIZON, Estimator, Forecast, Observation, Posterior, Stream
+from sysid_bench.estimator import MAX_HORIZON, Forecast, Observation, Posterior, Stream
 
-__all__ = ["SystemVid2Param", "SYSTEM_CHECKPOINTS", "train_command"]
+__all__ = ["PointsModel", "PointsStream", "SYSTEM_CHECKPOINTS", "train_command"]
 
 _CKPT_DIR = Path(__file__).resolve().parent / "checkpoints"
-#: Where each system's shipped model lives (whether or not this checkout has it).
+#: Where each shipped system's model lives (whether or not this checkout has it).
 SYSTEM_CHECKPOINTS = {name: _CKPT_DIR / f"v2p_{name}.pt"
                       for name in ("pendulum", "spring", "collision")}
 
@@ -34,36 +37,16 @@ def train_command(system: str) -> str:
             f"--export methods/vid2param/checkpoints/v2p_{system}.pt")
 
 
-class SystemVid2Param(Estimator):
-    """Vid2Param on a system other than the ball.
+class PointsModel:
+    """A system's Vid2Param network and stages, loaded for a :class:`Vid2Param` (``est``).
 
-    Parameters
-    ----------
-    system : str
-        A registered system (not ``"ball"``).
-    checkpoint : str or path, optional
-        A checkpoint trained for ``system``; default the shipped one.
-    n_samples : int
-        Posterior samples drawn from the Gaussian posterior, clipped to the prior.
-    seed : int
-    device : str
-        ``"cpu"`` (default) or ``"auto"`` / ``"cuda"``.
+    The estimator's ``system``, ``checkpoint``, ``device`` and ``threads`` choose what is
+    loaded (``est`` drops this model when one of them changes); ``n_samples``, ``seed`` and
+    ``clip`` are read from it at every answer.
     """
 
-    name = "vid2param"
-    input_kind = "frames"
-    forecasts = True
-    streams = True
-    online = True
-
-    def __init__(self, *, system: str = "pendulum", checkpoint=None, n_samples: int = 256,
-                 seed: int = 0, device: str = "cpu", threads: int | None = None):
-        self.system = system
-        self.checkpoint = checkpoint
-        self.n_samples = n_samples
-        self.seed = seed
-        self.device = device
-        self.threads = threads  # the benchmark's threads option, as the ball's Vid2Param takes
+    def __init__(self, est):
+        self._est = est
         self._load()
 
     # -- loading ------------------------------------------------------------------------------
@@ -71,19 +54,26 @@ class SystemVid2Param(Estimator):
         from methods import NotAvailable
         from sysid_bench import systems
 
-        sys_ = systems.get(self.system)
+        est = self._est
+        sys_ = systems.get(est.system)
         if sys_.name == "ball":
             raise ValueError("system: expected a system other than 'ball' (the ball's Vid2Param "
-                             "is methods.vid2param.Vid2Param)")
-        if self.checkpoint is None:
+                             "runs the ball's own model)")
+        if est.checkpoint is None:
             path = SYSTEM_CHECKPOINTS.get(sys_.name)
-            if path is None or not path.is_file():
+            if path is None:  # a system registered by a user: its model is theirs to give
+                raise NotAvailable(
+                    f"system: 'vid2param' is n/a on the {sys_.name} system: no model is shipped "
+                    f"for it (pass checkpoint=F, a Vid2Param model trained for {sys_.name}: "
+                    f"`sysid-bench train --system {sys_.name} --out runs/v2p_{sys_.name} "
+                    f"--export F`)")
+            if not path.is_file():
                 raise NotAvailable(
                     f"system: 'vid2param' is n/a on the {sys_.name} system: no model is shipped "
                     f"for it (no Vid2Param model is shipped for {sys_.name}; train one with "
                     f"`{train_command(sys_.name)}`)")
         else:
-            path = Path(self.checkpoint)
+            path = Path(est.checkpoint)
         import torch
 
         from methods.vid2param.checkpoint import build_net, load_checkpoint
@@ -95,10 +85,15 @@ class SystemVid2Param(Estimator):
         if net.config.system != sys_.name:
             raise ValueError(f"checkpoint: {str(path)!r} was trained for the "
                              f"{net.config.system} system, not {sys_.name}")
-        self._dev = resolve_device(self.device)
+        if est.threads is not None:  # the benchmark's thread count, as on the ball
+            torch.set_num_threads(int(est.threads))
+        self._dev = resolve_device(est.device)
         self._net = net.to(self._dev).eval()
         self._pipeline = Pipeline.from_checkpoint(ck, path, net)
         self._sys = sys_
+        self.path = path
+        self.info = {k: ck.get(k) for k in ("train", "git_commit", "val_metrics",
+                                            "source_sha256")}
         c = net.config
         self._pidx = [c.targets.index(p) for p in c.params]
         self._xidx = [c.targets.index(p) for p in c.positions]
@@ -108,6 +103,11 @@ class SystemVid2Param(Estimator):
         # parameters in the system's order
         self._order = [list(c.params).index(p) for p in sys_.params]
         self._torch = torch
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        """(H, W) the system's model takes."""
+        return tuple(self._net.config.frame_size)
 
     # -- units ----------------------------------------------------------------------------------
     def _points(self, mu_pos: np.ndarray) -> np.ndarray:
@@ -131,13 +131,17 @@ class SystemVid2Param(Estimator):
 
     def _params(self, m: np.ndarray, s: np.ndarray, extras: dict, key: int) -> Posterior:
         """Posterior of normalised mean and std (P,) in the network's order."""
+        est = self._est
         lo, hi = self._sys.prior_lo, self._sys.prior_hi
         m, s = m[self._order], s[self._order]
-        mean = lo + (hi - lo) * np.clip(m, 0.0, 1.0)
+        mean = lo + (hi - lo) * (np.clip(m, 0.0, 1.0) if est.clip else m)
         std = (hi - lo) * s
-        rng = np.random.default_rng([int(self.seed), int(key)])
-        samples = np.clip(mean + std * rng.standard_normal((int(self.n_samples), len(mean))),
-                          lo, hi)
+        samples = None
+        if est.n_samples:
+            rng = np.random.default_rng([int(est.seed), int(key)])
+            samples = mean + std * rng.standard_normal((int(est.n_samples), len(mean)))
+            if est.clip:
+                samples = np.clip(samples, lo, hi)
         return Posterior(mean=mean, std=std, samples=samples, extras=extras,
                          system=self._sys.name)
 
@@ -164,7 +168,7 @@ class SystemVid2Param(Estimator):
     def identify_prefixes(self, obs: Observation, lengths) -> list[Posterior]:
         fr = self._obs_frames(obs)
         T = fr.shape[1]
-        lengths = [int(n) for n in lengths]
+        lengths = [int(n) for n in np.atleast_1d(lengths)]
         if not lengths or min(lengths) < 1 or max(lengths) > T:
             raise ValueError(f"lengths: expected frame counts in [1, {T}], got {lengths}")
         t0 = time.perf_counter()
@@ -200,11 +204,11 @@ class SystemVid2Param(Estimator):
         _, _, _, state = self.posteriors(self._obs_frames(obs))
         return self._rollout(state, horizon)
 
-    def stream(self) -> SystemVid2ParamStream:
-        return SystemVid2ParamStream(self)
+    def stream(self) -> PointsStream:
+        return PointsStream(self)
 
 
-class SystemVid2ParamStream(Stream):
+class PointsStream(Stream):
     """One frame at a time through the network and the stages (constant cost per frame).
 
     On the CPU a push runs :class:`methods.vid2param.fast.FrameFilter` (the ball stream's NumPy
@@ -212,8 +216,8 @@ class SystemVid2ParamStream(Stream):
     and on an accelerator, the torch modules.
     """
 
-    def __init__(self, est: SystemVid2Param):
-        self._est = est
+    def __init__(self, model: PointsModel):
+        self._est = model
         self._fast = None
         self.reset()
 
