@@ -137,6 +137,50 @@ class _Problem:
         return r.reshape(pos.shape[0], -1)
 
 
+
+def _sample(log_prob, p0: np.ndarray, n_steps: int, n_burn: int, rng: np.random.Generator,
+            progress, info: dict):
+    """Run the ensemble (differential-evolution moves) from the walkers ``p0`` (W, D) and judge it.
+
+    Returns
+    -------
+    chain : ndarray, shape (W * (n_steps - n_burn), D)
+    tau : ndarray, shape (D,)
+        Integrated autocorrelation times (NaN where emcee cannot estimate them: the reason goes
+        to ``info["tau_error"]``).
+    tau_max, acceptance, kept, converged
+        ``converged``: acceptance in [0.05, 0.9] and at least 10 tau kept.
+    """
+    import emcee
+
+    sampler = emcee.EnsembleSampler(
+        p0.shape[0], p0.shape[1], log_prob, vectorize=True,
+        moves=[(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)],
+    )
+    state = emcee.State(p0, random_state=np.random.RandomState(rng.integers(2**31)).get_state())
+    sampler.run_mcmc(state, n_steps, progress=bool(progress))
+    chain = sampler.get_chain(discard=n_burn, flat=True)
+    kept = n_steps - n_burn
+    # emcee logs a warning when the chain is under 50 tau; we report that as tau_reliable
+    autocorr_log = logging.getLogger("emcee.autocorr")
+    level = autocorr_log.level
+    autocorr_log.setLevel(logging.ERROR)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            tau = sampler.get_autocorr_time(discard=n_burn, quiet=True)
+        except (emcee.autocorr.AutocorrError, ValueError, FloatingPointError) as exc:
+            # a degenerate chain (e.g. every walker stuck): report, do not fail
+            tau = np.full(p0.shape[1], np.nan)
+            info["tau_error"] = str(exc)
+        finally:
+            autocorr_log.setLevel(level)
+    tau_max = float(np.nanmax(tau)) if np.isfinite(tau).any() else np.inf
+    acc = float(np.mean(sampler.acceptance_fraction))
+    converged = bool(0.05 <= acc <= 0.9 and kept >= 10 * tau_max)
+    return chain, tau, tau_max, acc, kept, converged
+
+
 class Emcee(SimulationOnSystems):
     """Ensemble MCMC (``emcee``) of the physical parameters, started at the likelihood's peak.
 
@@ -309,7 +353,6 @@ class Emcee(SimulationOnSystems):
         ``extras``. A forecast continues ``n_forecast`` samples (with their initial states and
         floors) past the end.
         """
-        import emcee
 
         clock = Stopwatch()
         sigma = check_sigma(self._sigma())
@@ -336,31 +379,8 @@ class Emcee(SimulationOnSystems):
         z_opt, cov, info = self._start(prob, rng)
         p0 = self._walkers(prob, z_opt, cov, n_walkers, rng)
 
-        sampler = emcee.EnsembleSampler(
-            n_walkers, prob.ndim, prob.log_prob, vectorize=True,
-            moves=[(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)],
-        )
-        state = emcee.State(p0, random_state=np.random.RandomState(rng.integers(2**31)).get_state())
-        sampler.run_mcmc(state, n_steps, progress=bool(self.progress))
-        chain = sampler.get_chain(discard=n_burn, flat=True)
-        kept = n_steps - n_burn
-        # emcee logs a warning when the chain is under 50 tau; we report that as tau_reliable
-        autocorr_log = logging.getLogger("emcee.autocorr")
-        level = autocorr_log.level
-        autocorr_log.setLevel(logging.ERROR)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            try:
-                tau = sampler.get_autocorr_time(discard=n_burn, quiet=True)
-            except (emcee.autocorr.AutocorrError, ValueError, FloatingPointError) as exc:
-                # a degenerate chain (e.g. every walker stuck): report, do not fail
-                tau = np.full(prob.ndim, np.nan)
-                info["tau_error"] = str(exc)
-            finally:
-                autocorr_log.setLevel(level)
-        tau_max = float(np.nanmax(tau)) if np.isfinite(tau).any() else np.inf
-        acc = float(np.mean(sampler.acceptance_fraction))
-        converged = bool(0.05 <= acc <= 0.9 and kept >= 10 * tau_max)
+        chain, tau, tau_max, acc, kept, converged = _sample(
+            prob.log_prob, p0, n_steps, n_burn, rng, self.progress, info)
 
         theta, s0, floors = prob.split(chain)
         std = theta.std(axis=0)
@@ -386,7 +406,6 @@ class Emcee(SimulationOnSystems):
 
     def _fit_points(self, obs: Observation, part: Points) -> SystemFit:
         """Another system: walkers from the Laplace approximation at the refined optimum."""
-        import emcee
 
         clock = Stopwatch()
         prob = part.problem(obs)
@@ -399,30 +418,8 @@ class Emcee(SimulationOnSystems):
                               int(self.n_starts))
         u_opt, cov, opt = refine(prob, starts, int(self._hp("max_opt_evals")))
         p0 = draw_inside(u_opt, cov, nw, rng)
-        sampler = emcee.EnsembleSampler(
-            nw, D, prob.log_prob, vectorize=True,
-            moves=[(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)],
-        )
-        state = emcee.State(p0, random_state=np.random.RandomState(rng.integers(2**31)).get_state())
-        sampler.run_mcmc(state, int(self.n_steps), progress=bool(self.progress))
-        burn = int(self.n_burn)
-        chain = sampler.get_chain(discard=burn, flat=True)
-        kept = int(self.n_steps) - burn
-        log = logging.getLogger("emcee.autocorr")
-        level = log.level
-        log.setLevel(logging.ERROR)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            try:
-                tau = sampler.get_autocorr_time(discard=burn, quiet=True)
-            except (emcee.autocorr.AutocorrError, ValueError, FloatingPointError) as exc:
-                tau = np.full(D, np.nan)
-                info["tau_error"] = str(exc)
-            finally:
-                log.setLevel(level)
-        tau_max = float(np.nanmax(tau)) if np.isfinite(tau).any() else np.inf
-        acc = float(np.mean(sampler.acceptance_fraction))
-        converged = bool(0.05 <= acc <= 0.9 and kept >= 10 * tau_max)
+        chain, tau, tau_max, acc, kept, converged = _sample(
+            prob.log_prob, p0, int(self.n_steps), int(self.n_burn), rng, self.progress, info)
         theta, s0 = prob.split(chain)
         std = theta.std(axis=0)
         lap = np.sqrt(np.diag(cov)[: prob.P]) * prob.pspan
