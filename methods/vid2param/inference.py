@@ -59,6 +59,8 @@ def positions(mu: np.ndarray, targets) -> np.ndarray:
 def latent_pass(net, frames: np.ndarray, device) -> tuple[np.ndarray, np.ndarray, object]:
     """The network's latent means and stds (N, T, K) after every frame of checked videos
     (N, T, H, W) (float64), and the recurrent state after the last."""
+    if not frames.flags.writeable:  # the harness's cached cases are read-only; torch warns on them
+        frames = frames.copy()
     with torch.inference_mode():
         mu, sd, state = net.filter(torch.as_tensor(frames, device=device))
     return mu.cpu().numpy().astype(np.float64), sd.cpu().numpy().astype(np.float64), state
