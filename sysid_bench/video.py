@@ -720,6 +720,11 @@ def run(args) -> int:
               f"{chk['check_noise_m']:.3g} m, and the best fit near it ({fit}) explains it "
               f"({chk['support_rms_m']:.3g} m RMS); intervals widened to hold that fit",
               file=sys.stderr)
+    elif chk is not None and not chk["check_ok"] and not np.isfinite(chk["check_rms_m"]):
+        # nothing to compare with: the object was seen in too few frames for a fit
+        print(f"warning: {res.info['method']}'s answer could not be checked: the object was not "
+              "seen in enough frames to compare a fit with; intervals widened to at least the "
+              "prior's", file=sys.stderr)
     elif chk is not None and not chk["check_ok"]:
         print(f"warning: the model does not explain this video: {res.info['method']}'s fit "
               f"misses the track by {chk['check_rms_m']:.3g} m RMS against an assumed noise of "

@@ -173,6 +173,12 @@ def test_identify_prints_one_warning_and_writes_check_columns(tmp_path, capsys, 
                          "note": ""}
     assert video.run(args) == 0
     assert "warning:" not in capsys.readouterr().err
+    # nothing checkable (too few frames seen): said so, not "misses the track by nan m"
+    res.info["check"] = {"check_ok": False, "check_rms_m": float("nan"), "check_noise_m": 0.02,
+                         "note": ""}
+    assert video.run(args) == 0
+    err = capsys.readouterr().err
+    assert "could not be checked" in err and "nan m" not in err
 
 
 @pytest.mark.slow
