@@ -148,11 +148,17 @@ def test_processes_a_run_starts_ignore_ctrl_c():
     from sysid_bench.bench.runner import _children_ignore_sigint
 
     probe = [sys.executable, "-c", "import signal; print(signal.getsignal(signal.SIGINT) == signal.SIG_IGN)"]
-    with _children_ignore_sigint():
-        inside = subprocess.run(probe, capture_output=True, text=True, timeout=60).stdout
-    outside = subprocess.run(probe, capture_output=True, text=True, timeout=60).stdout
-    assert (inside.strip(), outside.strip()) == ("True", "False")
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    # a known start: a shell that runs the tests in the background (CI, nohup ... &) hands them
+    # SIGINT already ignored, which every child would inherit
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with _children_ignore_sigint():
+            inside = subprocess.run(probe, capture_output=True, text=True, timeout=60).stdout
+        outside = subprocess.run(probe, capture_output=True, text=True, timeout=60).stdout
+        assert (inside.strip(), outside.strip()) == ("True", "False")
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def test_an_interrupted_run_is_one_line_saying_how_to_resume(tmp_path, monkeypatch, capsys):
