@@ -33,14 +33,16 @@ def resize_frames(frames: np.ndarray, size) -> np.ndarray:
     return np.stack([np.asarray(Image.fromarray(f).resize((w, h), Image.BOX)) for f in frames])
 
 
-def _default_method(system: str) -> str:
-    """The first registered contender that runs on ``system`` and identifies, frame methods
-    first (a learned model shipped for the system), then the position methods."""
+def _first_method(system: str, *, frames: bool) -> str:
+    """The first registered contender that runs on ``system`` and identifies: with ``frames``,
+    frame methods first (a learned model shipped for the system), then the position methods;
+    without, position methods only (a camera's track)."""
     import methods
 
     names = methods.available()
-    ordered = ([n for n in names if methods.spec(n).input_kind == "frames"]
-               + [n for n in names if methods.spec(n).input_kind != "frames"])
+    ordered = [n for n in names if methods.spec(n).input_kind != "frames"]
+    if frames:
+        ordered = [n for n in names if methods.spec(n).input_kind == "frames"] + ordered
     for n in ordered:
         if not methods.spec(n).identifies:
             continue
@@ -49,23 +51,18 @@ def _default_method(system: str) -> str:
         except (NotImplementedError, ValueError, ImportError):
             continue
         return n
-    raise ValueError(f"system: no registered method identifies the {system} system")
+    kind = "" if frames else "position "
+    raise ValueError(f"system: no registered {kind}method identifies the {system} system")
+
+
+def _default_method(system: str) -> str:
+    """:func:`_first_method`, frame methods first."""
+    return _first_method(system, frames=True)
 
 
 def _position_method(system: str) -> str:
-    """The first registered contender that identifies ``system`` from tracked positions."""
-    import methods
-
-    for n in methods.available():
-        sp = methods.spec(n)
-        if not sp.identifies or sp.input_kind == "frames":
-            continue
-        try:
-            methods.get(n, system=system).fit(None)
-        except (NotImplementedError, ValueError, ImportError):
-            continue
-        return n
-    raise ValueError(f"system: no registered position method identifies the {system} system")
+    """:func:`_first_method` among the position methods."""
+    return _first_method(system, frames=False)
 
 
 def identify_system_video(path, system: str, *, method: str | None = None, every: int = 10,
