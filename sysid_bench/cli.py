@@ -158,8 +158,8 @@ def run_arguments(p) -> None:
     p.add_argument("--inline", nargs="*", default=None, metavar="NAME",
                    help="methods run in a thread of this process (default: those declaring inline)")
     p.add_argument("--system", nargs="+", default=None, metavar="NAME", dest="systems",
-                   help="only these systems (sysid_bench.systems.available()); without "
-                        "--experiments and without 'ball', the across-systems experiment alone")
+                   help="only these systems' cells (default every registered system: "
+                        "sysid_bench.systems.available())")
 
 
 def run_run(args) -> int:

@@ -34,7 +34,7 @@ def test_systems_experiment_smoke(tmp_path):
     assert out["ok"] == out["cells"] > 0
     with Store(tmp_path / STORE_NAME) as s:
         df = s.results()
-    assert set(df.condition) == {"pendulum"} and set(df.method) == {"prior", "lsq"}
+    assert set(df.system) == {"pendulum"} and set(df.method) == {"prior", "lsq"}
     last = df[df.n_frames == 200]
     se = last[last.metric == "se"].groupby("method").value.mean()
     # lsq on 200 frames of a pendulum identifies far better than guessing (prior mean: ~0.08)

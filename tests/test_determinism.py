@@ -186,7 +186,7 @@ def _systems_rows(better: str):
             se = rng.uniform(0.01, 0.02) if m == better else rng.uniform(0.03, 0.05)
             for metric, v in (("se", se), ("cov90", 1.0)):
                 recs.append({"experiment": "systems", "method": m, "input": "positions",
-                             "condition": "ball", "case": i, "n_frames": 200, "metric": metric,
+                             "system": "ball", "condition": "", "case": i, "n_frames": 200, "metric": metric,
                              "value": v, "status": "ok"})
     return pd.DataFrame(recs)
 

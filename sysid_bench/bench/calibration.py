@@ -310,6 +310,7 @@ def posterior_quantiles(post) -> np.ndarray:
 
 class Calibration(Experiment):
     name = "calibration"
+    systems = ("ball",)  # the ball's alone until it runs per system
     title = "5. Calibration and agreement with NUTS (beyond the paper)"
     description = (
         "Is each posterior honest? Coverage: share of (case, parameter, frame count) whose true "
@@ -333,7 +334,7 @@ class Calibration(Experiment):
         "case agrees, the exact binomial bound over cases on the open side."
     )
 
-    def cells(self, scale, methods):
+    def cells(self, scale, methods, system="ball"):
         out = case_cells(self.name, scale, methods, scale.calibration_inputs)
         for m in methods:
             n = perturbed_cases(scale, m)

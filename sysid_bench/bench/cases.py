@@ -20,6 +20,7 @@ Inputs
 from __future__ import annotations
 
 import difflib
+import zlib
 from dataclasses import asdict, dataclass, field
 from functools import lru_cache
 
@@ -28,13 +29,14 @@ import numpy as np
 from sysid_bench.estimator import Observation
 
 __all__ = ["INPUTS", "Scale", "SCALES", "get_scale", "test_set", "train_set", "observation",
-           "inputs_for", "unknown_name"]
+           "inputs_for", "unknown_name", "system_cases", "system_case", "N_FRAMES"]
 
 INPUTS = ("video", "privileged")
 #: Bump when what a cell computes changes meaning (inputs, metrics): part of the grid config, so
 #: a store computed under an older protocol is refused instead of mixed with new cells.
 #: 3: per-method caps, options and tiers moved from the scale to the methods' declarations.
-PROTOCOL = 3
+#: 4: every cell names its system (the store's ``system`` column).
+PROTOCOL = 4
 
 
 def unknown_name(kind: str, name, known) -> ValueError:
@@ -300,3 +302,75 @@ def inputs_for(input_kind: str, wanted=INPUTS) -> list[str]:
     if input_kind == "frames":
         return [i for i in wanted if i == "video"]
     return list(wanted)
+
+
+#: Frames of a system's test case (the design's 200 at dt = 0.05).
+N_FRAMES = 200
+
+
+@lru_cache(maxsize=16)
+def system_cases(system: str, n: int, seed: int):
+    """The first ``n`` test-split cases of ``system`` (cached per process, read-only).
+
+    Parameters from the odd tenths of each prior range, initial states from the system's own
+    ranges, one random stream per system fixed by ``seed`` and the system's name; noise of
+    ``system.noise_m`` on the tracked points.
+
+    Returns
+    -------
+    theta : ndarray, shape (n, P)
+    states : ndarray, shape (n, T, S)
+    points : ndarray, shape (n, T, K, 2)
+        The true tracked points.
+    noisy : ndarray, shape (n, T, K, 2)
+    """
+    from sysid_bench import systems
+
+    sys_ = systems.get(system)
+    # one stream per system, fixed by the scale's seed and the system's name
+    rng = np.random.default_rng([seed, zlib.crc32(system.encode())])
+    theta = sys_.sample_theta(n, rng, "test")
+    try:
+        state0 = sys_.sample_state0(n, rng, theta=theta)
+    except TypeError:  # systems whose initial state does not depend on theta
+        state0 = sys_.sample_state0(n, rng)
+    states = sys_.simulate(theta, state0, n_frames=N_FRAMES)
+    points = sys_.observe(states, theta)
+    noisy = points + rng.normal(0.0, sys_.noise_m, points.shape)
+    # cached per process and handed out as views: read-only, so a method that wrote into its
+    # observation cannot change the cases of the cells a worker runs after it (issue 37)
+    for a in (theta, states, points, noisy):
+        a.setflags(write=False)
+    return theta, states, points, noisy
+
+
+def system_case(system: str, i: int, n: int, seed: int, input_kind: str):
+    """Case ``i`` of :func:`system_cases` as an observation of ``input_kind``.
+
+    ``"video"``: the system's own render (seeded by the case); ``"positions"``: the noisy
+    tracked points, no initial state; ``"privileged"``: the true points and the true initial
+    state (the paper's privileged baselines). The scene's geometry is known in each
+    (:meth:`System.observation`).
+
+    Returns
+    -------
+    obs : Observation
+        All ``N_FRAMES`` frames.
+    theta : ndarray, shape (P,)
+    points : ndarray, shape (T, K, 2)
+        The true tracked points.
+    """
+    from sysid_bench import systems
+
+    sys_ = systems.get(system)
+    theta, states, points, noisy = system_cases(system, n, seed)
+    if input_kind == "video":
+        frames = sys_.render(states[i : i + 1], theta[i : i + 1], seed=[seed, i])[0]
+        obs = sys_.observation(frames=frames)
+    elif input_kind == "positions":
+        obs = sys_.observation(positions=noisy[i])
+    elif input_kind == "privileged":
+        obs = sys_.observation(positions=points[i], state0=states[i, 0])
+    else:
+        raise unknown_name("input", input_kind, ("video", "positions", "privileged"))
+    return obs, theta[i], points[i]

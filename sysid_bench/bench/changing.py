@@ -74,6 +74,7 @@ def frames_to_follow(lengths, est, old, new, c, every):
 
 class Changing(Experiment):
     name = "changing"
+    systems = ("ball",)  # the ball's alone until it runs per system
     title = "3. Changing parameters"
     description = (
         "Parameters are re-drawn every 50 frames (test sub-ranges). Each method, built for "
@@ -86,7 +87,7 @@ class Changing(Experiment):
         "estimate was already that close to beforehand are not counted. Input: video."
     )
 
-    def cells(self, scale, methods):
+    def cells(self, scale, methods, system="ball"):
         return [Cell(self.name, m, "video", "", i)
                 for m in methods for i in range(scale.cases(self.name, m))]
 
@@ -163,7 +164,7 @@ class Changing(Experiment):
             return {}
         figs = {}
         ex = df[(df.case == 0) & df.metric.str.startswith(("mean_", "std_"))]
-        arts = store.artifacts(f"{self.name}|%|0")
+        arts = store.artifacts(f"%/{self.name}|%|0")
         truth = next((a for (c, n), a in arts.items() if n == "truth"), None)
         fig, axes = plt.subplots(1, 4, figsize=(16, 3.4), sharex=True)
         for j, (ax, p) in enumerate(zip(axes, PARAMS)):

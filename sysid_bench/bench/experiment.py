@@ -61,21 +61,24 @@ def normalise(theta: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, order=True)
 class Cell:
-    """One unit of work; ``case`` is a test video index or a condition-wide label."""
+    """One unit of work; ``case`` is a test video index or a condition-wide label; ``system``
+    the registered system whose cases the cell runs on (every experiment runs per system)."""
 
     experiment: str
     method: str
     input: str
     condition: str
     case: int | str
+    system: str = "ball"
 
     @property
     def id(self) -> str:
-        return f"{self.experiment}|{self.method}|{self.input}|{self.condition}|{self.case}"
+        return (f"{self.system}/{self.experiment}|{self.method}|{self.input}|{self.condition}"
+                f"|{self.case}")
 
     def key(self) -> dict:
-        return {"experiment": self.experiment, "method": self.method, "input": self.input,
-                "condition": self.condition, "case": self.case}
+        return {"system": self.system, "experiment": self.experiment, "method": self.method,
+                "input": self.input, "condition": self.condition, "case": self.case}
 
 
 @dataclass
@@ -138,14 +141,26 @@ class Context:
 
 
 class Experiment:
-    """Base class of the five experiments (one module each)."""
+    """Base class of the experiments (one module each).
+
+    An experiment runs on each registered system it declares in :attr:`systems` (``"any"``:
+    every registered system, a user's too); the runner asks it for the cells of one system at
+    a time (:meth:`cells`), and every cell names its system (``Cell.system``).
+    """
 
     name: str = ""
     title: str = ""
     #: what the report says the experiment measures, one paragraph
     description: str = ""
+    #: the systems it runs on: "any", or a tuple of registered names (the ball's own tasks)
+    systems: str | tuple[str, ...] = "any"
 
-    def cells(self, scale: Scale, methods: list[str]) -> list[Cell]:
+    def runs_on(self, system: str) -> bool:
+        """Whether this experiment has cells on ``system``."""
+        return self.systems == "any" or system in self.systems
+
+    def cells(self, scale: Scale, methods: list[str], system: str = "ball") -> list[Cell]:
+        """The cells of ``system`` (every one with ``Cell.system == system``)."""
         raise NotImplementedError
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:

@@ -53,6 +53,7 @@ def forecast_interval(fc, level: float) -> tuple[np.ndarray, np.ndarray]:
 
 class Forecasting(Experiment):
     name = "forecasting"
+    systems = ("ball",)  # the ball's alone until it runs per system
     title = "2. Forward prediction"
     description = (
         "After 20, 50 and 100 observed frames, each method predicts the positions up to the "
@@ -63,7 +64,7 @@ class Forecasting(Experiment):
         "prefix to the end), where more observed frames should mean a narrower band."
     )
 
-    def cells(self, scale, methods):
+    def cells(self, scale, methods, system="ball"):
         return case_cells(self.name, scale, methods, ("video", "privileged"))
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
@@ -180,7 +181,7 @@ class Forecasting(Experiment):
         ax.legend(fontsize=7)
         figs["Forward prediction accuracy"] = _save(fig, outdir / "forecast_accuracy.png")
 
-        arts = store.artifacts(f"{self.name}|%|0")
+        arts = store.artifacts(f"%/{self.name}|%|0")
         meths = sorted({c.split("|")[1] for c, _ in arts if c.split("|")[2] == "video"})
         if meths:
             fig, axes = plt.subplots(len(meths), len(afters), figsize=(4 * len(afters), 2.4 * len(meths)),
@@ -209,7 +210,7 @@ class Forecasting(Experiment):
             figs["Example forecasts of height with 90% bands (test case 0, video input): observed "
                  "(green), future truth (dashed green), prediction and 90% band (red)"] = _save(
                 fig, outdir / "forecast_examples.png")
-        fig = _band_figure(store.artifacts(f"{self.name}|%"), afters)
+        fig = _band_figure(store.artifacts(f"%/{self.name}|%"), afters)
         if fig is not None:
             figs["Forecast uncertainty as frames are observed"] = _save(
                 fig, outdir / "forecast_uncertainty.png")

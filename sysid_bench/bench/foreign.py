@@ -141,6 +141,7 @@ def case_observation(path: Path, size):
 
 class Foreign(Experiment):
     name = "foreign"
+    systems = ("ball",)  # MuJoCo's ball against ours: a paper comparison of the ball's
     title = "6. Physics that is not ours (MuJoCo videos)"
     _description = (
         "Videos of rubber, tennis and ping-pong balls simulated by MuJoCo (soft contacts, "
@@ -165,7 +166,7 @@ class Foreign(Experiment):
         why = mujoco_available()
         return self._description + (f" **Skipped on this machine: {why}**" if why else "")
 
-    def cells(self, scale, methods):
+    def cells(self, scale, methods, system="ball"):
         from sysid_bench.mujoco_scene import mujoco_available
 
         if mujoco_available() is not None:
@@ -339,7 +340,7 @@ class Foreign(Experiment):
             ax.legend(fontsize=7, ncol=5)
             figs["Identification error against the engine's measured e, g, d, r"] = \
                 _save(fig, outdir / "foreign_identification.png")
-        arts = store.artifacts(f"{self.name}|%|0")
+        arts = store.artifacts(f"%/{self.name}|%|0")
         meths = sorted({c.split("|")[1] for c, _ in arts})
         truth = next((v for (c, n), v in arts.items() if n == "truth"), None)
         if meths and truth is not None:

@@ -47,6 +47,7 @@ def case_cells(experiment: str, scale, methods: list[str], wanted) -> list[Cell]
 
 class Identification(Experiment):
     name = "identification"
+    systems = ("ball",)  # the ball's alone until it runs per system
     title = "1. Identification vs observed frames"
     description = (
         "Normalised parameter MSE (each parameter scaled to [0, 1] by its prior range; always "
@@ -58,7 +59,7 @@ class Identification(Experiment):
         "methods of one run compare, absolute values depend on the machine's load."
     )
 
-    def cells(self, scale, methods):
+    def cells(self, scale, methods, system="ball"):
         return case_cells(self.name, scale, methods, ("video", "privileged"))
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:

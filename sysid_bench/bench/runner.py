@@ -138,13 +138,21 @@ def resolve_methods(names=None) -> tuple[list[str], dict[str, str]]:
     return usable, skipped
 
 
-def build_grid(scale: Scale, methods: list[str], experiments: list[str]) -> list[Cell]:
-    """Every cell of the run, in a deterministic order."""
+def build_grid(scale: Scale, methods: list[str], experiments: list[str],
+               systems: list[str] | None = None) -> list[Cell]:
+    """Every cell of the run, in a deterministic order: experiment by experiment, and within
+    one, system by system (``systems``: default every registered system) among those the
+    experiment runs on."""
+    from sysid_bench import systems as registry
     from sysid_bench.bench import EXPERIMENTS
 
+    names = registry.available() if systems is None else list(systems)
     cells: list[Cell] = []
     for e in experiments:
-        cells += EXPERIMENTS[e].cells(scale, methods)
+        exp = EXPERIMENTS[e]
+        for s in names:
+            if exp.runs_on(s):
+                cells += exp.cells(scale, methods, s)
     return cells
 
 
@@ -233,8 +241,8 @@ def _order(cells: list[Cell]) -> list[Cell]:
 
     def cost(c: Cell):
         heavy = getattr(EXPERIMENTS[c.experiment], "heavy", False)
-        return (-(1000 if heavy else costs[c.method]), c.experiment, c.method, c.input,
-                c.condition, str(c.case))
+        return (-(1000 if heavy else costs[c.method]), c.experiment, c.system, c.method,
+                c.input, c.condition, str(c.case))
 
     import methods
 
@@ -288,9 +296,7 @@ def run(
         First drop the stored cells whose status is "error" (a missing checkpoint, a bug since
         fixed), so they are computed again; otherwise a resumed run keeps them as they are.
     systems : list of str, optional
-        Only these registered systems' cells of the across-systems experiment. Without
-        ``experiments``, a list without "ball" runs that experiment alone (the other
-        experiments are the ball's).
+        Only these registered systems' cells (default every registered system, a user's too).
 
     Raises
     ------
@@ -306,8 +312,6 @@ def run(
     """
     sc = get_scale(scale)
     systems = _resolve_systems(systems)
-    if systems is not None and experiments is None and "ball" not in systems:
-        experiments = ["systems"]
     exps = resolve_experiments(experiments)
     meths, skipped = resolve_methods(methods)
     threads = check_positive_int(threads, "threads")
@@ -368,9 +372,7 @@ def _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline, p
         if stale:  # code or weights changed since: recompute, never mix
             store.drop_cells(ids=stale)
         retried = store.drop_cells("error") if retry_errors else 0
-        grid = build_grid(sc, meths, exps)
-        if systems is not None:  # the across-systems experiment's cells name their system
-            grid = [c for c in grid if c.experiment != "systems" or c.condition in systems]
+        grid = build_grid(sc, meths, exps, systems)
         done = store.done_cells()
         todo = _order([c for c in grid if c.id not in done])
         if max_cells is not None:

@@ -150,6 +150,7 @@ def trained_model(ctx: Context, method: str, condition: str):
 
 class Sensitivity(Experiment):
     name = "sensitivity"
+    systems = ("ball",)  # the ball's alone until it runs per system
     title = "4. Sensitivity (methods that train)"
     heavy = True  # trains models: always on a worker, started first
     description = (
@@ -164,7 +165,7 @@ class Sensitivity(Experiment):
         "training, full model in test (compare with `noise:0`, the control). Input: video."
     )
 
-    def cells(self, scale, methods):
+    def cells(self, scale, methods, system="ball"):
         out = []
         for m in methods:
             if not trains(m):

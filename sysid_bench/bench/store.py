@@ -13,12 +13,12 @@ Layout
                decides the cases; a run with another grid config is refused), ``created``.
 ``invocations`` one row per ``run`` started on this store: argv/config, git commit, package
                versions, host, start time.
-``cells``      one row per finished cell: id, experiment, method, input, condition, case,
+``cells``      one row per finished cell: id, system, experiment, method, input, condition, case,
                status (``ok`` / ``error`` / ``n/a``), error text, wall seconds, finish time,
                invocation, and the fingerprint of the method's code and weights and of the
                experiment's code: a run finding cells whose fingerprint changed computes them
                again.
-``results``    the long-format table: experiment, method, input, condition, case, n_frames,
+``results``    the long-format table: system, experiment, method, input, condition, case, n_frames,
                metric, value, status, error, wall_s (of the cell), cell_id. A failed cell has one
                row with ``metric = "error"``; a cell whose method cannot do the task (it raised
                ``NotImplementedError``) one row with ``metric = "n/a"``; both carry the text.
@@ -58,6 +58,7 @@ __all__ = [
 #: Bump when tables or the meaning of their columns change; other versions are refused.
 STORE_FORMAT = 2
 RESULT_COLUMNS = (
+    "system",
     "experiment",
     "method",
     "input",
@@ -77,15 +78,17 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS invocations (
     id INTEGER PRIMARY KEY AUTOINCREMENT, started REAL, info TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS cells (
-    cell_id TEXT PRIMARY KEY, experiment TEXT NOT NULL, method TEXT NOT NULL, input TEXT NOT NULL,
+    cell_id TEXT PRIMARY KEY, system TEXT NOT NULL, experiment TEXT NOT NULL,
+    method TEXT NOT NULL, input TEXT NOT NULL,
     condition TEXT NOT NULL, "case" TEXT NOT NULL, status TEXT NOT NULL, error TEXT,
     wall_s REAL, finished REAL, invocation INTEGER, fingerprint TEXT);
 CREATE TABLE IF NOT EXISTS results (
-    experiment TEXT NOT NULL, method TEXT NOT NULL, input TEXT NOT NULL, condition TEXT NOT NULL,
+    system TEXT NOT NULL, experiment TEXT NOT NULL, method TEXT NOT NULL, input TEXT NOT NULL,
+    condition TEXT NOT NULL,
     "case" INTEGER NOT NULL, n_frames INTEGER NOT NULL, metric TEXT NOT NULL, value REAL,
     status TEXT NOT NULL, error TEXT, wall_s REAL, cell_id TEXT NOT NULL,
-    UNIQUE (experiment, method, input, condition, "case", n_frames, metric));
-CREATE INDEX IF NOT EXISTS results_exp ON results (experiment, method);
+    UNIQUE (system, experiment, method, input, condition, "case", n_frames, metric));
+CREATE INDEX IF NOT EXISTS results_exp ON results (experiment, system, method);
 CREATE TABLE IF NOT EXISTS artifacts (
     cell_id TEXT NOT NULL, name TEXT NOT NULL, data BLOB NOT NULL, PRIMARY KEY (cell_id, name));
 """
@@ -404,7 +407,8 @@ class Store:
         ----------
         cell_id : str
         key : mapping
-            ``experiment``, ``method``, ``input``, ``condition``, ``case`` of the cell.
+            ``system`` (default "ball"), ``experiment``, ``method``, ``input``, ``condition``,
+            ``case`` of the cell.
         rows : iterable of Row
             Ignored for ``status`` ``error`` / ``n/a``: one row with that metric is written.
         status : {"ok", "error", "n/a"}
@@ -420,7 +424,8 @@ class Store:
         """
         if status not in ("ok", "error", "n/a"):
             raise ValueError(f"status: expected 'ok', 'error' or 'n/a', got {status!r}")
-        k = (key["experiment"], key["method"], key["input"], str(key.get("condition", "")))
+        k = (str(key.get("system", "ball")), key["experiment"], key["method"], key["input"],
+             str(key.get("condition", "")))
         if status != "ok":
             case = key["case"]
             rows = [Row(int(case) if str(case).isdigit() else -1, 0, status, float("nan"))]
@@ -440,7 +445,7 @@ class Store:
                 np.save(buf, np.asarray(arr), allow_pickle=False)
                 con.execute("INSERT INTO artifacts VALUES (?, ?, ?)", (cell_id, name, buf.getvalue()))
             con.execute(
-                "INSERT INTO cells VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "INSERT INTO cells VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (cell_id, *k, str(key["case"]), status, error, wall_s, time.time(), invocation,
                  fingerprint),
             )
@@ -482,7 +487,7 @@ class Store:
     # -- reading ----------------------------------------------------------------------------
     def results(self, experiment: str | None = None):
         """The long-format results as a pandas DataFrame (columns :data:`RESULT_COLUMNS`), sorted
-        by their key (experiment, method, input, condition, case, n_frames, metric)."""
+        by their key (experiment, system, method, input, condition, case, n_frames, metric)."""
         import pandas as pd
 
         q = "SELECT * FROM results"
@@ -491,7 +496,8 @@ class Store:
             q += " WHERE experiment=?"
             args = (experiment,)
         # the table's unique key: rows in the same order however the cells finished (issue 14)
-        q += ' ORDER BY experiment, method, input, condition, "case", n_frames, metric'
+        q += (' ORDER BY experiment, system, method, input, condition, "case", n_frames, '
+              'metric')
         df = pd.read_sql_query(q, self._con, params=args)
         return df
 

@@ -18,13 +18,12 @@ A method that does not run on a system (no model shipped for it, no feature libr
 
 from __future__ import annotations
 
-import zlib
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
 from sysid_bench.bench.calibration import reference_method
+from sysid_bench.bench.cases import system_case
 from sysid_bench.bench.experiment import (
     Cell,
     CellOutput,
@@ -33,7 +32,6 @@ from sysid_bench.bench.experiment import (
     ci_summary,
     fmt_ci,
 )
-from sysid_bench.estimator import Observation
 from sysid_bench.metrics import GUESS_MSE
 
 __all__ = ["Systems", "SYSTEM_LENGTHS", "FORECAST_AFTER", "FORECAST_HORIZON", "system_case"]
@@ -43,54 +41,6 @@ SYSTEM_LENGTHS = (50, 100, 200)
 #: The forecast: ``FORECAST_HORIZON`` frames after the first ``FORECAST_AFTER``.
 FORECAST_AFTER = 50
 FORECAST_HORIZON = 100
-_N_FRAMES = 200
-
-
-def _systems() -> list[str]:
-    from sysid_bench import systems
-
-    return systems.available()
-
-
-@lru_cache(maxsize=16)
-def _cases(system: str, n: int, seed: int):
-    """Test cases of ``system``: theta (n, P), states (n, T, S), noisy points (n, T, K, 2)."""
-    from sysid_bench import systems
-
-    sys_ = systems.get(system)
-    # one stream per system, fixed by the scale's seed and the system's name
-    rng = np.random.default_rng([seed, zlib.crc32(system.encode())])
-    theta = sys_.sample_theta(n, rng, "test")
-    try:
-        state0 = sys_.sample_state0(n, rng, theta=theta)
-    except TypeError:  # systems whose initial state does not depend on theta
-        state0 = sys_.sample_state0(n, rng)
-    states = sys_.simulate(theta, state0, n_frames=_N_FRAMES)
-    points = sys_.observe(states, theta)
-    noisy = points + rng.normal(0.0, sys_.noise_m, points.shape)
-    # cached per process and handed out as views: read-only, so a method that wrote into its
-    # observation cannot change the cases of the cells a worker runs after it (issue 37)
-    for a in (theta, states, points, noisy):
-        a.setflags(write=False)
-    return theta, states, points, noisy
-
-
-def system_case(system: str, i: int, n: int, seed: int, input_kind: str):
-    """Observation (all frames), the true theta (P,) and true points (T, K, 2) of case ``i``."""
-    from sysid_bench import systems
-
-    sys_ = systems.get(system)
-    theta, states, points, noisy = _cases(system, n, seed)
-    if input_kind == "video":
-        frames = sys_.render(states[i : i + 1], theta[i : i + 1], seed=[seed, i])[0]
-        obs = Observation(frames=frames, system=system)
-    else:
-        pos = noisy[i]
-        if system == "ball":  # the scene's geometry is known, as the pendulum's pivot is
-            obs = Observation(positions=pos[:, 0], floor=0.0, system=system)
-        else:
-            obs = Observation(positions=pos, system=system)
-    return obs, theta[i], points[i]
 
 
 def _gap_to_reference(df, system: str, method: str, n_frames: int, reference: str | None):
@@ -109,7 +59,7 @@ def _gap_to_reference(df, system: str, method: str, n_frames: int, reference: st
     empty = pd.DataFrame({"method": [], "case": [], "value": []})
     if reference is None or method == reference:
         return empty
-    sub = df[(df.condition == system) & (df.n_frames == n_frames) & df.metric.str.startswith("u_")]
+    sub = df[(df.system == system) & (df.n_frames == n_frames) & df.metric.str.startswith("u_")]
     a = sub[sub.method == method].set_index(["case", "metric"]).value
     b = sub[sub.method == reference].set_index(["case", "metric"]).value
     both = a.index.intersection(b.index)
@@ -222,20 +172,19 @@ class Systems(Experiment):
         "forecast-only methods unranked."
     )
 
-    def cells(self, scale, methods):
+    def cells(self, scale, methods, system="ball"):
         import methods as registry
 
         out = []
-        for s in _systems():
-            for m in methods:
-                inp = "video" if registry.spec(m).input_kind == "frames" else "positions"
-                n = scale.cases(self.name, m)
-                out += [Cell(self.name, m, inp, s, i) for i in range(n)]
+        for m in methods:
+            inp = "video" if registry.spec(m).input_kind == "frames" else "positions"
+            n = scale.cases(self.name, m)
+            out += [Cell(self.name, m, inp, "", i, system) for i in range(n)]
         return out
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
         sc = ctx.scale
-        system, i = cell.condition, int(cell.case)
+        system, i = cell.system, int(cell.case)
         obs, truth, points = system_case(system, i, sc.n_cases[self.name], sc.seed, cell.input)
         est = ctx.estimator(cell.method, system=system)
         spec = est.spec()
@@ -303,7 +252,7 @@ class Systems(Experiment):
         last = max(SYSTEM_LENGTHS)
         reference = reference_method(df.method.unique())
         recs = []
-        for (s, m, inp), g in df.groupby(["condition", "method", "input"], sort=True):
+        for (s, m, inp), g in df.groupby(["system", "method", "input"], sort=True):
             at = g[g.n_frames == last]
             rec = {"system": s, "method": m, "input": inp, "cases": int(g.case.nunique())}
             n_params = g.metric[g.metric.str.startswith("se_")].nunique()  # trials per case
