@@ -353,7 +353,7 @@ class Calibration(Experiment):
         :data:`OUTLIER_HOLD_LEVEL` interval misses it),
         ``check_ok``, ``check_rms_m``; a refusal (ValueError) is honest (``refused``)."""
         k = int(cell.case)
-        ds = ctx.test_set("interleaved", max(ctx.scale.n_cases[self.name], 2))
+        ds = ctx.test_set("interleaved", max(ctx.scale.n_for(self.name, cell.system), 2))
         obs, truth = meaningless_observation(ds, k)
         out = CellOutput()
         T = obs.n_frames
@@ -384,12 +384,12 @@ class Calibration(Experiment):
             return self._run_meaningless(cell, ctx)
         if cell.condition == PERTURBED:
             cfg = perturbed_config(sc)
-            ds = ctx.test_set("interleaved", max(sc.n_cases[self.name], i + 1))
+            ds = ctx.test_set("interleaved", max(sc.n_for(self.name, cell.system), i + 1))
             spin, dwell = perturbation(sc.seed, i)
             obs = perturbed_observation(ds, i, cell.input, int(cfg["frames"]), spin, dwell)
             wanted = (max(cfg["lengths"]),) if sc.thinned(cell.method) else cfg["lengths"]
         elif cell.condition == "":
-            ds = ctx.test_set("interleaved", sc.n_cases[self.name])
+            ds = ctx.test_set("interleaved", sc.n_for(self.name, cell.system))
             obs = observation(ds, i, cell.input)
             wanted = sc.calibration_lengths_for(cell.method)
         else:

@@ -57,8 +57,10 @@ class Scale:
     seed : int
         Seed of every test (and sensitivity training) set.
     n_cases : dict
-        Test videos per experiment (``identification``, ``forecasting``, ``changing``,
-        ``sensitivity``, ``calibration``).
+        Test cases per experiment (``identification``, ``forecasting``, ``changing``,
+        ``sensitivity``, ``calibration``, ...): an int for every system, or a dict of
+        system name to int with ``"*"`` for the systems not named (a user's too), since what
+        keeps a figure stable within its CI differs between systems (:meth:`n_for`).
     lengths : tuple of int
         Observed frames of experiment 1.
     forecast_after, horizon : tuple of int, int
@@ -121,11 +123,20 @@ class Scale:
         """Frames between estimates in experiment 3 for a non-streaming ``method``."""
         return self.expensive_stride if self.thinned(method) else self.changing_stride
 
-    def cases(self, experiment: str, method: str) -> int:
-        """Number of test videos ``method`` gets in ``experiment`` (its ``scale_cases`` cap)."""
+    def n_for(self, experiment: str, system: str = "ball") -> int:
+        """Test cases of ``experiment`` on ``system`` before any method's cap (the size of the
+        case set the cells draw from)."""
+        n = self.n_cases[experiment]
+        if isinstance(n, dict):
+            n = n.get(system, n.get("*", 0))
+        return int(n)
+
+    def cases(self, experiment: str, method: str, system: str = "ball") -> int:
+        """Number of test cases ``method`` gets in ``experiment`` on ``system`` (its
+        ``scale_cases`` cap)."""
         import methods
 
-        n = int(self.n_cases[experiment])
+        n = self.n_for(experiment, system)
         cap = methods.spec(method).cases_cap(self.name, experiment)
         return n if cap is None else min(n, cap)
 

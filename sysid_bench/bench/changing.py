@@ -93,7 +93,7 @@ class Changing(Experiment):
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
         sc = ctx.scale
-        ds = ctx.test_set("changing", sc.n_cases[self.name], every=sc.change_every)
+        ds = ctx.test_set("changing", sc.n_for(self.name, cell.system), every=sc.change_every)
         i = int(cell.case)
         obs = observation(ds, i, cell.input)
         T = obs.n_frames

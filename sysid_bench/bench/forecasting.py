@@ -69,7 +69,7 @@ class Forecasting(Experiment):
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
         sc = ctx.scale
-        ds = ctx.test_set("interleaved", sc.n_cases[self.name])
+        ds = ctx.test_set("interleaved", sc.n_for(self.name, cell.system))
         i = int(cell.case)
         obs = observation(ds, i, cell.input)
         truth = np.asarray(ds.states[i, :, :2])

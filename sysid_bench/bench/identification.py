@@ -64,7 +64,7 @@ class Identification(Experiment):
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
         sc = ctx.scale
-        ds = ctx.test_set("interleaved", sc.n_cases[self.name])
+        ds = ctx.test_set("interleaved", sc.n_for(self.name, cell.system))
         i = int(cell.case)
         obs = observation(ds, i, cell.input)
         lengths = [n for n in sc.lengths_for(cell.method) if n <= obs.n_frames]

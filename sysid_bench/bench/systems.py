@@ -178,14 +178,15 @@ class Systems(Experiment):
         out = []
         for m in methods:
             inp = "video" if registry.spec(m).input_kind == "frames" else "positions"
-            n = scale.cases(self.name, m)
+            n = scale.cases(self.name, m, system)
             out += [Cell(self.name, m, inp, "", i, system) for i in range(n)]
         return out
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
         sc = ctx.scale
         system, i = cell.system, int(cell.case)
-        obs, truth, points = system_case(system, i, sc.n_cases[self.name], sc.seed, cell.input)
+        obs, truth, points = system_case(system, i, sc.n_for(self.name, system), sc.seed,
+                                         cell.input)
         est = ctx.estimator(cell.method, system=system)
         spec = est.spec()
         out = CellOutput()
