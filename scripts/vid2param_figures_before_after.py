@@ -166,7 +166,7 @@ def table(name: str, before: str) -> str:
 
         added = new[new["physics"] != "ours"]
         if len(added):
-            extra = (f"\nNew rows (physics not ours, none before):\n\n"
+            extra = ("\nNew rows (physics not ours, none before):\n\n"
                      + markdown_table(added.map(_short)) + "\n")
         new = new[new["physics"] == "ours"].drop(columns="physics")
     keys = [k for k in keys if k in old.columns and k in new.columns]

@@ -81,8 +81,29 @@ def _run_summary(store) -> tuple[list[str], dict]:
     return lines, {"elapsed_s": elapsed, "last": last}
 
 
+def _system_order(names) -> list[str]:
+    """``names`` in the registry's order (a system no longer registered last, by name)."""
+    from sysid_bench import systems as registry
+
+    known = registry.available()
+    names = set(names)
+    return [s for s in known if s in names] + sorted(names - set(known))
+
+
+def _headline_groups(system: str) -> tuple:
+    from sysid_bench import systems as registry
+
+    try:
+        return registry.get(system).headline_groups
+    except ValueError:  # a system no longer registered: the overall figure only
+        return ()
+
+
 def summary_table(df):
-    """One row per (method, input): the headline number of each experiment.
+    """One row per (system, method, input): the headline number of each experiment.
+
+    ``param MSE @ T`` is the mean over the system's parameters; a system's declared
+    ``headline_groups`` add one column each (the ball: ``e, g, d`` and ``r``).
 
     Returns
     -------
@@ -91,38 +112,41 @@ def summary_table(df):
     import pandas as pd
 
     ok = df[df.status == "ok"]
-    keys = sorted({(m, i) for m, i in zip(ok.method, ok.input)
-                   if not str(m).startswith("_")})
+    if "system" not in ok.columns:  # rows of a single system's experiment (older callers)
+        ok = ok.assign(system="ball")
     recs = []
-    ident = ok[ok.experiment == "identification"]
-    last = int(ident.n_frames.max()) if len(ident) else None
-    fc = ok[(ok.experiment == "forecasting") & (ok.metric == "pos_mse")]
-    fc_at = 50 if (fc.n_frames == 50).any() else (int(fc.n_frames.min()) if len(fc) else None)
-    ch = ok[(ok.experiment == "changing") & ok.metric.str.startswith("followed_")]
-    cal = ok[(ok.experiment == "calibration") & ok.metric.str.startswith("hit90_")]
-    if "condition" in cal.columns:  # our physics only: perturbed cases have their own rows
-        cal = cal[cal.condition.fillna("") == ""]
-    for m, i in keys:
-        rec = {"method": m, "input": i}
-        sel = ident[(ident.method == m) & (ident.input == i) & (ident.n_frames == last)]
-        se = sel[sel.metric == "se"].value
-        rec[f"param MSE @ {last}"] = se.mean() if len(se) else np.nan
-        # the README's headline columns: e, g, d together (r is unknowable until the ball
-        # rolls) and r alone, means over cases as in identification_params_at_200
-        egd = [sel[sel.metric == f"se_{p}"].value.mean() for p in "egd"]
-        rec[f"e, g, d MSE @ {last}"] = float(np.mean(egd)) if len(sel) else np.nan
-        r = sel[sel.metric == "se_r"].value
-        rec[f"r MSE @ {last}"] = r.mean() if len(r) else np.nan
-        w = sel[sel.metric == "wall_s"].value
-        rec[f"s / identification @ {last}"] = w.median() if len(w) else np.nan
-        f = fc[(fc.method == m) & (fc.input == i) & (fc.n_frames == fc_at)].value
-        rec[f"forecast MSE after {fc_at}"] = f.mean() if len(f) else np.nan
-        c = ch[(ch.method == m) & (ch.input == i)].value
-        rec["changes followed"] = c.mean() if len(c) else np.nan
-        h = cal[(cal.method == m) & (cal.input == i)].value
-        rec["90% coverage"] = h.mean() if len(h) else np.nan
-        if len(sel) or len(f) or len(c) or len(h):
-            recs.append(rec)
+    for system in _system_order(ok.system.unique()):
+        rows = ok[ok.system == system]
+        keys = sorted({(m, i) for m, i in zip(rows.method, rows.input)
+                       if not str(m).startswith("_")})
+        ident = rows[rows.experiment == "identification"]
+        last = int(ident.n_frames.max()) if len(ident) else None
+        fc = rows[(rows.experiment == "forecasting") & (rows.metric == "pos_mse")]
+        fc_at = (50 if (fc.n_frames == 50).any() else
+                 (int(fc.n_frames.min()) if len(fc) else None))
+        ch = rows[(rows.experiment == "changing") & rows.metric.str.startswith("followed_")]
+        cal = rows[(rows.experiment == "calibration") & rows.metric.str.startswith("hit90_")]
+        if "condition" in cal.columns:  # our physics: perturbed cases have their own rows
+            cal = cal[cal.condition.fillna("") == ""]
+        for m, i in keys:
+            rec = {"system": system, "method": m, "input": i}
+            sel = ident[(ident.method == m) & (ident.input == i) & (ident.n_frames == last)]
+            se = sel[sel.metric == "se"].value
+            rec[f"param MSE @ {last}"] = se.mean() if len(se) else np.nan
+            for group in _headline_groups(system):
+                # means over cases as in identification_params_at_200, averaged over the group
+                v = [sel[sel.metric == f"se_{p}"].value.mean() for p in group]
+                rec[f"{', '.join(group)} MSE @ {last}"] = float(np.mean(v)) if len(sel) else np.nan
+            w = sel[sel.metric == "wall_s"].value
+            rec[f"s / identification @ {last}"] = w.median() if len(w) else np.nan
+            f = fc[(fc.method == m) & (fc.input == i) & (fc.n_frames == fc_at)].value
+            rec[f"forecast MSE after {fc_at}"] = f.mean() if len(f) else np.nan
+            c = ch[(ch.method == m) & (ch.input == i)].value
+            rec["changes followed"] = c.mean() if len(c) else np.nan
+            h = cal[(cal.method == m) & (cal.input == i)].value
+            rec["90% coverage"] = h.mean() if len(h) else np.nan
+            if len(sel) or len(f) or len(c) or len(h):
+                recs.append(rec)
     return pd.DataFrame(recs)
 
 
@@ -199,35 +223,35 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
                    "Means over the cases of each experiment (details, case counts and confidence "
                    "intervals in the sections below); `-`: not run or not applicable.", "",
                    markdown_table(head, floatfmt=".3g"), ""]
+        from sysid_bench import systems as registry
+
         readings = []
-        for name in exps:
-            e = EXPERIMENTS[name]
-            sub = df[(df.experiment == name)]
-            ok = sub[sub.status == "ok"]
-            md += [f"## {e.title}", "", e.description, ""]
-            if ok.empty:
-                md += ["_No results in the store for this experiment._", ""]
-                continue
-            for tname, t in e.tables(ok).items():
-                _write_table(t, tabdir / tname)
-                md += [f"**{tname}** (`tables/{tname}.csv`)", "", markdown_table(t), ""]
-            for caption, path in e.figures(ok, store, figdir).items():
-                md += [f"![{caption}]({Path(path).relative_to(out).as_posix()})", "",
-                       f"*{caption}*", ""]
-            r = e.reading(ok)
-            if r:
-                md += ["Reading:", "", *[f"- {s}" for s in r], ""]
-                readings += [f"({e.title.split('.')[0]}) {s}" for s in r]
-            bad = sub[(sub.status != "ok") | (sub.metric == "failed")]
-            if len(bad):
-                bad = bad.assign(status=np.where(bad.status == "ok", "partly failed", bad.status))
-                g = (bad.groupby(["method", "input", "status"])
-                     .agg(cells=("cell_id", "nunique"), first_message=("error", "first"))
-                     .reset_index())
-                g["first_message"] = g.first_message.str.slice(0, 160)
-                md += ["Cells that failed, failed at some frame counts (`partly failed`: the "
-                       "other frame counts are in the tables) or do not apply (`n/a`: the method "
-                       "raised NotImplementedError):", "", markdown_table(g), ""]
+        cross = [n for n in exps if EXPERIMENTS[n].cross_system]
+        per_system = [n for n in exps if not EXPERIMENTS[n].cross_system]
+        for name in cross:  # the comparison across systems, at the top
+            md += _section(EXPERIMENTS[name], df[df.experiment == name], store, out, tabdir,
+                           figdir, readings)
+        names = _system_order(df[df.experiment.isin(per_system)].system.unique()
+                              if len(df) else [])
+        if names:
+            md += ["## Systems", "",
+                   "One page per system, with every experiment that ran on it:", ""]
+        for system in names:
+            page, mine = _system_page(system, per_system, df[df.system == system], store, out)
+            atomic_write(out / f"{system}.md", "\n".join(page))
+            try:
+                paper = registry.get(system).paper
+            except ValueError:
+                paper = ""
+            if paper:  # this system's readings are the comparisons with its paper
+                readings += mine
+            n_ok = int((df[(df.system == system) & df.experiment.isin(per_system)]
+                        .drop_duplicates("cell_id").status == "ok").sum())
+            md += [f"- [{system}]({system}.md): {n_ok} cells"
+                   + (f"; the system of {paper}, whose claims the readings check" if paper
+                      else "")]
+        if names:
+            md.append("")
         from sysid_bench.intercept import report_section
 
         # the tables the run measured into its run directory (measure_online, measure_intercept)
@@ -247,6 +271,61 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
 #: Videos, frames and prefix stride of the online-cost table per scale: lsq re-identifies on
 #: every prefix; the default times one prefix in 10 and interpolates the rest (3 min -> ~25 s)
 ONLINE_VIDEOS = {"smoke": (1, 60, 1), "default": (2, 200, 10), "paper": (5, 200, 1)}
+
+
+def _section(e, sub, store, out: Path, tabdir: Path, figdir: Path, readings: list,
+             level: str = "##", label: str = "") -> list[str]:
+    """One experiment's section (tables, figures, reading, failures) from its rows ``sub``."""
+    md = [f"{level} {e.title}", "", e.description, ""]
+    ok = sub[sub.status == "ok"]
+    if ok.empty:
+        bad_only = sub.drop_duplicates("cell_id") if len(sub) else sub
+        if len(bad_only):
+            md += ["_No results: every cell failed or does not apply (below)._", ""]
+        else:
+            return md + ["_No results in the store for this experiment._", ""]
+    else:
+        for tname, t in e.tables(ok).items():
+            _write_table(t, tabdir / tname)
+            rel = (tabdir / tname).relative_to(out).as_posix()
+            md += [f"**{tname}** (`{rel}.csv`)", "", markdown_table(t), ""]
+        for caption, path in e.figures(ok, store, figdir).items():
+            md += [f"![{caption}]({Path(path).relative_to(out).as_posix()})", "",
+                   f"*{caption}*", ""]
+        r = e.reading(ok)
+        if r:
+            md += ["Reading:", "", *[f"- {s}" for s in r], ""]
+            where = f"{label}, " if label else ""
+            readings += [f"({where}{e.title.split('.')[0]}) {s}" for s in r]
+    bad = sub[(sub.status != "ok") | (sub.metric == "failed")]
+    if len(bad):
+        bad = bad.assign(status=np.where(bad.status == "ok", "partly failed", bad.status))
+        g = (bad.groupby(["method", "input", "status"])
+             .agg(cells=("cell_id", "nunique"), first_message=("error", "first"))
+             .reset_index())
+        g["first_message"] = g.first_message.str.slice(0, 160)
+        md += ["Cells that failed, failed at some frame counts (`partly failed`: the "
+               "other frame counts are in the tables) or do not apply (`n/a`: the method "
+               "raised NotImplementedError):", "", markdown_table(g), ""]
+    return md
+
+
+def _system_page(system: str, exps, df, store, out: Path) -> tuple[list[str], list[str]]:
+    """The page of ``system``: every experiment that ran on it, its own tables and figures
+    (``tables/<system>/``, ``figures/<system>/``). Returns the page's lines and its readings."""
+    from sysid_bench.bench import EXPERIMENTS
+
+    md = [f"# {system}: every experiment", "",
+          f"Part of the [report](REPORT.md): the rows of the `{system}` system, every figure with "
+          "its 95% CI over cases.", ""]
+    readings: list[str] = []
+    for name in exps:
+        e = EXPERIMENTS[name]
+        if not e.runs_on(system) and not (df.experiment == name).any():
+            continue
+        md += _section(e, df[df.experiment == name], store, out, out / "tables" / system,
+                       out / "figures" / system, readings, label=system)
+    return md, readings
 
 
 def store_label(store_path) -> str:

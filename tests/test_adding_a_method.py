@@ -58,8 +58,8 @@ def test_the_toy_runs_in_the_smoke_benchmark_and_shows_in_the_report(toy, tmp_pa
     text = report.read_text()
     assert "parabola" in text
     summary = pd.read_csv(tmp_path / "reports" / "tables" / "summary.csv")
-    assert toy in set(summary.iloc[:, 0])
-    ident = pd.read_csv(tmp_path / "reports" / "tables" / "identification_mse.csv")
+    assert toy in set(summary.method)
+    ident = pd.read_csv(tmp_path / "reports" / "tables" / "ball" / "identification_mse.csv")
     assert toy in set(ident.method)
     # the toy does not forecast: its forecasting cells are n/a, not errors
     assert out["na"] > 0

@@ -42,16 +42,18 @@ def test_markdown_table():
 def test_render_from_store(store_path, tmp_path):
     out = tmp_path / "reports"
     path = render(store_path, out)
-    text = path.read_text()
-    for e in EXPERIMENTS.values():
-        assert f"## {e.title}" in text
-    assert "git commit `" in text and "scale `smoke`" in text
+    index = path.read_text()
+    assert "git commit `" in index and "scale `smoke`" in index
+    assert "[ball](ball.md)" in index  # the index links each system's page
+    text = (out / "ball.md").read_text()
+    for e in EXPERIMENTS.values():  # each experiment on the page of the system it ran on
+        assert f"## {e.title}" in (index if e.cross_system else text)
     # tables name the input each method saw, and every method appears
-    t = pd.read_csv(out / "tables" / "identification_mse.csv")
+    t = pd.read_csv(out / "tables" / "ball" / "identification_mse.csv")
     assert {"method", "input"} <= set(t.columns)
     assert set(t.method) == set(FAST) and set(t.input) == {"video", "privileged"}
-    assert (out / "tables" / "forecast_mse.parquet").is_file()
-    band = pd.read_csv(out / "tables" / "forecast_band.csv")  # smoke: prefixes 20, 50
+    assert (out / "tables" / "ball" / "forecast_mse.parquet").is_file()
+    band = pd.read_csv(out / "tables" / "ball" / "forecast_band.csv")  # smoke: prefixes 20, 50
     assert list(band.columns[2:]) == [f"{k} on frames 50-end, after {t}"
                                       for k in ("band (m)", "cov90") for t in (20, 50)]
     # each cell "mean [lo, hi]" (95% CI over cases)
@@ -61,9 +63,9 @@ def test_render_from_store(store_path, tmp_path):
     assert band.iloc[:, 2:].map(lambda v: "[" in str(v)).all().all()
     for png in ("identification_accuracy", "identification_speed", "forecast_accuracy",
                 "forecast_examples", "forecast_uncertainty", "changing_example", "calibration"):
-        data = (out / "figures" / f"{png}.png").read_bytes()
+        data = (out / "figures" / "ball" / f"{png}.png").read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
-        assert f"figures/{png}.png" in text
+        assert f"figures/ball/{png}.png" in text
     # the whole run is exported long-format
     res = pd.read_parquet(out / "results.parquet")
     with Store(store_path) as s:

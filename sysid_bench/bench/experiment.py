@@ -154,6 +154,9 @@ class Experiment:
     description: str = ""
     #: the systems it runs on: "any", or a tuple of registered names (the ball's own tasks)
     systems: str | tuple[str, ...] = "any"
+    #: True for an experiment whose report compares the systems (it gets every system's rows
+    #: at once, at the top of the report); others are reported system by system
+    cross_system: bool = False
 
     def runs_on(self, system: str) -> bool:
         """Whether this experiment has cells on ``system``."""

@@ -152,6 +152,7 @@ def _rank_text(best: float, worst: float) -> str:
 
 class Systems(Experiment):
     name = "systems"
+    cross_system = True
     title = "0. Across systems"
     description = (
         "Every method on every registered system with one protocol: held-out test-split cases "

@@ -115,6 +115,12 @@ class System(abc.ABC):
     min_size : (int, int)
         Smallest frames ``(H, W)`` that ``render`` draws and ``track`` reads: below it the
         object does not fit the frame (``track`` would answer NaN or noise).
+    paper : str
+        The publication whose claims the report compares this system's figures with (its
+        readings go to the report's "differ from the paper" list), or ``""``.
+    headline_groups : tuple of tuple of str
+        Groups of parameters whose mean error the report's summary shows beside the overall
+        one (e.g. the ball's r, unknowable until the ball rolls, apart from e, g, d).
 
     Every public method validates its arguments here, once for all systems (a user's included):
     ``simulate``, ``observe``, ``render`` and ``track`` are defined on this class, and a
@@ -135,6 +141,8 @@ class System(abc.ABC):
     jax_twin: ClassVar[str] = ""
     scene_type: ClassVar[type[Scene]] = Scene
     min_size: ClassVar[tuple[int, int]] = (4, 4)
+    paper: ClassVar[str] = ""
+    headline_groups: ClassVar[tuple[tuple[str, ...], ...]] = ()
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)

@@ -38,6 +38,9 @@ class Ball(System):
     scene_type = BallScene
     #: below 7 x 7 the tracker loses the ball in over 10% of frames (measured, clean video)
     min_size = (7, 7)
+    paper = "Vid2Param (Asenov et al.)"
+    #: r is unknowable until the ball rolls (about half the test videos never do)
+    headline_groups = (("e", "g", "d"), ("r",))
 
     def state_bounds_for(self, scene):
         if scene == self.default_scene:
