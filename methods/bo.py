@@ -88,7 +88,6 @@ class BayesOpt(SimulationOnSystems):
     min_frames = 3
     forecasts = True
     cost = 30
-    figure_order = 4
     # 4-13 s per cell at the default budget: the first cases only (the same cases as everyone)
     scale_cases = {
         "smoke": 1,

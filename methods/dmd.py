@@ -65,7 +65,6 @@ class DMD(Estimator):
     forecasts = True
     cost = 2
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)
-    figure_order = 6
     systems = "any"
 
     def __init__(self, *, system: str = "ball", delays: int = 0, svd_rank: float = 0.99999,

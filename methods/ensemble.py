@@ -222,7 +222,6 @@ class Emcee(SimulationOnSystems):
     min_frames = 3
     forecasts = True
     cost = 20
-    figure_order = 2
     # 0.3-1.8 s per cell at the default budget (the committed run of 4e20acf): every case, so
     # its figures rest on as many cases as lsq's (issue 29: 4 cases let a reading turn on one)
     scale_cases = {"smoke": 1}

@@ -104,7 +104,6 @@ class LSQ(SimulationOnSystems):
     forecasts = True
     cost = 8
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)
-    figure_order = 3
     #: cheap budgets for check_estimator (same code path)
     contract_options = {"n_samples": 200, "search_rounds": 2, "n_starts": 1, "max_opt_evals": 20}
 

@@ -544,7 +544,6 @@ class NUTS(SimulationOnSystems):
     min_frames = 3  # fewer seen frames cannot fix a state and parameters (``methods._tracks.prepare``)
     forecasts = True
     cost = 50
-    figure_order = 1
     #: the posterior calibration compares every other method with
     reference_posterior = True
     # ~25 s per posterior (~100 under load): where it is the reference (calibration, systems)

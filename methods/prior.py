@@ -43,7 +43,6 @@ class PriorOnly(Estimator):
     forecasts = True
     cost = 0
     inline = True  # microseconds per cell: not worth a worker
-    figure_order = 7
     systems = "any"
 
     def __init__(self, *, system: str = "ball", n_samples: int = 256, seed: int = 0):

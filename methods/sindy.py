@@ -380,7 +380,6 @@ class SINDy(Estimator):
     forecasts = True
     cost = 4
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)
-    figure_order = 5
     #: the ball and the systems with a feature library (methods._sindy_libraries.LIBRARIES)
     systems = ("ball", "pendulum", "spring")
 

@@ -938,9 +938,7 @@ class Estimator(abc.ABC):
     inline: bool = False
     online_cost: bool = False
     policies: dict = MappingProxyType({})
-    claims: str = ""
-    color: str | None = None
-    figure_order: int | None = None
+    from_paper: bool = False
     reference_posterior: bool = False
     #: The systems the method runs on: a tuple of registered names, or ``"any"`` (every
     #: registered system, one a user registers included); :func:`methods.get` refuses the others

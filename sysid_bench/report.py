@@ -52,7 +52,7 @@ def _run_summary(store) -> tuple[list[str], dict]:
         if len(mine):
             elapsed += float(mine.finished.max()) - float(inv["started"])
     last = invs[-1] if invs else {}
-    when = _dt.datetime.fromtimestamp(last.get("started", 0), _dt.timezone.utc)
+    when = _dt.datetime.fromtimestamp(last.get("started", 0), _dt.UTC)
     lines.append(f"- scale `{last.get('scale')}`, {len(cells)} cells in the store "
                  f"({', '.join(f'{k}: {v}' for k, v in cells.status.value_counts().items())}), "
                  f"{len(invs)} invocation(s); computing time {elapsed:.0f} s wall "

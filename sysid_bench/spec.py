@@ -53,10 +53,9 @@ attribute              default     meaning
 ``online_cost``        False       a row of the online-cost table by default (report section 7)
 ``policies``           {}          interception policies built on the method's online stream:
                                    ``{policy name: hyperparameters}`` (``sysid-bench intercept``)
-``claims``             ""          the paper's claims are about this method: a few words on the model
-                                   for the readings (``""``: a baseline)
-``color``              None        matplotlib colour in every figure (None: from ``figure_order``)
-``figure_order``       None        place in figures: slot in the tab10 palette (None: by name)
+``from_paper``         False       the paper's claims are about this method (the readings compare
+                                   these with the baselines); how the report names, draws and orders
+                                   a method is the report's (``sysid_bench/bench/style.toml``)
 ``contract_options``   {}          cheap hyperparameters for ``check_estimator`` (same code path)
 =====================  ==========  =====================================================================
 
@@ -84,7 +83,7 @@ TRAIT_FIELDS = ("input_kind", "min_frames", *CAPABILITIES, "reference_posterior"
 #: how the benchmark schedules it
 SCHEDULE_FIELDS = (
     "cost", "scale_cases", "scale_options", "fit_options", "pretrained", "threads_param",
-    "inline", "online_cost", "policies", "claims", "color", "figure_order", "contract_options",
+    "inline", "online_cost", "policies", "from_paper", "contract_options",
 )
 #: class attributes collected into a MethodSpec
 DECLARED = ("name", *TRAIT_FIELDS, *SCHEDULE_FIELDS)
@@ -136,9 +135,7 @@ class Schedule:
     inline: bool
     online_cost: bool
     policies: Mapping
-    claims: str
-    color: str | None
-    figure_order: int | None
+    from_paper: bool
     contract_options: Mapping
 
 
@@ -269,7 +266,7 @@ def spec_of(cls, entry_point: str | None = None) -> MethodSpec:
         raise _bad(cls, "name", "the method's registry name (a non-empty str)", name)
     if vals["input_kind"] not in INPUT_KINDS:
         raise _bad(cls, "input_kind", f"one of {INPUT_KINDS}", vals["input_kind"])
-    for a in (*CAPABILITIES, "inline", "online_cost", "reference_posterior"):
+    for a in (*CAPABILITIES, "inline", "online_cost", "reference_posterior", "from_paper"):
         if not isinstance(vals[a], bool):
             raise _bad(cls, a, "True or False", vals[a])
     sy = vals["systems"]
@@ -282,15 +279,6 @@ def spec_of(cls, entry_point: str | None = None) -> MethodSpec:
         v = vals[a]
         if isinstance(v, bool) or not isinstance(v, int) or v < (1 if a == "min_frames" else 0):
             raise _bad(cls, a, "an int >= " + ("1" if a == "min_frames" else "0"), v)
-    if vals["figure_order"] is not None and (
-        isinstance(vals["figure_order"], bool) or not isinstance(vals["figure_order"], int)
-        or vals["figure_order"] < 0
-    ):
-        raise _bad(cls, "figure_order", "None or an int >= 0", vals["figure_order"])
-    if not isinstance(vals["claims"], str):
-        raise _bad(cls, "claims", "a str ('' for a baseline)", vals["claims"])
-    if vals["color"] is not None and not isinstance(vals["color"], str):
-        raise _bad(cls, "color", "None or a matplotlib colour string", vals["color"])
     tp = vals["threads_param"]
     if tp is not None and tp not in params:
         raise _bad(cls, "threads_param", f"None or one of the hyperparameters {params}", tp)

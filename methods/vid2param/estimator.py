@@ -201,7 +201,7 @@ class Vid2Param(Estimator):
     trains = True
     cost = 1
     online_cost = True
-    claims = "trained on constant parameters; forecasts by rolling out its latent prior"
+    from_paper = True
     #: interception policies on the camera model's stream (``sysid-bench intercept``)
     policies = {"vid2param": {"checkpoint": "camera", "n_samples": 32},
                 "vid2param-physics": {"checkpoint": "camera", "n_samples": 32,
@@ -210,7 +210,6 @@ class Vid2Param(Estimator):
     inline = True
     #: workers = cores, so the benchmark gives the checkpoint one thread (the run's --threads)
     threads_param = "threads"
-    figure_order = 0
     # sensitivity: a fresh model per condition, one budget for all. Default scale: ~0.2 s per
     # step on 50-frame videos on one loaded core, 4 conditions x 200 steps ~ 3-4 core-minutes;
     # at 120-400 steps the model is still at the guessing level (the report says so).
@@ -886,9 +885,8 @@ class Vid2ParamPhysics(Vid2Param):
     streams = False
     online = False  # its stream re-fits every prefix
     policies = {}
-    claims = "the same network's posterior drawn and simulated with the known physics"
+    from_paper = True
     trains = False
-    figure_order = 8
     fit_options = {}
     pretrained = {}
 
@@ -981,9 +979,8 @@ class Vid2ParamChanging(Vid2Param):
     forecasts = False
     online_cost = False
     policies = {}
-    claims = "trained on parameters that change every 50 frames"
+    from_paper = True
     trains = False
-    figure_order = 9
     fit_options = {}
     pretrained = {}
     scale_cases = {s: {"identification": 0, "forecasting": 0, "calibration": 0, "foreign": 0,

@@ -197,12 +197,12 @@ class Changing(Experiment):
         return figs
 
     def reading(self, df):
-        """The paper's claim, per model of the paper (the methods that declare ``claims``, named
-        with what they declare), and whether it holds: by the stated rule, at least half of the
-        changes followed before the next one."""
-        import methods
+        """The paper's claim, per model of the paper (the methods that declare ``from_paper``,
+        named with the report's words for them), and whether it holds: by the stated rule, at
+        least half of the changes followed before the next one."""
+        from sysid_bench.bench.figures import method_claims
 
-        models = {m: methods.spec(m).claims for m in paper_methods(df.method.unique())}
+        models = {m: method_claims(m) for m in paper_methods(df.method.unique())}
         if df.empty or not models:
             return []
         lines = []

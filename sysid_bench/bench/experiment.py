@@ -210,7 +210,8 @@ def execute(cell: Cell, scale: Scale, run_dir: str, threads: int = 1) -> dict:
 
 
 def paper_methods(names) -> list[str]:
-    """The methods among ``names`` that the paper's claims are about (they declare ``claims``),
+    """The methods among ``names`` that the paper's claims are about (they declare
+    ``from_paper``),
     in registry order: the readings compare them with the baselines. A method that cannot be
     imported here counts as a baseline."""
     import methods
@@ -221,7 +222,7 @@ def paper_methods(names) -> list[str]:
         if m not in names:
             continue
         try:
-            if methods.spec(m).claims:
+            if methods.spec(m).from_paper:
                 out.append(m)
         except ImportError:
             continue

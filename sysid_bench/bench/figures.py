@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import matplotlib
@@ -10,7 +11,7 @@ from sysid_bench._io import atomic_write
 
 matplotlib.use("Agg")  # reports are rendered on machines with no display
 
-__all__ = ["save_figure", "method_color"]
+__all__ = ["save_figure", "method_color", "method_style", "method_claims"]
 
 
 def save_figure(fig, path) -> Path:
@@ -26,20 +27,33 @@ def save_figure(fig, path) -> Path:
         plt.close(fig)
 
 
+@functools.lru_cache(maxsize=1)
+def _style() -> dict:
+    """``style.toml`` beside this module: ``{method: {"order": int, "claims": str}}``."""
+    import tomllib
+
+    with open(Path(__file__).with_name("style.toml"), "rb") as f:
+        return tomllib.load(f).get("methods", {})
+
+
+def method_style(method: str) -> dict:
+    """How the report draws and names ``method`` (``order``, ``claims``; empty when the style
+    file does not list it)."""
+    return dict(_style().get(method, {}))
+
+
+def method_claims(method: str) -> str:
+    """The few words the readings use for ``method`` (its ``claims`` in the style file), else
+    its name."""
+    return method_style(method).get("claims", method)
+
+
 def method_color(method: str) -> str:
-    """The same colour for a method in every figure: its declared ``color``, else the slot
-    ``figure_order`` of tab10, else one of the two slots no shipped method takes (by name)."""
+    """The same colour for a method in every figure: the slot ``order`` of tab10 that the style
+    file gives it, else one of the two slots no listed method takes (by name)."""
     import matplotlib
 
-    try:
-        import methods
-
-        spec = methods.spec(method)
-        color, k = spec.color, spec.figure_order
-    except (ValueError, ImportError):  # a store's method that is no longer registered/installed
-        color, k = None, None
-    if color is not None:
-        return matplotlib.colors.to_hex(color)
+    k = method_style(method).get("order")
     if k is None:
         k = 8 + sum(map(ord, method)) % 2
-    return matplotlib.colors.to_hex(matplotlib.colormaps["tab10"](k % 10))
+    return matplotlib.colors.to_hex(matplotlib.colormaps["tab10"](int(k) % 10))

@@ -293,10 +293,10 @@ class Forecasting(Experiment):
 
 
 def _claims(method: str) -> str:
-    """What ``method`` declares about itself for the readings (``claims``)."""
-    import methods
+    """The words the readings use for ``method`` (the report's style file)."""
+    from sysid_bench.bench.figures import method_claims
 
-    return methods.spec(method).claims
+    return method_claims(method)
 
 
 def _per_prefix(df, metric: str, method: str):
