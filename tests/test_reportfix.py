@@ -219,3 +219,22 @@ def test_readme_headline_matches_the_committed_report():
         pytest.skip("the committed report predates the summary's headline columns: regenerate "
                     "it, then run scripts/readme_headline.py")
     assert _headline().main(["--check"]) == 0, "run scripts/readme_headline.py"
+
+
+def test_readme_systems_table_is_section_0_per_method_and_system():
+    """The README's "Across systems" table is section 0's table, one source of truth: each cell
+    the MSE / coverage / seconds figures of systems_summary, the lowest MSE per system bold,
+    n/a where a method has no row, forecast-only methods left out."""
+    import pandas as pd
+
+    rows = [("ball", "lsq", "0.02 [0.01, 0.03]", "0.9 [0.8, 1]", "0.1"),
+            ("ball", "emcee", "0.01 [0.005, 0.02]", "0.95 [0.9, 1]", "0.3"),
+            ("pendulum", "lsq", "8e-05 [5e-05, 1e-04]", "0.9 [0.8, 1]", "0.35"),
+            ("ball", "dmd", "-", "-", "-")]
+    summ = pd.DataFrame(rows, columns=["system", "method", "param MSE @ 200", "coverage 90%",
+                                       "s / identification"])
+    table = _headline().systems_table(summ).splitlines()
+    assert table[0] == "| method (section 0) | ball | pendulum |"
+    assert table[2] == "| lsq | 0.02 / 0.90 / 0.1 | **8e-05** / 0.90 / 0.35 |"
+    assert table[3] == "| emcee | **0.01** / 0.95 / 0.3 | n/a |"
+    assert len(table) == 4  # dmd identifies nothing: no row
