@@ -27,7 +27,7 @@ import numpy as np
 from sysid_bench._io import atomic_write
 from sysid_bench._markdown import markdown_table
 
-__all__ = ["render", "markdown_table", "main", "add_arguments", "run", "measure_online",
+__all__ = ["render", "markdown_table", "main", "add_arguments", "run",
            "measure_intercept", "intercept_policies", "store_label"]
 
 
@@ -256,7 +256,6 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
 
         # the tables the run measured into its run directory (measure_online, measure_intercept)
         run_dir = Path(store_path).parent
-        md += _online_section(run_dir, out)
         md += report_section(out, source=run_dir)
         md += ["## Where our figures differ from the paper (and where they agree)", ""]
         md += [f"- {s}" for s in readings] or ["_Nothing to compare yet._"]
@@ -266,11 +265,6 @@ def render(store_path, out_dir="reports", experiments=None, title: str | None = 
         return path
     finally:
         store.close()
-
-
-#: Videos, frames and prefix stride of the online-cost table per scale: lsq re-identifies on
-#: every prefix; the default times one prefix in 10 and interpolates the rest (3 min -> ~25 s)
-ONLINE_VIDEOS = {"smoke": (1, 60, 1), "default": (2, 200, 10), "paper": (5, 200, 1)}
 
 
 def _section(e, sub, store, out: Path, tabdir: Path, figdir: Path, readings: list,
@@ -337,40 +331,6 @@ def store_label(store_path) -> str:
         return p.resolve().relative_to(Path.cwd().resolve()).as_posix()
     except ValueError:
         return f"{p.resolve().parent.name}/{p.name}"
-
-
-def _online_section(run_dir: Path, out: Path) -> list[str]:
-    """The online-cost section, from ``run_dir/tables/online_cost.md`` when the run measured
-    it (its CSV is copied into ``out/tables``)."""
-    path = Path(run_dir) / "tables" / "online_cost.md"
-    head = ["## 7. Online cost: a posterior after every frame", ""]
-    if not path.is_file():
-        return head + ["_Not measured in this run (`sysid-bench report` measures it into the "
-                       "run directory after the grid)._", ""]
-    csv = path.with_suffix(".csv")
-    if csv.is_file():
-        atomic_write(Path(out) / "tables" / "online_cost.csv", csv.read_bytes())
-    return head + [path.read_text(), ""]
-
-
-def measure_online(scale: str, run_dir, methods=None) -> Path | None:
-    """Measure ``sysid_bench.bench.online.online_cost`` at ``scale``'s size into
-    ``run_dir/tables/online_cost.{csv,md}``; None when no method with an online stream (declared
-    ``online``) is among ``methods``: the table compares against one."""
-    import methods as registry
-    from sysid_bench.bench.online import online_cost, online_cost_markdown, online_methods
-
-    wanted = [m for m in online_methods() if methods is None or m in methods]
-    if not any(registry.spec(m).online for m in wanted):
-        return None
-    n, frames, stride = ONLINE_VIDEOS.get(scale, ONLINE_VIDEOS["default"])
-    df = online_cost(wanted, n_videos=n, n_frames=frames, seed=0, prefix_stride=stride)
-    tables = Path(run_dir) / "tables"
-    tables.mkdir(parents=True, exist_ok=True)
-    atomic_write(tables / "online_cost.csv", df.to_csv(index=False))
-    path = tables / "online_cost.md"
-    atomic_write(path, online_cost_markdown(df))
-    return path
 
 
 #: Throws per policy of the interception table per scale (seed 0; throw ``i`` depends only on
@@ -519,7 +479,6 @@ def report_command(args) -> int:
               f"{summary['already']} already stored, {summary['wall_s']:.0f} s", file=sys.stderr)
         store = summary["store"]
         run_dir = Path(store).parent
-        measure_online(args.scale, run_dir, args.methods)
         measure_intercept(args.scale, run_dir, args.methods, workers=args.workers,
                           progress=not args.no_progress)
     path = render(store, args.out, experiments=args.experiments)

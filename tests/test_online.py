@@ -51,10 +51,32 @@ def test_online_cost_prefix_stride_interpolates(monkeypatch):
             now[0] += len(obs.frames) * 1e-3
 
     monkeypatch.setattr(online, "_clock", lambda: (now[0], now[0]))
-    obs = type("O", (), {"frames": np.zeros((50, 8, 8), np.uint8), "dt": 0.05, "floor": 0.0})()
+    from sysid_bench.estimator import Observation
+
+    obs = Observation(frames=np.zeros((50, 8, 8), np.uint8))
     n, wall, cpu = online._run_batch(Linear(), obs, 3, 10)
     assert n == 48 and calls == [3, 13, 23, 33, 43, 50]
     assert wall == pytest.approx(sum(range(3, 51)) * 1e-3) and cpu == pytest.approx(wall)
     assert online._timed_prefixes(3, 50, 1) == list(range(3, 51))
     with pytest.raises(ValueError, match="prefix_stride"):
         online_cost(["lsq"], prefix_stride=0)
+
+
+def test_online_is_an_experiment_of_the_runner_on_every_system(tmp_path):
+    """Section 7 runs through the runner and the store like the others (issue 37): rows per
+    system, the stream's cells and its samples-drawn twin; n/a where the method has no model."""
+    from sysid_bench.bench.online import Online
+    from sysid_bench.bench.runner import run
+    from sysid_bench.bench.store import Store
+
+    out = run(scale="smoke", methods=["vid2param"], experiments=["online"],
+              systems=["ball", "spring"], run_dir=tmp_path, workers=0, progress=False)
+    assert out["errors"] == 0 and out["ok"] == 2 and out["na"] == 2
+    with Store(tmp_path / "results.sqlite") as s:
+        df = s.results("online")
+    ok = df[df.status == "ok"]
+    assert set(ok.system) == {"ball"} and set(ok.condition) == {"", "samples"}
+    assert (ok[ok.metric == "posteriors"].value == 60).all()  # a posterior after each frame
+    t = Online().tables(ok)["online_cost"]
+    assert list(t.method) == ["vid2param", "vid2param+samples"]
+    assert t["x stream"].iloc[0] == 1.0

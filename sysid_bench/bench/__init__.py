@@ -1,4 +1,4 @@
-"""The benchmark suite: five experiments over every method, a resumable results store, runners.
+"""The benchmark suite: the experiments over every method, a resumable results store, runners.
 
 Modules
 -------
@@ -11,6 +11,7 @@ changing        3. parameters that change every 50 frames
 sensitivity     4. extrapolation, label noise, simplified physics (methods that train)
 calibration     5. coverage / NLL of posteriors and agreement with the nuts reference
 foreign         6. MuJoCo videos: physics that is not ours (the paper's real videos)
+online          7. the cost of a posterior after every frame
 systems         0. every method on every system, one table across systems
 runner          builds the grid and runs it on a process pool or a Dask cluster
 """
@@ -23,6 +24,7 @@ from sysid_bench.bench.experiment import EXPERIMENTS
 from sysid_bench.bench.forecasting import Forecasting
 from sysid_bench.bench.foreign import Foreign
 from sysid_bench.bench.identification import Identification
+from sysid_bench.bench.online import Online
 from sysid_bench.bench.sensitivity import Sensitivity
 from sysid_bench.bench.systems import Systems
 
@@ -30,7 +32,7 @@ from sysid_bench.bench.systems import Systems
 #: name without importing this package's modules back)
 EXPERIMENTS.update(
     (e.name, e) for e in (Systems(), Identification(), Forecasting(), Changing(), Sensitivity(),
-                       Calibration(), Foreign())
+                       Calibration(), Foreign(), Online())
 )
 
 __all__ = ["EXPERIMENTS"]

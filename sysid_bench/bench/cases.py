@@ -83,6 +83,9 @@ class Scale:
         videos of ``n_frames`` frames per condition, ``extrapolation`` parameters,
         ``label_noise`` levels, ``simplified`` (bool), ``lengths``. The training budget is the
         method's own declaration (``fit_options`` per scale).
+    online : (int, int)
+        Experiment 7: frames per video and the stride of the every-prefix methods' timed
+        prefixes (its test videos: ``n_cases["online"]``).
 
     What differs per method (case caps, hyperparameters, threads, cost tier) is declared on the
     method's class and read through :func:`methods.spec`; a scale holds no table of methods.
@@ -102,6 +105,7 @@ class Scale:
     expensive_lengths: tuple = (20, 50, 100, 150, 200)
     expensive_stride: int = 25
     sensitivity: dict = field(default_factory=dict)
+    online: tuple = (200, 10)
 
     def thinned(self, method: str) -> bool:
         """True when ``method`` is of the expensive tier and this scale thins those."""
@@ -204,12 +208,13 @@ SCALES: dict[str, Scale] = {
         name="smoke",
         seed=7,
         n_cases={"identification": 2, "forecasting": 2, "changing": 1, "sensitivity": 2,
-                 "calibration": 2, "systems": 1},
+                 "calibration": 2, "systems": 1, "online": 1},
         # expensive methods declare one case and a small budget here (smoke numbers mean nothing)
         lengths=(20, 60, 100),
         forecast_after=(20, 50),
         horizon=30,
         changing_stride=25,
+        online=(60, 5),
         calibration_lengths=(50, 100),
         expensive_lengths=(50, 100),
         expensive_stride=50,
@@ -226,7 +231,7 @@ SCALES: dict[str, Scale] = {
     "default": Scale(
         name="default",
         n_cases={"identification": 20, "forecasting": 20, "changing": 10, "sensitivity": 50,
-                 "calibration": 20, "systems": 10},
+                 "calibration": 20, "systems": 10, "online": 2},
         # Measured seconds per cell, one worker at low load (a full default grid without
         # vid2param summed to 690 core-seconds): lsq 0.5-3.4, sindy 0.3-1.4, bo 4-13,
         # emcee 9-25, nuts ~25 per posterior (~100 under a load of 5). The expensive ones declare
@@ -241,9 +246,10 @@ SCALES: dict[str, Scale] = {
     "paper": Scale(
         name="paper",
         n_cases={"identification": 100, "forecasting": 100, "changing": 100, "sensitivity": 100,
-                 "calibration": 100, "systems": 100},
+                 "calibration": 100, "systems": 100, "online": 5},
         thin_expensive=False,
         changing_stride=1,
+        online=(200, 1),
         calibration_inputs=("video", "privileged"),
         sensitivity={
             "n_train": 10_000,

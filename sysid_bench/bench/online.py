@@ -1,4 +1,4 @@
-"""Online cost: a posterior after every frame of a video, method by method.
+"""Experiment 7, online cost: a posterior after every frame of a video, method by method.
 
 The paper's speed claim is about online use: a robot wants the parameters after each new frame.
 A method with an online stream (declared ``online``: Vid2Param) pays a constant cost per frame;
@@ -9,8 +9,12 @@ alike: compare the ratios, not the absolute seconds. The default rows are the me
 declare ``online_cost``.
 
 Every method sees video only: frame methods their frames, position methods
-``Observation(frames=...)`` (they track the ball themselves, as in the report's ``video``
-input), floor height given.
+``Observation(frames=...)`` (they track the object themselves, as in the report's ``video``
+input), the scene's geometry given.
+
+Two entry points: :func:`online_cost`, one table measured in one process (the benchmark's
+``test_bench_online``), and :class:`Online`, the report's experiment: one cell per system,
+method and test case in the runner's pool, like every other experiment, its rows in the store.
 """
 
 from __future__ import annotations
@@ -22,8 +26,10 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from sysid_bench._validate import check_positive_int
+from sysid_bench.bench.cases import system_case
+from sysid_bench.bench.experiment import Cell, CellOutput, Context, Experiment, fmt_ci, median_ci
 
-__all__ = ["online_cost", "online_cost_markdown", "online_methods"]
+__all__ = ["online_cost", "online_cost_markdown", "online_methods", "Online"]
 
 
 def online_methods() -> list[str]:
@@ -71,14 +77,12 @@ def _run_batch(est, obs, first: int, stride: int = 1) -> tuple[int, float, float
     over every prefix (a prefix's cost grows smoothly with its length: the simulations it fits
     are that long), so the figure estimates what the full loop costs at a ``stride``-th of it.
     """
-    from sysid_bench.estimator import Observation
-
     T = len(obs.frames)
     lengths = _timed_prefixes(first, T, stride)
     walls, cpus = [], []
     for n in lengths:
         w0, c0 = _clock()
-        est.identify(Observation(frames=obs.frames[:n], dt=obs.dt, floor=obs.floor))
+        est.identify(obs.prefix(n))
         w1, c1 = _clock()
         walls.append(w1 - w0)
         cpus.append(c1 - c0)
@@ -162,8 +166,7 @@ def online_cost(methods=None, n_videos: int = 3, seed: int = 0, *,
             if m in online:
                 _run_stream(ests[m], warm.frames[:5], True)
             else:
-                _run_batch(ests[m], type(warm)(frames=warm.frames[:first + 2], dt=warm.dt,
-                                               floor=warm.floor), first + 2, 1)
+                _run_batch(ests[m], warm.prefix(first + 2), first + 2, 1)
         except NotImplementedError:
             pass
     wall = {r[0]: [] for r in runs}
@@ -242,3 +245,136 @@ def online_cost_markdown(df: pd.DataFrame) -> str:
         lines.append(f"| {r.method} | {r.mode} | {r.first_frame} | {r.posteriors} | "
                      f"{r.total_s:.3g} | {r.per_frame_s * 1e3:.3g} | {r.ratio:.3g} |")
     return "\n".join(lines) + "\n"
+
+
+class Online(Experiment):
+    """The online-cost experiment: a cell per (system, method, test case)."""
+
+    name = "online"
+    title = "7. Online cost: a posterior after every frame"
+    description = (
+        "Seconds for a posterior after every frame of a test video (the system's own render, "
+        "video input), per method: `stream` is one push per frame of a method with an online "
+        "stream (`stream+samples`: each posterior's samples drawn too); `every prefix` is "
+        "identify re-run on frames 1..t for every t from the method's first frame, timed on one "
+        "prefix in `stride` (and the last) and interpolated linearly in the prefix length. The "
+        "methods are those that declare `online_cost`. Each cell warms its method up (loads its "
+        "model, compiles its simulator) before the clock starts. Cells run in the pool beside "
+        "other cells: the seconds carry the run's load; `x stream` (median over the system's "
+        "cases of a method's total over the stream's) compares methods of one run."
+    )
+
+    def cells(self, scale, methods, system="ball"):
+        import methods as registry
+
+        out = []
+        for m in methods:
+            sp = registry.spec(m)
+            if not sp.online_cost:
+                continue
+            conds = ("", "samples") if sp.online else ("",)
+            n = scale.cases(self.name, m, system)
+            out += [Cell(self.name, m, "video", c, i, system) for c in conds for i in range(n)]
+        return out
+
+    def run(self, cell: Cell, ctx: Context) -> CellOutput:
+        sc = ctx.scale
+        i = int(cell.case)
+        frames, stride = sc.online
+        obs, _, _ = system_case(cell.system, i, sc.n_for(self.name, cell.system), sc.seed,
+                                "video")
+        obs = obs.prefix(min(int(frames), obs.n_frames))
+        est = ctx.estimator(cell.method, system=cell.system)
+        out = CellOutput()
+        T = obs.n_frames
+        if est.spec().online:
+            _run_stream(est, obs.frames[:5], True)  # warm: load, first allocations
+            w0, c0 = _clock()
+            n = _run_stream(est, obs.frames, cell.condition == "samples")
+            w1, c1 = _clock()
+            wall, cpu, first = w1 - w0, c1 - c0, 1
+        else:
+            first = max(1, int(getattr(est, "min_frames", 1)))
+            _run_batch(est, obs.prefix(min(first + 2, T)), min(first + 2, T), 1)  # warm
+            n, wall, cpu = _run_batch(est, obs, first, int(stride))
+        for metric, v in (("total_s", wall), ("cpu_s", cpu), ("per_frame_s", wall / T),
+                          ("posteriors", n), ("first_frame", first), ("stride", stride)):
+            out.add(i, T, metric, v)
+        return out
+
+    # -- report -----------------------------------------------------------------------------
+    @staticmethod
+    def _label(method: str, condition: str) -> str:
+        return f"{method}+samples" if condition == "samples" else method
+
+    def summary(self, df) -> pd.DataFrame:
+        """Per method (and samples drawn or not): mode, first frame, posteriors, median total
+        and per-frame seconds with 95% CIs over cases, and the ratio to the stream's total."""
+        import methods as registry
+
+        if df.empty:
+            return pd.DataFrame()
+        cond = df.condition.fillna("") if "condition" in df.columns else ""
+        df = df.assign(condition=cond)
+        streams = [m for m in df.method.unique() if _is_online(registry, m)]
+        base = streams[0] if streams else None
+        tot = df[df.metric == "total_s"]
+        base_tot = (tot[(tot.method == base) & (tot.condition == "")].set_index("case").value
+                    if base else None)
+        recs = []
+        for (m, c), g in df.groupby(["method", "condition"], sort=True):
+            t = g[g.metric == "total_s"]
+            med, lo, hi = median_ci(t, (self.name, m, c, "total"))
+            pf = g[g.metric == "per_frame_s"].assign(value=lambda x: x.value * 1e3)
+            pmed, plo, phi = median_ci(pf, (self.name, m, c, "per_frame"))
+            ratio = np.nan
+            if base_tot is not None and len(base_tot):
+                r = t.set_index("case").value / base_tot
+                r = r[np.isfinite(r)]
+                ratio = float(np.median(r)) if len(r) else np.nan
+            first = g[g.metric == "first_frame"].value
+            post = g[g.metric == "posteriors"].value
+            stride = g[g.metric == "stride"].value
+            recs.append({
+                "method": self._label(m, c),
+                "mode": "stream" if _is_online(registry, m) else "every prefix",
+                "first frame": int(first.iloc[0]) if len(first) else -1,
+                "posteriors": int(post.iloc[0]) if len(post) else 0,
+                "cases": int(t.case.nunique()),
+                "total s": fmt_ci(med, lo, hi),
+                "per frame ms": fmt_ci(pmed, plo, phi),
+                "stride": "-" if _is_online(registry, m) or not len(stride)
+                else int(stride.iloc[0]),
+                "x stream": ratio,
+                "_total": med,
+            })
+        t = pd.DataFrame(recs)
+        return t.sort_values(["mode", "_total"], ascending=[False, True]).reset_index(drop=True)
+
+    def tables(self, df):
+        t = self.summary(df)
+        if t.empty:
+            return {}
+        return {"online_cost": t.drop(columns="_total")}
+
+    def reading(self, df):
+        t = self.summary(df)
+        if t.empty:
+            return []
+        streams = t[t["mode"] == "stream"]
+        batch = t[(t["mode"] == "every prefix") & np.isfinite(t["x stream"])]
+        if streams.empty or batch.empty:
+            return []
+        base = streams.iloc[0]
+        cheapest = batch.sort_values("x stream").iloc[0]
+        return [f"A posterior after every frame costs {base.method}'s stream "
+                f"{base['per frame ms']} ms a frame; re-running the cheapest other method "
+                f"({cheapest.method}) on every prefix costs {cheapest['x stream']:.3g}x as much "
+                "(median over cases, measured in this run)."]
+
+
+def _is_online(registry, method: str) -> bool:
+    try:
+        return bool(registry.spec(method).online)
+    except (ValueError, ImportError):
+        return False
