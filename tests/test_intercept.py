@@ -239,17 +239,6 @@ def test_cli_prints_rates_and_writes_the_table(tmp_path, capsys):
     assert "known policies" in capsys.readouterr().err
 
 
-def test_report_section(tmp_path):
-    assert "No interception tables" in "\n".join(ic.report_section(tmp_path))
-    for p in ("oracle", "random-2hz"):
-        df = ic.evaluate(p, n_throws=2, seed=0, record=[0])
-        ic.write_results(df, tmp_path)
-    md = "\n".join(ic.report_section(tmp_path))
-    assert "| random-2hz |" in md and "| oracle |" in md
-    assert (tmp_path / "figures" / "intercept.png").stat().st_size > 10_000
-    assert (tmp_path / "tables" / "intercept_summary.csv").exists()
-
-
 def test_wilson_interval():
     lo, hi = ic.wilson_interval(27, 35)
     assert 0.6 < lo < 0.77 < hi < 0.9

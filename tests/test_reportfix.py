@@ -1,6 +1,6 @@
 """What a user reads is true and safe to run (issue 29): the sample clip and identify's default
 output folder, intercept's default output folder, the report's store name and provenance, the
-interception table measured into the run directory, and the workers' portable floating point."""
+interception experiment in the store, and the workers' portable floating point."""
 
 from __future__ import annotations
 
@@ -99,25 +99,27 @@ def test_portable_float_env_in_workers():
     assert {k: env[k] for k in port} == port and env["OPENBLAS_NUM_THREADS"] == "1"
 
 
-def test_interception_is_measured_into_the_run_dir_and_rendered(tmp_path, monkeypatch):
-    """The report's section 8 reads the tables the run measured beside its store (and keeps a
-    measured policy whose code did not change)."""
-    from sysid_bench import report
+def test_interception_is_an_experiment_of_the_store_and_rendered(tmp_path, monkeypatch):
+    """Section 8 runs through the runner and the store like the others (issue 37: not a side
+    path of the report): a built-in policy's cells have no method, a rerun keeps them, and the
+    ball's page shows their table; the provenance names the store, not a machine path."""
+    from sysid_bench.bench import interception
     from sysid_bench.bench.runner import STORE_NAME, run
+    from sysid_bench.report import render
 
-    monkeypatch.setattr(report, "intercept_policies", lambda methods=None: ["oracle", "random-1hz"])
+    monkeypatch.setattr(interception, "policies", lambda methods=None: ["oracle", "random-1hz"])
     run_dir = tmp_path / "run"
-    res = run(scale="smoke", methods=["prior"], experiments=["calibration"], run_dir=run_dir,
+    kw = dict(scale="smoke", methods=["prior"], experiments=["interception"], run_dir=run_dir,
               workers=0, progress=False)
-    files = report.measure_intercept("smoke", run_dir, workers=1)
-    assert sorted(f.name for f in files) == ["intercept_oracle.json", "intercept_random-1hz.json"]
-    stamp = [f.stat().st_mtime_ns for f in files]
-    assert [f.stat().st_mtime_ns for f in report.measure_intercept("smoke", run_dir, workers=1)] \
-        == stamp  # kept, not measured again
-    text = report.render(res["store"], tmp_path / "rep").read_text()
-    sec = text.split("## 8. Interception")[1]
+    res = run(**kw)
+    assert res["ok"] == res["cells"] == 2 and res["errors"] == 0
+    assert run(**kw)["ran"] == 0  # kept, not measured again
+    text = render(res["store"], tmp_path / "rep").read_text()
+    page = (tmp_path / "rep" / "ball.md").read_text()
+    sec = page.split("## 8. Interception")[1]
     assert "| oracle | 3 | 3 |" in sec and "| random-1hz | 3 |" in sec
-    assert (tmp_path / "rep" / "tables" / "intercept_oracle.csv").is_file()
+    assert (tmp_path / "rep" / "tables" / "ball" / "intercept_summary.csv").is_file()
+    assert (tmp_path / "rep" / "figures" / "ball" / "intercept.png").stat().st_size > 10_000
     assert str(tmp_path) not in text.split("## Run")[0]
     assert f"run/{STORE_NAME}" in text.split("## Run")[0]
     assert re.search(r"git commit `[0-9a-f]+`", text)

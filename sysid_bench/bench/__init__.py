@@ -12,6 +12,7 @@ sensitivity     4. extrapolation, label noise, simplified physics (methods that 
 calibration     5. coverage / NLL of posteriors and agreement with the nuts reference
 foreign         6. MuJoCo videos: physics that is not ours (the paper's real videos)
 online          7. the cost of a posterior after every frame
+interception    8. the paper's robot experiment, simulated (intercept/: the task's parts)
 systems         0. every method on every system, one table across systems
 runner          builds the grid and runs it on a process pool or a Dask cluster
 """
@@ -24,6 +25,7 @@ from sysid_bench.bench.experiment import EXPERIMENTS
 from sysid_bench.bench.forecasting import Forecasting
 from sysid_bench.bench.foreign import Foreign
 from sysid_bench.bench.identification import Identification
+from sysid_bench.bench.interception import Interception
 from sysid_bench.bench.online import Online
 from sysid_bench.bench.sensitivity import Sensitivity
 from sysid_bench.bench.systems import Systems
@@ -32,7 +34,7 @@ from sysid_bench.bench.systems import Systems
 #: name without importing this package's modules back)
 EXPERIMENTS.update(
     (e.name, e) for e in (Systems(), Identification(), Forecasting(), Changing(), Sensitivity(),
-                       Calibration(), Foreign(), Online())
+                       Calibration(), Foreign(), Online(), Interception())
 )
 
 __all__ = ["EXPERIMENTS"]

@@ -208,7 +208,7 @@ SCALES: dict[str, Scale] = {
         name="smoke",
         seed=7,
         n_cases={"identification": 2, "forecasting": 2, "changing": 1, "sensitivity": 2,
-                 "calibration": 2, "systems": 1, "online": 1},
+                 "calibration": 2, "systems": 1, "online": 1, "interception": 3},
         # expensive methods declare one case and a small budget here (smoke numbers mean nothing)
         lengths=(20, 60, 100),
         forecast_after=(20, 50),
@@ -231,7 +231,7 @@ SCALES: dict[str, Scale] = {
     "default": Scale(
         name="default",
         n_cases={"identification": 20, "forecasting": 20, "changing": 10, "sensitivity": 50,
-                 "calibration": 20, "systems": 10, "online": 2},
+                 "calibration": 20, "systems": 10, "online": 2, "interception": 40},
         # Measured seconds per cell, one worker at low load (a full default grid without
         # vid2param summed to 690 core-seconds): lsq 0.5-3.4, sindy 0.3-1.4, bo 4-13,
         # emcee 9-25, nuts ~25 per posterior (~100 under a load of 5). The expensive ones declare
@@ -246,7 +246,7 @@ SCALES: dict[str, Scale] = {
     "paper": Scale(
         name="paper",
         n_cases={"identification": 100, "forecasting": 100, "changing": 100, "sensitivity": 100,
-                 "calibration": 100, "systems": 100, "online": 5},
+                 "calibration": 100, "systems": 100, "online": 5, "interception": 200},
         thin_expensive=False,
         changing_stride=1,
         online=(200, 1),
@@ -381,13 +381,14 @@ def system_case(system: str, i: int, n: int, seed: int, input_kind: str):
 
     sys_ = systems.get(system)
     theta, states, points, noisy = system_cases(system, n, seed)
+    known = {"system": sys_.name, **sys_.known_geometry()}
     if input_kind == "video":
         frames = sys_.render(states[i : i + 1], theta[i : i + 1], seed=[seed, i])[0]
-        obs = sys_.observation(frames=frames)
+        obs = Observation(frames=frames, **known)
     elif input_kind == "positions":
-        obs = sys_.observation(positions=noisy[i])
+        obs = Observation(positions=noisy[i], **known)
     elif input_kind == "privileged":
-        obs = sys_.observation(positions=points[i], state0=states[i, 0])
+        obs = Observation(positions=points[i], state0=states[i, 0], **known)
     else:
         raise unknown_name("input", input_kind, ("video", "positions", "privileged"))
     return obs, theta[i], points[i]

@@ -157,6 +157,9 @@ class Experiment:
     #: True for an experiment whose report compares the systems (it gets every system's rows
     #: at once, at the top of the report); others are reported system by system
     cross_system: bool = False
+    #: modules besides the experiment's own whose code decides its rows (their source is part
+    #: of the cells' fingerprint, so a change there computes the cells again)
+    depends_on: tuple[str, ...] = ()
 
     def runs_on(self, system: str) -> bool:
         """Whether this experiment has cells on ``system``."""

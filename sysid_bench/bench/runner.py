@@ -164,11 +164,15 @@ def experiment_fingerprint(name: str) -> str:
     instead of mixing rows of two definitions in one table.
     """
     import hashlib
+    import importlib
     import inspect
 
     from sysid_bench.bench import EXPERIMENTS
 
-    src = inspect.getsource(inspect.getmodule(type(EXPERIMENTS[name])))
+    exp = EXPERIMENTS[name]
+    src = inspect.getsource(inspect.getmodule(type(exp)))
+    for mod in exp.depends_on:
+        src += inspect.getsource(importlib.import_module(mod))
     return hashlib.sha256(src.encode()).hexdigest()[:16]
 
 
@@ -246,7 +250,9 @@ def _order(cells: list[Cell]) -> list[Cell]:
 
     import methods
 
-    costs = {m: methods.spec(m).cost for m in {c.method for c in cells}}
+    known = set(methods.available(include_reference=True))
+    # a cell of no registered method (an experiment's built-in baseline) costs little
+    costs = {m: methods.spec(m).cost if m in known else 1 for m in {c.method for c in cells}}
 
     return sorted(cells, key=cost)
 
@@ -361,6 +367,9 @@ def _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline, p
         fps = {m: method_fingerprint(m) for m in meths}
         efps = {e: experiment_fingerprint(e) for e in exps}
         cell_fps = {(e, m): cell_fingerprint(fps[m], efps[e]) for e in exps for m in meths}
+        grid = build_grid(sc, meths, exps, systems)
+        for c in grid:  # a cell of no registered method (a built-in policy): the experiment's
+            cell_fps.setdefault((c.experiment, c.method), cell_fingerprint("-", efps[c.experiment]))
         inv = store.record_invocation({
             "argv": list(sys.argv if argv is None else argv), "scale": sc.name,
             "methods": meths, "skipped_methods": skipped, "experiments": exps,
@@ -372,7 +381,6 @@ def _run_locked(sc, exps, meths, skipped, run_dir, workers, scheduler, inline, p
         if stale:  # code or weights changed since: recompute, never mix
             store.drop_cells(ids=stale)
         retried = store.drop_cells("error") if retry_errors else 0
-        grid = build_grid(sc, meths, exps, systems)
         done = store.done_cells()
         todo = _order([c for c in grid if c.id not in done])
         if max_cells is not None:

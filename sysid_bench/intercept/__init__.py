@@ -57,10 +57,10 @@ and scoring), :mod:`.results` (files, figure, report section), :mod:`.cli` (the 
 
 from __future__ import annotations
 
-from sysid_bench.intercept.cli import add_arguments, run
-from sysid_bench.intercept.evaluation import evaluate, summarise, wilson_interval
-from sysid_bench.intercept.kalman import Kalman
-from sysid_bench.intercept.policies import (
+from sysid_bench.bench.intercept.evaluation import evaluate, summarise, wilson_interval
+from sysid_bench.bench.intercept.figure import intercept_figure
+from sysid_bench.bench.intercept.kalman import Kalman
+from sysid_bench.bench.intercept.policies import (
     Identify,
     Oracle,
     Policy,
@@ -68,19 +68,13 @@ from sysid_bench.intercept.policies import (
     React,
     StreamPolicy,
 )
-from sysid_bench.intercept.registry import (  # noqa: F401 (_stream_policies: the report reads it)
+from sysid_bench.bench.intercept.registry import (  # noqa: F401 (_stream_policies: the report reads it)
     POLICIES,
     _stream_policies,
     known_policies,
     make_policy,
 )
-from sysid_bench.intercept.results import (  # noqa: F401 (_slug: the report reads it)
-    _slug,
-    intercept_figure,
-    report_section,
-    write_results,
-)
-from sysid_bench.intercept.scene import (
+from sysid_bench.bench.intercept.scene import (
     CAMERA_NUISANCE,
     CATCH_RADIUS_MAX,
     Scene,
@@ -88,6 +82,8 @@ from sysid_bench.intercept.scene import (
     crossing_from_forecast,
     make_throw,
 )
+from sysid_bench.intercept.cli import add_arguments, run
+from sysid_bench.intercept.results import write_results
 
 __all__ = [
     "Scene",
@@ -107,7 +103,6 @@ __all__ = [
     "summarise",
     "wilson_interval",
     "crossing_from_forecast",
-    "report_section",
     "write_results",
     "intercept_figure",
     "CAMERA_NUISANCE",

@@ -9,9 +9,9 @@ from sysid_bench._validate import (
     SEED_MAX,
     arg_number,
 )
-from sysid_bench.intercept.evaluation import evaluate, summarise
+from sysid_bench.bench.intercept.evaluation import evaluate, summarise
+from sysid_bench.bench.intercept.scene import CATCH_RADIUS_MAX
 from sysid_bench.intercept.results import write_results
-from sysid_bench.intercept.scene import CATCH_RADIUS_MAX
 
 
 def _option_value(text: str):

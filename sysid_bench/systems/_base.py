@@ -463,28 +463,11 @@ class System(abc.ABC):
         """
         raise NotImplementedError(f"the {self.name} system gives no initial state from a track")
 
-    def observation(self, positions=None, frames=None, state0=None, dt: float = 0.05,
-                    scene: Scene | None = None):
-        """An :class:`~sysid_bench.estimator.Observation` of this system whose scene's geometry
-        is known (the pivot, the anchor, the track's ends; the ball's floor): how the harness
-        hands every system's cases to a method, the same for all.
-
-        Parameters
-        ----------
-        positions : ndarray, shape (T, K, 2), optional
-        frames : ndarray, shape (T, H, W), optional
-        state0 : ndarray, shape (S,), optional
-        dt : float
-        scene : Scene, optional
-            Default: the system's default scene.
-        """
-        from sysid_bench.estimator import Observation  # local: the core's estimator imports us
-
-        return Observation(frames=frames, positions=positions, state0=state0, dt=dt,
-                           system=self.name, scene=scene, **self._known_geometry(scene))
-
-    def _known_geometry(self, scene: Scene | None) -> dict:
-        """Extra :class:`Observation` fields that say the scene is known (hook; none here)."""
+    def known_geometry(self, scene: Scene | None = None) -> dict:
+        """Fields of an :class:`~sysid_bench.estimator.Observation` beyond ``scene`` that say
+        the scene's geometry is known (none for most systems: the scene says it all; the
+        ball's floor is a field of its own). How the harness hands every system's cases to
+        a method with the geometry known, the same for all."""
         return {}
 
     def reference(self, theta, state0, n_frames: int = 200, dt: float = 0.05) -> np.ndarray:

@@ -62,7 +62,7 @@ class Ball(System):
     def sample_state0(self, n, rng=None):
         return physics.sample_state0(n, rng)
 
-    def _known_geometry(self, scene):
+    def known_geometry(self, scene=None):
         # the ball's Observation carries its floor as a field of its own (design.md)
         floor = (scene if scene is not None else self.default_scene).floor
         return {} if floor is None else {"floor": float(floor)}

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from sysid_bench._validate import check_positive_int
-from sysid_bench.intercept.scene import _FINE, Scene, Throw, crossing_from_forecast
+from sysid_bench.bench.intercept.scene import _FINE, Scene, Throw, crossing_from_forecast
 
 
 # ---------------------------------------------------------------------------------------------

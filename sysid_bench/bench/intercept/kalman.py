@@ -9,7 +9,7 @@ import numpy as np
 
 from sysid_bench import physics
 from sysid_bench._validate import check_positive_int
-from sysid_bench.intercept.policies import _ForecastTarget
+from sysid_bench.bench.intercept.policies import _ForecastTarget
 
 
 class Kalman(_ForecastTarget):

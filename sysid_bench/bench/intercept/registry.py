@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from sysid_bench.intercept.kalman import Kalman
-from sysid_bench.intercept.policies import (
+from sysid_bench.bench.intercept.kalman import Kalman
+from sysid_bench.bench.intercept.policies import (
     Identify,
     Oracle,
     Policy,

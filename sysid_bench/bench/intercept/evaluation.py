@@ -11,9 +11,9 @@ from sysid_bench._validate import (
     check_flag,
     check_int_array,
 )
-from sysid_bench.intercept.policies import Policy
-from sysid_bench.intercept.registry import make_policy
-from sysid_bench.intercept.scene import _SCENE_FIELDS, Scene, Throw, make_throw
+from sysid_bench.bench.intercept.policies import Policy
+from sysid_bench.bench.intercept.registry import make_policy
+from sysid_bench.bench.intercept.scene import _SCENE_FIELDS, Scene, Throw, make_throw
 
 _DECISION_TOL = 0.01
 
@@ -134,7 +134,9 @@ def evaluate(policy, n_throws: int = 200, seed: int = 0, **options):
     **options
         :class:`Scene` fields (``x_catch``, ``catch_radius``, ``speed``, ``t_min``, ``t_max``,
         ``effector_range``, ``effector_start``, ``dt``, ``size``, ``nuisance``); ``progress``
-        (tqdm bar, default False); ``record`` (throw indices whose traces -- ball path, forecasts,
+        (tqdm bar, default False); ``first`` (the first throw evaluated, default 0: throws
+        ``first .. n_throws - 1``, each the same as in a run from 0); ``record`` (throw
+        indices whose traces -- ball path, forecasts,
         effector -- go to ``df.attrs["traces"]``); the rest go to the policy's constructor.
 
     Returns
@@ -162,6 +164,11 @@ def evaluate(policy, n_throws: int = 200, seed: int = 0, **options):
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed: expected an int >= 0, got {seed!r}")
     progress = check_flag(options.pop("progress", False), "progress")
+    first = options.pop("first", 0)
+    if isinstance(first, bool) or not isinstance(first, (int, np.integer)) or not (
+            0 <= first < n_throws):
+        raise ValueError(f"first: expected an int in [0, n_throws - 1 = {n_throws - 1}], "
+                         f"got {first!r}")
     record = list(options.pop("record", ()))
     # a throw index that is not thrown would keep no trace without a word
     record = (set() if not record else
@@ -174,7 +181,7 @@ def evaluate(policy, n_throws: int = 200, seed: int = 0, **options):
         pol = policy
     else:
         pol = make_policy(policy, **options)
-    it = range(int(n_throws))
+    it = range(int(first), int(n_throws))
     if progress:
         from tqdm.auto import tqdm
 
