@@ -34,13 +34,7 @@ from sysid_bench._validate import (
 from sysid_bench.metrics import central_z
 from sysid_bench.physics import (
     BOX_WIDTH,
-    ENVELOPE,
     FLOOR_MAX,
-    PARAMS,
-    PRIOR_LO,
-    PRIOR_MEAN,
-    PRIOR_SPAN,
-    PRIOR_STD,
     V_MAX,
 )
 from sysid_bench.spec import MethodSpec, spec_of
@@ -327,9 +321,7 @@ def _system_name(system) -> str:
 
 
 def _system_params(system) -> tuple[str, ...]:
-    """Parameter names of a system; the ball's without touching the registry."""
-    if isinstance(system, str) and system == "ball":
-        return PARAMS
+    """Parameter names of a registered system."""
     from sysid_bench import systems
 
     return tuple(systems.get(system).params)
@@ -505,8 +497,9 @@ class Posterior:
             self.system = _system_name(self.system)
         p = len(names)
         self.mean = as_float_array(self.mean, "mean", ndim=1, last=p)
-        if self.system == "ball":
-            _check_ball_mean(self.mean)
+        from sysid_bench import systems
+
+        systems.get(self.system).check_posterior_mean(self.mean)
         std = _as_std(self.std)
         if std.shape != (p,):
             raise ValueError(f"std: expected shape ({p},) ({self.system}: {', '.join(names)}), got {std.shape}")
@@ -588,30 +581,6 @@ class Forecast:
         return int(self.mean.shape[0])
 
 
-#: How far (in prior widths, per parameter) a ball's posterior mean may lie outside
-#: ``physics.ENVELOPE`` (with ``g < 0``): an unclipped network or an unbounded fit can put a mean a
-#: little past a bound (e just above 1, d just below 0), and the posterior is a result that says
-#: so; e = 5, d = -1 or g = +100 is no statement about a ball, and is refused where it is made.
-#: ``g`` gets no margin above 0.
-MEAN_MARGIN = 1.0
-
-
-def _check_ball_mean(mean: np.ndarray) -> None:
-    """``ValueError`` naming ``mean`` when a ball parameter lies more than ``MEAN_MARGIN`` prior
-    widths outside ``physics.ENVELOPE``, or ``g`` above 0."""
-    for i, q in enumerate(PARAMS):
-        a, b = ENVELOPE[q]
-        pad = MEAN_MARGIN * float(PRIOR_SPAN[i])
-        # g above 0 is a ball falling up, however little: no margin there
-        lo, hi = a - pad, (0.0 if q == "g" else b + pad)
-        if not lo <= mean[i] <= hi:
-            raise ValueError(
-                f"mean: expected {q} within {MEAN_MARGIN:g} prior width of the physical envelope "
-                f"[{a:g}, {b:g}] (physics.ENVELOPE), i.e. in [{lo:.4g}, {hi:.4g}], got {q} = "
-                f"{mean[i]:g}"
-            )
-
-
 def _as_std(std) -> np.ndarray:
     """A result's standard deviations: real, non-negative; ``inf`` allowed (no information)."""
     try:
@@ -623,25 +592,32 @@ def _as_std(std) -> np.ndarray:
     return arr
 
 
-def prior_posterior(n_samples: int = 0, seed=0, **extras) -> Posterior:
-    """The uniform prior as a Posterior: what a method knows before seeing anything.
+def prior_posterior(n_samples: int = 0, seed=0, system: str = "ball", **extras) -> Posterior:
+    """A system's uniform prior as a Posterior: what a method knows before seeing anything.
 
     Parameters
     ----------
     n_samples : int
         Prior draws to attach as ``samples`` (0 for none).
     seed : int or Generator
+    system : str
+        The registered system whose prior it is.
     **extras
         Put into ``Posterior.extras`` (``n_simulations`` defaults to 0, ``wall_s`` to 0.0).
     """
+    from sysid_bench import systems
+
+    sys_ = systems.get(system)
+    lo, hi = np.asarray(sys_.prior_lo, float), np.asarray(sys_.prior_hi, float)
     samples = None
     n_samples = check_int(n_samples, "n_samples", lo=0)
     if n_samples:
         rng = check_seed(seed)
-        samples = PRIOR_LO + rng.random((n_samples, len(PARAMS))) * PRIOR_SPAN
+        samples = lo + rng.random((n_samples, lo.size)) * (hi - lo)
     info = {"n_simulations": 0, "wall_s": 0.0}
     info.update(extras)
-    return Posterior(mean=PRIOR_MEAN.copy(), std=PRIOR_STD.copy(), samples=samples, extras=info)
+    return Posterior(mean=(lo + hi) / 2, std=(hi - lo) / np.sqrt(12.0), samples=samples,
+                     extras=info, system=sys_.name)
 
 
 #: Key of a stream forecast's ``extras``: where the stream's fit puts the ball at the latest
@@ -840,16 +816,8 @@ class LoopStream(Stream):
                            system=self.system)
 
     def _prior(self, note: str) -> Posterior:
-        """The system's uniform prior as a Posterior (the ball's: :func:`prior_posterior`)."""
-        if self.system == "ball":
-            return prior_posterior(note=note)
-        from sysid_bench import systems  # local: the ball's streams never need the registry
-
-        sys_ = systems.get(self.system)
-        lo, hi = np.asarray(sys_.prior_lo, float), np.asarray(sys_.prior_hi, float)
-        return Posterior(mean=0.5 * (lo + hi), std=(hi - lo) / np.sqrt(12.0),
-                         extras={"n_simulations": 0, "wall_s": 0.0, "note": note},
-                         system=sys_.name)
+        """The system's uniform prior as a Posterior (:func:`prior_posterior`)."""
+        return prior_posterior(system=self.system, note=note)
 
     def check(self) -> Posterior:
         """The latest posterior: ``identify``'s, checked already (the prior's before

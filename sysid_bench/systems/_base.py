@@ -463,6 +463,32 @@ class System(abc.ABC):
         """
         raise NotImplementedError(f"the {self.name} system gives no initial state from a track")
 
+    #: How far (in prior widths, per parameter) a posterior mean may lie outside
+    #: :attr:`envelope`: an unclipped network or an unbounded fit can put a mean a little past a
+    #: bound, and the posterior is a result that says so; a mean several widths out is no
+    #: statement about the system, and is refused where it is made.
+    mean_margin: ClassVar[float] = 1.0
+
+    def check_posterior_mean(self, mean: np.ndarray) -> None:
+        """``ValueError`` naming ``mean`` when a parameter of the posterior mean ``mean`` (P,)
+        lies more than :attr:`mean_margin` prior widths outside :attr:`envelope`."""
+        for q, m, (lo, hi) in zip(self.params, mean, self._mean_bounds()):
+            if not lo <= m <= hi:
+                a, b = self.envelope.get(q, self.prior[q])
+                raise ValueError(
+                    f"mean: expected {q} within {self.mean_margin:g} prior width of the "
+                    f"physical envelope [{a:g}, {b:g}] ({self.name}.envelope), i.e. in "
+                    f"[{lo:.4g}, {hi:.4g}], got {q} = {m:g}")
+
+    def _mean_bounds(self) -> list[tuple[float, float]]:
+        """Per parameter, the range :meth:`check_posterior_mean` accepts (hook)."""
+        out = []
+        for q in self.params:
+            a, b = self.envelope.get(q, self.prior[q])
+            pad = self.mean_margin * (self.prior[q][1] - self.prior[q][0])
+            out.append((a - pad, b + pad))
+        return out
+
     def known_geometry(self, scene: Scene | None = None) -> dict:
         """Fields of an :class:`~sysid_bench.estimator.Observation` beyond ``scene`` that say
         the scene's geometry is known (none for most systems: the scene says it all; the

@@ -62,6 +62,11 @@ class Ball(System):
     def sample_state0(self, n, rng=None):
         return physics.sample_state0(n, rng)
 
+    def _mean_bounds(self):
+        # g above 0 is a ball falling up, however little: no margin there
+        return [(lo, 0.0) if q == "g" else (lo, hi)
+                for q, (lo, hi) in zip(self.params, super()._mean_bounds())]
+
     def known_geometry(self, scene=None):
         # the ball's Observation carries its floor as a field of its own (design.md)
         floor = (scene if scene is not None else self.default_scene).floor
