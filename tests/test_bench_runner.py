@@ -238,11 +238,13 @@ def test_dask_local_cluster_gives_the_same_rows_as_the_pool(tmp_path):
 def test_every_experiment_has_cells_for_its_methods():
     grid = build_grid(SMOKE, ["prior"], list(EXPERIMENTS))
     exps = {c.experiment for c in grid}
-    # prior does not train: no sensitivity cells; every other experiment runs it (the foreign
-    # videos' experiment only where MuJoCo imports: its videos come from that engine)
+    # prior does not train: no sensitivity cells, and declares no online_cost: no online cells;
+    # every other experiment runs it (the foreign videos' experiment only where MuJoCo imports:
+    # its videos come from that engine)
     from sysid_bench.mujoco_scene import mujoco_available
 
-    skipped = {"sensitivity"} | ({"foreign"} if mujoco_available() is not None else set())
+    skipped = {"sensitivity", "online"} | ({"foreign"} if mujoco_available() is not None
+                                           else set())
     assert exps == set(EXPERIMENTS) - skipped
     assert all(isinstance(c, Cell) for c in grid)
 
