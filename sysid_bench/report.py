@@ -160,10 +160,10 @@ def _scale_sentence(scale, names) -> str:
             spec = methods.spec(m)
         except (ValueError, ImportError):
             continue
-        if scale.name in spec.scale_cases:
-            c = spec.scale_cases[scale.name]
+        if scale.declared_as in spec.scale_cases:
+            c = spec.scale_cases[scale.declared_as]
             caps[m] = dict(c) if hasattr(c, "items") else c
-        o = spec.options(scale.name)
+        o = spec.options(scale.declared_as)
         if o:
             opts[m] = o
         if scale.thinned(m):

@@ -77,6 +77,7 @@ DWELL = 0.01
 #: plus one compile of its 100-frame sampler per worker, ~55 s there).
 PERTURBED_CONFIG = {
     "smoke": {"n": 2, "frames": 100, "lengths": (100,), "reference_min": 1},
+    "quick": {"n": 1, "frames": 100, "lengths": (100,), "reference_min": 1},
     "default": {"n": 10, "frames": 100, "lengths": (100,), "reference_min": 10},
     "paper": {"n": 100, "frames": 100, "lengths": (50, 100), "reference_min": 100},
 }
@@ -163,7 +164,7 @@ def perturbed_cases(scale, method: str) -> int:
     cfg = perturbed_config(scale)
     n = int(cfg["n"])
     spec = methods.spec(method)
-    cap = spec.cases_cap(scale.name, "calibration")
+    cap = spec.cases_cap(scale.declared_as, "calibration")
     if cap is not None:
         n = min(n, cap)
     if spec.reference_posterior:

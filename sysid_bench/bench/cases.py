@@ -106,6 +106,15 @@ class Scale:
     expensive_stride: int = 25
     sensitivity: dict = field(default_factory=dict)
     online: tuple = (200, 10)
+    #: the scale whose per-method declarations (case caps, options, training budgets, ready
+    #: models) and per-experiment settings apply (None: this scale's own name): ``quick`` is the
+    #: default's methods on fewer cases
+    declarations: str | None = None
+
+    @property
+    def declared_as(self) -> str:
+        """The scale name the methods' and experiments' per-scale declarations are read under."""
+        return self.declarations or self.name
 
     def thinned(self, method: str) -> bool:
         """True when ``method`` is of the expensive tier and this scale thins those."""
@@ -141,7 +150,7 @@ class Scale:
         import methods
 
         n = self.n_for(experiment, system)
-        cap = methods.spec(method).cases_cap(self.name, experiment)
+        cap = methods.spec(method).cases_cap(self.declared_as, experiment)
         return n if cap is None else min(n, cap)
 
     def method_options(self, method: str, threads: int | None = 1) -> dict:
@@ -149,7 +158,7 @@ class Scale:
         for the one it declares as ``threads_param``)."""
         import methods
 
-        return methods.spec(method).options(self.name, threads)
+        return methods.spec(method).options(self.declared_as, threads)
 
     def sensitivity_conditions(self) -> list[str]:
         """The sensitivity experiment's training conditions at this scale, e.g.
@@ -165,7 +174,7 @@ class Scale:
         """Training hyperparameters of ``method`` in the sensitivity experiment at this scale."""
         import methods
 
-        return methods.spec(method).training_options(self.name)
+        return methods.spec(method).training_options(self.declared_as)
 
     def grid_config(self) -> dict:
         """What decides the cases and the numbers of a cell (case counts excluded: prefixes).
@@ -226,6 +235,21 @@ SCALES: dict[str, Scale] = {
             "simplified": True,
             "lengths": (25, 50),
         },
+    ),
+    # the first look: every section on every system, the default's methods on a few cases
+    "quick": Scale(
+        name="quick",
+        declarations="default",
+        n_cases={"identification": 2, "forecasting": 2, "changing": 1, "sensitivity": 5,
+                 "calibration": 1, "systems": 1, "online": 1, "interception": 3},
+        lengths=(20, 50, 100, 200),
+        forecast_after=(50,),
+        changing_stride=25,
+        expensive_lengths=(50, 200),
+        expensive_stride=50,
+        calibration_lengths=(200,),
+        sensitivity={**_SENS_SMALL, "lengths": (25, 50)},
+        online=(100, 20),
     ),
     # <= 15 min on 2 cores with the shipped Vid2Param checkpoint (measured in the report)
     "default": Scale(
