@@ -91,6 +91,7 @@ class BayesOpt(SimulationOnSystems):
     # 4-13 s per cell at the default budget: the first cases only (the same cases as everyone)
     scale_cases = {
         "smoke": 1,
+        "quick": 1,
         "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4,
                     "foreign": 2, "systems": 3},
     }

@@ -553,6 +553,9 @@ class NUTS(SimulationOnSystems):
                   "foreign": 0, "systems": 1},
         "default": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 3,
                     "foreign": 3, "systems": 3},
+        # the first look has no time for a sampler's compilation (1-3 min a system under load):
+        # the reference posterior is the default run's
+        "quick": 0,
     }
     scale_options = {
         "smoke": {"num_warmup": 30, "num_samples": 30, "n_init": 200},

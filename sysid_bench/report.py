@@ -160,10 +160,11 @@ def _scale_sentence(scale, names) -> str:
             spec = methods.spec(m)
         except (ValueError, ImportError):
             continue
-        if scale.declared_as in spec.scale_cases:
-            c = spec.scale_cases[scale.declared_as]
+        key = scale.key_for(spec.scale_cases)
+        if key in spec.scale_cases:
+            c = spec.scale_cases[key]
             caps[m] = dict(c) if hasattr(c, "items") else c
-        o = spec.options(scale.declared_as)
+        o = spec.options(scale.key_for(spec.scale_options))
         if o:
             opts[m] = o
         if scale.thinned(m):

@@ -164,7 +164,7 @@ def perturbed_cases(scale, method: str) -> int:
     cfg = perturbed_config(scale)
     n = int(cfg["n"])
     spec = methods.spec(method)
-    cap = spec.cases_cap(scale.declared_as, "calibration")
+    cap = spec.cases_cap(scale.key_for(spec.scale_cases), "calibration")
     if cap is not None:
         n = min(n, cap)
     if spec.reference_posterior:

@@ -113,8 +113,15 @@ class Scale:
 
     @property
     def declared_as(self) -> str:
-        """The scale name the methods' and experiments' per-scale declarations are read under."""
+        """The scale name the methods' per-scale declarations are read under when a method
+        declares nothing for this scale itself (:meth:`key_for`)."""
         return self.declarations or self.name
+
+    def key_for(self, per_scale) -> str:
+        """The key of a method's per-scale declaration ``per_scale`` (``scale_cases``,
+        ``scale_options``, ...) that applies here: this scale's own name where the method
+        declares it, else :attr:`declared_as`."""
+        return self.name if self.name in per_scale else self.declared_as
 
     def thinned(self, method: str) -> bool:
         """True when ``method`` is of the expensive tier and this scale thins those."""
@@ -150,7 +157,8 @@ class Scale:
         import methods
 
         n = self.n_for(experiment, system)
-        cap = methods.spec(method).cases_cap(self.declared_as, experiment)
+        spec = methods.spec(method)
+        cap = spec.cases_cap(self.key_for(spec.scale_cases), experiment)
         return n if cap is None else min(n, cap)
 
     def method_options(self, method: str, threads: int | None = 1) -> dict:
@@ -158,7 +166,8 @@ class Scale:
         for the one it declares as ``threads_param``)."""
         import methods
 
-        return methods.spec(method).options(self.declared_as, threads)
+        spec = methods.spec(method)
+        return spec.options(self.key_for(spec.scale_options), threads)
 
     def sensitivity_conditions(self) -> list[str]:
         """The sensitivity experiment's training conditions at this scale, e.g.
@@ -174,7 +183,8 @@ class Scale:
         """Training hyperparameters of ``method`` in the sensitivity experiment at this scale."""
         import methods
 
-        return methods.spec(method).training_options(self.declared_as)
+        spec = methods.spec(method)
+        return spec.training_options(self.key_for(spec.fit_options))
 
     def grid_config(self) -> dict:
         """What decides the cases and the numbers of a cell (case counts excluded: prefixes).
@@ -241,7 +251,7 @@ SCALES: dict[str, Scale] = {
         name="quick",
         declarations="default",
         n_cases={"identification": 2, "forecasting": 2, "changing": 1, "sensitivity": 5,
-                 "calibration": 1, "systems": 1, "online": 1, "interception": 3},
+                 "calibration": 1, "systems": 1, "online": 1, "interception": 1},
         lengths=(20, 50, 100, 200),
         forecast_after=(50,),
         changing_stride=25,

@@ -57,7 +57,7 @@ from sysid_bench.physics import PARAMS
 CONFIG = {
     "smoke": {"n": 3, "frames": 120, "lengths": (50, 120), "forecast_after": (40, 100),
               "lengths_expensive": (120,), "forecast_after_expensive": (100,)},
-    "quick": {"n": 1, "frames": 200, "lengths": (100, 200), "forecast_after": (50, 120),
+    "quick": {"n": 1, "frames": 200, "lengths": (200,), "forecast_after": (120,),
               "lengths_expensive": (200,), "forecast_after_expensive": (120,)},
     # measured at load 8-12 with 2 workers: ~45 s per vid2param cell (forecasts of up to 180
     # frames with 200 particles), bo ~150 s per case: 7 forecast prefixes, bo / emcee on 2
@@ -178,7 +178,8 @@ class Foreign(Experiment):
         import methods as registry
 
         for m in methods:
-            cap = registry.spec(m).cases_cap(scale.declared_as, self.name)
+            spec = registry.spec(m)
+            cap = spec.cases_cap(scale.key_for(spec.scale_cases), self.name)
             n = cfg["n"] if cap is None else min(cfg["n"], cap)
             out += [Cell(self.name, m, "video", "", i) for i in range(n)]
         return out

@@ -78,7 +78,8 @@ def shipped_conditions(method: str, scale) -> list[str]:
     import methods
 
     spec = methods.spec(method)
-    return [c for c in conditions(scale) if spec.pretrained_options(scale.declared_as, c) is not None]
+    key = scale.key_for(spec.pretrained)
+    return [c for c in conditions(scale) if spec.pretrained_options(key, c) is not None]
 
 
 def all_shipped(method: str, scale) -> bool:
@@ -116,7 +117,8 @@ def trained_model(ctx: Context, method: str, condition: str):
 
     sens = ctx.scale.sensitivity
     base = base_condition(condition)
-    pre = methods.spec(method).pretrained_options(ctx.scale.declared_as, base)
+    _spec = methods.spec(method)
+    pre = _spec.pretrained_options(ctx.scale.key_for(_spec.pretrained), base)
     if condition != base and pre is None:
         raise ValueError(f"condition: {method} declares no ready-trained model of {base!r} at "
                          f"scale {ctx.scale.name!r}, so {condition!r} cannot be evaluated")
