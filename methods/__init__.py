@@ -182,44 +182,36 @@ def get_class(name: str, system: str = "ball") -> type[Estimator]:
     if name not in _REGISTRY:
         raise _unknown(name)
     reg = _REGISTRY[name]
-    if isinstance(system, str) and system == "ball":
-        return _import_class(reg, reg.entry_point)
     from sysid_bench import systems
 
     sys_name = systems.get(system).name  # ValueError listing the known systems
     cls = _import_class(reg, reg.entry_point)
-    if sys_name == "ball":
-        return cls
     declared = cls.spec().systems
     if declared == "any" or sys_name in declared:
         return cls
     reason = getattr(cls, "na_reason", None)
     if callable(reason):
         raise NotAvailable(reason(sys_name))
-    if tuple(declared) == ("ball",):
-        raise NotAvailable(f"system: {name!r} is n/a on the {sys_name} system: no model is "
-                           f"shipped for it ({name} runs on the ball only)")
-    raise NotAvailable(f"system: {name!r} is n/a on the {sys_name} system: it runs on "
-                       f"{', '.join(declared)}")
+    only = " only" if len(declared) == 1 else ""
+    raise NotAvailable(f"system: {name!r} is n/a on the {sys_name} system: it runs on the "
+                       f"{', '.join(declared)} system{'s' if len(declared) > 1 else ''}{only}")
 
 
 def get(name: str, system: str = "ball", **options) -> Estimator:
     """A ready-to-use estimator for ``system``; ``options`` are its keyword hyperparameters.
 
     ``system`` is a registered system name (:func:`sysid_bench.systems.available`): the method's
-    one class, built with ``system=`` (a class that runs on the ball only takes none). A system
+    one class, built with ``system=`` where it takes that hyperparameter. A system
     the method does not declare (``systems``) raises :class:`NotAvailable` (a ``ValueError``
     and a ``NotImplementedError``, so recorded as n/a); so does a declared one where the
     estimator's ``check_available()``, if it has one, finds it cannot run with these options
     (Vid2Param without a model for the system).
     """
     cls = get_class(name, system)
-    if not (isinstance(system, str) and system == "ball"):
+    if "system" in cls._param_names():
         from sysid_bench import systems
 
-        sys_name = systems.get(system).name
-        if sys_name != "ball" or "system" in cls._param_names():
-            options = {**options, "system": sys_name}
+        options = {**options, "system": systems.get(system).name}
     try:
         est = cls(**options)
     except TypeError as exc:

@@ -190,7 +190,7 @@ def test_one_class_declares_every_system_and_the_balls_variants_the_ball():
     for cls, name in ((Vid2ParamPhysics, "vid2param-physics"),
                       (Vid2ParamChanging, "vid2param-changing")):
         assert methods.spec(name).systems == ("ball",)
-        with pytest.raises(methods.NotAvailable, match="runs on the ball only"):
+        with pytest.raises(methods.NotAvailable, match="runs on the ball system only"):
             methods.get(name, system="spring")
         with pytest.raises(ValueError, match="system: expected one of ball"):
             cls(system="spring")
