@@ -34,8 +34,20 @@ Numerics
 Classical RK4 on a fixed grid of ``n`` steps per frame interval, ``h = dt / n`` with
 ``n = max(SUBSTEPS, ceil(dt / H_MAX))`` (``H_MAX = 0.05 / SUBSTEPS``: at the design's ``dt = 0.05``
 exactly ``SUBSTEPS`` steps; a longer frame interval gets more steps rather than a coarser,
-possibly unstable, step). One scalar kernel compiled by numba runs over the batch; a batch of
-``_base.PARALLEL_MIN`` trajectories or more runs over numba's threads (bitwise the same output).
+possibly unstable, step). The kernel, compiled by numba, advances 64 trajectories ("lanes")
+together: frames outer, steps, then lanes, so consecutive operations belong to independent
+trajectories. Each step first takes the plain RK4 step of every lane in one branch-free loop that
+the compiler vectorises: it calls no ``sin`` -- ``sin`` and ``cos`` of the angle are computed
+exactly once a frame and carried through the frame's steps by angle addition,
+``sin(theta + d) = sin(theta) cos(d) + cos(theta) sin(d)``, with Taylor series of ``sin(d)`` and
+``cos(d)`` exact to rounding for the small increments ``|d| <= _D_MAX`` (``d = h omega`` and the
+like: at most ~0.06 rad in the prior). A lane whose step holds an event, that starts at rest or
+whose increment is larger is redone from the step's start by the scalar step with events
+described below (``sin`` of each stage angle). The two evaluations of ``sin`` agree to rounding
+(the trajectories moved by <= 2.6e-13 m on 2000 prior cases when the carried one came in). A
+trajectory's result does not depend on its batch or lane, and a batch of
+``_base.PARALLEL_MIN`` trajectories or more runs its chunks over numba's threads (bitwise the
+same output).
 
 Within a step the friction direction ``s`` is constant, so the right-hand side is smooth. A step
 whose end has ``s * omega <= 0`` holds an event: its time ``tau`` is the root of
@@ -50,15 +62,19 @@ snapped to frames or steps. Between two events ``omega`` keeps its sign for at l
 (``pi / sqrt(|g| / L)``, >= 0.26 s in the envelope), far longer than a step, so an end-of-step
 sign test cannot miss one and a step holds at most one.
 
-``SUBSTEPS = 8`` was measured: at the prior's fastest corner (``g = -12.81``, ``L = 0.5``,
-``b = mu = 0``, ``|theta0| = 2.5``, ``|omega0| = 1``, all four sign combinations; it swings to
-within ~0.3 rad of the top) the largest bob position error over 200 frames at ``dt = 0.05``
-against the event-driven ``solve_ivp`` reference (DOP853, ``rtol = atol = 1e-12``) is 9.8e-6 m
-with 4 steps, 2.9e-6 m with 5, 1.05e-6 m with 6, 4.3e-7 m with 7, 1.9e-7 m with 8 and 4.5e-8 m
-with 10 (RK4's ``h^4``); with friction at that corner (``mu`` 0.2 or 0.5, events every half
-swing and a stick) it is smaller. 8 keeps a 5x margin under the design's 1e-6 m
-(``tests/test_system_pendulum.py`` checks that corner). The JAX twin,
-:mod:`sysid_bench.systems.pendulum_jax`, takes the same steps with the same operations.
+``SUBSTEPS = 7`` was measured (``scripts/measure_system_speed.py --accuracy --substeps 6 7 8``):
+at the prior's fastest corner (``g = -12.81``, ``L = 0.5``, ``b = mu = 0``, ``|theta0| = 2.5``,
+``|omega0| = 1``, all four sign combinations; it swings to within ~0.3 rad of the top) the
+largest bob position error over 200 frames at ``dt = 0.05`` against the event-driven
+``solve_ivp`` reference (DOP853, ``rtol = atol = 1e-12``) is 9.8e-6 m with 4 steps, 2.9e-6 m
+with 5, 1.05e-6 m with 6, 4.3e-7 m with 7, 1.9e-7 m with 8 and 4.5e-8 m with 10 (RK4's
+``h^4``); with friction at that corner (``mu`` 0.2 or 0.5, events every half swing and a stick)
+it is smaller, and on 100 random prior cases it is at most 5.7e-8 m with 7. 7 is the fewest
+steps that keep a 2x margin under the design's 1e-6 m (``tests/test_system_pendulum.py`` checks
+that corner at half the tolerance); it was 8 until the simulator had to run 2000 x 200 at
+>= 1000x its reference loop. The JAX twin, :mod:`sysid_bench.systems.pendulum_jax`, takes the
+same steps with the same operations, but for ``sin`` of every stage angle where the kernel's
+plain steps carry it (see above): they agree to ~1e-13 m.
 
 View
 ----
@@ -106,7 +122,7 @@ __all__ = [
 ]
 
 #: RK4 steps per frame interval at dt = 0.05 (see the module docstring for the measurement).
-SUBSTEPS = 8
+SUBSTEPS = 7
 #: Longest RK4 step (s); a frame interval above 0.05 s gets more steps than SUBSTEPS.
 H_MAX = 0.05 / SUBSTEPS
 #: Bob radius (m) and its smallest drawn radius (px), see the module docstring.
@@ -376,7 +392,7 @@ class Pendulum(System):
     params = ("g", "L", "b", "mu")
     prior = {"g": (-12.81, -6.81), "L": (0.5, 2.0), "b": (0.0, 0.5), "mu": (0.0, 0.5)}
     #: Accepted values: gravity from 0 to ~3 Earth g, rods from 0.2 m to 5 m (fastest small swing
-    #: sqrt(30 / 0.2) = 12 rad/s, 0.12 rad per RK4 step of H_MAX), damping and friction up to 10x
+    #: sqrt(30 / 0.2) = 12 rad/s, 0.09 rad per RK4 step of H_MAX), damping and friction up to 10x
     #: the prior's top.
     envelope = {"g": (-30.0, 0.0), "L": (0.2, 5.0), "b": (0.0, 5.0), "mu": (0.0, 5.0)}
     state = ("theta", "omega")
