@@ -403,6 +403,7 @@ class Pendulum(System):
     noise_m = 0.01
     jax_twin = "sysid_bench.systems.pendulum_jax:simulate"
     scene_type = PendulumScene
+    _theta_row_ok = True  # the kernel reads row 0 for every frame of a (B, 1, P) theta
     #: the smallest frames with room for the bob (drawn >= 1.5 px) and its swing
     min_size = (8, 8)
 
