@@ -98,7 +98,8 @@ def accuracy(name: str, n_acc: int, substeps: list[int]) -> None:
             runs[f"{n} steps/frame"] = out
     for label, out in runs.items():
         err = np.abs(system.observe(out, theta) - pts_ref).max(axis=(1, 2, 3))
-        print(f"{name:9s} {label:14s}: max point error corners {err[:n_corner].max():.2e} m, "
+        corners = f"{err[:n_corner].max():.2e} m" if n_corner else "(none listed)"
+        print(f"{name:9s} {label:14s}: max point error corners {corners}, "
               f"{n_acc} random prior cases {err[n_corner:].max():.2e} m "
               f"(worst case {int(np.argmax(err))})", flush=True)
 

@@ -270,7 +270,7 @@ def test_carried_sine_step_is_the_plain_rk4_step():
         tn, on, sn, cn, small = P._rk4_carried(th, om, np.sin(th), np.cos(th), h, k, b, c)
         te, oe = P._rk4(th, om, h, k, b, c)
         assert abs(tn - te) <= 1e-14 and abs(on - oe) <= 1e-12 * max(1.0, abs(oe))
-        assert abs(sn - np.sin(tn)) <= 2e-16 * 4 and abs(cn - np.cos(tn)) <= 2e-16 * 4
+        assert abs(sn - np.sin(tn)) <= 5e-15 and abs(cn - np.cos(tn)) <= 5e-15
         if abs(om) * h <= 0.8 * P._D_MAX:  # every increment is within ~6% of h * omega here
             assert small
     assert not P._rk4_carried(0.0, 1.01 * P._D_MAX / h, 0.0, 1.0, h, -10.0, 0.0, 0.0)[4]
