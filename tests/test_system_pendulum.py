@@ -246,6 +246,36 @@ def test_same_seed_same_bytes():
     assert a.tobytes() == b.tobytes()
 
 
+def test_a_trajectory_does_not_depend_on_its_batch_or_lane():
+    """The kernel advances 64 lanes at a time (vectorised, with a scalar remainder) and a
+    batch of 512 or more over threads: neither may change a trajectory's bytes."""
+    theta, s0 = S.sample_cases(700, np.random.default_rng(31))
+    theta[5] = [-30.0, 0.2, 0.0, 0.0]  # fast: angle increments above _D_MAX, the scalar step
+    s0[5] = [0.5, 40.0]
+    big = S.simulate(theta, s0, 30)  # parallel, 11 chunks, the last one 60 lanes
+    rev = S.simulate(theta[::-1].copy(), s0[::-1].copy(), 30)[::-1]
+    assert big.tobytes() == rev.tobytes()
+    for i in (0, 5, 63, 64, 699):
+        assert big[i].tobytes() == S.simulate(theta[i : i + 1], s0[i : i + 1], 30)[0].tobytes()
+    assert np.abs(np.diff(big[5, :, 0])).max() > 0.25  # it did run fast (> 0.125 rad a step)
+
+
+def test_carried_sine_step_is_the_plain_rk4_step():
+    """The vectorised step (sin and cos carried by angle addition) against :func:`_rk4`."""
+    rng = np.random.default_rng(4)
+    h = 0.05 / P.SUBSTEPS
+    for _ in range(200):
+        th, k, b, c = rng.uniform(-7, 7), -rng.uniform(3, 150), rng.uniform(0, 5), rng.uniform(-5, 5)
+        om = rng.uniform(-1, 1) * P._D_MAX / h
+        tn, on, sn, cn, small = P._rk4_carried(th, om, np.sin(th), np.cos(th), h, k, b, c)
+        te, oe = P._rk4(th, om, h, k, b, c)
+        assert abs(tn - te) <= 1e-14 and abs(on - oe) <= 1e-12 * max(1.0, abs(oe))
+        assert abs(sn - np.sin(tn)) <= 5e-15 and abs(cn - np.cos(tn)) <= 5e-15
+        if abs(om) * h <= 0.8 * P._D_MAX:  # every increment is within ~6% of h * omega here
+            assert small
+    assert not P._rk4_carried(0.0, 1.01 * P._D_MAX / h, 0.0, 1.0, h, -10.0, 0.0, 0.0)[4]
+
+
 # ----------------------------------------------------------------------------------------------
 # the JAX twin
 def test_jax_twin_matches_on_events_and_time_varying_theta():

@@ -34,8 +34,20 @@ Numerics
 Classical RK4 on a fixed grid of ``n`` steps per frame interval, ``h = dt / n`` with
 ``n = max(SUBSTEPS, ceil(dt / H_MAX))`` (``H_MAX = 0.05 / SUBSTEPS``: at the design's ``dt = 0.05``
 exactly ``SUBSTEPS`` steps; a longer frame interval gets more steps rather than a coarser,
-possibly unstable, step). One scalar kernel compiled by numba runs over the batch; a batch of
-``_base.PARALLEL_MIN`` trajectories or more runs over numba's threads (bitwise the same output).
+possibly unstable, step). The kernel, compiled by numba, advances 64 trajectories ("lanes")
+together: frames outer, steps, then lanes, so consecutive operations belong to independent
+trajectories. Each step first takes the plain RK4 step of every lane in one branch-free loop that
+the compiler vectorises: it calls no ``sin`` -- ``sin`` and ``cos`` of the angle are computed
+exactly once a frame and carried through the frame's steps by angle addition,
+``sin(theta + d) = sin(theta) cos(d) + cos(theta) sin(d)``, with Taylor series of ``sin(d)`` and
+``cos(d)`` (to d^7 and d^8) for the small increments ``|d| <= _D_MAX`` (``d = h omega`` and
+the like: at most ~0.07 rad in the prior). A lane whose step holds an event, that starts at rest
+or whose increment is larger is redone from the step's start by the scalar step with events
+described below (``sin`` of each stage angle). The two evaluations of ``sin`` agree to ~1e-15
+(the trajectories moved by <= 2.6e-13 m on 2000 prior cases when the carried one came in). A
+trajectory's result does not depend on its batch or lane, and a batch of
+``_base.PARALLEL_MIN`` trajectories or more runs its chunks over numba's threads (bitwise the
+same output).
 
 Within a step the friction direction ``s`` is constant, so the right-hand side is smooth. A step
 whose end has ``s * omega <= 0`` holds an event: its time ``tau`` is the root of
@@ -50,15 +62,19 @@ snapped to frames or steps. Between two events ``omega`` keeps its sign for at l
 (``pi / sqrt(|g| / L)``, >= 0.26 s in the envelope), far longer than a step, so an end-of-step
 sign test cannot miss one and a step holds at most one.
 
-``SUBSTEPS = 8`` was measured: at the prior's fastest corner (``g = -12.81``, ``L = 0.5``,
-``b = mu = 0``, ``|theta0| = 2.5``, ``|omega0| = 1``, all four sign combinations; it swings to
-within ~0.3 rad of the top) the largest bob position error over 200 frames at ``dt = 0.05``
-against the event-driven ``solve_ivp`` reference (DOP853, ``rtol = atol = 1e-12``) is 9.8e-6 m
-with 4 steps, 2.9e-6 m with 5, 1.05e-6 m with 6, 4.3e-7 m with 7, 1.9e-7 m with 8 and 4.5e-8 m
-with 10 (RK4's ``h^4``); with friction at that corner (``mu`` 0.2 or 0.5, events every half
-swing and a stick) it is smaller. 8 keeps a 5x margin under the design's 1e-6 m
-(``tests/test_system_pendulum.py`` checks that corner). The JAX twin,
-:mod:`sysid_bench.systems.pendulum_jax`, takes the same steps with the same operations.
+``SUBSTEPS = 7`` was measured (``scripts/measure_system_speed.py --accuracy --substeps 6 7 8``):
+at the prior's fastest corner (``g = -12.81``, ``L = 0.5``, ``b = mu = 0``, ``|theta0| = 2.5``,
+``|omega0| = 1``, all four sign combinations; it swings to within ~0.3 rad of the top) the
+largest bob position error over 200 frames at ``dt = 0.05`` against the event-driven
+``solve_ivp`` reference (DOP853, ``rtol = atol = 1e-12``) is 9.8e-6 m with 4 steps, 2.9e-6 m
+with 5, 1.05e-6 m with 6, 4.3e-7 m with 7, 1.9e-7 m with 8 and 4.5e-8 m with 10 (RK4's
+``h^4``); with friction at that corner (``mu`` 0.2 or 0.5, events every half swing and a stick)
+it is smaller, and on 100 random prior cases it is at most 5.7e-8 m with 7. 7 is the fewest
+steps that keep a 2x margin under the design's 1e-6 m (``tests/test_system_pendulum.py`` checks
+that corner at half the tolerance); it was 8 until the simulator had to run 2000 x 200 at
+>= 1000x its reference loop. The JAX twin, :mod:`sysid_bench.systems.pendulum_jax`, takes the
+same steps with the same operations, but for ``sin`` of every stage angle where the kernel's
+plain steps carry it (see above): they agree to ~1e-13 m.
 
 View
 ----
@@ -106,7 +122,7 @@ __all__ = [
 ]
 
 #: RK4 steps per frame interval at dt = 0.05 (see the module docstring for the measurement).
-SUBSTEPS = 8
+SUBSTEPS = 7
 #: Longest RK4 step (s); a frame interval above 0.05 s gets more steps than SUBSTEPS.
 H_MAX = 0.05 / SUBSTEPS
 #: Bob radius (m) and its smallest drawn radius (px), see the module docstring.
@@ -169,6 +185,58 @@ def _rk4(th, om, h, k, b, c):
     a4 = _acc(th + h * o3, o4, k, b, c)
     h6 = h / 6.0
     return th + h6 * (om + 2.0 * (o2 + o3) + o4), om + h6 * (a1 + 2.0 * (a2 + a3) + a4)
+
+
+#: Largest angle increment ``|d|`` (rad) the plain step takes by angle addition; a step with a
+#: larger one goes through :func:`_step`. The series of :func:`_sin_cos_small` stop at d^7 and
+#: d^8: their first omitted terms, d^9/9! and d^10/10!, are under 2.8e-15 at ``|d| = 0.1`` and
+#: under 1.2e-16 (rounding) at the prior's largest ``|d|``, ``h |omega| <= 0.0072 * 10`` at
+#: dt = 0.05 (two terms more cost 8% of the kernel's time and changed no figure).
+_D_MAX = 0.1
+# Taylor coefficients of sin (d^3 .. d^7) and cos (d^2 .. d^8); products, not divisions
+_S3, _S5, _S7 = -1.0 / 6.0, 1.0 / 120.0, -1.0 / 5040.0
+_C2, _C4, _C6, _C8 = -0.5, 1.0 / 24.0, -1.0 / 720.0, 1.0 / 40320.0
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _sin_cos_small(d):
+    """sin(d) and cos(d) for |d| <= :data:`_D_MAX`, by their Taylor series."""
+    q = d * d
+    sn = d + d * q * (_S3 + q * (_S5 + q * _S7))
+    cs = 1.0 + q * (_C2 + q * (_C4 + q * (_C6 + q * _C8)))
+    return sn, cs
+
+
+# inlined (numba IR), so the compiler sees the lanes' loop whole and vectorises it
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _rk4_carried(th, om, S, C, h, k, b, c):
+    """:func:`_rk4` given ``S, C = sin(th), cos(th)``, with no call of ``sin``: each later
+    stage's ``sin(th + d)`` is ``S cos(d) + C sin(d)`` (angle addition with the small ``d`` of
+    :func:`_sin_cos_small`), and so are the new angle's sine and cosine, carried to the next
+    step. Returns the new (theta, omega, sin theta, cos theta) and the largest ``|d|`` (the
+    result holds when it is at most :data:`_D_MAX`)."""
+    h2 = 0.5 * h
+    kS = k * S
+    kC = k * C
+    a1 = kS - b * om - c
+    d2 = h2 * om
+    o2 = om + h2 * a1
+    sn, cs = _sin_cos_small(d2)
+    a2 = (kS * cs + kC * sn) - b * o2 - c
+    d3 = h2 * o2
+    o3 = om + h2 * a2
+    sn, cs = _sin_cos_small(d3)
+    a3 = (kS * cs + kC * sn) - b * o3 - c
+    d4 = h * o3
+    o4 = om + h * a3
+    sn, cs = _sin_cos_small(d4)
+    a4 = (kS * cs + kC * sn) - b * o4 - c
+    h6 = h / 6.0
+    d5 = h6 * (om + 2.0 * (o2 + o3) + o4)
+    sn, cs = _sin_cos_small(d5)
+    small = (abs(d2) <= _D_MAX) & (abs(d3) <= _D_MAX) & (abs(d4) <= _D_MAX) & (abs(d5) <= _D_MAX)
+    return (th + d5, om + h6 * (a1 + 2.0 * (a2 + a3) + a4), S * cs + C * sn, C * cs - S * sn,
+            small)
 
 
 @_njit
@@ -249,34 +317,72 @@ def _step(th, om, h, k, b, mu):
 
 
 @_njit
-def _trajectory(i, th, s0, dt, nsub, out):
-    """Fill ``out[i]`` (n_frames, 2) from ``s0[i]``; ``th`` is (B, 1 or n_frames, 4)."""
+def _chunk(th, s0, dt, nsub, out, b0, b1):
+    """Fill ``out[b0:b1]`` (n_frames, 2 each) from ``s0[b0:b1]``; ``th`` is (B, 1 or n_frames, 4).
+
+    Frames outer, then the ``nsub`` steps, then the trajectories ("lanes"). Each step first
+    takes the plain step of every lane in one branch-free loop that the compiler vectorises
+    (:func:`_rk4_carried`: no call of ``sin``); a lane whose step holds an event, that is at
+    rest, or whose angle increment exceeds :data:`_D_MAX` is then redone from the step's start
+    by :func:`_step`. Lanes are independent: a trajectory's result does not depend on the chunk.
+    """
+    n = b1 - b0
     varying = th.shape[1] > 1
     h = dt / nsub
-    a, w = s0[i, 0], s0[i, 1]
-    out[i, 0, 0], out[i, 0, 1] = a, w
+    st = np.empty((5, n))  # lanes' theta, omega, sin theta, cos theta, 1.0 = redo this step
+    prev = np.empty((4, n))  # the step's start
+    prm = np.empty((3, n))  # k = g / L, b, mu of the frame
+    for j in range(n):
+        st[0, j], st[1, j] = s0[b0 + j, 0], s0[b0 + j, 1]
+        out[b0 + j, 0, 0], out[b0 + j, 0, 1] = st[0, j], st[1, j]
     for t in range(out.shape[1] - 1):
-        j = t if varying else 0
-        g, L, b, mu = th[i, j, 0], th[i, j, 1], th[i, j, 2], th[i, j, 3]
-        k = g / L
+        f = t if varying else 0
+        for j in range(n):
+            prm[0, j] = th[b0 + j, f, 0] / th[b0 + j, f, 1]
+            prm[1, j] = th[b0 + j, f, 2]
+            prm[2, j] = th[b0 + j, f, 3]
+            st[2, j] = math.sin(st[0, j])  # exact once a frame, then carried
+            st[3, j] = math.cos(st[0, j])
         for _ in range(nsub):
-            a, w = _step(a, w, h, k, b, mu)
-        out[i, t + 1, 0], out[i, t + 1, 1] = a, w
+            prev[:] = st[:4]
+            for j in range(n):
+                om = st[1, j]
+                s = math.copysign(1.0, om)
+                tn, on, sn, cn, small = _rk4_carried(st[0, j], om, st[2, j], st[3, j], h,
+                                                     prm[0, j], prm[1, j], prm[2, j] * s)
+                st[0, j], st[1, j], st[2, j], st[3, j] = tn, on, sn, cn
+                st[4, j] = 0.0 if (s * on > 0.0) & (om != 0.0) & small else 1.0
+            for j in range(n):
+                if st[4, j] != 0.0:
+                    # an event, at rest or fast: the step from its start with its event
+                    a, w = _step(prev[0, j], prev[1, j], h, prm[0, j], prm[1, j], prm[2, j])
+                    st[0, j], st[1, j] = a, w
+                    st[2, j] = math.sin(a)
+                    st[3, j] = math.cos(a)
+        for j in range(n):
+            out[b0 + j, t + 1, 0], out[b0 + j, t + 1, 1] = st[0, j], st[1, j]
+
+
+#: Trajectories advanced together in the innermost loop (their states stay in L1 cache).
+_LANES = 64
 
 
 @_njit
 def _kernel(th, s0, dt, nsub, out):
-    """Fill ``out`` (B, n_frames, 2) from ``s0`` (B, 2), one trajectory after another."""
-    for i in range(s0.shape[0]):
-        _trajectory(i, th, s0, dt, nsub, out)
+    """Fill ``out`` (B, n_frames, 2) from ``s0`` (B, 2), ``_LANES`` trajectories at a time."""
+    B = s0.shape[0]
+    for b0 in range(0, B, _LANES):
+        _chunk(th, s0, dt, nsub, out, b0, min(B, b0 + _LANES))
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def _kernel_parallel(th, s0, dt, nsub, out):
-    """:func:`_kernel` with the trajectories spread over numba's threads (each trajectory's
+    """:func:`_kernel` with the chunks spread over numba's threads (each trajectory's
     arithmetic is the same, so the output is bitwise the serial kernel's)."""
-    for i in numba.prange(s0.shape[0]):
-        _trajectory(i, th, s0, dt, nsub, out)
+    B = s0.shape[0]
+    for c in numba.prange((B + _LANES - 1) // _LANES):
+        b0 = c * _LANES
+        _chunk(th, s0, dt, nsub, out, b0, min(B, b0 + _LANES))
 
 
 # --------------------------------------------------------------------------------------------
@@ -289,7 +395,7 @@ class Pendulum(System):
     params = ("g", "L", "b", "mu")
     prior = {"g": (-12.81, -6.81), "L": (0.5, 2.0), "b": (0.0, 0.5), "mu": (0.0, 0.5)}
     #: Accepted values: gravity from 0 to ~3 Earth g, rods from 0.2 m to 5 m (fastest small swing
-    #: sqrt(30 / 0.2) = 12 rad/s, 0.12 rad per RK4 step of H_MAX), damping and friction up to 10x
+    #: sqrt(30 / 0.2) = 12 rad/s, 0.09 rad per RK4 step of H_MAX), damping and friction up to 10x
     #: the prior's top.
     envelope = {"g": (-30.0, 0.0), "L": (0.2, 5.0), "b": (0.0, 5.0), "mu": (0.0, 5.0)}
     state = ("theta", "omega")
@@ -300,6 +406,7 @@ class Pendulum(System):
     noise_m = 0.01
     jax_twin = "sysid_bench.systems.pendulum_jax:simulate"
     scene_type = PendulumScene
+    _theta_row_ok = True  # the kernel reads row 0 for every frame of a (B, 1, P) theta
     #: the smallest frames with room for the bob (drawn >= 1.5 px) and its swing
     min_size = (8, 8)
 
