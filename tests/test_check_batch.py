@@ -37,6 +37,17 @@ def one_thread():
 
 
 @needs_model
+def test_batched_checks_pass_a_ball_and_fail_what_no_trajectory_explains(one_thread):
+    v = _videos()[[0, 3, 4]]
+    posts = Vid2Param(device="cpu").identify_batch(v)  # check_batch inside
+    assert posts[0].check.ok and not posts[1].check.ok and not posts[2].check.ok
+    assert posts[2].check.note.startswith("no track to check")
+    assert posts[1].extras["check_failed"] and posts[1].check.rms_m > 0.1
+    assert 0 < posts[0].extras["check_simulations"] < 400
+
+
+@needs_model
+@pytest.mark.slow  # the per-video checks it compares with: ~5-20 s on a busy 2-core machine
 def test_batched_checks_give_the_per_video_verdicts(one_thread):
     videos = _videos()
     est = Vid2Param(device="cpu")

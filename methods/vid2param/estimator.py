@@ -686,7 +686,7 @@ class Vid2Param(Estimator):
         posts = [self._posterior(mu[i, 0], sd[i, 0], {"n_frames": T}, rng) for i in range(n)]
         if check:
             # the whole batch's checks together (one simulator call per fitting step for all
-            # videos): ~5x fewer simulations and no per-video optimiser (issue 39)
+            # videos): ~4x fewer simulations and no per-video optimiser (issue 39)
             posts = check_batch(posts, fr, DEFAULT_SIGMA, self.check_window)
         wall = time.perf_counter() - t0
         for p in posts:
