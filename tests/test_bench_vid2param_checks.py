@@ -7,7 +7,7 @@ at once (:func:`methods._check_batch.check_batch`). Reported in ``extra_info``: 
 videos/s with and without the checks, and the checks alone by the batched path and by the
 per-video one (``check_prefixes``) on the same videos in the same run. Asserted, loosely, only
 ratios measured in this run (the machine is shared): the batched checks at least 2x the
-per-video ones (measured ~4-5x on a loaded 2-core machine).
+per-video ones (measured 3.8-6.8x on a loaded 2-core machine).
 """
 
 from __future__ import annotations
