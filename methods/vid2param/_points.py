@@ -77,7 +77,7 @@ class PointsModel:
         import torch
 
         from methods.vid2param.checkpoint import build_net, load_checkpoint
-        from methods.vid2param.inference import resolve_device
+        from methods.vid2param.inference import resolve_device, stream_device
         from methods.vid2param.stages import Pipeline
 
         ck = load_checkpoint(path)
@@ -88,6 +88,8 @@ class PointsModel:
         if est.threads is not None:  # the benchmark's thread count, as on the ball
             torch.set_num_threads(int(est.threads))
         self._dev = resolve_device(est.device)
+        # a stream of single frames: "auto" means the CPU (launch- and copy-bound on a GPU)
+        self._stream_dev = stream_device(est.device)
         self._net = net.to(self._dev).eval()
         self._pipeline = Pipeline.from_checkpoint(ck, path, net)
         self._sys = sys_
@@ -222,11 +224,18 @@ class PointsStream(Stream):
         self.reset()
 
     def reset(self) -> None:
+        import copy
+
         from methods.vid2param.fast import frame_filter_for
 
+        dev = self._est._stream_dev
         net = self._est._net
-        self._fast = frame_filter_for(net, self._est._dev, self._fast)
-        self._state = None if self._fast is not None else net.init_state(1, self._est._dev)
+        self._fast = frame_filter_for(net, dev, self._fast)
+        if self._fast is None and dev.type != self._est._dev.type:
+            # no NumPy filter for this network: the torch modules, copied to the stream's device
+            net = copy.deepcopy(net).to(dev)
+        self._net = net
+        self._state = None if self._fast is not None else net.init_state(1, dev)
         self._carries = self._est._pipeline.start(1)
         self._n = 0
         self._pts = np.full((self._est._sys.n_points, 2), np.nan)
@@ -242,13 +251,13 @@ class PointsStream(Stream):
             raise ValueError(f"frame: expected shape {tuple(est._net.config.frame_size)}, got "
                              f"{fr.shape}")
         t0 = time.perf_counter()
-        net = est._net
+        net = self._net
         if self._fast is not None:
             mu, sd = self._fast.step(fr)
             mu, sd = mu[None].astype(np.float64), sd[None].astype(np.float64)
         else:
             with torch.inference_mode():
-                fx = net.encode_frames(torch.as_tensor(fr[None], device=est._dev))
+                fx = net.encode_frames(torch.as_tensor(fr[None], device=est._stream_dev))
                 mu, sd = net.enc_step(fx, net.read(self._state))
                 self._state = net.step_rnn(mu, self._state)
             mu = mu.cpu().numpy().astype(np.float64)
@@ -265,8 +274,9 @@ class PointsStream(Stream):
         return self._pts[0].copy()
 
     def forecast(self, horizon: int, floor: float | None = None) -> Forecast:
-        state = (self._fast.torch_state(self._est._dev) if self._fast is not None
-                 else self._state)
+        dev = self._est._dev  # the rollout runs on the model's device
+        state = (self._fast.torch_state(dev) if self._fast is not None
+                 else self._state.map(lambda t: t.to(dev)))
         fc = self._est._rollout(state, horizon)
         if floor:
             fc.mean[..., 1] += float(floor)

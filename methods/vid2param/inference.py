@@ -16,7 +16,7 @@ from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
 
 __all__ = ["LO", "HI", "SPAN", "UNSEEN_SD_M", "physical", "positions", "param_index",
            "unseen_as_nan",
-           "latent_pass", "floor_prior", "resolve_device", "FitContext"]
+           "latent_pass", "floor_prior", "resolve_device", "stream_device", "FitContext"]
 
 LO = np.array([PRIOR[p][0] for p in PARAMS])
 HI = np.array([PRIOR[p][1] for p in PARAMS])
@@ -84,6 +84,19 @@ def resolve_device(device: str = "auto") -> torch.device:
         return torch.device(device)
     except (RuntimeError, TypeError) as exc:
         raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {device!r}") from exc
+
+
+def stream_device(device: str = "auto") -> torch.device:
+    """The device a stream of single frames runs on: ``"auto"`` means the CPU.
+
+    A push is one frame through small layers: on a GPU it costs kernel launches and two
+    host-device copies (measured on an H200: 2.42 ms a push on CUDA, 0.17 ms on its CPU, issue
+    39), so ``"auto"`` streams on the CPU even where a batch would use CUDA; a device named
+    explicitly is honoured.
+    """
+    if device == "auto":
+        return torch.device("cpu")
+    return resolve_device(device)
 
 
 @dataclass
