@@ -103,6 +103,8 @@ class LSQ(SimulationOnSystems):
     min_frames = 3
     forecasts = True
     cost = 8
+    #: the paper compared Vid2Param with it given true positions and the initial state
+    paper_baseline = True
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)
     #: cheap budgets for check_estimator (same code path)
     contract_options = {"n_samples": 200, "search_rounds": 2, "n_starts": 1, "max_opt_evals": 20}

@@ -29,7 +29,7 @@ import numpy as np
 from sysid_bench.estimator import Observation
 
 __all__ = ["INPUTS", "Scale", "SCALES", "get_scale", "test_set", "train_set", "observation",
-           "inputs_for", "unknown_name", "system_cases", "system_case", "N_FRAMES"]
+           "inputs_for", "unknown_name", "system_cases", "system_case", "N_FRAMES", "bench_case"]
 
 INPUTS = ("video", "privileged")
 #: Bump when what a cell computes changes meaning (inputs, metrics): part of the grid config, so
@@ -264,7 +264,7 @@ SCALES: dict[str, Scale] = {
     # <= 15 min on 2 cores with the shipped Vid2Param checkpoint (measured in the report)
     "default": Scale(
         name="default",
-        n_cases={"identification": 20, "forecasting": 20, "changing": 10, "sensitivity": 50,
+        n_cases={"identification": {"ball": 20, "*": 4}, "forecasting": 20, "changing": 10, "sensitivity": 50,
                  "calibration": 20, "systems": 10, "online": 2, "interception": 40},
         # Measured seconds per cell, one worker at low load (a full default grid without
         # vid2param summed to 690 core-seconds): lsq 0.5-3.4, sindy 0.3-1.4, bo 4-13,
@@ -426,3 +426,28 @@ def system_case(system: str, i: int, n: int, seed: int, input_kind: str):
     else:
         raise unknown_name("input", input_kind, ("video", "positions", "privileged"))
     return obs, theta[i], points[i]
+
+
+def bench_case(system: str, i: int, n: int, seed: int, input_kind: str,
+               variant: str = "interleaved"):
+    """Test case ``i`` of ``n`` of ``system`` as the ``input_kind`` observation, wherever the
+    system's cases come from: :mod:`sysid_bench.datasets`' ``variant`` test set for a system
+    that declares ``datasets`` (the ball: the paper's split, nuisances and variants), else
+    :func:`system_case`.
+
+    Returns
+    -------
+    obs : Observation
+    theta : ndarray, shape (P,)
+        The truth (at frame 0).
+    points : ndarray, shape (T, K, 2)
+        The true tracked points.
+    """
+    from sysid_bench import systems
+
+    sys_ = systems.get(system)
+    if sys_.datasets:
+        ds = test_set(variant, n, seed)
+        obs = observation(ds, i, input_kind)
+        return obs, np.asarray(ds.theta[i, 0]), np.asarray(ds.states[i, :, None, :2])
+    return system_case(sys_.name, i, n, seed, input_kind)

@@ -122,6 +122,10 @@ class System(abc.ABC):
     headline_groups : tuple of tuple of str
         Groups of parameters whose mean error the report's summary shows beside the overall
         one (e.g. the ball's r, unknowable until the ball rolls, apart from e, g, d).
+    datasets : bool
+        Whether the benchmark draws this system's test cases from :mod:`sysid_bench.datasets`
+        (the paper's split generator, its render nuisances and variants: the ball's) instead
+        of :func:`sysid_bench.bench.cases.system_cases`.
 
     Every public method validates its arguments here, once for all systems (a user's included):
     ``simulate``, ``observe``, ``render`` and ``track`` are defined on this class, and a
@@ -144,6 +148,7 @@ class System(abc.ABC):
     min_size: ClassVar[tuple[int, int]] = (4, 4)
     paper: ClassVar[str] = ""
     headline_groups: ClassVar[tuple[tuple[str, ...], ...]] = ()
+    datasets: ClassVar[bool] = False
     #: Whether ``_simulate`` takes constant parameters as (B, 1, P) (see the module docstring).
     _theta_row_ok: ClassVar[bool] = False
 

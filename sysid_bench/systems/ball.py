@@ -41,6 +41,8 @@ class Ball(System):
     paper = "Vid2Param (Asenov et al.)"
     #: r is unknowable until the ball rolls (about half the test videos never do)
     headline_groups = (("e", "g", "d"), ("r",))
+    #: the paper's test videos: sysid_bench.datasets (splits, nuisances, variants)
+    datasets = True
 
     def state_bounds_for(self, scene):
         if scene == self.default_scene:
