@@ -21,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 Z90 = 1.6449
 
 
@@ -64,6 +66,55 @@ def _score(truth: dict, res: dict) -> dict:
     return row
 
 
+def _fmt(v, rel=False):
+    if v is None:
+        return "-"
+    return f"{100 * v:+.1f}%" if rel else f"{v:.4g}"
+
+
+def table(results: list[dict]) -> str:
+    """The Markdown table of ``results`` (one row per clip) and a per-system summary."""
+    lines = ["| clip | fps, size, rotate, tilt | answer vs truth (mean ± std; error) | 90% holds | "
+             "check | frames not seen | wall |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for r in results:
+        how = f"{r['fps']}, {r['size'][1]}x{r['size'][0]}, {r['rotate']}, {r['tilt_deg']:g}"
+        if r["rc"] != 0:
+            lines.append(f"| {r['clip']} | {how} | exit {r['rc']}: {r.get('error', '')[-160:]} "
+                         f"| - | - | - | {r['wall_s']} s |")
+            continue
+        ps = [k for k in r if isinstance(r[k], dict) and "truth" in r[k]]
+        ans = "; ".join(f"{p} {r[p]['mean']:.4g} ± {r[p]['std']:.2g} (truth {r[p]['truth']:.4g})"
+                        for p in ps)
+        held = " ".join(f"{p}:{'y' if r[p]['in90'] else 'n'}" for p in ps)
+        chk = {True: "pass", False: "fail", None: "-"}[r["check_ok"]]
+        lines.append(f"| {r['clip']} | {how} | {ans} | {held} | {chk} | {r['lost']} of "
+                     f"{r['frames']} | {r['wall_s']} s |")
+    lines += ["", "| system | clips answered | per parameter: median abs error (relative where the truth "
+              "is not 0), 90% interval holds | check passes | confident wrong (a miss > 3 std, "
+              "check passing) | frames not seen |", "| --- | --- | --- | --- | --- | --- |"]
+    for system in dict.fromkeys(r["system"] for r in results):
+        rs = [r for r in results if r["system"] == system]
+        ok = [r for r in rs if r["rc"] == 0]
+        if not ok:
+            lines.append(f"| {system} | 0 of {len(rs)} | - | - | - | - |")
+            continue
+        ps = [k for k in ok[0] if isinstance(ok[0][k], dict) and "truth" in ok[0][k]]
+        per = []
+        for p in ps:
+            rel = [abs(r[p]["rel_err"]) for r in ok if r[p]["rel_err"] is not None]
+            err = np.median(rel) if len(rel) == len(ok) else np.median([abs(r[p]["err"])
+                                                                         for r in ok])
+            unit = "%" if len(rel) == len(ok) else ""
+            val = f"{100 * err:.1f}%" if unit else f"{err:.3g}"
+            per.append(f"{p} {val}, {sum(r[p]['in90'] for r in ok)}/{len(ok)}")
+        passed = sum(bool(r["check_ok"]) for r in ok)
+        wrong = sum(bool(r["check_ok"]) and any((r[p]["z"] or 0) > 3 for p in ps) for r in ok)
+        lost = sum(r["lost"] for r in ok), sum(r["frames"] for r in ok)
+        lines.append(f"| {system} | {len(ok)} of {len(rs)} | {'; '.join(per)} | {passed}/{len(ok)} "
+                     f"| {wrong} | {lost[0]} of {lost[1]} ({100 * lost[0] / lost[1]:.0f}%) |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     from sysid_bench._io import atomic_write
     from sysid_bench.camera_footage import SYSTEMS, shots, write_clip
@@ -73,8 +124,12 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="runs/camera_footage")
     ap.add_argument("--system", action="append", choices=SYSTEMS, default=None)
+    ap.add_argument("--table", action="store_true", help="print the table of --out's results")
     args = ap.parse_args(argv)
     out = Path(args.out)
+    if args.table:
+        print(table(json.loads((out / "results.json").read_text())))
+        return 0
     results = []
     for system in args.system or SYSTEMS:
         for shot in shots(system, args.n, args.seed):

@@ -121,3 +121,23 @@ def test_film_and_shots_refuse_bad_arguments():
         shots("cart")
     with pytest.raises(ValueError, match="^n: "):
         shots("ball", 0)
+
+
+def test_the_measurement_scores_an_answer_against_the_truth():
+    from scripts_loader import load_script
+
+    m = load_script("measure_camera_footage")
+    truth = {"file": "c.mp4", "system": "spring", "fps": 30, "size_filmed": [64, 96],
+             "rotate": 0, "tilt_deg": 0.0, "params": ["w2", "k3", "c", "L0"],
+             "theta": {"w2": 10.0, "k3": 0.0, "c": 0.1, "L0": 1.2}}
+    rows = [{"w2_mean": None, "check_ok": None, "x1_m": None},
+            {"w2_mean": 10.5, "w2_std": 0.25, "k3_mean": 1.0, "k3_std": 1.0, "c_mean": 0.1,
+             "c_std": 0.01, "L0_mean": 1.2, "L0_std": 0.0, "check_ok": 1, "x1_m": 1.3}]
+    res = {"cmd": "x", "rc": 0, "wall_s": 1.0, "estimates": {"estimates": rows}}
+    row = m._score(truth, res)
+    assert row["lost"] == 1 and row["frames"] == 2 and row["check_ok"] is True
+    assert row["w2"]["in90"] is False and row["w2"]["z"] == pytest.approx(2.0)  # 0.5 off, 2 std
+    assert row["k3"]["in90"] is True and row["k3"]["rel_err"] is None
+    assert row["L0"]["z"] is None  # a held value (std 0): no z
+    text = m.table([row, {**row, "rc": 2, "error": "refused", "clip": "d.mp4"}])
+    assert "w2 5.0%, 0/1" in text and "exit 2: refused" in text
