@@ -79,7 +79,8 @@ def table(results: list[dict]) -> str:
     for r in results:
         how = f"{r['fps']}, {r['size'][1]}x{r['size'][0]}, {r['rotate']}, {r['tilt_deg']:g}"
         if r["rc"] != 0:
-            lines.append(f"| {r['clip']} | {how} | exit {r['rc']}: {r.get('error', '')[-160:]} "
+            why = r.get("error", "").split(".mp4: ", 1)[-1]  # the line without the command and path
+            lines.append(f"| {r['clip']} | {how} | exit {r['rc']}: {why} "
                          f"| - | - | - | {r['wall_s']} s |")
             continue
         ps = [k for k in r if isinstance(r[k], dict) and "truth" in r[k]]
