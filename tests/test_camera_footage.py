@@ -64,6 +64,8 @@ def test_write_clip_is_an_h264_file_of_the_capture_rate(tmp_path):
     clip = read_video(v, fps=60)
     assert clip.source_fps == pytest.approx(60) and clip.source_frames == truth["n_frames"] == 18
     assert truth["file"] == "b.mp4" and truth["object_size_m"] == pytest.approx(0.07)
+    again, _ = write_clip(_tiny("ball", fps=60, duration_s=0.3), tmp_path, "b2")
+    assert again.read_bytes() == v.read_bytes()  # the H.264 bytes repeat too
     slow, _ = write_clip(_tiny("spring", fps=120, duration_s=0.2, stored_fps=30.0), tmp_path, "s")
     assert read_video(slow, fps=30).source_fps == pytest.approx(30)
     assert "--fps" in json.loads((tmp_path / "s.json").read_text())["options"]
