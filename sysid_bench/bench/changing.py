@@ -18,9 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench.bench.cases import observation
+from sysid_bench.bench.cases import changing_case, observation
 from sysid_bench.bench.experiment import (
-    SPAN,
     Cell,
     CellOutput,
     Context,
@@ -28,14 +27,12 @@ from sysid_bench.bench.experiment import (
     ci_summary,
     fmt_ci,
     median_ci,
-    normalise,
     paper_methods,
     share_ci,
     streams,
     timed_prefixes,
 )
 from sysid_bench.bench.identification import _save, method_color
-from sysid_bench.physics import PARAMS
 
 MIN_JUMP = 0.1
 
@@ -72,9 +69,19 @@ def frames_to_follow(lengths, est, old, new, c, every):
     return float(lengths[ok][0] - c) if ok.any() else float("nan")
 
 
+def _params(df) -> tuple[str, ...]:
+    """The parameter names of the system whose rows ``df`` holds (one system per page)."""
+    from sysid_bench import systems
+
+    names = df.system.unique() if "system" in df else ["ball"]
+    if len(names) != 1:
+        raise ValueError(f"df: expected the rows of one system, got {sorted(names)}")
+    return systems.get(names[0]).params
+
+
 class Changing(Experiment):
     name = "changing"
-    systems = ("ball",)  # the ball's alone until it runs per system
+    systems = "any"
     title = "3. Changing parameters"
     description = (
         "Parameters are re-drawn every 50 frames (test sub-ranges). Each method, built for "
@@ -88,19 +95,26 @@ class Changing(Experiment):
     )
 
     def cells(self, scale, methods, system="ball"):
-        return [Cell(self.name, m, "video", "", i)
-                for m in methods for i in range(scale.cases(self.name, m))]
+        return [Cell(self.name, m, "video", "", i, system)
+                for m in methods for i in range(scale.cases(self.name, m, system))]
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
+        from sysid_bench import systems
+
         sc = ctx.scale
-        ds = ctx.test_set("changing", sc.n_for(self.name, cell.system), every=sc.change_every)
-        i = int(cell.case)
-        obs = observation(ds, i, cell.input)
+        sys_ = systems.get(cell.system)
+        params = sys_.params
+        n, i = sc.n_for(self.name, cell.system), int(cell.case)
+        if sys_.changing_dataset:  # the system's own test videos (the ball's: the paper's)
+            ds = ctx.test_set(sys_.changing_dataset, n, every=sc.change_every)
+            obs, theta = observation(ds, i, cell.input), ds.theta[i]
+        else:
+            obs, theta = changing_case(cell.system, i, n, sc.seed, sc.change_every)
         T = obs.n_frames
-        est = ctx.estimator(cell.method)
+        est = ctx.estimator(cell.method, system=cell.system)
         step = 1 if streams(est) else sc.stride_for(cell.method)
         lengths = list(range(step, T + 1, step))
-        truth = normalise(ds.theta[i])  # (T, 4)
+        truth = sys_.normalise(theta)  # (T, P)
         out = CellOutput()
         if i == 0:
             out.artifacts["truth"] = truth
@@ -108,18 +122,18 @@ class Changing(Experiment):
         if not got:
             return out
         ns = np.array([n for n, _, _ in got])
-        means = normalise(np.stack([p.mean for _, p, _ in got]))
-        stds = np.stack([p.std for _, p, _ in got]) / SPAN
+        means = sys_.normalise(np.stack([p.mean for _, p, _ in got]))
+        stds = np.stack([p.std for _, p, _ in got]) / (sys_.prior_hi - sys_.prior_lo)
         now = truth[ns - 1]
         se = (means - now) ** 2
         for k, n in enumerate(ns):
-            for j, p in enumerate(PARAMS):
+            for j, p in enumerate(params):
                 out.add(i, n, f"mean_{p}", means[k, j])
                 out.add(i, n, f"std_{p}", stds[k, j])
                 out.add(i, n, f"se_{p}", se[k, j])
             out.add(i, n, "se", se[k].mean())
         for c in range(sc.change_every, T, sc.change_every):
-            for j, p in enumerate(PARAMS):
+            for j, p in enumerate(params):
                 old, new = truth[c - 1, j], truth[c, j]
                 if abs(new - old) < MIN_JUMP:
                     continue
@@ -137,13 +151,14 @@ class Changing(Experiment):
 
         if df.empty:
             return {}
+        params = _params(df)
         recs = []
         for (m, inp), g in df.groupby(["method", "input"]):
             rec = {"method": m, "input": inp, "cases": g.case.nunique()}
             s = ci_summary(g[g.metric == "se"].groupby("case").value.mean().reset_index()
                            .assign(k=0), ["k"])
             rec["MSE over the video"] = fmt_ci(*s.iloc[0][["mean", "lo", "hi"]])
-            for p in PARAMS:
+            for p in params:
                 fol = g[g.metric == f"followed_{p}"]
                 fr = g[(g.metric == f"follow_{p}") & g.value.notna()]
                 # counts and medians with 95% CIs over cases (issue 29: a rerun elsewhere is
@@ -163,11 +178,15 @@ class Changing(Experiment):
         if df.empty:
             return {}
         figs = {}
+        params = _params(df)
+        system = df.system.iloc[0] if "system" in df else "ball"
         ex = df[(df.case == 0) & df.metric.str.startswith(("mean_", "std_"))]
-        arts = store.artifacts(f"%/{self.name}|%|0")
+        arts = store.artifacts(f"{system}/{self.name}|%|0")
         truth = next((a for (c, n), a in arts.items() if n == "truth"), None)
-        fig, axes = plt.subplots(1, 4, figsize=(16, 3.4), sharex=True)
-        for j, (ax, p) in enumerate(zip(axes, PARAMS)):
+        fig, axes = plt.subplots(1, len(params), figsize=(4 * len(params), 3.4), sharex=True,
+                                 squeeze=False)
+        axes = axes[0]
+        for j, (ax, p) in enumerate(zip(axes, params)):
             if truth is not None:
                 ax.step(np.arange(1, len(truth) + 1), truth[:, j], where="post", color="g",
                         lw=2, label="truth")
@@ -211,7 +230,7 @@ class Changing(Experiment):
             if g.empty:
                 continue
             parts = []
-            for p in PARAMS:
+            for p in _params(df):
                 fol = g[g.metric == f"followed_{p}"].value
                 fr = g[g.metric == f"follow_{p}"].value.dropna()
                 if len(fol):

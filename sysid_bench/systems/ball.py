@@ -38,6 +38,11 @@ class Ball(System):
     scene_type = BallScene
     #: below 7 x 7 the tracker loses the ball in over 10% of frames (measured, clean video)
     min_size = (7, 7)
+    # experiments 3 and 4 use the paper's own test and training sets (sysid_bench.datasets):
+    # all four parameters jump every `every` frames
+    changing_params = physics.PARAMS
+    changing_dataset = "changing"
+    sensitivity_training = True
 
     def state_bounds_for(self, scene):
         if scene == self.default_scene:
