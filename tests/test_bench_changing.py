@@ -75,3 +75,4 @@ def test_changing_runs_on_another_system_with_its_parameter_names(tmp_path):
     rows = rows.assign(system="spring", method="prior", input="video")
     t = exp.tables(rows)["changing_follow"]
     assert {f"{p}: followed" for p in params} <= set(t.columns)
+    assert any(ln.startswith("Other methods") and "prior" in ln for ln in exp.reading(rows))
