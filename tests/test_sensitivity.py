@@ -260,3 +260,20 @@ def test_no_verdict_when_the_control_is_at_guessing_level():
                                          _rows("simplified", bad)))
     assert all("Holds" not in ln and "Does not hold" not in ln for ln in lines)
     assert sum("Cannot tell" in ln for ln in lines) == 2
+
+
+def test_systems_without_condition_training_sets_get_one_n_a_cell_per_method(tmp_path):
+    from sysid_bench.bench.experiment import execute
+    from sysid_bench.bench.sensitivity import UNTRAINED
+
+    scale = get_scale("smoke")
+    exp = Sensitivity()
+    assert exp.runs_on("pendulum") and exp.runs_on("ball")
+    cells = exp.cells(scale, ["prior", "vid2param"], "pendulum")
+    assert [(c.method, c.condition, c.system) for c in cells] == [
+        ("vid2param", UNTRAINED, "pendulum")]
+    res = execute(cells[0], scale, tmp_path)
+    assert res["status"] == "n/a" and "pendulum" in res["error"] and not res["rows"]
+    # the ball's conditions stay as they were
+    assert sorted(c.condition for c in exp.cells(scale, ["vid2param"], "ball")) == sorted(
+        conditions(scale))

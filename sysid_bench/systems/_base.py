@@ -151,6 +151,16 @@ class System(abc.ABC):
     datasets: ClassVar[bool] = False
     #: Whether ``_simulate`` takes constant parameters as (B, 1, P) (see the module docstring).
     _theta_row_ok: ClassVar[bool] = False
+    #: Experiment 3 (changing parameters): the parameters that jump (None: every one); each is
+    #: re-drawn from its test sub-ranges every ``every`` frames (:meth:`changing_theta`).
+    changing_params: ClassVar[tuple[str, ...] | None] = None
+    #: The :mod:`sysid_bench.datasets` variant that holds this system's own changing-parameter
+    #: test videos ("": none, the bench simulates them from :meth:`changing_theta`).
+    changing_dataset: ClassVar[str] = ""
+    #: True where :mod:`sysid_bench.datasets` makes this system's training sets for every
+    #: sensitivity condition (extrapolation, label noise, simplified physics): experiment 4
+    #: trains condition models only there.
+    sensitivity_training: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -227,6 +237,35 @@ class System(abc.ABC):
         else:
             raise ValueError(f"split: expected None, 'train' or 'test', got {split!r}")
         return self.denormalise(u)
+
+    def changing_theta(self, n: int, n_frames: int, every: int, rng=None) -> np.ndarray:
+        """Piecewise-constant parameters for experiment 3: a test draw per case, then every
+        ``every`` frames the :attr:`changing_params` re-drawn from their test sub-ranges.
+
+        Parameters
+        ----------
+        n, n_frames, every : int
+        rng : int, None or numpy.random.Generator
+
+        Returns
+        -------
+        ndarray, shape (n, n_frames, P)
+            ``theta[:, t]`` holds from frame t to frame t+1 (as :meth:`simulate` takes it).
+        """
+        n = check_positive_int(n, "n")
+        n_frames = check_positive_int(n_frames, "n_frames")
+        every = check_positive_int(every, "every")
+        rng = check_seed(rng)
+        names = self.params if self.changing_params is None else self.changing_params
+        bad = sorted(set(names) - set(self.params))
+        if bad:
+            raise ValueError(f"changing_params: expected names among {self.params} "
+                             f"({self.name}), got {bad}")
+        moving = np.isin(np.asarray(self.params), np.asarray(names))
+        n_seg = -(-n_frames // every)
+        seg = self.sample_theta(n * n_seg, rng, "test").reshape(n, n_seg, self.n_params)
+        seg[:, 1:, ~moving] = seg[:, :1, ~moving]  # the fixed ones keep the first draw
+        return np.repeat(seg, every, axis=1)[:, :n_frames]
 
     # ------------------------------------------------------------------------------------------
     # validation at the public boundary

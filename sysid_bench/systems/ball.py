@@ -43,6 +43,11 @@ class Ball(System):
     headline_groups = (("e", "g", "d"), ("r",))
     #: the paper's test videos: sysid_bench.datasets (splits, nuisances, variants)
     datasets = True
+    # experiments 3 and 4 use the paper's own test and training sets (sysid_bench.datasets):
+    # all four parameters jump every `every` frames
+    changing_params = physics.PARAMS
+    changing_dataset = "changing"
+    sensitivity_training = True
 
     def state_bounds_for(self, scene):
         if scene == self.default_scene:
