@@ -480,10 +480,10 @@ class Vid2ParamNet(nn.Module):
         for a cheap training step (up to floating-point order): everything that reads only the
         frames (the posterior's first layer on ``fx``, the keypoint positions) is computed for
         all frames in one batched matmul before the loop; the LSTM's gates are one matmul of
-        its input and h (not two), with the cell's arithmetic written out;
-        the frame count (0, 1, then 2 for every row) is a Python number, so the velocity and
-        acceleration need no masks. A 16 x 200 step: 2,420 matmul calls instead of 3,813, ~11% less CPU (64 x 200: ~5%,
-        the convolutions are most of it; docs/vid2param-training-speed.md).
+        its input and h (not two), with the cell's arithmetic written out; the frame count
+        (0, 1, then 2 for every row) is a Python number, so the velocity and acceleration need
+        no masks. A 16 x 200 step: 2,420 matmul calls instead of 3,813, ~11% less CPU
+        (64 x 200: ~5%, the convolutions are most of it; docs/vid2param-training-speed.md).
 
         Parameters
         ----------
