@@ -220,15 +220,35 @@ class Problem:
     sigma : float
         Noise standard deviation (m) per coordinate.
     sim : CountingSystemSimulator
+    known : dict of str -> float, optional
+        Parameters held fixed (as :func:`sysid_bench.footage.parse_known` returns): their unit
+        coordinate maps to the value whatever it is (span 0), so every sample holds it exactly.
+    prior : dict of str -> (float, float), optional
+        Ranges replacing the system's prior for the named parameters (as
+        :func:`sysid_bench.footage.parse_prior` validates them).
+
+    Notes
+    -----
+    A first step of issue 38 §4: no method passes ``known``/``prior`` here yet; without them
+    the ranges are the system's own, bit for bit as before.
     """
 
-    def __init__(self, track: SystemTrack, sigma: float, sim: CountingSystemSimulator):
+    def __init__(self, track: SystemTrack, sigma: float, sim: CountingSystemSimulator,
+                 known: dict | None = None, prior: dict | None = None):
         sys_ = track.system
         self.track, self.sigma, self.sim, self.system = track, float(sigma), sim, sys_
         self.P, self.S = sys_.n_params, sys_.n_state
         self.free = not track.state0_known
         self.ndim = self.P + (self.S if self.free else 0)
         self.plo, self.pspan = sys_.prior_lo, sys_.prior_hi - sys_.prior_lo
+        self.known = {str(k): float(v) for k, v in (known or {}).items()}
+        for name, rng in {**(prior or {}), **{k: (v, v) for k, v in self.known.items()}}.items():
+            if name not in sys_.params:
+                raise ValueError(f"known/prior: expected parameters of {sys_.name} "
+                                 f"{tuple(sys_.params)}, got {name!r}")
+            i = list(sys_.params).index(name)
+            lo, hi = float(rng[0]), float(rng[1])
+            self.plo[i], self.pspan[i] = lo, hi - lo
         self.slo, self.sspan = track.lo, track.hi - track.lo
         rows = np.flatnonzero(track.mask.any(axis=1))
         self.n_sim_frames = int(rows[-1]) + 1  # nothing after the last seen frame matters
