@@ -97,7 +97,9 @@ class BayesOpt(SimulationOnSystems):
         "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4,
                     "foreign": 2, "systems": 3},
     }
-    scale_options = {"smoke": {"n_calls": 12, "n_initial_points": 6}}
+    # the first look (quick) gets the smoke budget: a GP of 12 calls, rough but every section
+    scale_options = {"smoke": {"n_calls": 12, "n_initial_points": 6},
+                     "quick": {"n_calls": 12, "n_initial_points": 6}}
     #: cheap budgets for check_estimator (same code path)
     contract_options = {"n_calls": 6, "n_initial_points": 3, "n_surrogate": 256}
 
