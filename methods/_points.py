@@ -500,8 +500,8 @@ class Points:
         explained by the mean's trajectory, so no interval narrower than the prior's is claimed:
         the mean stays, ``std`` becomes at least the prior's, the samples are prior draws, and
         ``check.note`` and ``extras["widened"]`` say so). The prior is the problem's: the
-        user's ranges where given, a known parameter held (std 0, every sample its value);
-        ``extras["known"]``/``extras["prior"]`` record them when given."""
+        user's ranges where given, a known parameter held (the mean and every sample its
+        value, std 0); ``extras["known"]``/``extras["prior"]`` record them when given."""
         if check is not None and not check.ok:
             # the problem's ranges: the system's own unless the user gave some (span 0: held)
             lo, span = prob.plo, prob.pspan
@@ -513,7 +513,8 @@ class Points:
             extras = {**extras, "widened": "prior"}
         if prob.known or self.prior:
             held = [prob.system.params.index(k) for k in prob.known]
-            std = np.array(std, dtype=float)
+            mean, std = np.array(mean, dtype=float), np.array(std, dtype=float)
+            mean[held] = [prob.known[k] for k in prob.known]  # not a sum's rounding of it
             std[held] = 0.0
             samples = np.array(samples, dtype=float)
             samples[:, held] = [prob.known[k] for k in prob.known]

@@ -98,3 +98,19 @@ def test_bad_knowledge_is_refused(kw, match):
         import methods
 
         methods.get("lsq", known={"g": 9.8})  # the ball's fit does not take it
+
+
+@pytest.mark.parametrize("name, budget", [
+    ("bo", {"n_calls": 6, "n_initial_points": 3, "n_surrogate": 256}),
+    ("emcee", {"n_walkers": 12, "n_steps": 10, "n_burn": 4}),
+])
+def test_bo_and_emcee_hold_a_known_parameter(name, budget):
+    import methods
+
+    system, theta, obs = _noisy_pendulum()
+    g, L = system.params.index("g"), system.params.index("L")
+    post = methods.get(name, system="pendulum", known={"g": float(theta[g])},
+                       prior={"L": (0.5, 1.0)}, **budget).identify(obs)
+    assert post.mean[g] == theta[g] and post.std[g] == 0.0
+    assert np.all(post.samples[:, g] == theta[g])
+    assert 0.5 <= post.samples[:, L].min() and post.samples[:, L].max() <= 1.0
