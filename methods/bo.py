@@ -79,6 +79,13 @@ class BayesOpt(SimulationOnSystems):
         Fewest effective draws the surrogate weights are tempered to.
     n_forecast : int
         Draws simulated forward by ``forecast``.
+    known : dict of str -> float, optional
+        Another system only: parameters held at these values (every sample holds the value,
+        std 0; the held unit coordinate stays in the search but changes nothing); checked as
+        ``--known`` is (:func:`sysid_bench.footage.parse_known`).
+    prior : dict of str -> (float, float), optional
+        Another system only: ranges replacing the system's prior for these parameters
+        (:func:`sysid_bench.footage.parse_prior`).
     seed : int
         Seeds skopt's design and acquisition and the surrogate draws.
     """
@@ -115,6 +122,8 @@ class BayesOpt(SimulationOnSystems):
         n_surrogate: int = 4096,
         min_ess: int = 20,
         n_forecast: int = 64,
+        known: dict | None = None,
+        prior: dict | None = None,
         seed: int = 0,
     ):
         self.system = system
@@ -126,6 +135,8 @@ class BayesOpt(SimulationOnSystems):
         self.n_surrogate = n_surrogate
         self.min_ess = min_ess
         self.n_forecast = n_forecast
+        self.known = known
+        self.prior = prior
         self.seed = seed
 
     def _validate(self) -> None:

@@ -94,6 +94,12 @@ class LSQ(SimulationOnSystems):
         evaluations per refinement.
     n_forecast : int
         Weighted draws resampled for a forecast.
+    known : dict of str -> float, optional
+        Another system only: parameters held at these values (every sample holds the value,
+        std 0); checked as ``--known`` is (:func:`sysid_bench.footage.parse_known`).
+    prior : dict of str -> (float, float), optional
+        Another system only: ranges replacing the system's prior for these parameters
+        (:func:`sysid_bench.footage.parse_prior`).
     seed : int
         Seed of the draws; the same seed gives the same posterior.
     """
@@ -122,6 +128,8 @@ class LSQ(SimulationOnSystems):
         n_starts: int = 5,
         max_opt_evals: int = 100,
         n_forecast: int = 64,
+        known: dict | None = None,
+        prior: dict | None = None,
         seed: int = 0,
     ):
         self.system = system
@@ -134,6 +142,8 @@ class LSQ(SimulationOnSystems):
         self.n_starts = n_starts
         self.max_opt_evals = max_opt_evals
         self.n_forecast = n_forecast
+        self.known = known
+        self.prior = prior
         self.seed = seed
 
     def _validate(self) -> None:

@@ -179,8 +179,9 @@ def test_pendulum_on_a_camera_with_known_length(camera_pendulum, tmp_path, capsy
     last = info["estimates"][-1]
     assert abs(last["g_mean"] + 9.81) < 0.03 * 9.81  # the issue's target: g within 3%
     assert abs(info["camera"]["px_per_m"] - 300) < 6 and "arc" in info["camera"]["source"]
-    assert info["knowledge"]["known"] == {"L": 0.6} and not info["knowledge"]["held"]
-    assert "not yet held" in cap.err  # said, never silently dropped
+    assert info["knowledge"]["known"] == {"L": 0.6} and info["knowledge"]["held"]
+    assert last["L_mean"] == 0.6 and last["L_std"] == 0.0  # lsq holds it (issue 38 §4)
+    assert "L = 0.6 held" in cap.err and "not yet held" not in cap.err
     assert info["written_by"] == footage.OUT_MARKER
     # a rerun into its own output folder is allowed; a user's file there is kept
     (out / "mine.txt").write_text("x")
