@@ -161,9 +161,20 @@ class System(abc.ABC):
     #: sensitivity condition (extrapolation, label noise, simplified physics): experiment 4
     #: trains condition models only there.
     sensitivity_training: ClassVar[bool] = False
+    #: Experiment 5's cases off the system's own physics, beside its test cases: ``"perturbed"``
+    #: (test cases re-simulated by physics that is not ours, with its own render) and
+    #: ``"meaningless"`` (clips no physics explains). Both are made from the paper's datasets
+    #: and :func:`sysid_bench.physics.simulate_perturbed`, so a system declares them only with
+    #: :attr:`datasets` (the ball); every system gets its own test cases.
+    calibration_conditions: ClassVar[tuple[str, ...]] = ()
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
+        conds = tuple(cls.calibration_conditions)
+        if set(conds) - {"perturbed", "meaningless"} or (conds and not cls.datasets):
+            raise TypeError(f"{cls.__name__}.calibration_conditions: expected a subset of "
+                            "('perturbed', 'meaningless'), declared only with datasets = True, "
+                            f"got {conds!r} (datasets = {cls.datasets!r})")
         fn = cls.__dict__.get("sample_state0")
         if fn is not None and not getattr(fn, "_checked", False):
             cls.sample_state0 = _checked_sample_state0(fn)

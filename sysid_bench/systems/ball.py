@@ -43,6 +43,8 @@ class Ball(System):
     headline_groups = (("e", "g", "d"), ("r",))
     #: the paper's test videos: sysid_bench.datasets (splits, nuisances, variants)
     datasets = True
+    #: experiment 5 also on re-simulated perturbed physics and on clips no physics explains
+    calibration_conditions = ("perturbed", "meaningless")
     # experiments 3 and 4 use the paper's own test and training sets (sysid_bench.datasets):
     # all four parameters jump every `every` frames
     changing_params = physics.PARAMS
