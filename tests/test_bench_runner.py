@@ -220,7 +220,7 @@ def test_killed_run_resumes_without_losses_or_duplicates(tmp_path):
 
 
 def test_dask_local_cluster_gives_the_same_rows_as_the_pool(tmp_path):
-    distributed = pytest.importorskip("distributed")
+    import distributed
     local, dask_dir = tmp_path / "local", tmp_path / "dask"
     kw = dict(scale="smoke", systems=["ball"], methods=FAST, experiments=["identification"], progress=False)
     run(run_dir=local, workers=2, **kw)

@@ -26,16 +26,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param  # noqa: E402
-from methods.vid2param.checkpoint import build_net, load_checkpoint  # noqa: E402
-from methods.vid2param.data import targets_from_arrays  # noqa: E402
-from sysid_bench.datasets import make_dataset  # noqa: E402
-from sysid_bench.estimator import Observation  # noqa: E402
-from sysid_bench.physics import simulate  # noqa: E402
-from sysid_bench.render import render  # noqa: E402
+from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param
+from methods.vid2param.checkpoint import build_net, load_checkpoint
+from methods.vid2param.data import targets_from_arrays
+from sysid_bench.datasets import make_dataset
+from sysid_bench.estimator import Observation
+from sysid_bench.physics import simulate
+from sysid_bench.render import render
 
 FIXTURE = Path(__file__).parent / "data" / "vid2param_shipped_outputs.npz"
 N_FRAMES = 60
