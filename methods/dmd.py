@@ -27,7 +27,7 @@ import warnings
 
 import numpy as np
 
-from methods._points import check_system_param, prepare_system, system_of
+from methods._points import check_system_param, prepare_points, system_of
 from methods._simulation import one_blas_thread
 from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, observed_positions
 
@@ -155,7 +155,7 @@ class DMD(Estimator):
     def _forecast_points(self, obs: Observation, horizon: int, t0: float) -> Forecast:
         """The forecast of the K tracked points of a system other than the ball."""
         system = system_of(self.system)
-        track = prepare_system(obs, system, self.min_frames)
+        track = prepare_points(obs, system, self.min_frames)
         pos = track.positions.reshape(track.n_frames, -1)  # (T, 2K)
         mean, std, info = self._forecast_series(pos, horizon)
         K = system.n_points

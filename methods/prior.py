@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from methods._points import check_system_param, prepare_system, system_of
+from methods._points import check_system_param, prepare_points, system_of
 from methods._simulation import make_rng
 from sysid_bench._validate import check_positive_int
 from sysid_bench.estimator import (
@@ -90,7 +90,7 @@ class PriorOnly(Estimator):
     def _forecast_points(self, obs: Observation, horizon: int) -> Forecast:
         """Another system: its last seen points held, spread over the view; (H, 2) or (H, K, 2)."""
         system = system_of(self.system)
-        track = prepare_system(obs, system, 1)
+        track = prepare_points(obs, system, 1)
         K = system.n_points
         last = np.empty((K, 2))
         for k in range(K):
