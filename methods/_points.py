@@ -548,12 +548,17 @@ class SimulationOnSystems(SimulationMethod):
     ``sigma`` (None: the system's default noise), implements ``_fit`` (the ball, with
     :mod:`methods._simulation`) and ``_fit_points(obs, part)`` (any other system, with the
     :class:`Points` part built here); ``identify`` and ``forecast`` pick the one for
-    ``system``. ``per_system_defaults`` maps a hyperparameter whose None means a default that
-    differs on the ball and on the other systems to ``(ball's, the others')``.
+    ``system`` by :attr:`own_machinery`. ``per_system_defaults`` maps a hyperparameter whose
+    None means a default that differs between the two to ``(own machinery's, the others')``.
     """
 
     systems = "any"
     per_system_defaults: dict = {}
+    #: The systems fitted with the method's own machinery (``_fit``: :mod:`methods._simulation`
+    #: and :mod:`methods._tracks`, written for the ball's hybrid physics, its floor and its
+    #: tracker) rather than the generic :class:`Points`; every other system, a user's included,
+    #: gets :class:`Points`. Data, not a branch on a name (issue 37).
+    own_machinery: tuple[str, ...] = ("ball",)
 
     def _validate(self) -> None:
         super()._validate()
@@ -575,9 +580,9 @@ class SimulationOnSystems(SimulationMethod):
         known, prior = getattr(self, "known", None), getattr(self, "prior", None)
         if not known and not prior:
             return {}, {}
-        if self._on_ball():
-            raise ValueError("known/prior: expected none on the ball (its fit does not take "
-                             "known values or prior ranges yet), got "
+        if self._own_machinery():
+            raise ValueError(f"known/prior: expected none on the {self.system} (its fit does not "
+                             "take known values or prior ranges yet), got "
                              f"known={known!r}, prior={prior!r}")
         for opt, v in (("known", known), ("prior", prior)):
             if v is not None and not isinstance(v, dict):
@@ -595,15 +600,15 @@ class SimulationOnSystems(SimulationMethod):
             items.append(f"{n}={text(r[0])}:{text(r[1])}")
         return k, parse_prior(sys_, items, k)
 
-    def _on_ball(self) -> bool:
-        return self.system == "ball"
+    def _own_machinery(self) -> bool:
+        return self.system in self.own_machinery
 
     def _hp(self, name: str):
         """Hyperparameter ``name``, its None read as this system's default."""
         v = getattr(self, name)
         if v is None and name in self.per_system_defaults:
             ball, other = self.per_system_defaults[name]
-            return ball if self._on_ball() else other
+            return ball if self._own_machinery() else other
         return v
 
     def _sigma(self) -> float:
@@ -611,7 +616,7 @@ class SimulationOnSystems(SimulationMethod):
         system's :func:`default_sigma`."""
         if self.sigma is not None:
             return check_sigma(self.sigma)
-        return DEFAULT_SIGMA if self._on_ball() else default_sigma(_system(self.system))
+        return DEFAULT_SIGMA if self._own_machinery() else default_sigma(_system(self.system))
 
     def _points(self) -> Points:
         known, prior = self._knowledge()
@@ -624,14 +629,14 @@ class SimulationOnSystems(SimulationMethod):
     def identify(self, obs: Observation) -> Posterior:
         """Posterior over the system's parameters (``system.params`` order), with its model
         check (the ball: see :meth:`SimulationMethod.identify`)."""
-        if self._on_ball():
+        if self._own_machinery():
             return self._fit(obs).checked(self._sigma())
         return self._fit_points(obs, self._points()).posterior
 
     def forecast(self, obs: Observation, horizon: int) -> Forecast:
         """Positions (the ball, (H, 2)) or points ((H, 2), or (H, K, 2) for K > 1) of the
         ``horizon`` frames after ``obs``: ``n_forecast`` draws of the fit continued."""
-        if self._on_ball():
+        if self._own_machinery():
             return super().forecast(obs, horizon)
         part = self._points()
         return part.forecast(self._fit_points(obs, part), self.n_forecast, horizon)

@@ -66,6 +66,9 @@ class DMD(Estimator):
     cost = 2
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)
     systems = "any"
+    #: Systems whose positions are read with :func:`observed_positions` (the ball's view, with
+    #: its floor); any other, a user's included, through the generic track of its K points.
+    own_path = ("ball",)
 
     def __init__(self, *, system: str = "ball", delays: int = 0, svd_rank: float = 0.99999,
                  stabilize: bool = True, seed: int = 0):
@@ -138,7 +141,7 @@ class DMD(Estimator):
             Another system: the points, (horizon, 2) or (horizon, K, 2) for K > 1.
         """
         t0 = time.perf_counter()
-        if self.system != "ball":
+        if self.system not in self.own_path:
             return self._forecast_points(obs, horizon, t0)
         if not isinstance(obs, Observation):
             raise ValueError(f"obs: expected a sysid_bench.estimator.Observation, got {type(obs).__name__}")

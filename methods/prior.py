@@ -44,6 +44,10 @@ class PriorOnly(Estimator):
     cost = 0
     inline = True  # microseconds per cell: not worth a worker
     systems = "any"
+    #: Systems answered by the ball's own path (:func:`prior_posterior`, the box-wide forecast
+    #: from :func:`observed_positions`, which knows its floor); any other, a user's included,
+    #: gets the generic one (the system's prior box, its view).
+    own_path = ("ball",)
 
     def __init__(self, *, system: str = "ball", n_samples: int = 256, seed: int = 0):
         self.system = system
@@ -57,7 +61,7 @@ class PriorOnly(Estimator):
 
     def identify(self, obs: Observation) -> Posterior:
         t0 = time.perf_counter()
-        if self.system != "ball":
+        if self.system not in self.own_path:
             system = system_of(self.system)
             samples = system.sample_theta(check_positive_int(self.n_samples, "n_samples"),
                                           make_rng(self.seed, 0))
@@ -78,7 +82,7 @@ class PriorOnly(Estimator):
         return post
 
     def forecast(self, obs: Observation, horizon: int) -> Forecast:
-        if self.system != "ball":
+        if self.system not in self.own_path:
             return self._forecast_points(obs, horizon)
         horizon = check_positive_int(horizon, "horizon")
         pos = observed_positions(obs, min_seen=1)
