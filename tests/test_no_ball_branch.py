@@ -25,7 +25,6 @@ NOT_YET = {
     "sysid_bench/testing.py": 2,
     "sysid_bench/footage.py": 1,
     "sysid_bench/video.py": 2,
-    "sysid_bench/camera_footage.py": 6,
 }
 #: classes named System* that are no twin of another class
 NOT_TWINS = {"sysid_bench/_system_checks.py": ["SystemCheckError"]}
