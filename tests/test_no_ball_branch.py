@@ -23,7 +23,6 @@ BALL_FILES = ("sysid_bench/systems/ball.py", "methods/vid2param/")
 #: ball branches not replaced yet: file -> count (issue 37; remove an entry with its branches)
 NOT_YET = {
     "sysid_bench/testing.py": 2,
-    "sysid_bench/video.py": 2,
 }
 #: classes named System* that are no twin of another class
 NOT_TWINS = {"sysid_bench/_system_checks.py": ["SystemCheckError"]}
