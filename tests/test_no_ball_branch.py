@@ -3,10 +3,9 @@ whether it runs on the ball (``== "ball"`` and the like): what differs is declar
 (:mod:`sysid_bench.systems._base` hooks, :mod:`sysid_bench.systems.ball`) or by a method's own
 per-system table. And no ``System*`` twin of a class.
 
-The ball's own files are the ball's System, its experiments (interception, the paper
-comparisons) and, until issue 37 reaches it, ``methods/vid2param/``. The branches not yet
-replaced are listed by file with their count in :data:`NOT_YET`: the test fails when one more
-appears anywhere, and when one goes, so that the list only shrinks.
+The ball's own files are the ball's System and, until issue 37 reaches it (another branch),
+``methods/vid2param/``; the ball's experiments (interception, the paper comparisons) have none
+today, so none is allowed there either.
 """
 
 from __future__ import annotations
@@ -20,10 +19,6 @@ TWIN = re.compile(r"^\s*class System[A-Z]\w*", re.M)
 
 #: the ball's own files, where a ball branch is the point
 BALL_FILES = ("sysid_bench/systems/ball.py", "methods/vid2param/")
-#: ball branches not replaced yet: file -> count (issue 37; remove an entry with its branches)
-NOT_YET = {
-    "sysid_bench/testing.py": 2,
-}
 #: classes named System* that are no twin of another class
 NOT_TWINS = {"sysid_bench/_system_checks.py": ["SystemCheckError"]}
 
@@ -42,12 +37,8 @@ def _branches(text: str) -> list[str]:
 
 def test_no_ball_branch_outside_the_balls_files():
     found = {rel: hits for rel, text in _sources() if (hits := _branches(text))}
-    new = {rel: hits for rel, hits in found.items() if len(hits) > NOT_YET.get(rel, 0)}
-    assert not new, ("a ball branch outside the ball's files (declare what differs on the System "
-                     f"or in the method's per-system table instead): {new}")
-    gone = {rel: (n, len(found.get(rel, []))) for rel, n in NOT_YET.items()
-            if len(found.get(rel, [])) < n}
-    assert not gone, f"fewer ball branches than NOT_YET lists (lower it): {gone}"
+    assert not found, ("a ball branch outside the ball's files (declare what differs on the "
+                       f"System or in the module's per-system table instead): {found}")
 
 
 def test_no_system_twin_class():
