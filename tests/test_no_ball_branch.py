@@ -54,3 +54,20 @@ def test_the_grep_sees_a_branch():
     assert _branches('if "ball" in names or obs._is_ball:\n') != []
     assert _branches('own_machinery = ("ball",)\n') == []
     assert TWIN.search("class SystemFit:\n") and not TWIN.search("class PointsFit:\n")
+
+
+def test_observation_and_stream_ask_the_system(monkeypatch):
+    """The ball's observation checks and its stream's tracking are the ball System's hooks."""
+    import numpy as np
+
+    from sysid_bench import systems
+    from sysid_bench.estimator import Observation
+
+    ball = type(systems.get("ball"))
+    seen = []
+    monkeypatch.setattr(ball, "check_observation", lambda self, obs, default: seen.append(
+        (self.name, obs.positions.shape, default)))
+    Observation(positions=np.ones((3, 2)))
+    assert seen == [("ball", (3, 2), True)]
+    # the generic check reads (T, 2) of a one-point system as (T, 1, 2)
+    assert Observation(positions=np.zeros((3, 2)), system="pendulum").positions.shape == (3, 1, 2)

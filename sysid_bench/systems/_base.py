@@ -28,6 +28,12 @@ plus, for the reference checks and NUTS, ``reference(theta, state0, n_frames, dt
 event-driven ``scipy.integrate.solve_ivp`` at tight tolerance, one trajectory) and a JAX twin named
 by ``jax_twin = "module:function"`` (imported only when asked for, so JAX loads only for NUTS).
 
+A system may also override what the rest of the suite would otherwise ask of its name (issue
+37: no branch on the ball's name outside its files): ``check_observation(obs,
+default_scene)`` (an :class:`~sysid_bench.estimator.Observation`'s fields: the ball keeps its
+(T, 2) positions, box and floor), ``track_observed(frames, floor)`` (the ball tracks above a
+known floor), ``known_geometry`` and ``check_posterior_mean``.
+
 The public methods validate at the boundary (shapes, empty batches, ragged lists, NaN/inf, the
 documented envelope, the scene's type, frame sizes) and raise ``ValueError`` (``TypeError`` for
 a scene of the wrong type) naming the argument and the system; the hooks receive clean arrays.
