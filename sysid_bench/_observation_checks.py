@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sysid_bench._validate import check_number
 from sysid_bench.physics import BOX_WIDTH
 
 __all__ = ["DT_RANGE", "BOX_MARGIN", "check_dt", "check_in_box", "check_in_view"]
@@ -70,6 +71,4 @@ def check_in_view(pos: np.ndarray, system, name: str) -> None:
 
 def check_dt(dt) -> float:
     """Seconds between frames in :data:`DT_RANGE`, as a float; ``ValueError`` naming ``dt``."""
-    from sysid_bench._validate import check_number
-
     return check_number(dt, "dt", lo=DT_RANGE[0], hi=DT_RANGE[1], unit="s")
