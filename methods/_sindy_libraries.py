@@ -55,12 +55,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from methods._points import (
-    CountingSystemSimulator,
+    PointsSimulator,
     Problem,
     _system,
     default_sigma,
     forecast_points,
-    prepare_system,
+    prepare_points,
     refine,
 )
 from methods._simulation import (
@@ -251,7 +251,7 @@ _NA = {
 def _box_problem(track, sigma: float, system, lo: np.ndarray, hi: np.ndarray) -> Problem:
     """The track's :class:`Problem` with the parameters' unit box mapped onto ``[lo, hi]`` (P,)
     instead of the prior box (``lo == hi``: the parameters held, only the state fitted)."""
-    prob = Problem(track, sigma, CountingSystemSimulator(system))
+    prob = Problem(track, sigma, PointsSimulator(system))
     prob.plo, prob.pspan = np.asarray(lo, dtype=np.float64), np.maximum(hi - lo, 0.0)
     return prob
 
@@ -275,7 +275,7 @@ def model_check(post: Posterior, track) -> Posterior:
     ----------
     post : Posterior
         SINDy's answer, mean and std (P,), no samples.
-    track : SystemTrack
+    track : PointsTrack
         The observation it answers.
 
     Returns
@@ -380,7 +380,7 @@ class SINDyPoints:
         clock = Stopwatch()
         system = _system(self.system)
         lib = self._library(system)
-        track = prepare_system(obs, system, self.min_frames)
+        track = prepare_points(obs, system, self.min_frames)
         w = lib.window if self.smoothing_window is None else int(self.smoothing_window)
         if track.n_frames < w + 2:
             raise ValueError(f"obs: expected at least {w + 2} frames for a smoothing window of "
@@ -418,7 +418,7 @@ class SINDyPoints:
         bhi = np.array([system.state_bounds[q][1] for q in system.state])
         s_end = np.clip(res.end_state + res.end_std * rng.standard_normal((m, system.n_state)),
                         blo, bhi)
-        sim = CountingSystemSimulator(system)
+        sim = PointsSimulator(system)
         fc = forecast_points(sim, system, theta, s_end, 1, track.dt, horizon,
                              {"posterior_extras": post.extras})
         fc.extras["wall_s"] = clock()

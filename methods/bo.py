@@ -35,7 +35,7 @@ import warnings
 
 import numpy as np
 
-from methods._points import Points, SimulationOnSystems, SystemFit, prepare_system
+from methods._points import Points, PointsFit, SimulationOnSystems, prepare_points
 from methods._simulation import Fit, Stopwatch, make_rng, one_blas_thread
 from methods._tracks import clip_state, prepare
 from methods._weights import resample, tempered_weights
@@ -251,12 +251,12 @@ class BayesOpt(SimulationOnSystems):
         s0 = track.state0 + track.state0_std * rng.standard_normal((len(idx), 4))
         return clip_state(s0, track.floor)
 
-    def _fit_points(self, obs: Observation, part: Points) -> SystemFit:
+    def _fit_points(self, obs: Observation, part: Points) -> PointsFit:
         """Another system: the GP search with the start held at its estimate (see the module)."""
         from skopt import gp_minimize
 
         clock = Stopwatch()
-        track = prepare_system(obs, part.system, part.min_frames)
+        track = prepare_points(obs, part.system, part.min_frames)
         fixed = Observation(positions=track.positions, dt=track.dt, state0=track.state0,
                             system=track.system.name)
         prob = part.problem(fixed)  # the start held at its estimate: P dimensions only
@@ -307,5 +307,5 @@ class BayesOpt(SimulationOnSystems):
                   "ess": ess, "beta": beta, "state0": s0.tolist(), **info,
                   **prob.track.describe()}
         post = part.posterior(prob, mean, std, samples[idx], extras, check)
-        return SystemFit(post, samples, np.broadcast_to(s0, (len(samples), prob.S)).copy(), w,
+        return PointsFit(post, samples, np.broadcast_to(s0, (len(samples), prob.S)).copy(), w,
                          prob, clock)

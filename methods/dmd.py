@@ -27,7 +27,7 @@ import warnings
 
 import numpy as np
 
-from methods._points import check_system_param, prepare_system, system_of
+from methods._points import check_system_param, prepare_points, system_of
 from methods._simulation import one_blas_thread
 from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, observed_positions
 
@@ -66,6 +66,9 @@ class DMD(Estimator):
     cost = 2
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)
     systems = "any"
+    #: Systems whose positions are read with :func:`observed_positions` (the ball's view, with
+    #: its floor); any other, a user's included, through the generic track of its K points.
+    own_path = ("ball",)
 
     def __init__(self, *, system: str = "ball", delays: int = 0, svd_rank: float = 0.99999,
                  stabilize: bool = True, seed: int = 0):
@@ -138,7 +141,7 @@ class DMD(Estimator):
             Another system: the points, (horizon, 2) or (horizon, K, 2) for K > 1.
         """
         t0 = time.perf_counter()
-        if self.system != "ball":
+        if self.system not in self.own_path:
             return self._forecast_points(obs, horizon, t0)
         if not isinstance(obs, Observation):
             raise ValueError(f"obs: expected a sysid_bench.estimator.Observation, got {type(obs).__name__}")
@@ -155,7 +158,7 @@ class DMD(Estimator):
     def _forecast_points(self, obs: Observation, horizon: int, t0: float) -> Forecast:
         """The forecast of the K tracked points of a system other than the ball."""
         system = system_of(self.system)
-        track = prepare_system(obs, system, self.min_frames)
+        track = prepare_points(obs, system, self.min_frames)
         pos = track.positions.reshape(track.n_frames, -1)  # (T, 2K)
         mean, std, info = self._forecast_series(pos, horizon)
         K = system.n_points

@@ -49,7 +49,7 @@ import warnings
 
 import numpy as np
 
-from methods._points import Points, SimulationOnSystems, SystemFit, draw_inside, refine, search
+from methods._points import Points, PointsFit, SimulationOnSystems, draw_inside, refine, search
 from methods._simulation import Fit, Stopwatch, make_rng, one_blas_thread
 from methods._tracks import clip_state, prepare
 from sysid_bench import physics
@@ -414,7 +414,7 @@ class Emcee(SimulationOnSystems):
         post = Posterior(mean=theta.mean(axis=0), std=std, samples=theta, extras=extras)
         return Fit(post, theta, np.asarray(s0), floors, track, sim, clock)
 
-    def _fit_points(self, obs: Observation, part: Points) -> SystemFit:
+    def _fit_points(self, obs: Observation, part: Points) -> PointsFit:
         """Another system: walkers from the Laplace approximation at the refined optimum."""
 
         clock = Stopwatch()
@@ -444,4 +444,4 @@ class Emcee(SimulationOnSystems):
             **prob.track.describe(),
         }
         post = part.posterior(prob, theta.mean(axis=0), std, theta, extras, check)
-        return SystemFit(post, theta, np.asarray(s0), None, prob, clock)
+        return PointsFit(post, theta, np.asarray(s0), None, prob, clock)

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from methods._points import Points, SimulationOnSystems, SystemFit, draw_inside, refine, search
+from methods._points import Points, PointsFit, SimulationOnSystems, draw_inside, refine, search
 from methods._simulation import (
     Fit,
     Stopwatch,
@@ -215,7 +215,7 @@ class LSQ(SimulationOnSystems):
         return Fit(post, theta, np.asarray(s0), track.floor, track, sim, clock, weights=w,
                    state0_point=np.asarray(s0_point), floor_point=track.floor)
 
-    def _fit_points(self, obs: Observation, part: Points) -> SystemFit:
+    def _fit_points(self, obs: Observation, part: Points) -> PointsFit:
         """Another system: search, refinement, Laplace spread (see the module)."""
         clock = Stopwatch()
         prob = part.problem(obs)
@@ -238,4 +238,4 @@ class LSQ(SimulationOnSystems):
             **info, **opt, **prob.track.describe(),
         }
         post = part.posterior(prob, theta, std, th_d, extras, check)
-        return SystemFit(post, th_d, np.asarray(s0_d), None, prob, clock)
+        return PointsFit(post, th_d, np.asarray(s0_d), None, prob, clock)

@@ -145,8 +145,8 @@ from scipy.optimize import minimize
 
 from methods._points import (
     Points,
+    PointsFit,
     SimulationOnSystems,
-    SystemFit,
     _system,
     refine,
     search,
@@ -766,7 +766,7 @@ class NUTS(SimulationOnSystems):
         floors = fls.reshape(-1) if free_floor else track.floor
         return Fit(post, flat, s0s.reshape(-1, 4), floors, track, sim, sw)
 
-    def _fit_points(self, obs: Observation, part: Points) -> SystemFit:
+    def _fit_points(self, obs: Observation, part: Points) -> PointsFit:
         """Another system: NUTS on the system's JAX twin (:func:`_fit_on_points`)."""
         return _fit_on_points(self, obs, part)
 
@@ -951,7 +951,7 @@ def _pts_diagnose(th):
     return np.asarray(split_gelman_rubin(th)), np.asarray(effective_sample_size(th))
 
 
-def _fit_on_points(est, obs: Observation, part: Points) -> SystemFit:
+def _fit_on_points(est, obs: Observation, part: Points) -> PointsFit:
     """:class:`methods.nuts.NUTS` on a system other than the ball (``est`` its instance, ``part``
     the generic points likelihood it composes): NumPyro's NUTS on the system's JAX twin. The
     search refines 5 starts by default (the ball's 3): on the pendulum, where a small change of
@@ -1050,7 +1050,7 @@ def _fit_on_points(est, obs: Observation, part: Points) -> SystemFit:
         "state0_sampled": free, **info, **opt, **lap, **prob.track.describe(),
     }
     post = part.posterior(prob, flat.mean(0), flat.std(0, ddof=1), flat, extras, check)
-    return SystemFit(post, flat, s0_flat, None, prob, sw)
+    return PointsFit(post, flat, s0_flat, None, prob, sw)
 
 
 def _pts_unit(prob, theta, state0):

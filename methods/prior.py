@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from methods._points import check_system_param, prepare_system, system_of
+from methods._points import check_system_param, prepare_points, system_of
 from methods._simulation import make_rng
 from sysid_bench._validate import check_positive_int
 from sysid_bench.estimator import (
@@ -44,6 +44,10 @@ class PriorOnly(Estimator):
     cost = 0
     inline = True  # microseconds per cell: not worth a worker
     systems = "any"
+    #: Systems answered by the ball's own path (:func:`prior_posterior`, the box-wide forecast
+    #: from :func:`observed_positions`, which knows its floor); any other, a user's included,
+    #: gets the generic one (the system's prior box, its view).
+    own_path = ("ball",)
 
     def __init__(self, *, system: str = "ball", n_samples: int = 256, seed: int = 0):
         self.system = system
@@ -57,7 +61,7 @@ class PriorOnly(Estimator):
 
     def identify(self, obs: Observation) -> Posterior:
         t0 = time.perf_counter()
-        if self.system != "ball":
+        if self.system not in self.own_path:
             system = system_of(self.system)
             samples = system.sample_theta(check_positive_int(self.n_samples, "n_samples"),
                                           make_rng(self.seed, 0))
@@ -78,7 +82,7 @@ class PriorOnly(Estimator):
         return post
 
     def forecast(self, obs: Observation, horizon: int) -> Forecast:
-        if self.system != "ball":
+        if self.system not in self.own_path:
             return self._forecast_points(obs, horizon)
         horizon = check_positive_int(horizon, "horizon")
         pos = observed_positions(obs, min_seen=1)
@@ -90,7 +94,7 @@ class PriorOnly(Estimator):
     def _forecast_points(self, obs: Observation, horizon: int) -> Forecast:
         """Another system: its last seen points held, spread over the view; (H, 2) or (H, K, 2)."""
         system = system_of(self.system)
-        track = prepare_system(obs, system, 1)
+        track = prepare_points(obs, system, 1)
         K = system.n_points
         last = np.empty((K, 2))
         for k in range(K):

@@ -382,6 +382,13 @@ class SINDy(Estimator):
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)
     #: the ball and the systems with a feature library (methods._sindy_libraries.LIBRARIES)
     systems = ("ball", "pendulum", "spring")
+    #: Systems with the hybrid library of this module (free flight between contacts, the
+    #: contacts' ratios: the ball's floor and walls); the others in ``systems`` have a feature
+    #: library in :mod:`methods._sindy_libraries`.
+    own_library = ("ball",)
+    #: ``threshold`` when None, by system (default 0: the libraries' coefficients are
+    #: physical constants, none to prune); the ball's 1e-4 sits below its smallest drag, 5e-4.
+    default_threshold = {"ball": 1e-4}
 
     def __init__(
         self,
@@ -410,7 +417,7 @@ class SINDy(Estimator):
     def _threshold(self):
         """``threshold``, None read as this system's default (1e-4 on the ball, else 0)."""
         if self.threshold is None:
-            return 1e-4 if self.system == "ball" else 0.0
+            return self.default_threshold.get(self.system, 0.0)
         return self.threshold
 
     def _points(self):
@@ -428,7 +435,7 @@ class SINDy(Estimator):
         check_system_param(self)
         check_number(self._threshold(), "threshold", lo=0.0)
         w = self.smoothing_window
-        if self.system != "ball":
+        if self.system not in self.own_library:
             if w is not None and (isinstance(w, bool) or not isinstance(w, (int, np.integer))
                                   or w < 7 or w % 2 == 0):
                 raise ValueError(f"smoothing_window: expected None or an odd integer >= 7 on the "
@@ -590,7 +597,7 @@ class SINDy(Estimator):
             check (see the module), ``extras["check_simulations"]`` its simulations. Another
             system: mean/std (P,) from the library's coefficients.
         """
-        if self.system != "ball":
+        if self.system not in self.own_library:
             return self._points().identify(obs)
         post, track, _ = self._fit(obs)
         sim = CountingSimulator()
@@ -608,7 +615,7 @@ class SINDy(Estimator):
             mean/std (horizon, 2); samples (n_forecast, horizon, 2). Another system: the
             identified model run on from the last frame's estimated state, (H, 2) or (H, K, 2).
         """
-        if self.system != "ball":
+        if self.system not in self.own_library:
             return self._points().forecast(obs, horizon)
         m = check_positive_int(self.n_forecast, "n_forecast")
         post, track, clock = self._fit(obs)

@@ -374,43 +374,98 @@ def _tilted(img, tilt):
 
 
 # -- the systems at true size ------------------------------------------------------------------------
+def _truth_ball(sys_, rng):
+    theta = np.array([rng.uniform(0.65, 0.9), G, rng.uniform(0.005, 0.03),
+                      rng.uniform(0.05, 0.5)])
+    vx = rng.choice([-1, 1]) * rng.uniform(0.15, 0.6)
+    state0 = np.array([0.0, rng.uniform(1.0, 1.8), vx, 0.0])
+    scene = sys_.scene(floor=0.0, walls=None)
+    draw = {"radius_m": 0.035, "colour": rng.choice([(0.25, 0.75, 0.2), (0.95, 0.55, 0.1),
+                                                     (0.85, 0.85, 0.15)])}
+    return theta, state0, scene, draw
+
+
+def _truth_pendulum(sys_, rng):
+    theta = np.array([G, rng.uniform(0.5, 1.0), rng.uniform(0.02, 0.2),
+                      rng.uniform(0.0, 0.1)])
+    state0 = np.array([rng.choice([-1, 1]) * rng.uniform(0.3, 0.8), 0.0])
+    scene = sys_.scene(pivot=(0.0, 0.0))
+    draw = {"radius_m": float(rng.uniform(0.03, 0.05)),
+            "colour": rng.choice([(0.8, 0.15, 0.1), (0.15, 0.3, 0.85), (0.9, 0.75, 0.1)])}
+    return theta, state0, scene, draw
+
+
+def _truth_spring(sys_, rng):
+    theta = np.array([rng.uniform(6.0, 20.0), rng.uniform(0.0, 5.0), rng.uniform(0.05, 0.3),
+                      rng.uniform(1.0, 1.5)])
+    state0 = np.array([theta[3] + rng.choice([-1, 1]) * rng.uniform(0.15, 0.35), 0.0])
+    scene = sys_.scene(anchor=(0.0, 0.0))
+    draw = {"half_m": 0.06, "colour": rng.choice([(0.2, 0.35, 0.8), (0.85, 0.2, 0.2)])}
+    return theta, state0, scene, draw
+
+
+def _truth_collision(sys_, rng):
+    theta = np.array([rng.uniform(-1.5, 1.5), rng.uniform(0.6, 0.95), rng.uniform(0.02, 0.2),
+                      rng.uniform(0.7, 0.95)])
+    half = 0.05
+    state0 = np.array([rng.uniform(0.25, 0.6), rng.uniform(0.3, 0.8), rng.uniform(1.4, 1.75),
+                       -rng.uniform(0.3, 0.8)])
+    scene = sys_.scene(ends=(0.0, 2.0), half_sizes=(half, half))
+    draw = {"half_m": half, "colours": [(0.85, 0.15, 0.15), (0.15, 0.3, 0.85)]}
+    return theta, state0, scene, draw
+
+
+@dataclass(frozen=True)
+class _Staging:
+    """How a system is staged in front of the camera (the knowledge is this module's: a table
+    with an entry per system of :data:`SYSTEMS`, not a branch on its name).
+
+    Attributes
+    ----------
+    truth : callable
+        ``(system, rng) -> (theta, state0, scene, draw)``: the motion filmed and its drawing.
+    hand : str or None
+        ``"above"`` (holds the object from above, then lets go), ``"side"`` (holds it from the
+        side it swings away from) or None (no hold: a hand sweeps through the picture).
+    margin_m : float
+        Room around the motion in the picture, m.
+    drift : (float, float) or None
+        Speed range (m/s) of the object's drift in depth while it moves (either way); None:
+        it keeps its distance.
+    floor_below : bool
+        A floor under the object: the ball's radius below its centre's floor.
+    """
+
+    truth: object
+    hand: str | None
+    margin_m: float
+    drift: tuple | None = None
+    floor_below: bool = False
+
+    @property
+    def held(self) -> bool:
+        """A hand holds the object still for a while before the release."""
+        return self.hand is not None
+
+
+_STAGING = {
+    "ball": _Staging(_truth_ball, "above", 0.15, drift=(0.05, 0.15), floor_below=True),
+    "pendulum": _Staging(_truth_pendulum, "side", 0.12),
+    "spring": _Staging(_truth_spring, None, 0.2),
+    "collision": _Staging(_truth_collision, None, 0.15),
+}
+
+
 def _truth(shot: Shot, rng):
     """theta, state0, scene, the hold before release and the drawing's sizes for ``shot``."""
     from sysid_bench import systems
 
     sys_ = systems.get(shot.system)
+    stage = _STAGING[shot.system]
     # a hand holds the ball or the bob still for a while (at most a quarter of the clip)
     hold = (min(float(rng.uniform(0.3, 0.7)), 0.25 * float(shot.duration_s))
-            if shot.system in ("ball", "pendulum") else 0.0)
-    if shot.system == "ball":
-        theta = np.array([rng.uniform(0.65, 0.9), G, rng.uniform(0.005, 0.03),
-                          rng.uniform(0.05, 0.5)])
-        vx = rng.choice([-1, 1]) * rng.uniform(0.15, 0.6)
-        state0 = np.array([0.0, rng.uniform(1.0, 1.8), vx, 0.0])
-        scene = sys_.scene(floor=0.0, walls=None)
-        draw = {"radius_m": 0.035, "colour": rng.choice([(0.25, 0.75, 0.2), (0.95, 0.55, 0.1),
-                                                         (0.85, 0.85, 0.15)])}
-    elif shot.system == "pendulum":
-        theta = np.array([G, rng.uniform(0.5, 1.0), rng.uniform(0.02, 0.2),
-                          rng.uniform(0.0, 0.1)])
-        state0 = np.array([rng.choice([-1, 1]) * rng.uniform(0.3, 0.8), 0.0])
-        scene = sys_.scene(pivot=(0.0, 0.0))
-        draw = {"radius_m": float(rng.uniform(0.03, 0.05)),
-                "colour": rng.choice([(0.8, 0.15, 0.1), (0.15, 0.3, 0.85), (0.9, 0.75, 0.1)])}
-    elif shot.system == "spring":
-        theta = np.array([rng.uniform(6.0, 20.0), rng.uniform(0.0, 5.0), rng.uniform(0.05, 0.3),
-                          rng.uniform(1.0, 1.5)])
-        state0 = np.array([theta[3] + rng.choice([-1, 1]) * rng.uniform(0.15, 0.35), 0.0])
-        scene = sys_.scene(anchor=(0.0, 0.0))
-        draw = {"half_m": 0.06, "colour": rng.choice([(0.2, 0.35, 0.8), (0.85, 0.2, 0.2)])}
-    else:
-        theta = np.array([rng.uniform(-1.5, 1.5), rng.uniform(0.6, 0.95), rng.uniform(0.02, 0.2),
-                          rng.uniform(0.7, 0.95)])
-        half = 0.05
-        state0 = np.array([rng.uniform(0.25, 0.6), rng.uniform(0.3, 0.8), rng.uniform(1.4, 1.75),
-                           -rng.uniform(0.3, 0.8)])
-        scene = sys_.scene(ends=(0.0, 2.0), half_sizes=(half, half))
-        draw = {"half_m": half, "colours": [(0.85, 0.15, 0.15), (0.15, 0.3, 0.85)]}
+            if stage.held else 0.0)
+    theta, state0, scene, draw = stage.truth(sys_, rng)
     draw["colour"] = tuple(float(v) for v in draw.get("colour", (0, 0, 0)))
     return sys_, theta, state0, scene, hold, draw
 
@@ -451,7 +506,8 @@ def film(shot: Shot) -> Footage:
     allp = points[: max(2, n_fine - hold_ticks)].reshape(-1, 2)
     lo, hi = allp.min(axis=0), allp.max(axis=0)
     h, w = shot.size
-    extra = {"ball": 0.15, "pendulum": 0.12, "spring": 0.2, "collision": 0.15}[shot.system]
+    stage = _STAGING[shot.system]
+    extra = stage.margin_m
     if shot.system == "pendulum":  # the string to the pivot, which may be above the frame
         lo, hi = np.minimum(lo, [0, 0]), np.maximum(hi, [0, 0])
     if shot.system == "spring":  # the anchor wall
@@ -468,13 +524,14 @@ def film(shot: Shot) -> Footage:
     tilt = math.radians(float(shot.tilt_deg))
     cam = _Pinhole(f=f, cx=float(centre[0]), cy=float(centre[1]), size=(h, w), tilt=tilt)
     # the ball drifts in depth (towards or away from the camera) while it moves
-    vz = float(rng.choice([-1, 1]) * rng.uniform(0.05, 0.15)) if shot.system == "ball" else 0.0
+    vz = (float(rng.choice([-1, 1]) * rng.uniform(*stage.drift)) if stage.drift is not None
+          else 0.0)
 
     def depth(tick):
         return distance + vz * max(tick - hold_ticks, 0) * dt_f
 
     floor_y = None
-    if shot.system == "ball":
+    if stage.floor_below:
         floor_y = scene.floor - draw["radius_m"]  # the floor surface under the ball's centre
     elif shot.system == "collision":
         floor_y = 0.0
@@ -496,7 +553,7 @@ def film(shot: Shot) -> Footage:
 
     # the hand: holds the ball or the bob until release, then pulls away; else a sweep
     t_total = n_frames / fps
-    if shot.system in ("ball", "pendulum"):
+    if stage.held:
         hand_win = (0.0, hold + 0.45)
     else:
         a = float(rng.uniform(0.2, max(0.25, t_total - 1.2)))
@@ -508,11 +565,11 @@ def film(shot: Shot) -> Footage:
         t = tick * dt_f
         if not (shot.hand and hand_win[0] <= t <= hand_win[1]):
             return
-        if shot.system in ("ball", "pendulum"):
+        if stage.held:
             p = at(hold_ticks)[0]
             rad = draw["radius_m"]
             away = max(0.0, t - hold) / 0.45  # 0 holding, 1 gone
-            if shot.system == "ball":  # from above
+            if stage.hand == "above":
                 hx, hy = p[0] + 0.02, p[1] + rad + 0.03 + 0.9 * away ** 1.5
                 _hand(img, cam, hx, hy, depth(hold_ticks) - 0.06, (0.0, -1.0))
             else:  # from the side the bob swings away from
@@ -528,10 +585,7 @@ def film(shot: Shot) -> Footage:
     def draw_objects(img, tick):
         z = depth(tick)
         pts = at(tick)
-        if shot.system == "ball":
-            (u, v), s = cam.project(pts[0, 0], pts[0, 1], z)
-            _sphere(img, float(u), float(v), draw["radius_m"] * float(s), draw["colour"])
-        elif shot.system == "pendulum":
+        if shot.system == "pendulum":
             (pu, pv), s = cam.project(scene.pivot[0], scene.pivot[1], z)
             (u, v), _ = cam.project(pts[0, 0], pts[0, 1], z)
             # a thin dark string, half-covering its pixels
@@ -555,11 +609,15 @@ def film(shot: Shot) -> Footage:
                          coil, opacity=0.6)
             _box(img, float(u), float(v), draw["half_m"] * s, 0.8 * draw["half_m"] * s, -tilt,
                  draw["colour"])
-        else:
+        elif shot.system == "collision":
             for k in range(2):
                 (u, v), s = cam.project(pts[k, 0], pts[k, 1], z)
                 _sphere(img, float(u), float(v), draw["half_m"] * float(s), draw["colours"][k],
                         spec=0.3)
+        else:  # the ball, and the default: a sphere at each tracked point
+            for k in range(len(pts)):
+                (u, v), s = cam.project(pts[k, 0], pts[k, 1], z)
+                _sphere(img, float(u), float(v), draw["radius_m"] * float(s), draw["colour"])
 
     # -- the frames: each the mean of the shutter's sub-frames, then sensor noise
     offs = [int(round((j + 0.5) / n_sub * shot.exposure * ticks - shot.exposure * ticks / 2))
@@ -608,7 +666,7 @@ def _truth_record(shot, sys_, theta, state0, scene, hold, draw, cam, distance, v
                   scale, hand_win, n_frames) -> dict:
     """The ground truth and the options a user would give identify, as plain JSON values."""
     params = list(sys_.params)
-    start = _round_up(hand_win[1] + 0.05) if shot.system in ("ball", "pendulum") else None
+    start = _round_up(hand_win[1] + 0.05) if _STAGING[shot.system].held else None
     scale0 = float(scale[0, 0])
     opts = ["--system", shot.system, "--method", "lsq"]
     if shot.rotate:
@@ -618,10 +676,7 @@ def _truth_record(shot, sys_, theta, state0, scene, hold, draw, cam, distance, v
     if start is not None:
         opts += ["--start", f"{start:g}"]
     size_m = None
-    if shot.system == "ball":
-        size_m = 2 * draw["radius_m"]
-        opts += ["--object-size-m", f"{size_m:g}"]
-    elif shot.system == "pendulum":
+    if shot.system == "pendulum":
         size_m = 2 * draw["radius_m"]
         if shot.seed % 2 == 0:  # the string's length is known
             opts += ["--known", f"L={theta[1]:.3g}"]
@@ -632,11 +687,14 @@ def _truth_record(shot, sys_, theta, state0, scene, hold, draw, cam, distance, v
         # a ruler on the track: the scale to three figures, and the anchor's column
         (ua, _), _ = cam.project(scene.anchor[0], scene.anchor[1], distance)
         opts += ["--px-per-m", f"{scale0:.3g}", "--anchor", f"{float(ua):.0f}"]
-    else:
+    elif shot.system == "collision":
         size_m = 2 * draw["half_m"]
         (u0, _), _ = cam.project(scene.ends[0], 0.0, distance)
         (u1, _), _ = cam.project(scene.ends[1], 0.0, distance)
         opts += ["--px-per-m", f"{scale0:.3g}", "--track", f"{float(u0):.0f}", f"{float(u1):.0f}"]
+    else:  # the ball, and the default: the scale from the sphere's known size
+        size_m = 2 * draw["radius_m"]
+        opts += ["--object-size-m", f"{size_m:g}"]
     h, w = shot.size
     scene_d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(scene).items()}
     return {

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from sysid_bench._observation_checks import BOX_MARGIN, DT_RANGE
 from sysid_bench._validate import (
     as_float_array,
     check_annotated,
@@ -35,7 +36,6 @@ from sysid_bench.metrics import central_z
 from sysid_bench.physics import (
     BOX_WIDTH,
     FLOOR_MAX,
-    V_MAX,
 )
 from sysid_bench.spec import MethodSpec, spec_of
 
@@ -62,14 +62,6 @@ __all__ = [
 #: Longest forecast any method makes (frames): 100 s at the paper's 20 frames/s, ten videos.
 #: A longer ``horizon`` raises ``ValueError`` naming it (checked for every method by the base).
 MAX_HORIZON = 2000
-#: Accepted seconds between frames: 10 kHz high-speed cameras to one frame a second. Outside it
-#: the simulator's event location and the trackers' finite differences lose their meaning.
-DT_RANGE = (1e-4, 1.0)
-#: How far (m) positions and ``state0`` may lie outside the box. Tracking puts a ball that touches
-#: a wall a few mm outside (RMS error 0.006-0.009 m on clean 28x28 video), and the noisy-position
-#: studies add noise of a few cm; 0.25 m is well beyond both and far below any real mistake (a
-#: wrong unit, a wrong axis). Positions within the margin are moved onto the box's edge.
-BOX_MARGIN = 0.25
 #: Smallest frame height and width (pixels) a video may have.
 MIN_FRAME_SIDE = 4
 
@@ -149,83 +141,14 @@ class Observation:
                     f"got shape {fr.shape}"
                 )
             self.frames = fr
-        if not (isinstance(self.system, str) and self.system == "ball"):
-            self.system = _system_name(self.system)
-            if self.system != "ball":
-                self._post_init_system()
-                return
-        self.scene, default_scene = self._checked_scene()
-        if self.positions is not None:
-            pos = as_float_array(self.positions, "positions", ndim=(2, 3), last=2, allow_nan=True)
-            if pos.ndim == 3:  # the ball's one tracked point as (T, 1, 2)
-                if pos.shape[1] != 1:
-                    raise ValueError(
-                        f"positions: expected (T, 2) or (T, 1, 2) for the ball (K = 1), got shape {pos.shape}"
-                    )
-                pos = pos[:, 0]
-            if pos.shape[0] < 1:
-                raise ValueError("positions: expected at least 1 frame, got 0")
-            self.positions = pos
-        if self.frames is not None and self.positions is not None:
-            if self.frames.shape[0] != self.positions.shape[0]:
-                raise ValueError(
-                    "positions: expected as many rows as frames "
-                    f"({self.frames.shape[0]}), got {self.positions.shape[0]}"
-                )
-        self.dt = check_number(self.dt, "dt", lo=DT_RANGE[0], hi=DT_RANGE[1], unit="s")
-        if self.floor is not None:
-            # the simulator's bound (physics.FLOOR_MAX): every method simulates this floor
-            self.floor = check_number(self.floor, "floor", lo=-FLOOR_MAX, hi=FLOOR_MAX, unit="m")
-            if (self.scene is not None and self.scene.floor is not None
-                    and self.scene.floor != self.floor):
-                raise ValueError(f"floor: expected the scene's floor {self.scene.floor:g} m (or "
-                                 f"None), got {self.floor:g}")
-        check = _check_in_box if default_scene else _check_in_ball_scene
-        where = self.floor if default_scene else self.scene
-        if self.positions is not None:
-            check(self.positions, where, "positions")
-        if self.state0 is not None:
-            self.state0 = as_float_array(self.state0, "state0", ndim=1, last=4)
-            check(self.state0[None, :2], where, "state0")
-            v = float(np.abs(self.state0[2:]).max())
-            if v > V_MAX:  # the simulator's bound: methods simulate from this state
-                raise ValueError(f"state0: expected |vx|, |vy| <= {V_MAX:g} m/s (physics.V_MAX), "
-                                 f"got {v:g}")
-
-    def _post_init_system(self) -> None:
-        """Checks of an observation of a system other than the ball (frames already checked)."""
-        from sysid_bench import systems  # local: the ball's observations never need the registry
+        from sysid_bench import systems  # local: systems sit above the estimator's helpers
 
         sys_ = systems.get(self.system)  # ValueError listing the known systems
         self.system = sys_.name
         self.scene, default_scene = self._checked_scene()
-        if self.positions is not None:
-            pos = as_float_array(self.positions, "positions", ndim=(2, 3), last=2, allow_nan=True)
-            if pos.ndim == 2:
-                pos = pos[:, None, :]
-            if pos.shape[1] != sys_.n_points:
-                raise ValueError(
-                    f"positions: expected (T, {sys_.n_points}, 2) for the {sys_.name} system's "
-                    f"{sys_.n_points} tracked points, got shape {pos.shape}"
-                )
-            if pos.shape[0] < 1:
-                raise ValueError("positions: expected at least 1 frame, got 0")
-            if self.frames is not None and self.frames.shape[0] != pos.shape[0]:
-                raise ValueError(
-                    "positions: expected as many rows as frames "
-                    f"({self.frames.shape[0]}), got {pos.shape[0]}"
-                )
-            if default_scene:
-                _check_in_view(pos.reshape(-1, 2), sys_, "positions")
-            else:  # the scene moves the world: only a wrong unit can still be caught
-                _check_within(pos.reshape(-1, 2), "positions")
-            self.positions = pos
-        self.dt = check_number(self.dt, "dt", lo=DT_RANGE[0], hi=DT_RANGE[1], unit="s")
-        if self.floor is not None:
-            self.floor = check_number(self.floor, "floor", unit="m")
-        if self.state0 is not None:
-            s0 = as_float_array(self.state0, "state0", ndim=1, last=sys_.n_state)
-            self.state0 = sys_.check_state0(s0[None], "state0", scene=self.scene)[0]
+        # the system's own checks of the other fields (the ball's box and floor, another
+        # system's view and state): System.check_observation
+        sys_.check_observation(self, default_scene)
 
     @property
     def points(self) -> np.ndarray | None:
@@ -261,58 +184,6 @@ class Observation:
         )
 
 
-def _check_in_box(pos: np.ndarray, floor: float | None, name: str) -> None:
-    """Positions (N, 2) (NaN = unseen) within :data:`BOX_MARGIN` of the box; ``ValueError`` if not.
-
-    With an unknown floor only x and the height of the y extent can be checked.
-    """
-    seen = np.isfinite(pos).all(axis=1)
-    if not seen.any():
-        return
-    x, y = pos[seen, 0], pos[seen, 1]
-    m = BOX_MARGIN
-    what = f"{name}: expected positions within {m:g} m of the box"
-    if x.min() < -m or x.max() > BOX_WIDTH + m:
-        raise ValueError(f"{what}: x in [0, {BOX_WIDTH:g}] m, got x in [{x.min():.4g}, {x.max():.4g}]")
-    if floor is not None:
-        if y.min() < floor - m or y.max() > floor + BOX_WIDTH + m:
-            raise ValueError(
-                f"{what}: y in [{floor:g}, {floor + BOX_WIDTH:g}] m (floor {floor:g}), "
-                f"got y in [{y.min():.4g}, {y.max():.4g}]"
-            )
-    elif y.max() - y.min() > BOX_WIDTH + 2 * m:
-        raise ValueError(
-            f"{what}: y spanning at most {BOX_WIDTH:g} m, got y in [{y.min():.4g}, {y.max():.4g}]"
-        )
-
-
-def _check_within(pos: np.ndarray, name: str) -> None:
-    """Points (N, 2) (NaN = unseen) within the scenes' :data:`~sysid_bench.systems._scene.COORD_MAX`."""
-    from sysid_bench.systems._scene import COORD_MAX
-
-    seen = pos[np.isfinite(pos).all(axis=1)]
-    if seen.size and np.abs(seen).max() > COORD_MAX:
-        raise ValueError(f"{name}: expected points within {COORD_MAX:g} m of the scene's origin, "
-                         f"got up to {np.abs(seen).max():.4g} m")
-
-
-def _check_in_ball_scene(pos: np.ndarray, scene, name: str) -> None:
-    """The ball's positions (N, 2) in a scene of its own: between its walls and above its floor
-    (where it has them) within :data:`BOX_MARGIN`."""
-    _check_within(pos, name)
-    seen = pos[np.isfinite(pos).all(axis=1)]
-    if not seen.size:
-        return
-    m = BOX_MARGIN
-    x, y = seen[:, 0], seen[:, 1]
-    if scene.walls is not None and (x.min() < scene.walls[0] - m or x.max() > scene.walls[1] + m):
-        raise ValueError(f"{name}: expected x within {m:g} m of the scene's walls {scene.walls}, "
-                         f"got x in [{x.min():.4g}, {x.max():.4g}]")
-    if scene.floor is not None and y.min() < scene.floor - m:
-        raise ValueError(f"{name}: expected y above the scene's floor {scene.floor:g} m (within "
-                         f"{m:g} m), got y down to {y.min():.4g}")
-
-
 def _system_name(system) -> str:
     """A registered system's name (``ValueError`` with the known ones, and "did you mean")."""
     from sysid_bench import systems
@@ -325,26 +196,6 @@ def _system_params(system) -> tuple[str, ...]:
     from sysid_bench import systems
 
     return tuple(systems.get(system).params)
-
-
-def _check_in_view(pos: np.ndarray, system, name: str) -> None:
-    """Points (N, 2) (NaN = unseen) near a system's view; ``ValueError`` if far outside it.
-
-    The margin is half the view's larger side: a point drawn at the edge of the view, noise and
-    tracking error all pass; a wrong unit (millimetres for metres) or a wrong axis does not.
-    """
-    seen = np.isfinite(pos).all(axis=1)
-    if not seen.any():
-        return
-    x0, x1, y0, y1 = (float(v) for v in system.extent)
-    m = max(BOX_MARGIN, 0.5 * max(x1 - x0, y1 - y0))
-    x, y = pos[seen, 0], pos[seen, 1]
-    if x.min() < x0 - m or x.max() > x1 + m or y.min() < y0 - m or y.max() > y1 + m:
-        raise ValueError(
-            f"{name}: expected points within {m:g} m of the {system.name} system's view "
-            f"x in [{x0:g}, {x1:g}], y in [{y0:g}, {y1:g}] m, got x in [{x.min():.4g}, "
-            f"{x.max():.4g}], y in [{y.min():.4g}, {y.max():.4g}]"
-        )
 
 
 def observed_positions(obs: Observation, *, min_seen: int = 3) -> np.ndarray:
@@ -832,14 +683,11 @@ class LoopStream(Stream):
         re-identifying from scratch keeps no filtered state), NaN before the first frame."""
         if not self._frames:
             return np.full(2, np.nan)
-        if self.system != "ball":
-            from sysid_bench import systems
+        from sysid_bench import systems  # local: as in Observation
 
-            return np.asarray(systems.get(self.system).track(self._frames[-1][None]),
-                              dtype=np.float64)[0, 0]
-        from sysid_bench.tracking import track  # local: as in observed_positions
-
-        return track(self._frames[-1][None], floor=0.0 if self.floor is None else self.floor)[0]
+        return np.asarray(systems.get(self.system).track_observed(self._frames[-1][None],
+                                                                  floor=self.floor),
+                          dtype=np.float64)[0, 0]
 
     def forecast(self, horizon: int, floor: float | None = None) -> Forecast:
         """The estimator's forecast on every frame pushed, heights shifted by ``floor``;

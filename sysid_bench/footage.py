@@ -1105,7 +1105,12 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
         raise ValueError(f"px_per_m: the {system}'s scale is not known: give px_per_m, "
                          "object_size_m" + (" or known L" if system == "pendulum" else ""))
     flip, offset = 1.0, (0.0, 0.0)
-    if system == "ball":
+    origin = (0.0, 0.0)
+
+    # how a camera places each system's world in the picture: this function's knowledge, one
+    # entry per system it builds a camera for
+    def place_ball():  # the floor at the bounces (or given), the walls given or out of reach
+        nonlocal origin, offset
         rad_m = r_px / s
         if floor_row is None:
             radii = np.asarray(track.radii if track.radii is not None
@@ -1155,7 +1160,9 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
             origin, offset = (float(mid), fr_row), (BOX_WIDTH / 2, -rad_m)
             placement["walls"] = (f"absent: the track's middle placed at x = {BOX_WIDTH / 2:g} m, "
                                   "the simulated walls out of its reach")
-    elif system == "pendulum":
+
+    def place_pendulum():  # the pivot at the centre of the bob's arc (or given)
+        nonlocal s, rel, src, origin
         if pivot is not None:
             pc, pr = (float(v) for v in pivot)
             if not (math.isfinite(pc) and math.isfinite(pr)):
@@ -1193,7 +1200,9 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
         _check_size(2 * r_px / s, "known" if src.startswith("known") else next(iter(given)),
                     f"its {2 * r_px:.3g} px at {s:.4g} px/m")
         origin = (pc, pr)
-    elif system == "spring":
+
+    def place_spring():  # the anchor given, or the oscillation's centre placed
+        nonlocal origin, flip, offset
         row0 = float(np.median(pix[seen, 1]))
         if anchor is not None:
             a = float(anchor)
@@ -1210,9 +1219,12 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
             origin, offset = (mid, row0), (1.5, 0.0)
             placement["anchor"] = ("absent: the oscillation's centre placed at x = 1.5 m, so L0 "
                                    "is not measured")
-    else:
+
+    place = {"ball": place_ball, "pendulum": place_pendulum, "spring": place_spring}.get(system)
+    if place is None:
         raise ValueError(f"system: a camera is built for ball, pendulum and spring clips, got "
                          f"{system!r}")
+    place()
     return Camera(px_per_m=float(s), origin=(float(origin[0]), float(origin[1])),
                   scale_rel_std=float(rel), per_frame=per_frame, rotate=int(rotate),
                   flip=flip, offset=offset, source=src, placement=placement)

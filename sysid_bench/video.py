@@ -451,6 +451,10 @@ OPTION_SYSTEMS = {
     "checkpoint": ("ball",),
     "horizon": ("ball",),
 }
+#: Systems whose clips run through :func:`identify_video` (the paper's pipeline: the renderer's
+#: box, vid2param's checkpoints, a forecast ``horizon``); the others, a user's included,
+#: through :mod:`sysid_bench.video_systems`.
+_PAPER_PIPELINE = ("ball",)
 #: Options that mean something on a system but are not built there yet, with why.
 _NOT_YET = {
     "collision": "the collision clip is read as its renderer frames it (two pucks on a 10 m "
@@ -595,18 +599,25 @@ def check_options(args) -> tuple[str, dict, dict]:
     return name, known, prior
 
 
+def _box_camera_options(args, system: str, known: dict) -> dict | None:
+    """A system in a box (the ball): the renderer's box (``--corners``/``--wall-col``) or a
+    camera placed by its floor and walls, which needs the scale."""
+    scale = args.px_per_m is not None or args.object_size_m is not None
+    legacy = args.wall_col is not None or args.corners is not None
+    if legacy or not (scale or args.walls is not None):
+        return None
+    if not scale:
+        raise ValueError("--walls: the scale is not known: give --px-per-m or "
+                         "--object-size-m with it")
+    return {"px_per_m": args.px_per_m, "object_size_m": args.object_size_m,
+            "floor_row": args.floor_row, "walls": args.walls}
+
+
 def _camera_options(args, system: str, known: dict) -> dict | None:
     """The :func:`camera_for` options given, or None for the renderer's framing."""
+    if system in _CAMERA_OPTIONS:
+        return _CAMERA_OPTIONS[system](args, system, known)
     scale = args.px_per_m is not None or args.object_size_m is not None
-    if system == "ball":
-        legacy = args.wall_col is not None or args.corners is not None
-        if legacy or not (scale or args.walls is not None):
-            return None
-        if not scale:
-            raise ValueError("--walls: the scale is not known: give --px-per-m or "
-                             "--object-size-m with it")
-        return {"px_per_m": args.px_per_m, "object_size_m": args.object_size_m,
-                "floor_row": args.floor_row, "walls": args.walls}
     opts = {"px_per_m": args.px_per_m, "object_size_m": args.object_size_m}
     if system == "pendulum":
         opts["pivot"] = args.pivot
@@ -621,6 +632,11 @@ def _camera_options(args, system: str, known: dict) -> dict | None:
                          "--object-size-m" + (" or --known L=..." if system == "pendulum"
                                               else ""))
     return opts
+
+
+#: Systems whose camera options are read their own way (the ball: the renderer's box, or its
+#: floor and walls); any other: the scale and its placing option (--pivot, --anchor).
+_CAMERA_OPTIONS = {"ball": _box_camera_options}
 
 
 def _one_line(exc: Exception, args) -> str:
@@ -681,7 +697,7 @@ def run(args) -> int:
         out = Path(args.out) if args.out else None
         if out is not None:
             check_out_folder(out)  # before any work: a folder of other files is refused
-        if name != "ball":
+        if name not in _PAPER_PIPELINE:
             return _run_system(args, name, known, prior, camera, out)
         if args.method is None:
             args.method = default_method()

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from methods._points import CountingSystemSimulator, Points, Problem
+from methods._points import Points, PointsSimulator, Problem
 from sysid_bench import systems
 from sysid_bench.estimator import Observation
 
@@ -24,7 +24,7 @@ def test_known_is_held_and_prior_replaces_the_range():
     system, obs = _obs()
     part = Points(system, sigma=0.01)
     track = part.track(obs)
-    plain = Problem(track, 0.01, CountingSystemSimulator(system))
+    plain = Problem(track, 0.01, PointsSimulator(system))
     g = system.params.index("g") if "g" in system.params else 0
     name = system.params[g]
     other = 1 - g if system.n_params > 1 else None
@@ -33,7 +33,7 @@ def test_known_is_held_and_prior_replaces_the_range():
     if other is not None:
         lo, hi = system.prior_lo[other], system.prior_hi[other]
         prior = {system.params[other]: (lo + 0.25 * (hi - lo), lo + 0.5 * (hi - lo))}
-    held = Problem(track, 0.01, CountingSystemSimulator(system), known={name: val}, prior=prior)
+    held = Problem(track, 0.01, PointsSimulator(system), known={name: val}, prior=prior)
     u = np.random.default_rng(1).random((64, held.ndim))
     theta, _ = held.split(u)
     assert np.all(theta[:, g] == val)  # held exactly, whatever the unit coordinate
@@ -44,7 +44,7 @@ def test_known_is_held_and_prior_replaces_the_range():
     np.testing.assert_array_equal(plain.plo, system.prior_lo)
     np.testing.assert_array_equal(plain.plo + plain.pspan, system.prior_hi)
     with pytest.raises(ValueError, match="known/prior"):
-        Problem(track, 0.01, CountingSystemSimulator(system), known={"nope": 1.0})
+        Problem(track, 0.01, PointsSimulator(system), known={"nope": 1.0})
 
 
 def _lsq(**kw):

@@ -28,6 +28,12 @@ plus, for the reference checks and NUTS, ``reference(theta, state0, n_frames, dt
 event-driven ``scipy.integrate.solve_ivp`` at tight tolerance, one trajectory) and a JAX twin named
 by ``jax_twin = "module:function"`` (imported only when asked for, so JAX loads only for NUTS).
 
+A system may also override what the rest of the suite would otherwise ask of its name (issue
+37: no branch on the ball's name outside its files): ``check_observation(obs,
+default_scene)`` (an :class:`~sysid_bench.estimator.Observation`'s fields: the ball keeps its
+(T, 2) positions, box and floor), ``track_observed(frames, floor)`` (the ball tracks above a
+known floor), ``known_geometry`` and ``check_posterior_mean``.
+
 The public methods validate at the boundary (shapes, empty batches, ragged lists, NaN/inf, the
 documented envelope, the scene's type, frame sizes) and raise ``ValueError`` (``TypeError`` for
 a scene of the wrong type) naming the argument and the system; the hooks receive clean arrays.
@@ -43,14 +49,16 @@ from typing import ClassVar
 
 import numpy as np
 
+from sysid_bench._observation_checks import check_dt, check_in_view
 from sysid_bench._validate import (
     as_float_array,
     check_batch,
     check_frame_budget,
+    check_number,
     check_positive_int,
     check_seed,
 )
-from sysid_bench.systems._scene import Scene
+from sysid_bench.systems._scene import Scene, check_within
 
 __all__ = ["System", "Scene", "SUBRANGES_TRAIN", "SUBRANGES_TEST"]
 
@@ -497,6 +505,13 @@ class System(abc.ABC):
                 )
         return self._track(fr)
 
+    def track_observed(self, frames, floor: float | None = None) -> np.ndarray:
+        """Positions (T, K, 2) tracked in frames (T, H, W) of an observation that may know a
+        ``floor`` (m; an :class:`~sysid_bench.estimator.Observation` field, None: unknown).
+        Here :meth:`track`: only the ball has a floor to track above
+        (:class:`~sysid_bench.systems.ball.Ball`)."""
+        return self.track(frames)
+
     def jax_simulate(self):
         """The JAX twin: ``f(theta (P,), state0 (S,), n_frames, dt) -> (T, S)`` (imports JAX)."""
         if not self.jax_twin:
@@ -554,6 +569,47 @@ class System(abc.ABC):
         ball's floor is a field of its own). How the harness hands every system's cases to
         a method with the geometry known, the same for all."""
         return {}
+
+    def check_observation(self, obs, default_scene: bool) -> None:
+        """Check the fields of an :class:`~sysid_bench.estimator.Observation` of this system
+        and store them normalised on ``obs`` (its frames, system name and scene are checked
+        already). Here: positions (T, K, 2) ((T, 2) read as K = 1) near the view (in a scene
+        other than the default, within the scenes' reach), ``dt`` in ``DT_RANGE``, ``floor`` a
+        number, ``state0`` (S,) through :meth:`check_state0`. The ball keeps its own (T, 2),
+        box and floor (:class:`~sysid_bench.systems.ball.Ball`).
+
+        Raises
+        ------
+        ValueError
+            A field of the wrong shape or out of range, naming it.
+        """
+        if obs.positions is not None:
+            pos = as_float_array(obs.positions, "positions", ndim=(2, 3), last=2, allow_nan=True)
+            if pos.ndim == 2:
+                pos = pos[:, None, :]
+            if pos.shape[1] != self.n_points:
+                raise ValueError(
+                    f"positions: expected (T, {self.n_points}, 2) for the {self.name} system's "
+                    f"{self.n_points} tracked points, got shape {pos.shape}"
+                )
+            if pos.shape[0] < 1:
+                raise ValueError("positions: expected at least 1 frame, got 0")
+            if obs.frames is not None and obs.frames.shape[0] != pos.shape[0]:
+                raise ValueError(
+                    "positions: expected as many rows as frames "
+                    f"({obs.frames.shape[0]}), got {pos.shape[0]}"
+                )
+            if default_scene:
+                check_in_view(pos.reshape(-1, 2), self, "positions")
+            else:  # the scene moves the world: only a wrong unit can still be caught
+                check_within(pos.reshape(-1, 2), "positions")
+            obs.positions = pos
+        obs.dt = check_dt(obs.dt)
+        if obs.floor is not None:
+            obs.floor = check_number(obs.floor, "floor", unit="m")
+        if obs.state0 is not None:
+            s0 = as_float_array(obs.state0, "state0", ndim=1, last=self.n_state)
+            obs.state0 = self.check_state0(s0[None], "state0", scene=obs.scene)[0]
 
     def reference(self, theta, state0, n_frames: int = 200, dt: float = 0.05) -> np.ndarray:
         """Event-driven ``solve_ivp`` reference of one trajectory: (P,), (S,) -> (n_frames, S)."""

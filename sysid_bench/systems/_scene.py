@@ -21,7 +21,8 @@ from typing import ClassVar
 
 import numpy as np
 
-__all__ = ["Scene", "BallScene", "PendulumScene", "SpringScene", "CollisionScene", "COORD_MAX"]
+__all__ = ["Scene", "BallScene", "PendulumScene", "SpringScene", "CollisionScene", "COORD_MAX",
+           "check_within"]
 
 #: Largest coordinate or size a scene may hold, m (the ball's ``physics.FLOOR_MAX``): keeps
 #: ~1e-13 m resolution for the kernels' float64 positions.
@@ -156,3 +157,12 @@ class CollisionScene(Scene):
                 f"scene.half_sizes: expected both pucks to fit the track {self.ends} side by side "
                 f"with room to move, got half-sizes {self.half_sizes}"
             )
+
+
+def check_within(pos: np.ndarray, name: str) -> None:
+    """Points (N, 2) (NaN = unseen) within the scenes' :data:`COORD_MAX` of the origin (a scene
+    moves the world: only a wrong unit can still be caught); ``ValueError`` naming ``name``."""
+    seen = pos[np.isfinite(pos).all(axis=1)]
+    if seen.size and np.abs(seen).max() > COORD_MAX:
+        raise ValueError(f"{name}: expected points within {COORD_MAX:g} m of the scene's origin, "
+                         f"got up to {np.abs(seen).max():.4g} m")

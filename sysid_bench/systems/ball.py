@@ -10,8 +10,10 @@ from __future__ import annotations
 import numpy as np
 
 from sysid_bench import physics
+from sysid_bench._observation_checks import BOX_MARGIN, check_dt, check_in_box
+from sysid_bench._validate import as_float_array, check_number
 from sysid_bench.systems._base import System
-from sysid_bench.systems._scene import COORD_MAX, BallScene
+from sysid_bench.systems._scene import COORD_MAX, BallScene, check_within
 
 __all__ = ["Ball"]
 
@@ -81,6 +83,49 @@ class Ball(System):
         floor = (scene if scene is not None else self.default_scene).floor
         return {} if floor is None else {"floor": float(floor)}
 
+    def check_observation(self, obs, default_scene):
+        """The ball's Observation (design.md): positions (T, 2) ((T, 1, 2) accepted) within
+        ``BOX_MARGIN`` of the box above ``floor`` (of the scene's walls and floor in a scene of
+        its own), ``floor`` within the simulator's ``physics.FLOOR_MAX`` and equal to the
+        scene's, ``state0`` [x, y, vx, vy] in the box at speeds up to ``physics.V_MAX``."""
+        if obs.positions is not None:
+            pos = as_float_array(obs.positions, "positions", ndim=(2, 3), last=2, allow_nan=True)
+            if pos.ndim == 3:  # the ball's one tracked point as (T, 1, 2)
+                if pos.shape[1] != 1:
+                    raise ValueError(
+                        f"positions: expected (T, 2) or (T, 1, 2) for the ball (K = 1), got shape {pos.shape}"
+                    )
+                pos = pos[:, 0]
+            if pos.shape[0] < 1:
+                raise ValueError("positions: expected at least 1 frame, got 0")
+            obs.positions = pos
+        if obs.frames is not None and obs.positions is not None:
+            if obs.frames.shape[0] != obs.positions.shape[0]:
+                raise ValueError(
+                    "positions: expected as many rows as frames "
+                    f"({obs.frames.shape[0]}), got {obs.positions.shape[0]}"
+                )
+        obs.dt = check_dt(obs.dt)
+        if obs.floor is not None:
+            # the simulator's bound (physics.FLOOR_MAX): every method simulates this floor
+            obs.floor = check_number(obs.floor, "floor", lo=-physics.FLOOR_MAX,
+                                     hi=physics.FLOOR_MAX, unit="m")
+            if (obs.scene is not None and obs.scene.floor is not None
+                    and obs.scene.floor != obs.floor):
+                raise ValueError(f"floor: expected the scene's floor {obs.scene.floor:g} m (or "
+                                 f"None), got {obs.floor:g}")
+        check = check_in_box if default_scene else _check_in_ball_scene
+        where = obs.floor if default_scene else obs.scene
+        if obs.positions is not None:
+            check(obs.positions, where, "positions")
+        if obs.state0 is not None:
+            obs.state0 = as_float_array(obs.state0, "state0", ndim=1, last=4)
+            check(obs.state0[None, :2], where, "state0")
+            v = float(np.abs(obs.state0[2:]).max())
+            if v > physics.V_MAX:  # the simulator's bound: methods simulate from this state
+                raise ValueError(f"state0: expected |vx|, |vy| <= {physics.V_MAX:g} m/s "
+                                 f"(physics.V_MAX), got {v:g}")
+
     def _observe(self, states, theta, scene=None):
         # the state is the centre in world metres, whatever the scene
         return states[..., None, :2].copy()
@@ -95,11 +140,35 @@ class Ball(System):
 
         return track(frames)[:, None, :]
 
+    def track_observed(self, frames, floor=None):
+        # the tracker places heights above the observation's floor (0 when unknown), as
+        # observed_positions does; frames as the tracker takes them
+        from sysid_bench.tracking import track
+
+        return track(frames, floor=0.0 if floor is None else floor)[:, None, :]
+
     def reference(self, theta, state0, n_frames=200, dt=0.05):
         """The ball's reference is its own tested kernel (``tests/test_physics.py`` checks it
         against an event-located ``solve_ivp``)."""
         th = self.check_theta(np.asarray(theta, dtype=np.float64)[None])
         return self.simulate(th, np.asarray(state0, dtype=np.float64)[None], n_frames, dt)[0]
+
+
+def _check_in_ball_scene(pos: np.ndarray, scene, name: str) -> None:
+    """The ball's positions (N, 2) in a scene of its own: between its walls and above its floor
+    (where it has them) within :data:`~sysid_bench.estimator.BOX_MARGIN`."""
+    check_within(pos, name)
+    seen = pos[np.isfinite(pos).all(axis=1)]
+    if not seen.size:
+        return
+    m = BOX_MARGIN
+    x, y = seen[:, 0], seen[:, 1]
+    if scene.walls is not None and (x.min() < scene.walls[0] - m or x.max() > scene.walls[1] + m):
+        raise ValueError(f"{name}: expected x within {m:g} m of the scene's walls {scene.walls}, "
+                         f"got x in [{x.min():.4g}, {x.max():.4g}]")
+    if scene.floor is not None and y.min() < scene.floor - m:
+        raise ValueError(f"{name}: expected y above the scene's floor {scene.floor:g} m (within "
+                         f"{m:g} m), got y down to {y.min():.4g}")
 
 
 def _jax_simulate(theta, state0, n_frames=200, dt=0.05):
