@@ -576,8 +576,8 @@ class SimulationOnSystems(SimulationMethod):
         if not known and not prior:
             return {}, {}
         if self._on_ball():
-            raise ValueError("known/prior: expected none on the ball (its fit does not take "
-                             "known values or prior ranges yet), got "
+            raise ValueError(f"known/prior: expected none on the ball ({self.name}'s fit there "
+                             "does not take known values or prior ranges yet), got "
                              f"known={known!r}, prior={prior!r}")
         for opt, v in (("known", known), ("prior", prior)):
             if v is not None and not isinstance(v, dict):
