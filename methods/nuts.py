@@ -1070,7 +1070,7 @@ def _fit_on_points(est, obs: Observation, part: Points) -> SystemFit:
 
 def _pts_unit(prob, theta, state0):
     """Physical theta (P,) and state0 (S,) -> unit coordinates (1, D) of ``prob``."""
-    u = (theta - prob.plo) / prob.pspan
+    u = (theta - prob.plo) / np.where(prob.pspan > 0, prob.pspan, 1.0)  # held: span 0, u 0
     if prob.free:
         u = np.concatenate([u, (state0 - prob.slo) / np.maximum(prob.sspan, 1e-12)])
     return u[None]

@@ -1467,9 +1467,10 @@ def check_knowledge(system, known=None, prior=None) -> tuple[dict, dict]:
     return k, parse_prior(sys_, items, k)
 
 
-def knowledge_record(known: dict, prior: dict, method: str, held: bool = False) -> dict:
+def knowledge_record(known: dict, prior: dict, method: str, held: bool = False,
+                     why: str = "") -> dict:
     """What ``estimates.json`` says under ``knowledge``: the user's known values and ranges,
-    and whether the method held them.
+    and whether the method held them (``why``: the method's reason when it cannot).
 
     Returns
     -------
@@ -1479,9 +1480,9 @@ def knowledge_record(known: dict, prior: dict, method: str, held: bool = False) 
     """
     note = ""
     if (known or prior) and not held:
-        note = (f"not yet held: {method} does not take known values or prior ranges yet (the "
-                "methods' refactor of issue 38 passes them on); its estimates above are its "
-                "own, over its default prior")
+        note = (f"not yet held: {method} does not take known values or prior ranges here"
+                f"{f' ({why})' if why else ''}; its estimates above are its own, over its "
+                "default prior (lsq, bo, emcee, nuts and prior hold them on the systems)")
     return {"known": {k: float(v) for k, v in (known or {}).items()},
             "prior": {k: [float(a), float(b)] for k, (a, b) in (prior or {}).items()},
             "held": bool(held), "note": note}
