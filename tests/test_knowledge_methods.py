@@ -85,3 +85,40 @@ def test_nuts_holds_a_known_parameter_and_keeps_inside_a_range():
     assert post.extras["known"] == {"g": float(theta[g])}
     assert post.extras["rhat"]["g"] == 1.0 and np.isfinite(post.extras["map_rms_m"])
     assert abs(post.mean[L] - theta[L]) < 0.05
+
+
+@pytest.fixture(scope="module")
+def pendulum_clip(tmp_path_factory):
+    pytest.importorskip("av")
+    from sysid_bench.footage import write_video
+
+    sys_ = systems.get("pendulum")
+    theta = np.array([[-9.0, 1.2, 0.1, 0.05]])
+    frames = sys_.render(sys_.simulate(theta, np.array([[1.0, 0.0]]), 40), theta)[0]
+    path = tmp_path_factory.mktemp("clip") / "pendulum.mp4"
+    write_video(path, frames)
+    return path
+
+
+@pytest.mark.parametrize("method, held", [
+    ("prior", True),
+    pytest.param("sindy", False, marks=pytest.mark.slow),  # ~11 s under load (pysindy)
+])
+def test_identify_says_whether_the_method_held_them(pendulum_clip, tmp_path, capsys, method, held):
+    import json
+
+    from sysid_bench.cli import main
+
+    out = tmp_path / "out"
+    rc = main(["identify", str(pendulum_clip), "--system", "pendulum", "--method", method,
+               "--every", "20", "--known", "g=-9.0", "--prior", "b=0.05:0.2", "--out", str(out),
+               "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    know = json.load(open(out / "estimates.json"))["knowledge"]
+    assert know["held"] is held and know["known"] == {"g": -9.0}
+    if held:
+        assert "g = -9 held" in err and not know["note"]
+    else:  # said, with the method's reason, never silently
+        assert "not yet held" in know["note"] and "sparse regression" in know["note"]
+        assert "not yet held" in err
