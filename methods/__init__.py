@@ -211,8 +211,11 @@ def get(name: str, system: str = "ball", **options) -> Estimator:
     """
     cls = get_class(name, system)
     given = sorted(k for k in ("known", "prior") if options.get(k))
+    if not {"known", "prior"} <= set(cls._param_names()):
+        # nothing known (None, {}) asks nothing of the method; anything else is never silently
+        # dropped (issue 38 §4): the method says why not
+        options = {k: v for k, v in options.items() if k not in ("known", "prior") or v}
     if given and not {"known", "prior"} <= set(cls._param_names()):
-        # what the user knows is never silently dropped (issue 38 §4): the method says why not
         why = getattr(cls, "knowledge_refused", "it does not take known values or prior ranges")
         raise ValueError(f"{'/'.join(given)}: {name} cannot honour known values or prior ranges "
                          f"({why}); got " + ", ".join(f"{k}={options[k]!r}" for k in given))

@@ -63,6 +63,7 @@ def test_bad_knowledge_names_the_option(name, kw, match):
 def test_a_method_that_cannot_hold_knowledge_says_so(name, system, opt, value):
     with pytest.raises(ValueError, match=rf"^{opt}: {name} cannot honour .*\(.+\); got {opt}="):
         methods.get(name, system=system, **{opt: value})
+    methods.get(name, system=system, **{opt: {}})  # nothing known: nothing to refuse
 
 
 @pytest.mark.parametrize("name", ["lsq", "bo", "emcee", "nuts"])
