@@ -205,9 +205,20 @@ def get(name: str, system: str = "ball", **options) -> Estimator:
     the method does not declare (``systems``) raises :class:`NotAvailable` (a ``ValueError``
     and a ``NotImplementedError``, so recorded as n/a); so does a declared one where the
     estimator's ``check_available()``, if it has one, finds it cannot run with these options
-    (Vid2Param without a model for the system).
+    (Vid2Param without a model for the system). ``known``/``prior`` (what the user knows,
+    issue 38 §4) given to a method that does not take them raise ``ValueError`` naming the
+    option, the method and its ``knowledge_refused`` reason.
     """
     cls = get_class(name, system)
+    given = sorted(k for k in ("known", "prior") if options.get(k))
+    if not {"known", "prior"} <= set(cls._param_names()):
+        # nothing known (None, {}) asks nothing of the method; anything else is never silently
+        # dropped (issue 38 §4): the method says why not
+        options = {k: v for k, v in options.items() if k not in ("known", "prior") or v}
+    if given and not {"known", "prior"} <= set(cls._param_names()):
+        why = getattr(cls, "knowledge_refused", "it does not take known values or prior ranges")
+        raise ValueError(f"{'/'.join(given)}: {name} cannot honour known values or prior ranges "
+                         f"({why}); got " + ", ".join(f"{k}={options[k]!r}" for k in given))
     if "system" in cls._param_names():
         from sysid_bench import systems
 

@@ -581,8 +581,8 @@ class SimulationOnSystems(SimulationMethod):
         if not known and not prior:
             return {}, {}
         if self._own_machinery():
-            raise ValueError(f"known/prior: expected none on the {self.system} (its fit does not "
-                             "take known values or prior ranges yet), got "
+            raise ValueError(f"known/prior: expected none on the {self.system} ({self.name}'s "
+                             "fit there does not take known values or prior ranges yet), got "
                              f"known={known!r}, prior={prior!r}")
         for opt, v in (("known", known), ("prior", prior)):
             if v is not None and not isinstance(v, dict):

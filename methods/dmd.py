@@ -59,6 +59,9 @@ class DMD(Estimator):
     """
 
     name = "dmd"
+    #: why ``known``/``prior`` are refused (``methods.get``; issue 38 §4)
+    knowledge_refused = (
+        "it identifies no parameters: a linear model of the track forecasts only")
     input_kind = "positions"
     min_frames = 3
     identifies = False

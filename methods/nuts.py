@@ -532,6 +532,13 @@ class NUTS(SimulationOnSystems):
         Cap of the trajectory doubling (at most ``2**max_tree_depth - 1`` leapfrog steps).
     n_forecast : int
         Posterior samples simulated by ``forecast``.
+    known : dict of str -> float, optional
+        Another system only: parameters held fixed (a constant in the model: the problem maps
+        their coordinate onto the value, so every draw holds it; mean the value, std 0);
+        checked as ``--known`` is (:func:`sysid_bench.footage.parse_known`).
+    prior : dict of str -> (float, float), optional
+        Another system only: ranges replacing the system's uniform prior for these parameters
+        (:func:`sysid_bench.footage.parse_prior`).
     frame_bucket : int
         Observations are padded (with unseen frames) to a multiple of this many frames, so that
         prefixes of different lengths share one compiled sampler per multiple. Compiling costs
@@ -592,6 +599,8 @@ class NUTS(SimulationOnSystems):
         n_forecast: int = 200,
         frame_bucket: int = 50,
         max_extensions: int = 2,
+        known: dict | None = None,
+        prior: dict | None = None,
         seed: int = 0,
     ):
         self.system = system
@@ -609,6 +618,8 @@ class NUTS(SimulationOnSystems):
         self.n_forecast = n_forecast
         self.frame_bucket = frame_bucket
         self.max_extensions = max_extensions
+        self.known = known
+        self.prior = prior
         self.seed = seed
 
     def _validate(self) -> None:
@@ -1011,6 +1022,10 @@ def _fit_on_points(est, obs: Observation, part: Points) -> PointsFit:
         x = x_map + z @ chol.T
         th, s0 = (np.asarray(a) for a in _pts_physical(jnp.asarray(x), data, free, P))
         rhat, ess = _pts_diagnose(th)
+        if prob.known:  # a held parameter is constant: nothing to converge (R-hat would be NaN)
+            held = [system.params.index(k) for k in prob.known]
+            rhat, ess = np.array(rhat, dtype=float), np.array(ess, dtype=float)
+            rhat[held], ess[held] = 1.0, float(th.shape[0] * th.shape[1])
         if (np.all(rhat < 1.05) and np.all(ess >= 50)) or n_ext >= int(est.max_extensions):
             break
         n_ext += 1
@@ -1055,7 +1070,7 @@ def _fit_on_points(est, obs: Observation, part: Points) -> PointsFit:
 
 def _pts_unit(prob, theta, state0):
     """Physical theta (P,) and state0 (S,) -> unit coordinates (1, D) of ``prob``."""
-    u = (theta - prob.plo) / prob.pspan
+    u = (theta - prob.plo) / np.where(prob.pspan > 0, prob.pspan, 1.0)  # held: span 0, u 0
     if prob.free:
         u = np.concatenate([u, (state0 - prob.slo) / np.maximum(prob.sspan, 1e-12)])
     return u[None]

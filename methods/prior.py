@@ -2,7 +2,9 @@
 
 It is the floor every method must beat (its normalised MSE is what guessing scores) and lets the
 contract test run on a method with no dependencies. It runs on any registered system: the
-system's uniform prior, and a forecast that holds the last seen points.
+system's uniform prior, and a forecast that holds the last seen points. What the user knows
+(``known`` values, ``prior`` ranges) is the prior it answers: a held parameter's value with std 0,
+a user's range uniform (issue 38 §4).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from sysid_bench.estimator import (
     observed_positions,
     prior_posterior,
 )
+from sysid_bench.footage import check_knowledge
 
 
 class PriorOnly(Estimator):
@@ -36,6 +39,11 @@ class PriorOnly(Estimator):
         Prior draws returned as ``Posterior.samples``.
     seed : int
         Seed of those draws.
+    known : dict of str -> float, optional
+        Parameters held fixed: mean and every sample the value, std 0 (``extras["known"]``);
+        checked as ``--known`` is (:func:`sysid_bench.footage.check_knowledge`).
+    prior : dict of str -> (float, float), optional
+        Ranges replacing the system's prior for these parameters (``extras["prior"]``).
     """
 
     name = "prior"
@@ -49,18 +57,24 @@ class PriorOnly(Estimator):
     #: gets the generic one (the system's prior box, its view).
     own_path = ("ball",)
 
-    def __init__(self, *, system: str = "ball", n_samples: int = 256, seed: int = 0):
+    def __init__(self, *, system: str = "ball", n_samples: int = 256, seed: int = 0,
+                 known: dict | None = None, prior: dict | None = None):
         self.system = system
         self.n_samples = n_samples
         self.seed = seed
+        self.known = known
+        self.prior = prior
 
     def _validate(self) -> None:
         super()._validate()
         check_system_param(self)
         check_positive_int(self.n_samples, "n_samples")
+        check_knowledge(self.system, self.known, self.prior)
 
     def identify(self, obs: Observation) -> Posterior:
         t0 = time.perf_counter()
+        if self.known or self.prior:
+            return self._user_prior(t0)
         if self.system not in self.own_path:
             system = system_of(self.system)
             samples = system.sample_theta(check_positive_int(self.n_samples, "n_samples"),
@@ -80,6 +94,26 @@ class PriorOnly(Estimator):
         # no fit to check (and its intervals are the prior's anyway)
         post.extras["check_reason"] = "the prior does not look at the observation"
         return post
+
+    def _user_prior(self, t0: float) -> Posterior:
+        """The system's uniform prior with the user's ranges and held values (any system)."""
+        system = system_of(self.system)
+        known, prior = check_knowledge(system, self.known, self.prior)
+        lo, hi = system.prior_lo.copy(), system.prior_hi.copy()
+        for name, (a, b) in {**prior, **{k: (v, v) for k, v in known.items()}}.items():
+            i = system.params.index(name)
+            lo[i], hi[i] = a, b
+        n = check_positive_int(self.n_samples, "n_samples")
+        samples = lo + (hi - lo) * make_rng(self.seed, 0).random((n, lo.size))
+        held = [system.params.index(k) for k in known]
+        samples[:, held] = [known[k] for k in known]  # exactly the value, not lo + 0 * u
+        mean, std = 0.5 * (lo + hi), (hi - lo) / np.sqrt(12.0)
+        mean[held] = [known[k] for k in known]
+        return Posterior(mean=mean, std=std, samples=samples, system=system.name,
+                         extras={"n_simulations": 0, "wall_s": time.perf_counter() - t0,
+                                 "check_reason": "the prior does not look at the observation",
+                                 "known": dict(known),
+                                 "prior": {k: [float(a), float(b)] for k, (a, b) in prior.items()}})
 
     def forecast(self, obs: Observation, horizon: int) -> Forecast:
         if self.system not in self.own_path:

@@ -375,6 +375,9 @@ class SINDy(Estimator):
     """
 
     name = "sindy"
+    #: why ``known``/``prior`` are refused (``methods.get``; issue 38 §4)
+    knowledge_refused = (
+        "its sparse regression fits a library's coefficients, not the parameters themselves, so a held value or a range has no place in it")
     input_kind = "positions"
     min_frames = 3
     forecasts = True

@@ -1437,9 +1437,52 @@ def parse_prior(system, items, known: dict | None = None) -> dict[str, tuple[flo
     return out
 
 
-def knowledge_record(known: dict, prior: dict, method: str, held: bool = False) -> dict:
+def check_knowledge(system, known=None, prior=None) -> tuple[dict, dict]:
+    """A method's ``known``/``prior`` options (Python dicts) checked as ``--known``/``--prior``.
+
+    Parameters
+    ----------
+    system : str or System
+    known : dict of str -> float, optional
+        ``{name: value}``; None or empty: nothing held.
+    prior : dict of str -> (float, float), optional
+        ``{name: (lo, hi)}``; None or empty: the system's ranges.
+
+    Returns
+    -------
+    known : dict of str -> float
+    prior : dict of str -> (float, float)
+
+    Raises
+    ------
+    ValueError
+        Not a dict, a pair that is not ``(lo, hi)``, or what :func:`parse_known` /
+        :func:`parse_prior` refuse; the message starts with ``known`` or ``prior``.
+    """
+    from sysid_bench import systems
+
+    sys_ = systems.get(system) if isinstance(system, str) else system
+    for opt, v in (("known", known), ("prior", prior)):
+        if v is not None and not isinstance(v, dict):
+            raise ValueError(f"{opt}: expected a dict of parameter names, got "
+                             f"{type(v).__name__} {v!r}")
+
+    def text(x):  # a number as parse_known reads it back exactly; anything else as given
+        return repr(float(x)) if isinstance(x, (int, float, np.number)) else str(x)
+
+    k = parse_known(sys_, [f"{n}={text(x)}" for n, x in (known or {}).items()])
+    items = []
+    for n, r in (prior or {}).items():
+        if isinstance(r, (str, bytes)) or np.shape(r) != (2,):
+            raise ValueError(f"prior: expected a (lo, hi) pair for {n}, got {r!r}")
+        items.append(f"{n}={text(r[0])}:{text(r[1])}")
+    return k, parse_prior(sys_, items, k)
+
+
+def knowledge_record(known: dict, prior: dict, method: str, held: bool = False,
+                     why: str = "") -> dict:
     """What ``estimates.json`` says under ``knowledge``: the user's known values and ranges,
-    and whether the method held them.
+    and whether the method held them (``why``: the method's reason when it cannot).
 
     Returns
     -------
@@ -1449,9 +1492,9 @@ def knowledge_record(known: dict, prior: dict, method: str, held: bool = False) 
     """
     note = ""
     if (known or prior) and not held:
-        note = (f"not yet held: {method} does not take known values or prior ranges yet (the "
-                "methods' refactor of issue 38 passes them on); its estimates above are its "
-                "own, over its default prior")
+        note = (f"not yet held: {method} does not take known values or prior ranges here"
+                f"{f' ({why})' if why else ''}; its estimates above are its own, over its "
+                "default prior (lsq, bo, emcee, nuts and prior hold them on the systems)")
     return {"known": {k: float(v) for k, v in (known or {}).items()},
             "prior": {k: [float(a), float(b)] for k, (a, b) in (prior or {}).items()},
             "held": bool(held), "note": note}

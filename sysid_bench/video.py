@@ -310,7 +310,8 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         "rotate": int(rotate),
         "window_s": [start, end],
         "capture_fps": capture_fps,
-        "knowledge": knowledge_record(known or {}, prior or {}, method),
+        "knowledge": knowledge_record(known or {}, prior or {}, method,
+                                      why=_knowledge_refused(method)),
         "ball_found": found,
         "frames_with_ball": trk.n_found,
         "ball_radius_px": None if not found else trk.radius,
@@ -752,3 +753,12 @@ def run(args) -> int:
           + ", ".join(f"{p} = {m:.4g} ± {s:.2g}" for p, m, s in zip(PARAMS, last, sd))
           + f"; geometry {res.info['geometry']['mapping']}; wrote {out}/")
     return 0
+
+
+def _knowledge_refused(method: str) -> str:
+    """Why ``method`` holds no known values or prior ranges on the ball (its declared reason,
+    else the ball's own fit's)."""
+    import methods
+
+    return getattr(methods.get_class(method, "ball"), "knowledge_refused",
+                   "the ball's fits do not take them yet")

@@ -163,7 +163,8 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
         if takes and known:  # a held value is the user's, not measured through the scale
             cols = [sys_.params.index(k) for k in known]
             std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
-    know = knowledge_record(known or {}, prior or {}, name, held=takes)
+    know = knowledge_record(known or {}, prior or {}, name, held=takes,
+                            why=getattr(type(est), "knowledge_refused", ""))
     if know["note"]:
         notes.append(f"--known/--prior {know['note']}")
     elif known or prior:

@@ -86,7 +86,8 @@ def test_unknown_name_lists_known_and_suggests():
 def test_get_passes_options_and_rejects_unknown_ones():
     est = methods.get("prior", n_samples=10, seed=3)
     assert isinstance(est, Estimator)
-    assert est.get_params() == {"system": "ball", "n_samples": 10, "seed": 3}
+    assert est.get_params() == {"system": "ball", "n_samples": 10, "seed": 3, "known": None,
+                                "prior": None}
     with pytest.raises(ValueError, match="options"):
         methods.get("prior", bogus=1)
 

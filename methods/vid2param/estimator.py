@@ -193,6 +193,9 @@ class Vid2Param(Estimator):
     """
 
     name = "vid2param"
+    #: why ``known``/``prior`` are refused (``methods.get``; issue 38 §4)
+    knowledge_refused = (
+        "its networks were trained on one prior and infer every parameter jointly from the frames; holding one or changing a range would need retraining")
     #: the ball, and every other system for which a checkpoint is shipped or given (a user's
     #: system included); n/a where there is none (see the class)
     systems = "any"
