@@ -98,6 +98,11 @@ class Observation:
         given, must equal the scene's. With a scene other than the default, positions and
         ``state0`` are checked against the scene (the walls and floor that exist, the state
         bounds it implies) instead of the default box or view.
+    known : dict of str -> float, optional
+        Parameters the user knows, held fixed (``{"g": -9.81}``): a method that takes
+        ``known`` answers conditional on them (as ``methods.get(name, known=...)``; the two
+        must agree where both name a parameter), a method that cannot hold them refuses the
+        observation with its reason. Names are the system's parameters; values finite.
     """
 
     frames: np.ndarray | None = None
@@ -107,6 +112,7 @@ class Observation:
     state0: np.ndarray | None = None
     system: str = "ball"
     scene: Any = None
+    known: dict | None = None
 
     def _checked_scene(self):
         """The validated scene (None stays None) and whether it is the system's default."""
@@ -146,6 +152,7 @@ class Observation:
         sys_ = systems.get(self.system)  # ValueError listing the known systems
         self.system = sys_.name
         self.scene, default_scene = self._checked_scene()
+        self.known = _checked_known(self.known, sys_)
         # the system's own checks of the other fields (the ball's box and floor, another
         # system's view and state): System.check_observation
         sys_.check_observation(self, default_scene)
@@ -181,7 +188,51 @@ class Observation:
             state0=self.state0,
             system=self.system,
             scene=self.scene,
+            known=self.known,
         )
+
+
+def _checked_known(known, sys_) -> dict[str, float] | None:
+    """``Observation.known`` checked against the system: None or a dict of its parameter names
+    to finite numbers (an empty dict reads as None)."""
+    if known is None:
+        return None
+    if not isinstance(known, dict):
+        raise ValueError(f"known: expected a dict of parameter name -> value, got "
+                         f"{type(known).__name__} {known!r}")
+    out = {}
+    for name, v in known.items():
+        if name not in sys_.params:
+            raise ValueError(f"known: expected parameters of the {sys_.name} system "
+                             f"({', '.join(sys_.params)}), got {name!r}")
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                or not np.isfinite(v):
+            raise ValueError(f"known: expected a finite number for {name}, got {v!r}")
+        out[str(name)] = float(v)
+    return out or None
+
+
+def _with_knowledge(est, obs):
+    """The estimator that answers ``obs``: ``est`` itself, or, where ``obs.known`` holds
+    values, a copy built from ``est``'s hyperparameters holding them too. A method without a
+    ``known`` hyperparameter refuses, naming its ``knowledge_refused`` reason; a value that
+    contradicts the estimator's own ``known`` is refused."""
+    known = getattr(obs, "known", None)
+    if not known:
+        return est
+    params = est.get_params()
+    if "known" not in params:
+        why = getattr(type(est), "knowledge_refused", "it takes no known values")
+        raise ValueError(f"obs.known: {est.name} cannot hold known values ({why}); got "
+                         f"{known!r}")
+    mine = {str(k): float(v) for k, v in (params.get("known") or {}).items()}
+    clash = [f"{k} = {v:g} (the estimator holds {mine[k]:g})" for k, v in known.items()
+             if k in mine and mine[k] != v]
+    if clash:
+        raise ValueError(f"obs.known: contradicts the estimator's known values: "
+                         f"{'; '.join(clash)}")
+    held = type(est)(**{**params, "known": {**mine, **known}})
+    return held
 
 
 def _system_name(system) -> str:
@@ -973,7 +1024,7 @@ def _checking_identify(identify):
         _check_obs(obs, self)
         _check_obs_fields(obs)
         self._validate()
-        return identify(self, obs, *args, **kwargs)
+        return identify(_with_knowledge(self, obs), obs, *args, **kwargs)
 
     return wrapper
 
@@ -995,7 +1046,7 @@ def _checking_prefixes(identify_prefixes):
         _check_obs_fields(obs)
         lengths = _check_lengths(obs, lengths)
         self._validate()
-        return identify_prefixes(self, obs, lengths, *args, **kwargs)
+        return identify_prefixes(_with_knowledge(self, obs), obs, lengths, *args, **kwargs)
 
     return wrapper
 
@@ -1007,6 +1058,6 @@ def _checking_forecast(forecast):
         _check_obs_fields(obs)
         horizon = check_horizon(horizon, MAX_HORIZON)
         self._validate()
-        return forecast(self, obs, horizon, *args, **kwargs)
+        return forecast(_with_knowledge(self, obs), obs, horizon, *args, **kwargs)
 
     return wrapper
