@@ -220,6 +220,18 @@ def test_training_resumes_where_it_stopped(tiny_data, tmp_path):
         torch.testing.assert_close(va, vb, msg=k)
 
 
+def test_the_lr_scheduler_gives_the_hand_written_schedule_at_every_step():
+    from methods.vid2param.train import _lr_at, lr_schedule, set_schedule_step
+
+    tc = TrainConfig(steps=40, warmup=7, lr=3e-3, lr_min=1e-5)
+    opt = torch.optim.Adam([torch.nn.Parameter(torch.zeros(2))], lr=tc.lr)
+    sched = lr_schedule(opt, tc)
+    # every step in order, then jumps (the time schedule skips) and past the end
+    for k in [*range(45), 3, 30, 12, 100]:
+        assert set_schedule_step(sched, k) == _lr_at(k, tc) == opt.param_groups[0]["lr"], k
+    assert _lr_at(44, tc) == tc.lr_min and _lr_at(0, tc) == tc.lr / 7
+
+
 def test_fit_trains_briefly(tiny_ckpt, tiny_data):
     e = Vid2Param(checkpoint=tiny_ckpt, device="cpu", fit_steps=2)
     w0 = load_checkpoint(tiny_ckpt)["state_dict"]["posterior.mlp.2.weight"].clone()

@@ -27,6 +27,7 @@ import os
 import re
 import sys
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -307,10 +308,34 @@ def feed_steps_per_chunk(tc: TrainConfig) -> int:
 
 
 def _lr_at(step: int, tc: TrainConfig) -> float:
+    """The learning rate at schedule step ``step``: linear warm-up over ``warmup`` steps, then
+    cosine from ``lr`` down to ``lr_min`` at ``steps``."""
     if step < tc.warmup:
         return tc.lr * (step + 1) / tc.warmup
     frac = (step - tc.warmup) / max(1, tc.steps - tc.warmup)
     return tc.lr_min + 0.5 * (tc.lr - tc.lr_min) * (1 + math.cos(math.pi * min(1.0, frac)))
+
+
+def lr_schedule(opt: torch.optim.Optimizer, tc: TrainConfig) -> torch.optim.lr_scheduler.LambdaLR:
+    """``opt``'s learning-rate schedule (:func:`_lr_at`) as a ``torch.optim.lr_scheduler``.
+
+    The lambda gives the rate itself over a base rate of exactly 1 (``1.0 * x == x``), so every
+    step's rate is :func:`_lr_at`'s bit for bit (``tc.lr`` times a factor would round). Move it
+    to schedule step ``k`` with :func:`set_schedule_step` (``time_schedule`` may skip steps).
+    """
+    for g in opt.param_groups:
+        g["initial_lr"] = 1.0
+    return torch.optim.lr_scheduler.LambdaLR(opt, lambda k: _lr_at(k, tc), last_epoch=-1)
+
+
+def set_schedule_step(sched: torch.optim.lr_scheduler.LambdaLR, step: int) -> float:
+    """Set ``sched``'s optimizer to the rate of schedule step ``step``; returns that rate."""
+    sched.last_epoch = int(step) - 1  # step() advances it by one, to ``step``
+    with warnings.catch_warnings():
+        # set before the step's optimizer.step() on purpose: the rate the step uses
+        warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step", category=UserWarning)
+        sched.step()
+    return sched.get_last_lr()[0]
 
 
 class _Feed:
@@ -776,6 +801,7 @@ def train(
         init_ck = init_record(tc.init)
         loaded, skipped = load_matching(net, checkpoint_path(tc.init))
         log(f"init from {tc.init}: {len(loaded)} tensors copied, fresh: {skipped}")
+    schedule = lr_schedule(opt, tc)
     log(f"Vid2Param: {count_parameters(net)} parameters, device {dev}, threads "
         f"{torch.get_num_threads()}, steps {start}->{tc.steps}, batch {tc.batch}")
     # a fresh chunk is drawn ahead only when this run will step into another chunk
@@ -839,8 +865,7 @@ def train(
             fr = fr.clone()
             fr[torch.as_tensor(blank, device=dev)] = 0
         gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
-        for g in opt.param_groups:
-            g["lr"] = _lr_at(sched, tc)
+        lr_now = set_schedule_step(schedule, sched)
         aux = tc.early_aux_grad if sched < tc.early_aux_grad_steps else None
         outd = net(fr, torch.as_tensor(tg_np, device=dev), n_obs=n_obs, rec_frac=tc.rec_frac,
                    generator=gen, aux_grad=aux, supervised=feed.supervised_targets(step))
@@ -854,7 +879,7 @@ def train(
         if progress:
             bar.set_postfix(loss=f"{run_avg[0]:.1f}", nll=f"{run_avg[3]:.2f}", refresh=False)
         if (step + 1) % 100 == 0:
-            log(f"step {step + 1} {wall() / 60:.1f} min lr {_lr_at(sched, tc):.2e} loss "
+            log(f"step {step + 1} {wall() / 60:.1f} min lr {lr_now:.2e} loss "
                 f"{run_avg[0]:.2f} rec {run_avg[1]:.2f} kl {run_avg[2]:.2f} nll {run_avg[3]:.3f} "
                 f"nll_prior {run_avg[4]:.3f}")
         if val is not None and (step + 1) % tc.val_every == 0:
