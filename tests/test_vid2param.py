@@ -814,7 +814,8 @@ def test_training_forecast_keeps_fed_back_positions_inside_the_box(monkeypatch):
 def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
     from dataclasses import asdict
 
-    from methods.vid2param.train import _OWN_FLAGS, PRESET_TRAIN, _parse, _parser, _train_config
+    from methods.vid2param import presets
+    from methods.vid2param.train import _OWN_FLAGS, _parse, _parser, _train_config
 
     actions = {a.dest: a for a in _parser()._actions if a.dest != "help"}
     fields = [*asdict(TrainConfig()), *V2PConfig().to_dict()]
@@ -828,17 +829,16 @@ def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
     cam = V2PConfig.preset("camera")
     tc = _train_config(_parse(["--out", "x", "--preset", "camera"]), cam)
     assert tc.init == "28x28" and tc.size == (50, 100)  # the shipped name: no machine path
-    assert {k: getattr(tc, k) for k in PRESET_TRAIN["camera"] if k != "init"} == {
-        k: v for k, v in PRESET_TRAIN["camera"].items() if k != "init"}
+    assert {k: getattr(tc, k) for k in presets.get("camera").train if k != "init"} == {
+        k: v for k, v in presets.get("camera").train.items() if k != "init"}
     tc = _train_config(_parse(["--out", "x", "--preset", "camera", "--steps", "7", "--init", "none",
                                "--perturb", "null"]), cam)
     assert (tc.steps, tc.init, tc.perturb, tc.nll_only_steps) == (7, None, None, 150)
     # the export's stages: the preset's by default (the camera's drag evidence), --stages
     # overrides them, with options
-    from methods.vid2param.stages import PRESET_STAGES
     from methods.vid2param.train import _stages
 
-    assert _stages(a) == [(n, o) for n, o in PRESET_STAGES["28x28"]]
+    assert _stages(a) == [(n, dict(o)) for n, o in presets.get("28x28").stages]
     cam_a = _parse(["--out", "x", "--preset", "camera"])
     assert [n for n, _ in _stages(cam_a)] == ["prior_noise", "drag_evidence", "physics_calibration"]
     assert _stages(_parse(["--out", "x", "--preset", "camera", "--stages",
