@@ -42,7 +42,7 @@ def test_every_preset_is_one_frozen_record_looked_up_by_its_or_its_systems_name(
             p.train["steps"] = 1  # read-only: a caller cannot change a preset for everyone
     assert presets.get("pendulum").train["chunk_epochs"] == 8
     assert dict(presets.get("camera").net)["roll_stat"] == "fit"
-    assert V2PConfig.preset("camera") == presets.get("camera").config()
+    assert V2PConfig.preset("camera") == V2PConfig(**presets.get("camera").net)
     with pytest.raises(ValueError, match=r"preset: expected a preset \(28x28, camera, .*registered "
                                          r"system \(ball, .*got 'sprung'"):
         presets.get("sprung")

@@ -241,10 +241,20 @@ class V2PConfig:
 
     @classmethod
     def preset(cls, name: str) -> V2PConfig:
-        """The network of preset ``name`` (``presets.get``: a preset's or a system's name)."""
+        """The network of preset ``name`` (``presets.get``: a preset's or a system's name):
+        the defaults, then the preset's ``net``; a ``presets.VIEW`` preset takes its targets and
+        default frame size from its system."""
         from methods.vid2param import presets
 
-        return presets.get(name).config()
+        p = presets.get(name)
+        d = dict(p.net)
+        if p.space == presets.VIEW:
+            from sysid_bench import systems
+
+            d.setdefault("system", p.system)
+            d.setdefault("targets", system_targets(p.system))
+            d.setdefault("frame_size", systems.get(p.system).size)
+        return cls(**d)
 
 
 #: Fields added after checkpoints were written, with the value that reproduces those

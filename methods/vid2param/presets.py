@@ -44,7 +44,8 @@ class Preset:
         What the network's targets are (:data:`BOX`: the ball's; :data:`VIEW`: a system's K
         tracked points and P parameters).
     net : mapping
-        ``V2PConfig`` fields that differ from its defaults (read-only).
+        ``V2PConfig`` fields that differ from its defaults (read-only); a :data:`VIEW`
+        preset's targets and frame size default to its system's (``V2PConfig.preset``).
     train : mapping
         ``TrainConfig`` fields the recipe takes instead of the defaults (a flag given
         overrides them; read-only).
@@ -66,20 +67,6 @@ class Preset:
         object.__setattr__(self, "net", _frozen(self.net))
         object.__setattr__(self, "train", _frozen(self.train))
         object.__setattr__(self, "stages", tuple((str(n), _frozen(o)) for n, o in self.stages))
-
-    def config(self):
-        """The network's ``V2PConfig``: its defaults, then ``net``; a :data:`VIEW` preset takes
-        its targets and default frame size from its system."""
-        from methods.vid2param.model import V2PConfig, system_targets
-
-        d = dict(self.net)
-        if self.space == VIEW:
-            from sysid_bench import systems
-
-            d.setdefault("system", self.system)
-            d.setdefault("targets", system_targets(self.system))
-            d.setdefault("frame_size", systems.get(self.system).size)
-        return V2PConfig(**d)
 
 
 #: A system's network: the ball's network with the ball's parts off (targets and frame size
