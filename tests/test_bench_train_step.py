@@ -30,7 +30,8 @@ import torch
 
 from methods.vid2param.data import make_system_split, targets_from_dataset
 from methods.vid2param.model import V2PConfig, Vid2ParamNet
-from methods.vid2param.train import PRESET_TRAIN, train_threads, usable_cores
+from methods.vid2param.presets import PRESETS
+from methods.vid2param.train import train_threads, usable_cores
 
 #: fp32 peak of one core (GFLOP/s): the issue's 190 GFLOP/s for two AVX-512 cores of the CI
 #: machine (2 FMA x 16 lanes x 2 FLOP at ~3 GHz); another CPU has another peak.
@@ -68,7 +69,7 @@ def test_bench_pendulum_training_step(benchmark):
     torch.manual_seed(0)
     net = Vid2ParamNet(mc)
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
-    asked = int(PRESET_TRAIN["pendulum"]["threads"])
+    asked = int(PRESETS["pendulum"].train["threads"])
     used = train_threads(asked)
     try:
         flop = _flop(net, opt, frames, targets)

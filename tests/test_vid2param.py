@@ -219,6 +219,18 @@ def test_training_resumes_where_it_stopped(tiny_data, tmp_path):
         torch.testing.assert_close(va, vb, msg=k)
 
 
+def test_the_lr_scheduler_gives_the_hand_written_schedule_at_every_step():
+    from methods.vid2param.train import _lr_at, lr_schedule, set_schedule_step
+
+    tc = TrainConfig(steps=40, warmup=7, lr=3e-3, lr_min=1e-5)
+    opt = torch.optim.Adam([torch.nn.Parameter(torch.zeros(2))], lr=tc.lr)
+    sched = lr_schedule(opt, tc)
+    # every step in order, then jumps (the time schedule skips) and past the end
+    for k in [*range(45), 3, 30, 12, 100]:
+        assert set_schedule_step(sched, k) == _lr_at(k, tc) == opt.param_groups[0]["lr"], k
+    assert _lr_at(44, tc) == tc.lr_min and _lr_at(0, tc) == tc.lr / 7
+
+
 def test_fit_trains_briefly(tiny_ckpt, tiny_data):
     e = Vid2Param(checkpoint=tiny_ckpt, device="cpu", fit_steps=2)
     w0 = load_checkpoint(tiny_ckpt)["state_dict"]["posterior.mlp.2.weight"].clone()
@@ -801,7 +813,8 @@ def test_training_forecast_keeps_fed_back_positions_inside_the_box(monkeypatch):
 def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
     from dataclasses import asdict
 
-    from methods.vid2param.train import _OWN_FLAGS, PRESET_TRAIN, _parse, _parser, _train_config
+    from methods.vid2param import presets
+    from methods.vid2param.train import _OWN_FLAGS, _parse, _parser, _train_config
 
     actions = {a.dest: a for a in _parser()._actions if a.dest != "help"}
     fields = [*asdict(TrainConfig()), *V2PConfig().to_dict()]
@@ -815,17 +828,16 @@ def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
     cam = V2PConfig.preset("camera")
     tc = _train_config(_parse(["--out", "x", "--preset", "camera"]), cam)
     assert tc.init == "28x28" and tc.size == (50, 100)  # the shipped name: no machine path
-    assert {k: getattr(tc, k) for k in PRESET_TRAIN["camera"] if k != "init"} == {
-        k: v for k, v in PRESET_TRAIN["camera"].items() if k != "init"}
+    assert {k: getattr(tc, k) for k in presets.get("camera").train if k != "init"} == {
+        k: v for k, v in presets.get("camera").train.items() if k != "init"}
     tc = _train_config(_parse(["--out", "x", "--preset", "camera", "--steps", "7", "--init", "none",
                                "--perturb", "null"]), cam)
     assert (tc.steps, tc.init, tc.perturb, tc.nll_only_steps) == (7, None, None, 150)
     # the export's stages: the preset's by default (the camera's drag evidence), --stages
     # overrides them, with options
-    from methods.vid2param.stages import PRESET_STAGES
     from methods.vid2param.train import _stages
 
-    assert _stages(a) == [(n, o) for n, o in PRESET_STAGES["28x28"]]
+    assert _stages(a) == [(n, dict(o)) for n, o in presets.get("28x28").stages]
     cam_a = _parse(["--out", "x", "--preset", "camera"])
     assert [n for n, _ in _stages(cam_a)] == ["prior_noise", "drag_evidence", "physics_calibration"]
     assert _stages(_parse(["--out", "x", "--preset", "camera", "--stages",

@@ -134,14 +134,15 @@ def test_numpy_filter_matches_torch_with_the_run_fit_statistic():
     from methods.vid2param.data import rolls_mask
     from methods.vid2param.model import V2PConfig, Vid2ParamNet
     from methods.vid2param.parts import RunFits
-    from methods.vid2param.train import PRESET_TRAIN, load_matching
+    from methods.vid2param.presets import PRESETS
+    from methods.vid2param.train import load_matching
 
     cfg = load_checkpoint(SHIPPED_CHECKPOINTS["camera"])["config"]
     net = Vid2ParamNet(V2PConfig.from_dict({**cfg, "roll_features": True, "roll_stat": "fit"}))
     load_matching(net, SHIPPED_CHECKPOINTS["camera"])
     net.eval()
     assert fast_support(net) is None
-    ds = make_dataset("test", 12, 5, size=(50, 100), nuisance=PRESET_TRAIN["camera"]["nuisance"])
+    ds = make_dataset("test", 12, 5, size=(50, 100), nuisance=PRESETS["camera"].train["nuisance"])
     with torch.inference_mode():
         mu, sd, state = net.filter(torch.as_tensor(np.asarray(ds.frames)))
     count = RunFits.summary(state.roll)[0][:, 0].numpy()

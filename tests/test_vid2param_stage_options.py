@@ -8,7 +8,8 @@ from dataclasses import fields
 
 import pytest
 
-from methods.vid2param.stages import PRESET_STAGES, STAGES
+from methods.vid2param.presets import PRESETS
+from methods.vid2param.stages import STAGES
 from methods.vid2param.train import parse_stages
 
 
@@ -21,8 +22,8 @@ def test_each_stage_names_the_options_its_fit_takes():
     assert set(STAGES["drag_evidence"].fit_options()) == {f.name for f in fields(DragFitConfig)}
     assert STAGES["physics_calibration"].fit_options() == ("n", "seed")
     # every preset's options are ones its stages take
-    for preset, stages in PRESET_STAGES.items():
-        assert parse_stages(stages) == [(n, dict(o)) for n, o in stages], preset
+    for name, preset in PRESETS.items():
+        assert parse_stages(preset.stages) == [(n, dict(o)) for n, o in preset.stages], name
 
 
 @pytest.mark.parametrize("spec, stage, option", [

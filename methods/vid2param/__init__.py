@@ -18,7 +18,9 @@ from methods.vid2param.estimator import (
     Vid2ParamStream,
     describe_checkpoints,
 )
-from methods.vid2param.model import PRESETS, V2PConfig
+from methods.vid2param.model import V2PConfig
+from methods.vid2param.presets import PRESETS, Preset
 
-__all__ = ["Vid2Param", "Vid2ParamChanging", "Vid2ParamPhysics", "Vid2ParamStream", "V2PConfig", "PRESETS", "FORECASTS",
+__all__ = ["Vid2Param", "Vid2ParamChanging", "Vid2ParamPhysics", "Vid2ParamStream", "V2PConfig", "PRESETS", "Preset",
+           "FORECASTS",
            "SHIPPED_CHECKPOINT", "SHIPPED_CHECKPOINTS", "describe_checkpoints"]

@@ -56,7 +56,9 @@ class PointsModel:
 
         est = self._est
         sys_ = systems.get(est.system)
-        if sys_.name == "ball":
+        from methods.vid2param import presets
+
+        if presets.space_of(sys_.name) != presets.VIEW:
             raise ValueError("system: expected a system other than 'ball' (the ball's Vid2Param "
                              "runs the ball's own model)")
         if est.checkpoint is None:

@@ -17,7 +17,7 @@ from sysid_bench.datasets import make_dataset
 from sysid_bench.physics import BOX_WIDTH, normalise_theta
 
 __all__ = ["targets_from_dataset", "make_split", "rolls_mask", "chunk_seed", "perturb_dataset",
-           "SystemVideos", "make_system_split", "system_targets_from_arrays", "normalise_points"]
+           "PointVideos", "make_system_split", "system_targets_from_arrays", "normalise_points"]
 
 #: Velocities are divided by this (m/s) when used as targets.
 VEL_SCALE = 10.0
@@ -97,8 +97,9 @@ def system_targets_from_arrays(system, points, theta, names) -> np.ndarray:
     return np.stack([cols[k] for k in names], axis=-1).astype(np.float32)
 
 
-class SystemVideos:
-    """Rendered videos of a system with what the network is supervised on.
+class PointVideos:
+    """Rendered videos of a system with what the network is supervised on: its K tracked
+    points and P parameters (a ``presets.VIEW`` network's targets).
 
     Attributes
     ----------
@@ -123,7 +124,7 @@ PART = 50
 
 
 def make_system_split(system, split: str, n: int, seed: int, n_frames: int = 200, size=None,
-                      nuisance=None, dt: float = 0.05, workers: int = 1) -> SystemVideos:
+                      nuisance=None, dt: float = 0.05, workers: int = 1) -> PointVideos:
     """``n`` videos of a system's ``split`` (``System.sample_cases``, then ``simulate`` and
     ``render`` at ``size``, default the system's), all from ``seed``.
 
@@ -166,13 +167,13 @@ def make_system_split(system, split: str, n: int, seed: int, n_frames: int = 200
         with ThreadPoolExecutor(w) as pool:
             parts = list(pool.map(part, range(n_parts)))
     theta, states, frames = (np.concatenate(a) for a in zip(*parts))
-    return SystemVideos(s, frames, states, theta, s.observe(states, theta))
+    return PointVideos(s, frames, states, theta, s.observe(states, theta))
 
 
 def targets_from_dataset(ds, names) -> np.ndarray:
     """Targets (N, T, K) from a ``sysid_bench.datasets.Dataset`` (uses its ``labels``) or a
-    system's :class:`SystemVideos`."""
-    if isinstance(ds, SystemVideos):
+    system's :class:`PointVideos`."""
+    if isinstance(ds, PointVideos):
         return ds.targets(names)
     labels = getattr(ds, "labels", None)
     theta = labels if labels is not None else ds.theta

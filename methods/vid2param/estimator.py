@@ -303,7 +303,7 @@ class Vid2Param(Estimator):
 
     def _validate(self) -> None:
         super()._validate()
-        if not (isinstance(self.system, str) and self.system == "ball"):
+        if not self._on_ball():
             from methods._points import check_system_param
 
             check_system_param(self)  # a registered system the class declares
@@ -334,7 +334,16 @@ class Vid2Param(Estimator):
 
     # -- another system -------------------------------------------------------------------------
     def _on_ball(self) -> bool:
-        return isinstance(self.system, str) and self.system == "ball"
+        """Whether ``system``'s preset is the ball's (``presets.BOX``: this class's own
+        network and stages), not a system's K points (``_points.PointsModel``)."""
+        from methods.vid2param import presets
+
+        if not isinstance(self.system, str):
+            return False
+        try:
+            return presets.space_of(self.system) == presets.BOX
+        except ValueError:  # an unknown system: check_system_param names the known ones
+            return False
 
     def _model(self):
         """The system's network and stages (:class:`methods.vid2param._points.PointsModel`),

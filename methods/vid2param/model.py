@@ -35,7 +35,7 @@ from methods.vid2param.parts import (
 from methods.vid2param.prior import PhysicsPrior
 from sysid_bench.physics import BOX_WIDTH, DT
 
-__all__ = ["V2PConfig", "Vid2ParamNet", "RecurrentState", "TARGETS", "PRESETS",
+__all__ = ["V2PConfig", "Vid2ParamNet", "RecurrentState", "TARGETS",
            "LEGACY_DEFAULTS", "REMOVED", "position_names", "system_targets"]
 
 #: Supervised quantities the ball's latent dimensions can carry, in this order when present.
@@ -50,8 +50,10 @@ def position_names(n_points: int) -> tuple[str, ...]:
 def system_targets(system: str) -> tuple[str, ...]:
     """The supervised targets of a system's network: its K points' (x, y) (normalised by the
     view's ``extent``), then its P parameters (normalised by the prior); the ball's are
-    ``V2PConfig()``'s."""
-    if system == "ball":
+    ``V2PConfig()``'s (``presets.BOX``)."""
+    from methods.vid2param import presets
+
+    if presets.space_of(system) == presets.BOX:
         return V2PConfig.targets
     from sysid_bench import systems
 
@@ -146,7 +148,9 @@ class V2PConfig:
         self.frame_size = tuple(int(v) for v in self.frame_size)
         self.targets = tuple(self.targets)
         self.channels = tuple(int(c) for c in self.channels)
-        if self.system == "ball":
+        from methods.vid2param import presets
+
+        if presets.space_of(self.system) == presets.BOX:
             allowed = TARGETS
         else:
             allowed = system_targets(self.system)  # ValueError for an unknown system
@@ -181,7 +185,9 @@ class V2PConfig:
     @property
     def n_points(self) -> int:
         """K, the tracked points whose positions are targets (1 for the ball)."""
-        if self.system == "ball":
+        from methods.vid2param import presets
+
+        if presets.space_of(self.system) == presets.BOX:
             return 1
         from sysid_bench import systems
 
@@ -235,16 +241,19 @@ class V2PConfig:
 
     @classmethod
     def preset(cls, name: str) -> V2PConfig:
-        """A named configuration of a shipped model (``PRESETS``); a system's preset takes its
-        targets and default frame size from the system."""
-        if name not in PRESETS:
-            raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {name!r}")
-        d = dict(PRESETS[name])
-        if d.get("system", "ball") != "ball":
+        """The network of preset ``name`` (``presets.get``: a preset's or a system's name):
+        the defaults, then the preset's ``net``; a ``presets.VIEW`` preset takes its targets and
+        default frame size from its system."""
+        from methods.vid2param import presets
+
+        p = presets.get(name)
+        d = dict(p.net)
+        if p.space == presets.VIEW:
             from sysid_bench import systems
 
-            d.setdefault("targets", system_targets(d["system"]))
-            d.setdefault("frame_size", systems.get(d["system"]).size)
+            d.setdefault("system", p.system)
+            d.setdefault("targets", system_targets(p.system))
+            d.setdefault("frame_size", systems.get(p.system).size)
         return cls(**d)
 
 
@@ -258,26 +267,6 @@ LEGACY_DEFAULTS = {"physics_prior": False, "roll_stat": "steps", "system": "ball
 #: no linear map of the raw pixels beside the conv path.
 REMOVED = {"recur_noise": 0.0, "pixel_skip": False, "diff_features": True, "read_cell": True,
            "prior_residual": True, "layers": 1}
-#: Named configurations: ``"28x28"`` is ``V2PConfig()``; ``"camera"`` the 100x50 camera-like
-#: recipe's, with the run-fit rolling statistic (the shipped camera model predates it and has
-#: none; its checkpoint keeps its own config).
-PRESETS = {
-    "28x28": {},
-    "camera": {"frame_size": (50, 100), "kp_threshold": 0.2, "kp_visibility": True, "pool": 2,
-               "roll_stat": "fit"},
-}
-#: The other systems' networks: the same network, the ball's parts off, targets and frame size
-#: from the system. ``kp_threshold`` sits above the dim parts of a scene (the pendulum's rod at
-#: 0.3 of white, the spring's wall and coil at 0.25, the collision's puck 2 at 130/255), so
-#: keypoint channel 0's centroid is the bob, block or puck 1 from the first step.
-_SYSTEM = {"roll_features": False, "physics_prior": False}
-PRESETS.update({
-    # pool 2: the conv path and decoder see 32x32 (64x64 made a 5.4 MB checkpoint)
-    "pendulum": {**_SYSTEM, "system": "pendulum", "kp_threshold": 0.4, "pool": 2},
-    "spring": {**_SYSTEM, "system": "spring", "kp_threshold": 0.4},
-    "collision": {**_SYSTEM, "system": "collision", "kp_threshold": 0.75, "kp_learn": True,
-                  "keypoints": 6},
-})
 
 
 def _scale_grad(x: torch.Tensor, scale: float) -> torch.Tensor:

@@ -170,7 +170,9 @@ class KeypointPosition(nn.Module):
         place = _xy_place(c.targets, c.latent, positions)
         self.register_buffer("place", place, persistent=False)
         self.register_buffer("mask", place.sum(0), persistent=False)  # (Z,) 1 at x, y
-        if c.system != "ball":
+        from methods.vid2param import presets
+
+        if presets.space_of(c.system) == presets.VIEW:
             # positions normalised by the system's view extent, which the frame spans linearly
             # (``systems._draw.View``): x = column fraction, y = 1 - row fraction; every point
             # starts at channel 0's centre (with ``kp_learn`` the map then learns the others)

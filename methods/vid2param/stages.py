@@ -26,7 +26,7 @@ stage                   needs -> gives             what it is
                         physics_scale              (``calibrate_physics``)
 ======================  =========================  =========================================
 
-Which stages a model gets is its system's configuration (``PRESET_STAGES``): the drag
+Which stages a model gets is its system's configuration (``presets.Preset.stages``): the drag
 evidence reads a flying ball's track. The rolling statistic is not a stage: it is part of the
 network (its features feed the heads, which were trained with them; ``V2PConfig.roll_stat``).
 
@@ -41,12 +41,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from methods.vid2param import presets
 from methods.vid2param.drag import DragBlend, DragStatistic, statistic_track
 from methods.vid2param.inference import param_index, positions
 from sysid_bench.physics import PARAMS
 
 __all__ = ["Stage", "STAGES", "register_stage", "Pipeline", "StdScale", "PriorNoise",
-           "DragEvidence", "PhysicsCalibration", "LEGACY_KEYS", "PRESET_STAGES",
+           "DragEvidence", "PhysicsCalibration", "LEGACY_KEYS",
            "network_gives", "describe"]
 
 #: Registered stages by name (:func:`register_stage`).
@@ -179,7 +180,7 @@ class StdScale(Stage):
         n_fr = ctx.n_frames
         system = ctx.net.config.system
         # clean videos of the run's size and nuisances, not its variant (as the shipped fit)
-        if system != "ball":
+        if presets.space_of(system) == presets.VIEW:
             ds = make_system_split(system, "train", int(n), int(seed), n_fr, ctx.frame_size,
                                    ctx.train.get("nuisance"), workers=ctx.train.get("threads", 1))
         else:
@@ -195,7 +196,7 @@ class StdScale(Stage):
 
     def bind(self, net) -> None:
         # a system's network: one factor per parameter of its own (in its targets' order)
-        if net.config.system != "ball":
+        if presets.space_of(net.config.system) == presets.VIEW:
             scale = dict(zip(self.state.get("targets", []), self.state.get("std_scale", [])))
             self.params = tuple(net.config.params)
             self.factors = np.array([float(scale.get(p, 1.0)) for p in self.params])
@@ -356,20 +357,6 @@ class PhysicsCalibration(Stage):
 #: Checkpoints of the older format: the key of each stage's state, in the order the fits ran
 #: (``train.export_with_prior`` then the separate drag and physics-calibration commands).
 LEGACY_KEYS = ("calibration", "prior_fit", "drag_evidence", "physics_calibration")
-
-#: The stages each preset's export fits, in order, with their options (a system's
-#: configuration: the ball's camera model reads drag off its track; the 28x28 network reads d
-#: at 0.0029 without, model card). ``std_scale`` on 500 videos is the shipped 28x28 model's.
-PRESET_STAGES = {
-    "28x28": (("std_scale", {"n": 500}), ("prior_noise", {"steps": 150})),
-    "camera": (("prior_noise", {"steps": 150}), ("drag_evidence", {"n_videos": 300}),
-               ("physics_calibration", {"n": 100})),
-    # the other systems: the generic stage only (the others read the ball's track or physics)
-    "pendulum": (("std_scale", {"n": 300}),),
-    "spring": (("std_scale", {"n": 300}),),
-    "collision": (("std_scale", {"n": 300}),),
-}
-
 
 class Pipeline:
     """The ordered stages after a network; one loop for batch and stream.

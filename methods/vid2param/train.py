@@ -21,12 +21,14 @@ checkpoint's own command is in its card and in ``methods/vid2param/README.md``):
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import os
 import re
 import sys
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -34,6 +36,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from methods.vid2param import presets
 from methods.vid2param.checkpoint import (
     FORMAT,
     FORMAT_VERSION,
@@ -49,7 +52,7 @@ from methods.vid2param.checkpoint import (
     upgrade_state_dict,
 )
 from methods.vid2param.data import (
-    SystemVideos,
+    PointVideos,
     chunk_seed,
     make_split,
     make_system_split,
@@ -58,15 +61,15 @@ from methods.vid2param.data import (
     targets_from_dataset,
 )
 from methods.vid2param.inference import FitContext, resolve_device
-from methods.vid2param.model import PRESETS, V2PConfig, Vid2ParamNet, count_parameters
+from methods.vid2param.model import V2PConfig, Vid2ParamNet, count_parameters
 from methods.vid2param.parts import ROLL_STATS
 from methods.vid2param.stages import (
     LEGACY_KEYS,
-    PRESET_STAGES,
     STAGES,
     Pipeline,
     calibrate,
 )
+from sysid_bench import systems
 from sysid_bench._io import atomic_write
 from sysid_bench._validate import SEED_MAX, arg_number
 
@@ -307,10 +310,34 @@ def feed_steps_per_chunk(tc: TrainConfig) -> int:
 
 
 def _lr_at(step: int, tc: TrainConfig) -> float:
+    """The learning rate at schedule step ``step``: linear warm-up over ``warmup`` steps, then
+    cosine from ``lr`` down to ``lr_min`` at ``steps``."""
     if step < tc.warmup:
         return tc.lr * (step + 1) / tc.warmup
     frac = (step - tc.warmup) / max(1, tc.steps - tc.warmup)
     return tc.lr_min + 0.5 * (tc.lr - tc.lr_min) * (1 + math.cos(math.pi * min(1.0, frac)))
+
+
+def lr_schedule(opt: torch.optim.Optimizer, tc: TrainConfig) -> torch.optim.lr_scheduler.LambdaLR:
+    """``opt``'s learning-rate schedule (:func:`_lr_at`) as a ``torch.optim.lr_scheduler``.
+
+    The lambda gives the rate itself over a base rate of exactly 1 (``1.0 * x == x``), so every
+    step's rate is :func:`_lr_at`'s bit for bit (``tc.lr`` times a factor would round). Move it
+    to schedule step ``k`` with :func:`set_schedule_step` (``time_schedule`` may skip steps).
+    """
+    for g in opt.param_groups:
+        g["initial_lr"] = 1.0
+    return torch.optim.lr_scheduler.LambdaLR(opt, lambda k: _lr_at(k, tc), last_epoch=-1)
+
+
+def set_schedule_step(sched: torch.optim.lr_scheduler.LambdaLR, step: int) -> float:
+    """Set ``sched``'s optimizer to the rate of schedule step ``step``; returns that rate."""
+    sched.last_epoch = int(step) - 1  # step() advances it by one, to ``step``
+    with warnings.catch_warnings():
+        # set before the step's optimizer.step() on purpose: the rate the step uses
+        warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step", category=UserWarning)
+        sched.step()
+    return sched.get_last_lr()[0]
 
 
 class _Feed:
@@ -346,7 +373,7 @@ class _Feed:
         only (the videos do not depend on ``workers``)."""
         tc = self.tc
         seed = chunk_seed(tc.data_seed, k)
-        if self.system != "ball":
+        if presets.space_of(self.system) == presets.VIEW:
             ds = make_system_split(self.system, "train", tc.chunk, seed, tc.n_frames,
                                    tc.size, tc.nuisance, workers=workers)
         else:
@@ -463,7 +490,7 @@ def evaluate(net: Vid2ParamNet, ds, lengths=(10, 25, 50, 100, 150, 200), batch: 
     lengths = [int(L) for L in lengths if L <= t]
     mu, sd = _prefix_posteriors(net, frames, lengths, batch, device)  # (N, L, K)
     truth = tg[:, [L - 1 for L in lengths]]
-    if isinstance(ds, SystemVideos):
+    if isinstance(ds, PointVideos):
         return _evaluate_system(net.config, mu, sd, truth, lengths)
     rolls = rolls_mask(ds.states, ds.floor)
     params = [p for p in ("e", "g", "d", "r") if p in names]
@@ -561,7 +588,7 @@ def export(state_path, out_path, card: bool = True, stages=(), record: dict | No
     state_path : path of ``state.pt`` written by :func:`train`
     out_path : path of the ``.pt`` to write; the card goes next to it as ``.json``.
     stages : sequence of (name, options)
-        The stages to fit, in order (``stages.PRESET_STAGES``; :func:`parse_stages`).
+        The stages to fit, in order (``presets.Preset.stages``; :func:`parse_stages`).
     record : dict, optional
         Added to the checkpoint's ``train`` record (e.g. that ``--max-minutes`` ended the run
         before its ``steps``).
@@ -776,6 +803,7 @@ def train(
         init_ck = init_record(tc.init)
         loaded, skipped = load_matching(net, checkpoint_path(tc.init))
         log(f"init from {tc.init}: {len(loaded)} tensors copied, fresh: {skipped}")
+    schedule = lr_schedule(opt, tc)
     log(f"Vid2Param: {count_parameters(net)} parameters, device {dev}, threads "
         f"{torch.get_num_threads()}, steps {start}->{tc.steps}, batch {tc.batch}")
     # a fresh chunk is drawn ahead only when this run will step into another chunk
@@ -783,12 +811,13 @@ def train(
     per = feed_steps_per_chunk(tc)
     prefetch = dataset is None and last // per > start // per
     feed = _Feed(tc, mc.targets, dataset, system=mc.system, prefetch=prefetch)
-    if mc.system != "ball" and tc.perturb:
+    view = presets.space_of(mc.system) == presets.VIEW
+    if view and tc.perturb:
         raise ValueError(f"perturb: the ball's physics deviations, expected None for the "
                          f"{mc.system} system, got {tc.perturb!r}")
     if tc.val_n <= 0:
         val = None
-    elif mc.system != "ball":  # the system's test split, as the ball's
+    elif view:  # the system's test split, as the ball's
         val = make_system_split(mc.system, "test", tc.val_n, tc.val_seed, tc.n_frames, tc.size,
                                 tc.nuisance)
     else:
@@ -839,8 +868,7 @@ def train(
             fr = fr.clone()
             fr[torch.as_tensor(blank, device=dev)] = 0
         gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
-        for g in opt.param_groups:
-            g["lr"] = _lr_at(sched, tc)
+        lr_now = set_schedule_step(schedule, sched)
         aux = tc.early_aux_grad if sched < tc.early_aux_grad_steps else None
         outd = net(fr, torch.as_tensor(tg_np, device=dev), n_obs=n_obs, rec_frac=tc.rec_frac,
                    generator=gen, aux_grad=aux, supervised=feed.supervised_targets(step))
@@ -854,7 +882,7 @@ def train(
         if progress:
             bar.set_postfix(loss=f"{run_avg[0]:.1f}", nll=f"{run_avg[3]:.2f}", refresh=False)
         if (step + 1) % 100 == 0:
-            log(f"step {step + 1} {wall() / 60:.1f} min lr {_lr_at(sched, tc):.2e} loss "
+            log(f"step {step + 1} {wall() / 60:.1f} min lr {lr_now:.2e} loss "
                 f"{run_avg[0]:.2f} rec {run_avg[1]:.2f} kl {run_avg[2]:.2f} nll {run_avg[3]:.3f} "
                 f"nll_prior {run_avg[4]:.3f}")
         if val is not None and (step + 1) % tc.val_every == 0:
@@ -886,43 +914,8 @@ def train(
                        "stopped": stopped}
 
 
-#: TrainConfig values a preset's recipe takes instead of the defaults (a flag given overrides
-#: them). The camera preset trains on the shipped camera model's nuisances. It starts from the shipped 28x28 model's weights (``init`` names a
-#: shipped checkpoint or a path): from scratch, its run had learnt none of e, g, d after 2250
-#: of 4000 steps (model card), while the 28x28 recipe learns g by step 2000. The network
-#: already identifies, so no early aux-grad phase, a short encoder-only warm-up for the new
-#: size-dependent layers, and half the videos with spin and contact dwell (as the shipped
-#: camera model). 4500 steps: at 1500 and at 3000 e and d were still falling (model card).
-PRESET_TRAIN = {
-    "camera": {"nuisance": {"blur": 0.5, "occlusion": 0.05, "drop": 0.05, "noise": 8.0,
-                            "floor_offset": 1.0},
-               "init": "28x28", "steps": 4500, "nll_only_steps": 150, "early_aux_grad_steps": 0,
-               "chunk": 600, "val_n": 100, "val_every": 500,
-               "perturb": {"spin": 0.3, "dwell": 0.01, "p": 0.5}},
-}
-
-
 #: The resumable state kept when the NLL-only warm-up ends (in the run's folder).
 WARMUP_STATE = "state_warmup.pt"
-
-#: The other systems' from-scratch recipes (``--system S`` / ``--preset S``), sized for ~7
-#: minutes on one GPU with three runs sharing it (``scripts/gpu_train_systems.sh``, with
-#: ``--max-minutes`` and ``--time-schedule``): 1500 steps of 64 videos (a step's cost on a GPU
-#: is the 200-frame recurrence's kernel launches, nearly flat in the batch), the first 60% the
-#: encoder's NLL alone (the ball's lesson: the VRNN terms from the start left no trace of g,
-#: and a 15% warm-up left the pendulum's g, b, mu and the spring's w2, k3 at guessing level),
-#: chunks reused over several passes (a pendulum video takes ~0.05 s to draw on one core).
-_SYSTEM_TRAIN = {"steps": 1500, "batch": 64, "nll_only_steps": 900,
-                 "early_aux_grad_steps": 1500, "warmup": 50, "val_n": 100, "val_every": 250,
-                 "threads": 4}
-PRESET_TRAIN.update({
-    "pendulum": {**_SYSTEM_TRAIN, "chunk": 1600, "chunk_epochs": 8},
-    "spring": {**_SYSTEM_TRAIN, "chunk": 2000, "chunk_epochs": 4},
-    "collision": {**_SYSTEM_TRAIN, "chunk": 2000, "chunk_epochs": 4},
-})
-#: The systems with a preset of their own (``--system``).
-SYSTEM_PRESETS = ("pendulum", "spring", "collision")
-
 
 def _resolve_init(init: str | None) -> str | None:
     """``init`` as recorded: a shipped checkpoint's name (``"28x28"``, ``"camera"``) as given,
@@ -1013,7 +1006,8 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--stages", nargs="*", default=None, metavar="NAME[:KEY=VALUE,...]",
                      help="the stages fitted after the network, in order (methods.vid2param."
                           "stages: " + ", ".join(
-                              f"{k}: {' '.join(n for n, _ in v)}" for k, v in PRESET_STAGES.items())
+                              f"{k}: {' '.join(n for n, _ in v.stages)}"
+                              for k, v in presets.PRESETS.items())
                           + "; default: the preset's); e.g. drag_evidence:n_videos=300")
     run.add_argument("--no-resume", action="store_true",
                      help="start afresh even if state.pt exists")
@@ -1054,9 +1048,9 @@ def _parser() -> argparse.ArgumentParser:
                      help="start from this checkpoint's weights where names and shapes match "
                           "(a path or a shipped name: 28x28, camera; default: the preset's)")
     model = p.add_argument_group("model (V2PConfig fields; each overrides the preset's value)")
-    model.add_argument("--preset", default="28x28", choices=sorted(PRESETS),
+    model.add_argument("--preset", default="28x28", choices=sorted(presets.PRESETS),
                        help="model configuration (V2PConfig.preset) and its data settings")
-    model.add_argument("--system", default=None, choices=["ball", *SYSTEM_PRESETS],
+    model.add_argument("--system", default=None, choices=systems.available(),
                        help="train a system's model from scratch: its preset (network, recipe "
                             "and stages; 'ball' keeps --preset)")
     for name in ("latent", "hidden", "feat", "keypoints", "pool"):
@@ -1082,8 +1076,9 @@ def _parse(argv=None):
 
 def _train_config(a: argparse.Namespace, mc: V2PConfig) -> TrainConfig:
     """The recipe of parsed flags ``a``: TrainConfig's defaults, then the preset's
-    (``PRESET_TRAIN``), then the flags given (a JSON flag given as ``null`` clears the preset's)."""
-    recipe = dict(PRESET_TRAIN.get(a.preset, {}))
+    (``presets.Preset.train``), then the flags given (a JSON flag given as ``null`` clears the
+    preset's)."""
+    recipe = copy.deepcopy(dict(presets.get(a.preset).train))
     recipe.update({k: v for k in asdict(TrainConfig()) if k not in _OWN_FLAGS
                    and (v := getattr(a, k)) is not None})
     recipe.update({k: getattr(a, k) for k in ("nuisance", "perturb") if hasattr(a, k)})
@@ -1094,10 +1089,11 @@ def _train_config(a: argparse.Namespace, mc: V2PConfig) -> TrainConfig:
 
 
 def _stages(a: argparse.Namespace) -> list[tuple[str, dict]]:
-    """The stages of parsed flags ``a``: ``--stages``, else the preset's (``PRESET_STAGES``)."""
+    """The stages of parsed flags ``a``: ``--stages``, else the preset's
+    (``presets.Preset.stages``)."""
     if a.stages is not None:
         return parse_stages(a.stages)
-    return parse_stages(PRESET_STAGES.get(a.preset, ()))
+    return parse_stages(presets.get(a.preset).stages)
 
 
 def _command(argv) -> str:
@@ -1112,10 +1108,12 @@ def _command(argv) -> str:
 
 def main(argv=None) -> int:
     a = _parse(argv)
-    if a.system not in (None, "ball"):
-        if a.preset not in ("28x28", a.system):
-            raise SystemExit(f"--system {a.system} takes its own preset, not --preset {a.preset}")
-        a.preset = a.system
+    if a.system is not None:
+        own = presets.get(a.system)  # a user's system: a derived preset
+        if presets.get(a.preset).system != own.system:
+            if a.preset != _parser().get_default("preset"):
+                raise SystemExit(f"--system {a.system} takes its own preset, not --preset {a.preset}")
+            a.preset = own.name
     stages = _stages(a)  # checked before any training: a misspelt stage fails now, not at export
     if a.refit is not None:
         if not a.export:

@@ -1,0 +1,169 @@
+"""Vid2Param's presets: one record per system (and per shipped ball model) holding everything
+that differs between them -- the network's settings, what its targets are, the training recipe
+and the stages fitted after training.
+
+A preset is looked up by its name (``"28x28"``, ``"camera"``, ``"pendulum"``, ...) or by a
+system's name (``"ball"`` is the ``"28x28"`` preset); a system a user registered
+(``sysid_bench.systems.register``) gets a record derived from the ``System`` (:func:`get`).
+Code branches on a record's fields (``space``), never on a system's name.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+__all__ = ["Preset", "PRESETS", "get", "space_of", "BOX", "VIEW"]
+
+#: ``Preset.space`` of the ball's networks: one point's (x, y) normalised by the ball's box and
+#: the ball's parameters (``model.TARGETS``), with the ball's own parts (rolling statistic,
+#: physics prior) and stages (drag evidence, physics calibration) available.
+BOX = "box"
+#: ``Preset.space`` of every other system's network: its K tracked points' (x, y) normalised by
+#: its view's extent, then its P parameters normalised by its prior (``model.system_targets``).
+VIEW = "view"
+
+
+def _frozen(d: Mapping | None) -> Mapping[str, Any]:
+    return MappingProxyType(dict(d or {}))
+
+
+@dataclass(frozen=True)
+class Preset:
+    """The settings of one Vid2Param model.
+
+    Attributes
+    ----------
+    name : str
+        The preset's name (``--preset``).
+    system : str
+        The system (``sysid_bench.systems``) whose videos the network reads.
+    space : {"box", "view"}
+        What the network's targets are (:data:`BOX`: the ball's; :data:`VIEW`: a system's K
+        tracked points and P parameters).
+    net : mapping
+        ``V2PConfig`` fields that differ from its defaults (read-only); a :data:`VIEW`
+        preset's targets and frame size default to its system's (``V2PConfig.preset``).
+    train : mapping
+        ``TrainConfig`` fields the recipe takes instead of the defaults (a flag given
+        overrides them; read-only).
+    stages : tuple of (str, mapping)
+        The stages fitted after the network, in order, with their options
+        (``methods.vid2param.stages``).
+    """
+
+    name: str
+    system: str
+    space: str = VIEW
+    net: Mapping[str, Any] = field(default_factory=dict)
+    train: Mapping[str, Any] = field(default_factory=dict)
+    stages: tuple = ()
+
+    def __post_init__(self) -> None:
+        if self.space not in (BOX, VIEW):
+            raise ValueError(f"space: expected {BOX!r} or {VIEW!r}, got {self.space!r}")
+        object.__setattr__(self, "net", _frozen(self.net))
+        object.__setattr__(self, "train", _frozen(self.train))
+        object.__setattr__(self, "stages", tuple((str(n), _frozen(o)) for n, o in self.stages))
+
+
+#: A system's network: the ball's network with the ball's parts off (targets and frame size
+#: from the system).
+_VIEW_NET = {"roll_features": False, "physics_prior": False}
+
+#: A system's from-scratch recipe (``--system S``), sized for ~7 minutes on one GPU with three
+#: runs sharing it (``scripts/gpu_train_systems.sh``, with ``--max-minutes`` and
+#: ``--time-schedule``): 1500 steps of 64 videos (a step's cost on a GPU is the 200-frame
+#: recurrence's kernel launches, nearly flat in the batch), the first 60% the encoder's NLL alone
+#: (the ball's lesson: the VRNN terms from the start left no trace of g, and a 15% warm-up left
+#: the pendulum's g, b, mu and the spring's w2, k3 at guessing level), chunks reused over several
+#: passes (a pendulum video takes ~0.05 s to draw on one core).
+_VIEW_TRAIN = {"steps": 1500, "batch": 64, "nll_only_steps": 900,
+               "early_aux_grad_steps": 1500, "warmup": 50, "val_n": 100, "val_every": 250,
+               "threads": 4}
+
+#: A system's stages: the generic one only (the others read the ball's track or physics).
+_VIEW_STAGES = (("std_scale", {"n": 300}),)
+
+_RECORDS = (
+    # V2PConfig()'s network. Stages: std_scale on 500 videos is the shipped 28x28 model's; the
+    # 28x28 network reads d at 0.0029 without drag evidence (model card).
+    Preset("28x28", "ball", BOX, stages=(("std_scale", {"n": 500}), ("prior_noise", {"steps": 150}))),
+    # The 100x50 camera-like recipe's network, with the run-fit rolling statistic (the shipped
+    # camera model predates it and has none; its checkpoint keeps its own config). It trains on
+    # the shipped camera model's nuisances and starts from the shipped 28x28 model's weights
+    # (``init``): from scratch, its run had learnt none of e, g, d after 2250 of 4000 steps
+    # (model card), while the 28x28 recipe learns g by step 2000. The network already
+    # identifies, so no early aux-grad phase, a short encoder-only warm-up for the new
+    # size-dependent layers, and half the videos with spin and contact dwell (as the shipped
+    # camera model). 4500 steps: at 1500 and at 3000 e and d were still falling (model card).
+    # Its stages read drag off the ball's track.
+    Preset("camera", "ball", BOX,
+           net={"frame_size": (50, 100), "kp_threshold": 0.2, "kp_visibility": True, "pool": 2,
+                "roll_stat": "fit"},
+           train={"nuisance": {"blur": 0.5, "occlusion": 0.05, "drop": 0.05, "noise": 8.0,
+                               "floor_offset": 1.0},
+                  "init": "28x28", "steps": 4500, "nll_only_steps": 150,
+                  "early_aux_grad_steps": 0, "chunk": 600, "val_n": 100, "val_every": 500,
+                  "perturb": {"spin": 0.3, "dwell": 0.01, "p": 0.5}},
+           stages=(("prior_noise", {"steps": 150}), ("drag_evidence", {"n_videos": 300}),
+                   ("physics_calibration", {"n": 100}))),
+    # ``kp_threshold`` sits above the dim parts of a scene (the pendulum's rod at 0.3 of white,
+    # the spring's wall and coil at 0.25, the collision's puck 2 at 130/255), so keypoint
+    # channel 0's centroid is the bob, block or puck 1 from the first step.
+    # pool 2: the conv path and decoder see 32x32 (64x64 made a 5.4 MB checkpoint)
+    Preset("pendulum", "pendulum", VIEW, net={**_VIEW_NET, "kp_threshold": 0.4, "pool": 2},
+           train={**_VIEW_TRAIN, "chunk": 1600, "chunk_epochs": 8}, stages=_VIEW_STAGES),
+    Preset("spring", "spring", VIEW, net={**_VIEW_NET, "kp_threshold": 0.4},
+           train={**_VIEW_TRAIN, "chunk": 2000, "chunk_epochs": 4}, stages=_VIEW_STAGES),
+    Preset("collision", "collision", VIEW,
+           net={**_VIEW_NET, "kp_threshold": 0.75, "kp_learn": True, "keypoints": 6},
+           train={**_VIEW_TRAIN, "chunk": 2000, "chunk_epochs": 4}, stages=_VIEW_STAGES),
+)
+
+#: The presets by name (read-only).
+PRESETS: Mapping[str, Preset] = MappingProxyType({r.name: r for r in _RECORDS})
+#: A system's preset where its name is not a preset's.
+_BY_SYSTEM = {"ball": "28x28"}
+
+
+def get(name: str) -> Preset:
+    """The preset named ``name`` (a preset's or a system's name).
+
+    A system registered without a preset of its own (a user's) gets one derived from it: the
+    generic network, recipe and stages of every :data:`VIEW` system.
+
+    Raises
+    ------
+    ValueError
+        ``name`` names neither a preset nor a registered system.
+    """
+    if not isinstance(name, str):
+        raise TypeError(f"preset: expected a preset or system name (str), got "
+                        f"{type(name).__name__} {name!r}")
+    name = _BY_SYSTEM.get(name, name)
+    if name in PRESETS:
+        return PRESETS[name]
+    from sysid_bench import systems
+
+    if name not in systems.available():
+        raise ValueError(f"preset: expected a preset ({', '.join(sorted(PRESETS))}) or a "
+                         f"registered system ({', '.join(systems.available())}), got {name!r}")
+    return Preset(name, name, VIEW, net=_VIEW_NET, train=_VIEW_TRAIN, stages=_VIEW_STAGES)
+
+
+def space_of(system: str) -> str:
+    """The :attr:`Preset.space` of ``system``'s networks (``"box"`` or ``"view"``).
+
+    Raises
+    ------
+    ValueError
+        ``system`` is not a registered system (the registry's message, naming the known ones).
+    """
+    if _BY_SYSTEM.get(system, system) not in PRESETS:
+        from sysid_bench import systems
+
+        systems.get(system)  # an unknown system: its ValueError names the registered ones
+    return get(system).space
