@@ -43,6 +43,7 @@ from methods._simulation import SimulationMethod, Stopwatch, make_rng, one_blas_
 from methods._weights import resample
 from sysid_bench._validate import check_positive_int
 from sysid_bench.estimator import Check, Forecast, Observation, Posterior
+from sysid_bench.footage import parse_known, parse_prior
 from sysid_bench.simulator import DEFAULT_SIGMA, SimulationBudgetExceeded, check_sigma
 
 __all__ = [
@@ -220,15 +221,35 @@ class Problem:
     sigma : float
         Noise standard deviation (m) per coordinate.
     sim : CountingSystemSimulator
+    known : dict of str -> float, optional
+        Parameters held fixed (as :func:`sysid_bench.footage.parse_known` returns): their unit
+        coordinate maps to the value whatever it is (span 0), so every sample holds it exactly.
+    prior : dict of str -> (float, float), optional
+        Ranges replacing the system's prior for the named parameters (as
+        :func:`sysid_bench.footage.parse_prior` validates them).
+
+    Notes
+    -----
+    A first step of issue 38 §4: no method passes ``known``/``prior`` here yet; without them
+    the ranges are the system's own, bit for bit as before.
     """
 
-    def __init__(self, track: SystemTrack, sigma: float, sim: CountingSystemSimulator):
+    def __init__(self, track: SystemTrack, sigma: float, sim: CountingSystemSimulator,
+                 known: dict | None = None, prior: dict | None = None):
         sys_ = track.system
         self.track, self.sigma, self.sim, self.system = track, float(sigma), sim, sys_
         self.P, self.S = sys_.n_params, sys_.n_state
         self.free = not track.state0_known
         self.ndim = self.P + (self.S if self.free else 0)
         self.plo, self.pspan = sys_.prior_lo, sys_.prior_hi - sys_.prior_lo
+        self.known = {str(k): float(v) for k, v in (known or {}).items()}
+        for name, rng in {**(prior or {}), **{k: (v, v) for k, v in self.known.items()}}.items():
+            if name not in sys_.params:
+                raise ValueError(f"known/prior: expected parameters of {sys_.name} "
+                                 f"{tuple(sys_.params)}, got {name!r}")
+            i = list(sys_.params).index(name)
+            lo, hi = float(rng[0]), float(rng[1])
+            self.plo[i], self.pspan[i] = lo, hi - lo
         self.slo, self.sspan = track.lo, track.hi - track.lo
         rows = np.flatnonzero(track.mask.any(axis=1))
         self.n_sim_frames = int(rows[-1]) + 1  # nothing after the last seen frame matters
@@ -457,11 +478,13 @@ class Points:
         The method's seed (the prior draws of a widened posterior).
     """
 
-    def __init__(self, system, sigma: float, min_frames: int = 3, seed: int = 0) -> None:
+    def __init__(self, system, sigma: float, min_frames: int = 3, seed: int = 0,
+                 known: dict | None = None, prior: dict | None = None) -> None:
         self.system = system
         self.sigma = float(sigma)
         self.min_frames = int(min_frames)
         self.seed = seed
+        self.known, self.prior = dict(known or {}), dict(prior or {})
 
     def track(self, obs: Observation) -> SystemTrack:
         """The :class:`SystemTrack` of ``obs``."""
@@ -469,22 +492,34 @@ class Points:
 
     def problem(self, obs: Observation) -> Problem:
         """The likelihood of ``obs`` with a fresh simulation counter."""
-        return Problem(self.track(obs), self.sigma, CountingSystemSimulator(self.system))
+        return Problem(self.track(obs), self.sigma, CountingSystemSimulator(self.system),
+                       self.known, self.prior)
 
     def posterior(self, prob: Problem, mean, std, samples, extras, check) -> Posterior:
         """The posterior; where its model check failed, widened to the prior (the track is not
         explained by the mean's trajectory, so no interval narrower than the prior's is claimed:
         the mean stays, ``std`` becomes at least the prior's, the samples are prior draws, and
-        ``check.note`` and ``extras["widened"]`` say so)."""
+        ``check.note`` and ``extras["widened"]`` say so). The prior is the problem's: the
+        user's ranges where given, a known parameter held (the mean and every sample its
+        value, std 0); ``extras["known"]``/``extras["prior"]`` record them when given."""
         if check is not None and not check.ok:
-            system = prob.system
-            lo, hi = system.prior_lo, system.prior_hi
+            # the problem's ranges: the system's own unless the user gave some (span 0: held)
+            lo, span = prob.plo, prob.pspan
             rng = np.random.default_rng([int(self.seed or 0), len(samples)])
-            samples = lo + (hi - lo) * rng.random((len(samples), len(lo)))
-            std = np.maximum(np.asarray(std, dtype=float), (hi - lo) / np.sqrt(12.0))
+            samples = lo + span * rng.random((len(samples), len(lo)))
+            std = np.maximum(np.asarray(std, dtype=float), span / np.sqrt(12.0))
             note = "intervals widened to the prior: the model does not explain the track"
             check = dataclasses.replace(check, note=f"{check.note}; {note}" if check.note else note)
             extras = {**extras, "widened": "prior"}
+        if prob.known or self.prior:
+            held = [prob.system.params.index(k) for k in prob.known]
+            mean, std = np.array(mean, dtype=float), np.array(std, dtype=float)
+            mean[held] = [prob.known[k] for k in prob.known]  # not a sum's rounding of it
+            std[held] = 0.0
+            samples = np.array(samples, dtype=float)
+            samples[:, held] = [prob.known[k] for k in prob.known]
+            extras = {**extras, "known": dict(prob.known),
+                      "prior": {k: [float(a), float(b)] for k, (a, b) in self.prior.items()}}
         return Posterior(mean=mean, std=std, samples=samples, extras=extras, check=check,
                          system=prob.system.name)
 
@@ -526,6 +561,39 @@ class SimulationOnSystems(SimulationMethod):
         if self.sigma is not None:
             check_sigma(self.sigma)
         check_positive_int(self.n_forecast, "n_forecast")
+        self._knowledge()
+
+    def _knowledge(self) -> tuple[dict, dict]:
+        """``known``/``prior`` (absent or None: nothing) checked on the system, as
+        :func:`sysid_bench.footage.parse_known`/``parse_prior`` check the command line's.
+
+        Returns
+        -------
+        known : dict of str -> float
+        prior : dict of str -> (float, float)
+        """
+        known, prior = getattr(self, "known", None), getattr(self, "prior", None)
+        if not known and not prior:
+            return {}, {}
+        if self._on_ball():
+            raise ValueError("known/prior: expected none on the ball (its fit does not take "
+                             "known values or prior ranges yet), got "
+                             f"known={known!r}, prior={prior!r}")
+        for opt, v in (("known", known), ("prior", prior)):
+            if v is not None and not isinstance(v, dict):
+                raise ValueError(f"{opt}: expected a dict of parameter names, got "
+                                 f"{type(v).__name__} {v!r}")
+        sys_ = _system(self.system)
+        def text(x):  # a number as parse_known reads it back exactly; anything else as given
+            return repr(float(x)) if isinstance(x, (int, float, np.number)) else str(x)
+
+        k = parse_known(sys_, [f"{n}={text(x)}" for n, x in (known or {}).items()])
+        items = []
+        for n, r in (prior or {}).items():
+            if isinstance(r, (str, bytes)) or np.shape(r) != (2,):
+                raise ValueError(f"prior: expected a (lo, hi) pair for {n}, got {r!r}")
+            items.append(f"{n}={text(r[0])}:{text(r[1])}")
+        return k, parse_prior(sys_, items, k)
 
     def _on_ball(self) -> bool:
         return self.system == "ball"
@@ -546,7 +614,9 @@ class SimulationOnSystems(SimulationMethod):
         return DEFAULT_SIGMA if self._on_ball() else default_sigma(_system(self.system))
 
     def _points(self) -> Points:
-        return Points(_system(self.system), self._sigma(), self.min_frames, self.seed)
+        known, prior = self._knowledge()
+        return Points(_system(self.system), self._sigma(), self.min_frames, self.seed,
+                      known, prior)
 
     def _fit_points(self, obs: Observation, part: Points) -> SystemFit:  # pragma: no cover
         raise NotImplementedError

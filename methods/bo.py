@@ -79,6 +79,13 @@ class BayesOpt(SimulationOnSystems):
         Fewest effective draws the surrogate weights are tempered to.
     n_forecast : int
         Draws simulated forward by ``forecast``.
+    known : dict of str -> float, optional
+        Another system only: parameters held at these values (every sample holds the value,
+        std 0; the held unit coordinate stays in the search but changes nothing); checked as
+        ``--known`` is (:func:`sysid_bench.footage.parse_known`).
+    prior : dict of str -> (float, float), optional
+        Another system only: ranges replacing the system's prior for these parameters
+        (:func:`sysid_bench.footage.parse_prior`).
     seed : int
         Seeds skopt's design and acquisition and the surrogate draws.
     """
@@ -88,6 +95,8 @@ class BayesOpt(SimulationOnSystems):
     min_frames = 3
     forecasts = True
     cost = 30
+    #: the paper compared Vid2Param with it given true positions and the initial state
+    paper_baseline = True
     # 4-13 s per cell at the default budget: the first cases only (the same cases as everyone)
     scale_cases = {
         "smoke": 1,
@@ -95,7 +104,9 @@ class BayesOpt(SimulationOnSystems):
         "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4,
                     "foreign": 2, "systems": 3},
     }
-    scale_options = {"smoke": {"n_calls": 12, "n_initial_points": 6}}
+    # the first look (quick) gets the smoke budget: a GP of 12 calls, rough but every section
+    scale_options = {"smoke": {"n_calls": 12, "n_initial_points": 6},
+                     "quick": {"n_calls": 12, "n_initial_points": 6}}
     #: cheap budgets for check_estimator (same code path)
     contract_options = {"n_calls": 6, "n_initial_points": 3, "n_surrogate": 256}
 
@@ -111,6 +122,8 @@ class BayesOpt(SimulationOnSystems):
         n_surrogate: int = 4096,
         min_ess: int = 20,
         n_forecast: int = 64,
+        known: dict | None = None,
+        prior: dict | None = None,
         seed: int = 0,
     ):
         self.system = system
@@ -122,6 +135,8 @@ class BayesOpt(SimulationOnSystems):
         self.n_surrogate = n_surrogate
         self.min_ess = min_ess
         self.n_forecast = n_forecast
+        self.known = known
+        self.prior = prior
         self.seed = seed
 
     def _validate(self) -> None:

@@ -213,6 +213,13 @@ class Emcee(SimulationOnSystems):
         Posterior samples simulated forward by ``forecast``.
     progress : bool
         Show emcee's tqdm progress bar.
+    known : dict of str -> float, optional
+        Another system only: parameters held at these values (every sample holds the value,
+        std 0; the held unit coordinate stays in the sampler but changes nothing); checked as
+        ``--known`` is (:func:`sysid_bench.footage.parse_known`).
+    prior : dict of str -> (float, float), optional
+        Another system only: ranges replacing the system's prior for these parameters
+        (:func:`sysid_bench.footage.parse_prior`).
     seed : int
         Seeds the draws, the walkers' start and emcee's generator.
     """
@@ -246,6 +253,8 @@ class Emcee(SimulationOnSystems):
         n_starts: int = 5,
         n_forecast: int = 64,
         progress: bool = False,
+        known: dict | None = None,
+        prior: dict | None = None,
         seed: int = 0,
     ):
         self.system = system
@@ -260,6 +269,8 @@ class Emcee(SimulationOnSystems):
         self.n_starts = n_starts
         self.n_forecast = n_forecast
         self.progress = progress
+        self.known = known
+        self.prior = prior
         self.seed = seed
 
     def _validate(self) -> None:

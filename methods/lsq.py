@@ -94,6 +94,12 @@ class LSQ(SimulationOnSystems):
         evaluations per refinement.
     n_forecast : int
         Weighted draws resampled for a forecast.
+    known : dict of str -> float, optional
+        Another system only: parameters held at these values (every sample holds the value,
+        std 0); checked as ``--known`` is (:func:`sysid_bench.footage.parse_known`).
+    prior : dict of str -> (float, float), optional
+        Another system only: ranges replacing the system's prior for these parameters
+        (:func:`sysid_bench.footage.parse_prior`).
     seed : int
         Seed of the draws; the same seed gives the same posterior.
     """
@@ -103,6 +109,8 @@ class LSQ(SimulationOnSystems):
     min_frames = 3
     forecasts = True
     cost = 8
+    #: the paper compared Vid2Param with it given true positions and the initial state
+    paper_baseline = True
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)
     #: cheap budgets for check_estimator (same code path)
     contract_options = {"n_samples": 200, "search_rounds": 2, "n_starts": 1, "max_opt_evals": 20}
@@ -120,6 +128,8 @@ class LSQ(SimulationOnSystems):
         n_starts: int = 5,
         max_opt_evals: int = 100,
         n_forecast: int = 64,
+        known: dict | None = None,
+        prior: dict | None = None,
         seed: int = 0,
     ):
         self.system = system
@@ -132,6 +142,8 @@ class LSQ(SimulationOnSystems):
         self.n_starts = n_starts
         self.max_opt_evals = max_opt_evals
         self.n_forecast = n_forecast
+        self.known = known
+        self.prior = prior
         self.seed = seed
 
     def _validate(self) -> None:

@@ -18,7 +18,7 @@ ctx = Context(sc, "runs/eval_changing", threads=1)
 orig = ctx.estimator
 ctx.estimator = lambda m, **kw: orig(m, **({"checkpoint": ck} if ck else {}), **kw)
 fol, se = [], []
-for i in range(sc.n_cases["changing"]):
+for i in range(sc.n_for("changing", "ball")):
     out = exp.run(Cell("changing", "vid2param-changing", "video", "", i), ctx)
     fol += [r.value for r in out.rows if r.metric.startswith("followed_")]
     se += [r.value for r in out.rows if r.metric == "se"]

@@ -907,6 +907,7 @@ class Estimator(abc.ABC):
     online_cost: bool = False
     policies: dict = MappingProxyType({})
     from_paper: bool = False
+    paper_baseline: bool = False
     reference_posterior: bool = False
     #: The systems the method runs on: a tuple of registered names, or ``"any"`` (every
     #: registered system, one a user registers included); :func:`methods.get` refuses the others

@@ -56,6 +56,8 @@ attribute              default     meaning
 ``from_paper``         False       the paper's claims are about this method (the readings compare
                                    these with the baselines); how the report names, draws and orders
                                    a method is the report's (``sysid_bench/bench/style.toml``)
+``paper_baseline``     False       the paper compared its method with this one given true positions
+                                   and initial state (the readings check that claim against it)
 ``contract_options``   {}          cheap hyperparameters for ``check_estimator`` (same code path)
 =====================  ==========  =====================================================================
 
@@ -83,7 +85,7 @@ TRAIT_FIELDS = ("input_kind", "min_frames", *CAPABILITIES, "reference_posterior"
 #: how the benchmark schedules it
 SCHEDULE_FIELDS = (
     "cost", "scale_cases", "scale_options", "fit_options", "pretrained", "threads_param",
-    "inline", "online_cost", "policies", "from_paper", "contract_options",
+    "inline", "online_cost", "policies", "from_paper", "paper_baseline", "contract_options",
 )
 #: class attributes collected into a MethodSpec
 DECLARED = ("name", *TRAIT_FIELDS, *SCHEDULE_FIELDS)
@@ -136,6 +138,7 @@ class Schedule:
     online_cost: bool
     policies: Mapping
     from_paper: bool
+    paper_baseline: bool
     contract_options: Mapping
 
 
@@ -266,7 +269,8 @@ def spec_of(cls, entry_point: str | None = None) -> MethodSpec:
         raise _bad(cls, "name", "the method's registry name (a non-empty str)", name)
     if vals["input_kind"] not in INPUT_KINDS:
         raise _bad(cls, "input_kind", f"one of {INPUT_KINDS}", vals["input_kind"])
-    for a in (*CAPABILITIES, "inline", "online_cost", "reference_posterior", "from_paper"):
+    for a in (*CAPABILITIES, "inline", "online_cost", "reference_posterior", "from_paper",
+              "paper_baseline"):
         if not isinstance(vals[a], bool):
             raise _bad(cls, a, "True or False", vals[a])
     sy = vals["systems"]

@@ -138,7 +138,10 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
         name = method or _position_method(sys_.name)
         obs = Observation(positions=points, system=sys_.name, dt=1.0 / clip.fps)
         notes.append(f"{name} saw the tracked object in metres ({cam.describe()})")
-    est = methods.get(name, system=sys_.name)
+    # a method that takes the user's knowledge holds it (issue 38 §4); the others say they did not
+    takes = {"known", "prior"} <= set(methods.get(name, system=sys_.name).get_params())
+    give = {"known": dict(known or {}), "prior": dict(prior or {})} if takes else {}
+    est = methods.get(name, system=sys_.name, **give)
     est.fit(None)
     t = obs.n_frames
     lengths = sorted({*range(every, t + 1, every), t})
@@ -157,9 +160,16 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
         std = widen_for_scale(sys_.name, sys_.params, mean, std, cam.scale_rel_std)
         notes.append(f"the scale's {100 * cam.scale_rel_std:.2g}% uncertainty is added to the "
                      "std of every parameter with a length in its unit")
-    know = knowledge_record(known or {}, prior or {}, name)
+        if takes and known:  # a held value is the user's, not measured through the scale
+            cols = [sys_.params.index(k) for k in known]
+            std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
+    know = knowledge_record(known or {}, prior or {}, name, held=takes)
     if know["note"]:
         notes.append(f"--known/--prior {know['note']}")
+    elif known or prior:
+        said = [f"{k} = {v:g} held" for k, v in (known or {}).items()]
+        said += [f"{k} searched in {a:g} to {b:g}" for k, (a, b) in (prior or {}).items()]
+        notes.append(f"--known/--prior: {name} used them ({'; '.join(said)})")
     info = {"file": str(path), "system": sys_.name, "method": name, "params": list(sys_.params),
             "model_fps": clip.fps, "frames": t, "source_fps": clip.source_fps,
             "size": list(sys_.size), "extent": list(sys_.extent), "notes": notes,

@@ -15,12 +15,11 @@ import time
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param  # noqa: E402
-from sysid_bench.bench.online import online_cost, online_cost_markdown  # noqa: E402
-from sysid_bench.datasets import make_dataset  # noqa: E402
+from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param
+from sysid_bench.bench.online import online_cost, online_cost_markdown
+from sysid_bench.datasets import make_dataset
 
 pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")
 

@@ -74,8 +74,8 @@ def _values(store_path):
 
 
 def test_grid_is_deterministic_and_covers_inputs():
-    grid = build_grid(SMOKE, ["prior"], ["identification", "forecasting"])
-    assert grid == build_grid(SMOKE, ["prior"], ["identification", "forecasting"])
+    grid = build_grid(SMOKE, ["prior"], ["identification", "forecasting"], ["ball"])
+    assert grid == build_grid(SMOKE, ["prior"], ["identification", "forecasting"], ["ball"])
     assert {c.input for c in grid} == {"video", "privileged"}
     assert len(grid) == 2 * 2 * 2  # 2 experiments x 2 inputs x 2 cases
     assert len({c.id for c in grid}) == len(grid)
@@ -83,15 +83,15 @@ def test_grid_is_deterministic_and_covers_inputs():
 
 def test_unknown_names_list_the_known_ones(tmp_path):
     with pytest.raises(ValueError, match="unknown method 'lssq'.*Did you mean 'lsq'"):
-        run(scale="smoke", methods=["lssq"], run_dir=tmp_path, progress=False)
+        run(scale="smoke", systems=["ball"], methods=["lssq"], run_dir=tmp_path, progress=False)
     with pytest.raises(ValueError, match="unknown experiment 'forecast'.*forecasting"):
-        run(scale="smoke", methods=["prior"], experiments=["forecast"], run_dir=tmp_path, progress=False)
+        run(scale="smoke", systems=["ball"], methods=["prior"], experiments=["forecast"], run_dir=tmp_path, progress=False)
     with pytest.raises(ValueError, match="unknown scale 'smol'"):
         run(scale="smol", run_dir=tmp_path, progress=False)
 
 
 def test_run_on_the_pool_then_resume_computes_nothing(tmp_path):
-    first = run(scale="smoke", methods=FAST, experiments=["identification"], run_dir=tmp_path,
+    first = run(scale="smoke", systems=["ball"], methods=FAST, experiments=["identification"], run_dir=tmp_path,
                 workers=2, progress=False)
     n_cells = 2 * 2 * len(FAST)
     assert first["cells"] == n_cells and first["ran"] == n_cells and first["ok"] == n_cells
@@ -108,7 +108,7 @@ def test_run_on_the_pool_then_resume_computes_nothing(tmp_path):
     assert se[("prior", "video")] == pytest.approx(se[("prior", "privileged")])
     assert inv[0]["git_commit"] and "numpy" in inv[0]["versions"] and inv[0]["scale"] == "smoke"
 
-    again = run(scale="smoke", methods=FAST, experiments=["identification"], run_dir=tmp_path,
+    again = run(scale="smoke", systems=["ball"], methods=FAST, experiments=["identification"], run_dir=tmp_path,
                 workers=2, progress=False)
     assert again["ran"] == 0 and again["already"] == n_cells
     with Store(tmp_path / STORE_NAME) as s:
@@ -118,12 +118,12 @@ def test_run_on_the_pool_then_resume_computes_nothing(tmp_path):
 
 def test_partial_runs_add_up_to_a_full_one(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
-    run(scale="smoke", methods=["prior"], experiments=["identification", "forecasting"], run_dir=a,
+    run(scale="smoke", systems=["ball"], methods=["prior"], experiments=["identification", "forecasting"], run_dir=a,
         workers=0, progress=False)
-    part = run(scale="smoke", methods=["prior"], experiments=["identification", "forecasting"],
+    part = run(scale="smoke", systems=["ball"], methods=["prior"], experiments=["identification", "forecasting"],
                run_dir=b, workers=0, progress=False, max_cells=3)
     assert part["ran"] == 3
-    rest = run(scale="smoke", methods=["prior"], experiments=["identification", "forecasting"],
+    rest = run(scale="smoke", systems=["ball"], methods=["prior"], experiments=["identification", "forecasting"],
                run_dir=b, workers=0, progress=False)
     assert rest["ran"] == 8 - 3
     va, vb = _values(a / STORE_NAME), _values(b / STORE_NAME)
@@ -131,7 +131,7 @@ def test_partial_runs_add_up_to_a_full_one(tmp_path):
 
 
 def test_failures_and_na_are_rows_and_the_run_goes_on(tmp_path, doubles):
-    out = run(scale="smoke", methods=["boom", "noparams", "prior"],
+    out = run(scale="smoke", systems=["ball"], methods=["boom", "noparams", "prior"],
               experiments=["identification", "forecasting"], run_dir=tmp_path, workers=0,
               progress=False)
     with Store(tmp_path / STORE_NAME) as s:
@@ -153,7 +153,7 @@ def test_failures_and_na_are_rows_and_the_run_goes_on(tmp_path, doubles):
 
 
 def test_other_scale_in_the_same_run_dir_is_refused(tmp_path):
-    run(scale="smoke", methods=["prior"], experiments=["identification"], run_dir=tmp_path,
+    run(scale="smoke", systems=["ball"], methods=["prior"], experiments=["identification"], run_dir=tmp_path,
         workers=0, progress=False)
     other = Scale(**{**SMOKE.__dict__, "name": "smoke2", "seed": 8})
     with pytest.raises(StoreConfigError, match="grid_config"):
@@ -172,7 +172,7 @@ def test_context_gives_independent_estimator_copies(tmp_path):
 _KILL_SCRIPT = """
 import sys
 from sysid_bench.bench.runner import run
-run(scale="smoke", methods=sys.argv[2].split(","), experiments=["identification", "forecasting"],
+run(scale="smoke", systems=["ball"], methods=sys.argv[2].split(","), experiments=["identification", "forecasting"],
     run_dir=sys.argv[1], workers=0, progress=False)
 """
 
@@ -207,11 +207,11 @@ def test_killed_run_resumes_without_losses_or_duplicates(tmp_path):
         before = s.done_cells()
     assert 2 <= len(before) < 2 * 2 * 2 * len(FAST)
 
-    res = run(scale="smoke", methods=FAST, experiments=["identification", "forecasting"],
+    res = run(scale="smoke", systems=["ball"], methods=FAST, experiments=["identification", "forecasting"],
               run_dir=killed, workers=0, progress=False)
     assert res["already"] == len(before)
     assert res["ran"] == res["cells"] - len(before)
-    run(scale="smoke", methods=FAST, experiments=["identification", "forecasting"],
+    run(scale="smoke", systems=["ball"], methods=FAST, experiments=["identification", "forecasting"],
         run_dir=clean, workers=0, progress=False)
     vk, vc = _values(store), _values(clean / STORE_NAME)
     assert not vk.duplicated(["experiment", "method", "input", "condition", "case", "n_frames",
@@ -220,9 +220,9 @@ def test_killed_run_resumes_without_losses_or_duplicates(tmp_path):
 
 
 def test_dask_local_cluster_gives_the_same_rows_as_the_pool(tmp_path):
-    distributed = pytest.importorskip("distributed")
+    import distributed
     local, dask_dir = tmp_path / "local", tmp_path / "dask"
-    kw = dict(scale="smoke", methods=FAST, experiments=["identification"], progress=False)
+    kw = dict(scale="smoke", systems=["ball"], methods=FAST, experiments=["identification"], progress=False)
     run(run_dir=local, workers=2, **kw)
     with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
                                   dashboard_address=None) as cluster:
@@ -253,7 +253,7 @@ _TERM_SCRIPT = """
 import sys
 from sysid_bench.bench.runner import run
 if __name__ == "__main__":
-    run(scale="smoke", methods=sys.argv[2].split(","), experiments=["identification", "forecasting"],
+    run(scale="smoke", systems=["ball"], methods=sys.argv[2].split(","), experiments=["identification", "forecasting"],
         run_dir=sys.argv[1], workers=2, progress=False)
 """
 
@@ -310,7 +310,7 @@ def test_sigterm_stops_the_workers_and_keeps_finished_cells(tmp_path):
 
 
 def test_retry_errors_recomputes_failed_cells(tmp_path, doubles, monkeypatch):
-    kw = dict(scale="smoke", methods=["boom"], experiments=["identification"], run_dir=tmp_path,
+    kw = dict(scale="smoke", systems=["ball"], methods=["boom"], experiments=["identification"], run_dir=tmp_path,
               workers=0, progress=False)
     first = run(**kw)
     assert first["errors"] == 4
@@ -326,7 +326,7 @@ def test_retry_errors_recomputes_failed_cells(tmp_path, doubles, monkeypatch):
 def test_cells_of_a_changed_method_are_recomputed(tmp_path, monkeypatch):
     from sysid_bench.bench import runner
 
-    kw = dict(scale="smoke", methods=["prior"], experiments=["identification"], run_dir=tmp_path,
+    kw = dict(scale="smoke", systems=["ball"], methods=["prior"], experiments=["identification"], run_dir=tmp_path,
               workers=0, progress=False)
     assert run(**kw)["ran"] == 4
     assert run(**kw)["ran"] == 0
@@ -343,7 +343,7 @@ def test_cells_of_a_changed_method_are_recomputed(tmp_path, monkeypatch):
 def test_cells_of_a_changed_experiment_are_recomputed(tmp_path, monkeypatch):
     from sysid_bench.bench import runner
 
-    kw = dict(scale="smoke", methods=["prior"], experiments=["identification", "forecasting"],
+    kw = dict(scale="smoke", systems=["ball"], methods=["prior"], experiments=["identification", "forecasting"],
               run_dir=tmp_path, workers=0, progress=False)
     first = run(**kw)
     real = runner.experiment_fingerprint

@@ -26,12 +26,11 @@ import time
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from methods.vid2param.data import make_system_split, targets_from_dataset  # noqa: E402
-from methods.vid2param.model import V2PConfig, Vid2ParamNet  # noqa: E402
-from methods.vid2param.train import PRESET_TRAIN, train_threads, usable_cores  # noqa: E402
+from methods.vid2param.data import make_system_split, targets_from_dataset
+from methods.vid2param.model import V2PConfig, Vid2ParamNet
+from methods.vid2param.train import PRESET_TRAIN, train_threads, usable_cores
 
 #: fp32 peak of one core (GFLOP/s): the issue's 190 GFLOP/s for two AVX-512 cores of the CI
 #: machine (2 FMA x 16 lanes x 2 FLOP at ~3 GHz); another CPU has another peak.

@@ -14,13 +14,12 @@ import time
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-import methods.vid2param.fast as fast  # noqa: E402
-import methods.vid2param.parts as parts  # noqa: E402
-from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param  # noqa: E402
-from sysid_bench.datasets import make_dataset  # noqa: E402
+import methods.vid2param.fast as fast
+import methods.vid2param.parts as parts
+from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param
+from sysid_bench.datasets import make_dataset
 
 pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")
 

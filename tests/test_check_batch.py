@@ -6,15 +6,14 @@ import copy
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from methods._check_batch import check_batch  # noqa: E402
-from methods._simulation import check_prefixes  # noqa: E402
-from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param  # noqa: E402
-from methods.vid2param.estimator import DEFAULT_SIGMA  # noqa: E402
-from sysid_bench.datasets import make_dataset  # noqa: E402
-from sysid_bench.estimator import Observation  # noqa: E402
+from methods._check_batch import check_batch
+from methods._simulation import check_prefixes
+from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param
+from methods.vid2param.estimator import DEFAULT_SIGMA
+from sysid_bench.datasets import make_dataset
+from sysid_bench.estimator import Observation
 
 needs_model = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")
 

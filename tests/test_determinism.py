@@ -62,7 +62,7 @@ def smoke_results(tmp_path_factory):
     from sysid_bench.bench.runner import STORE_NAME, run
 
     d = tmp_path_factory.mktemp("run")
-    run(scale="smoke", methods=["prior", "sindy"], run_dir=d, workers=0, progress=False,
+    run(scale="smoke", systems=["ball"], methods=["prior", "sindy"], run_dir=d, workers=0, progress=False,
         experiments=["identification", "forecasting", "changing", "calibration"])
     with Store(d / STORE_NAME) as s:
         return s.results()

@@ -15,7 +15,7 @@ from sysid_bench.footage import write_video
 
 @pytest.fixture(scope="module")
 def pendulum_clip(tmp_path_factory):
-    pytest.importorskip("av")  # writing the clip needs PyAV (a dependency; absent on some images)
+    import av  # noqa: F401 (a dependency of [test]: missing fails, not skips)
     sys_ = systems.get("pendulum")
     theta = np.array([[-9.0, 1.2, 0.1, 0.05]])
     state0 = np.array([[1.0, 0.0]])
@@ -49,3 +49,18 @@ def test_identify_unknown_system_says_did_you_mean(pendulum_clip, tmp_path, caps
     err = capsys.readouterr().err
     assert rc == 2 and "Did you mean 'pendulum'" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_identify_holds_known_values_with_lsq(pendulum_clip, tmp_path, capsys):
+    path, truth = pendulum_clip
+    out = tmp_path / "out"
+    rc = main(["identify", str(path), "--system", "pendulum", "--method", "lsq", "--every", "40",
+               "--known", "g=-9.0", "--prior", "b=0.05:0.2", "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    rows = [r for r in csv.DictReader(open(out / "estimates.csv")) if r["g_mean"] != "nan"]
+    assert rows and all(float(r["g_mean"]) == -9.0 and float(r["g_std"]) == 0.0 for r in rows)
+    assert all(0.05 <= float(r["b_mean"]) <= 0.2 for r in rows)
+    know = json.load(open(out / "estimates.json"))["knowledge"]
+    assert know["held"] and know["known"] == {"g": -9.0} and not know["note"]
+    assert "g = -9 held" in err and "not yet held" not in err

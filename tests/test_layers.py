@@ -12,13 +12,11 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
+import grimp
 import pytest
-
-grimp = pytest.importorskip("grimp")
-tomllib = pytest.importorskip("tomllib")  # Python 3.11+
-pytest.importorskip("importlinter")
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("sysid_bench", "methods")

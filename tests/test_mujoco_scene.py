@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 # the scene module first: it picks MuJoCo's GL backend before mujoco is imported
-from sysid_bench import mujoco_scene as ms  # noqa: E402
+from sysid_bench import mujoco_scene as ms
 
 if ms.mujoco_available() is not None:
     pytest.skip(ms.mujoco_available(), allow_module_level=True)

@@ -10,21 +10,18 @@ Measured on the 2-core development machine: see the report of the session that w
 import subprocess
 import sys
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
-pytest.importorskip("numpyro")
-
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-
-from methods import nuts as N  # noqa: E402
-from sysid_bench import physics  # noqa: E402
-from sysid_bench import simulator as C  # noqa: E402
-from sysid_bench.datasets import make_dataset  # noqa: E402
-from sysid_bench.estimator import Forecast, Observation, Posterior  # noqa: E402
-from sysid_bench.metrics import interval_coverage, param_mse  # noqa: E402
-from sysid_bench.physics import PRIOR_HI, PRIOR_LO  # noqa: E402
+from methods import nuts as N
+from sysid_bench import physics
+from sysid_bench import simulator as C
+from sysid_bench.datasets import make_dataset
+from sysid_bench.estimator import Forecast, Observation, Posterior
+from sysid_bench.metrics import interval_coverage, param_mse
+from sysid_bench.physics import PRIOR_HI, PRIOR_LO
 
 GUESS = 0.083
 BOUND = 1e-3

@@ -7,17 +7,14 @@ check. Sampled, the floor's uncertainty reaches the parameters' intervals.
 
 import dataclasses
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
-pytest.importorskip("numpyro")
-
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-
-from methods import nuts as N  # noqa: E402
-from sysid_bench import physics  # noqa: E402
-from sysid_bench import simulator as C  # noqa: E402
+from methods import nuts as N
+from sysid_bench import physics
+from sysid_bench import simulator as C
 
 
 @pytest.mark.slow  # ~20-45 s: compiling the gradient of the 60-frame scan

@@ -5,10 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-pytest.importorskip("torch")
-
-from methods.vid2param import SHIPPED_CHECKPOINT  # noqa: E402
-from sysid_bench.bench.online import online_cost, online_cost_markdown  # noqa: E402
+from methods.vid2param import SHIPPED_CHECKPOINT
+from sysid_bench.bench.online import online_cost, online_cost_markdown
 
 
 @pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")

@@ -7,14 +7,13 @@ NumPy simulator: in free flight, and across a floor bounce, a wall bounce and a 
 where the contact time moves with the parameters.
 """
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
-jax = pytest.importorskip("jax")
-import jax.numpy as jnp  # noqa: E402
-
-from sysid_bench import physics as P  # noqa: E402
-from sysid_bench import physics_jax as PJ  # noqa: E402
+from sysid_bench import physics as P
+from sysid_bench import physics_jax as PJ
 
 TOL = 1e-9  # m
 

@@ -24,9 +24,10 @@ except (ImportError, ValueError):
 @pytest.fixture(scope="module")
 def store_path(tmp_path_factory):
     d = tmp_path_factory.mktemp("run")
+    # the ball (the paper's comparisons) and one other system (its own page)
     run(scale="smoke", methods=FAST, experiments=["identification", "forecasting", "changing",
                                                   "calibration"],
-        run_dir=d, workers=0, progress=False)
+        systems=["ball", "spring"], run_dir=d, workers=0, progress=False)
     return d / STORE_NAME
 
 
@@ -104,13 +105,17 @@ def test_report_cli_from_store_and_bad_names(store_path, tmp_path, capsys):
 
 
 def test_cli_list_and_run(tmp_path, capsys):
+    from sysid_bench import systems
+
     assert cli_main(["list"]) == 0
     out = capsys.readouterr().out
     assert "identification" in out and "smoke" in out and "lsq" in out
     assert cli_main(["run", "--scale", "smoke", "--methods", "prior", "--experiments",
                      "identification", "--run-dir", str(tmp_path), "--workers", "0",
                      "--no-progress"]) == 0
-    assert "4 computed (4 ok, 0 errors, 0 n/a)" in capsys.readouterr().out  # 2 inputs x 2 cases
+    # every registered system: 2 inputs x 2 cases each
+    n = 4 * len(systems.available())
+    assert f"{n} computed ({n} ok, 0 errors, 0 n/a)" in capsys.readouterr().out
     assert cli_main(["run", "--scale", "smoke", "--methods", "prio"]) == 2
     assert "Did you mean 'prior'" in capsys.readouterr().err
 

@@ -125,7 +125,7 @@ def test_lock_of_a_killed_run_does_not_block_the_next(tmp_path):
     holder.send_signal(signal.SIGKILL)  # dies holding it: the kernel drops an flock with its fds
     holder.wait()
     assert (tmp_path / "run.lock").exists()
-    out = run(scale="smoke", methods=["prior"], experiments=["identification"], run_dir=tmp_path,
+    out = run(scale="smoke", systems=["ball"], methods=["prior"], experiments=["identification"], run_dir=tmp_path,
               workers=0, progress=False)
     assert out["ok"] == out["cells"] > 0
 

@@ -229,7 +229,8 @@ def test_vid2param_declares_only_condition_checkpoints_it_ships():
 
 
 def test_conditions_driver_refuses_unknown_conditions():
-    pytest.importorskip("torch")
+    import torch  # noqa: F401 (a dependency of [test]: missing fails, not skips)
+
     from methods.vid2param.conditions import condition_data, main
 
     assert condition_data("extrapolation:g") == ("extrapolation", {"param": "g"})
@@ -240,7 +241,8 @@ def test_conditions_driver_refuses_unknown_conditions():
 
 
 def test_training_config_takes_a_data_variant():
-    pytest.importorskip("torch")
+    import torch  # noqa: F401 (a dependency of [test]: missing fails, not skips)
+
     from methods.vid2param.train import TrainConfig, _Feed
 
     with pytest.raises(ValueError, match="variant: expected one of"):
@@ -260,3 +262,20 @@ def test_no_verdict_when_the_control_is_at_guessing_level():
                                          _rows("simplified", bad)))
     assert all("Holds" not in ln and "Does not hold" not in ln for ln in lines)
     assert sum("Cannot tell" in ln for ln in lines) == 2
+
+
+def test_systems_without_condition_training_sets_get_one_n_a_cell_per_method(tmp_path):
+    from sysid_bench.bench.experiment import execute
+    from sysid_bench.bench.sensitivity import UNTRAINED
+
+    scale = get_scale("smoke")
+    exp = Sensitivity()
+    assert exp.runs_on("pendulum") and exp.runs_on("ball")
+    cells = exp.cells(scale, ["prior", "vid2param"], "pendulum")
+    assert [(c.method, c.condition, c.system) for c in cells] == [
+        ("vid2param", UNTRAINED, "pendulum")]
+    res = execute(cells[0], scale, tmp_path)
+    assert res["status"] == "n/a" and "pendulum" in res["error"] and not res["rows"]
+    # the ball's conditions stay as they were
+    assert sorted(c.condition for c in exp.cells(scale, ["vid2param"], "ball")) == sorted(
+        conditions(scale))

@@ -6,17 +6,16 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from methods.vid2param import SHIPPED_CHECKPOINT, SHIPPED_CHECKPOINTS, Vid2Param  # noqa: E402
-from methods.vid2param.checkpoint import load_checkpoint, save_atomic  # noqa: E402
-from methods.vid2param.data import rolls_mask, targets_from_dataset  # noqa: E402
-from methods.vid2param.model import V2PConfig  # noqa: E402
-from methods.vid2param.train import TrainConfig, export, train  # noqa: E402
-from sysid_bench.datasets import make_dataset  # noqa: E402
-from sysid_bench.estimator import Observation, Posterior  # noqa: E402
-from sysid_bench.physics import PARAMS, PRIOR  # noqa: E402
+from methods.vid2param import SHIPPED_CHECKPOINT, SHIPPED_CHECKPOINTS, Vid2Param
+from methods.vid2param.checkpoint import load_checkpoint, save_atomic
+from methods.vid2param.data import rolls_mask, targets_from_dataset
+from methods.vid2param.model import V2PConfig
+from methods.vid2param.train import TrainConfig, export, train
+from sysid_bench.datasets import make_dataset
+from sysid_bench.estimator import Observation, Posterior
+from sysid_bench.physics import PARAMS, PRIOR
 
 LO = np.array([PRIOR[p][0] for p in PARAMS])
 HI = np.array([PRIOR[p][1] for p in PARAMS])

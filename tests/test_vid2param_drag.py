@@ -125,7 +125,6 @@ def test_the_fit_recovers_a_known_blend():
     assert np.mean((mu_b[:, -1] - truth) ** 2) < 0.2 * np.mean((mu_n[:, -1] - truth) ** 2)
 
 
-torch = pytest.importorskip("torch")
 
 
 @pytest.fixture(scope="module")

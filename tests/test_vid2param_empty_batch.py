@@ -7,10 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-pytest.importorskip("torch")
-
-import methods  # noqa: E402
-from methods.vid2param import SHIPPED_CHECKPOINT  # noqa: E402
+import methods
+from methods.vid2param import SHIPPED_CHECKPOINT
 
 pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")
 

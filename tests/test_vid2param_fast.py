@@ -14,12 +14,11 @@ import pickle
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param  # noqa: E402
-from methods.vid2param.fast import FrameFilter, LazyPosterior, Unsupported, fast_support  # noqa: E402
-from sysid_bench.datasets import make_dataset  # noqa: E402
+from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param
+from methods.vid2param.fast import FrameFilter, LazyPosterior, Unsupported, fast_support
+from sysid_bench.datasets import make_dataset
 
 needs = {k: pytest.mark.skipif(not p.exists(), reason=f"no shipped {k} checkpoint")
          for k, p in SHIPPED_CHECKPOINTS.items()}

@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-import methods  # noqa: E402
-from methods.vid2param import FORECASTS, SHIPPED_CHECKPOINTS, V2PConfig  # noqa: E402
-from methods.vid2param.rollout import backtest_error, fit_state, sample_trajectories  # noqa: E402
-from sysid_bench.datasets import make_dataset  # noqa: E402
-from sysid_bench.estimator import Observation  # noqa: E402
-from sysid_bench.metrics import position_mse  # noqa: E402
-from sysid_bench.physics import simulate, simulate_perturbed  # noqa: E402
+import methods
+from methods.vid2param import FORECASTS, SHIPPED_CHECKPOINTS, V2PConfig
+from methods.vid2param.rollout import backtest_error, fit_state, sample_trajectories
+from sysid_bench.datasets import make_dataset
+from sysid_bench.estimator import Observation
+from sysid_bench.metrics import position_mse
+from sysid_bench.physics import simulate, simulate_perturbed
 
 needs_shipped = pytest.mark.skipif(not SHIPPED_CHECKPOINTS["28x28"].exists(),
                                    reason="shipped checkpoint missing")

@@ -5,14 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-torch = pytest.importorskip("torch")
-
-import methods  # noqa: E402
-from methods.vid2param import SHIPPED_CHECKPOINTS  # noqa: E402
-from methods.vid2param.rollout import _correlation_time, fit_state, fit_track, simulations  # noqa: E402
-from sysid_bench.datasets import make_dataset  # noqa: E402
-from sysid_bench.estimator import Observation  # noqa: E402
-from sysid_bench.physics import PRIOR, simulate  # noqa: E402
+import methods
+from methods.vid2param import SHIPPED_CHECKPOINTS
+from methods.vid2param.rollout import _correlation_time, fit_state, fit_track, simulations
+from sysid_bench.datasets import make_dataset
+from sysid_bench.estimator import Observation
+from sysid_bench.physics import PRIOR, simulate
 
 needs_shipped = pytest.mark.skipif(not SHIPPED_CHECKPOINTS["28x28"].exists(),
                                    reason="shipped checkpoint missing")

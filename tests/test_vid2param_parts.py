@@ -21,20 +21,20 @@ keypoint convolution, within the tolerances). Every other entry is as recorded b
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param  # noqa: E402
-from methods.vid2param.checkpoint import build_net, load_checkpoint  # noqa: E402
-from methods.vid2param.data import targets_from_arrays  # noqa: E402
-from sysid_bench.datasets import make_dataset  # noqa: E402
-from sysid_bench.estimator import Observation  # noqa: E402
-from sysid_bench.physics import simulate  # noqa: E402
-from sysid_bench.render import render  # noqa: E402
+from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param
+from methods.vid2param.checkpoint import build_net, load_checkpoint
+from methods.vid2param.data import targets_from_arrays
+from sysid_bench.datasets import make_dataset
+from sysid_bench.estimator import Observation
+from sysid_bench.physics import simulate
+from sysid_bench.render import render
 
 FIXTURE = Path(__file__).parent / "data" / "vid2param_shipped_outputs.npz"
 N_FRAMES = 60
@@ -257,3 +257,34 @@ if __name__ == "__main__":
 
     torch.set_num_threads(1)
     _write_fixture(sys.argv[1:] or ("28x28", "camera"))
+
+
+@pytest.mark.parametrize("preset", ["28x28", "camera", "collision"])
+def test_the_fused_training_pass_gives_the_per_frame_posterior(preset):
+    """``forward``'s fused recurrence (``_observed_pass``) is the per-frame ``filter`` up to
+    floating-point order: the same posterior means (its ``mse`` terms), and its final state
+    continues the forecast frames as ``step_rnn`` would."""
+    from methods.vid2param.model import V2PConfig, Vid2ParamNet
+
+    c = V2PConfig.preset(preset)
+    torch.manual_seed(0)
+    net = Vid2ParamNet(c)
+    with torch.no_grad():
+        net.keypoints.gate.fill_(0.3)  # the MLP's x, y enter the posterior too
+    g = torch.Generator().manual_seed(3)
+    frames = (torch.rand(2, 10, *c.frame_size, generator=g) * 255).to(torch.uint8)
+    targets = torch.rand(2, 10, len(c.targets), generator=g)
+    K = len(c.targets)
+    with torch.no_grad():
+        mu, _, _ = net.filter(frames)
+        for n_obs in (10, 7):
+            out = net(frames, targets, n_obs=n_obs, generator=torch.Generator().manual_seed(1))
+            want = ((mu[:, :n_obs, :K] - targets[:, :n_obs]) ** 2).mean(1)
+            torch.testing.assert_close(out["mse"], want, rtol=1e-4, atol=1e-7)
+            _, _, state = net.filter(frames[:, :n_obs])
+            hs, (qmu, _), got = net._observed_pass(net.encode_frames(frames[:, :n_obs]))
+            assert len(hs) == n_obs and qmu.shape == (2, n_obs, c.latent)
+            for f in dataclasses.fields(state):
+                a, b = getattr(got, f.name), getattr(state, f.name)
+                if b is not None:
+                    torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5, msg=f.name)

@@ -13,17 +13,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param  # noqa: E402
-from methods.vid2param.checkpoint import (  # noqa: E402
+from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param
+from methods.vid2param.checkpoint import (
     build_net,
     load_checkpoint,
     record_name,
     save_atomic,
 )
-from methods.vid2param.stages import LEGACY_KEYS, Pipeline  # noqa: E402
+from methods.vid2param.stages import LEGACY_KEYS, Pipeline
 
 CKPT_DIR = Path(__file__).resolve().parents[1] / "methods" / "vid2param" / "checkpoints"
 FILES = sorted(CKPT_DIR.rglob("*.pt"))

@@ -8,10 +8,8 @@ from dataclasses import fields
 
 import pytest
 
-pytest.importorskip("torch")
-
-from methods.vid2param.stages import PRESET_STAGES, STAGES  # noqa: E402
-from methods.vid2param.train import parse_stages  # noqa: E402
+from methods.vid2param.stages import PRESET_STAGES, STAGES
+from methods.vid2param.train import parse_stages
 
 
 def test_each_stage_names_the_options_its_fit_takes():

@@ -6,20 +6,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param  # noqa: E402
-from methods.vid2param.checkpoint import build_net, load_checkpoint, save_atomic  # noqa: E402
-from methods.vid2param.stages import (  # noqa: E402
+from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param
+from methods.vid2param.checkpoint import build_net, load_checkpoint, save_atomic
+from methods.vid2param.stages import (
     LEGACY_KEYS,
     STAGES,
     Pipeline,
     Stage,
     register_stage,
 )
-from sysid_bench.datasets import make_dataset  # noqa: E402
-from sysid_bench.estimator import Observation  # noqa: E402
+from sysid_bench.datasets import make_dataset
+from sysid_bench.estimator import Observation
 
 #: Each shipped checkpoint's stages (from the older format's keys, converted on load).
 EXPECTED = {

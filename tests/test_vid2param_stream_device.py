@@ -7,12 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-import methods.vid2param.estimator as v2p_estimator  # noqa: E402
-from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param  # noqa: E402
-from methods.vid2param.inference import resolve_device, stream_device  # noqa: E402
+import methods.vid2param.estimator as v2p_estimator
+from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param
+from methods.vid2param.inference import resolve_device, stream_device
 
 
 def test_auto_streams_on_the_cpu_where_a_batch_would_use_cuda(monkeypatch):

@@ -8,16 +8,15 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
-torch = pytest.importorskip("torch")
-
-import methods  # noqa: E402
-from methods.vid2param import Vid2Param  # noqa: E402
-from methods.vid2param._points import SYSTEM_CHECKPOINTS  # noqa: E402
-from methods.vid2param.data import make_system_split  # noqa: E402
-from methods.vid2param.model import V2PConfig, Vid2ParamNet, position_names  # noqa: E402
-from sysid_bench.datasets import make_dataset  # noqa: E402
-from sysid_bench.estimator import Observation  # noqa: E402
+import methods
+from methods.vid2param import Vid2Param
+from methods.vid2param._points import SYSTEM_CHECKPOINTS
+from methods.vid2param.data import make_system_split
+from methods.vid2param.model import V2PConfig, Vid2ParamNet, position_names
+from sysid_bench.datasets import make_dataset
+from sysid_bench.estimator import Observation
 
 #: a tiny network: small enough that two CPU steps take about a second
 TINY = ["--hidden", "16", "--feat", "16", "--latent", "12", "--channels", "4", "--keypoints", "2",

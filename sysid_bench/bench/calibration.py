@@ -1,6 +1,8 @@
 """Experiment 5 (beyond the paper): calibration of posteriors and agreement with ``nuts``.
 
-Every identifying method's posterior after 50, 100 and 200 frames of the same test videos.
+On every registered system, every identifying method's posterior after 50 and 200 frames (the
+scale's ``calibration_lengths``) of the same test cases (:func:`~sysid_bench.bench.cases.bench_case`:
+the ball's from the paper's datasets, every other system's from its test split).
 Rows per case, frame count and parameter ``p`` (all normalised to [0, 1] by the prior):
 ``hit50_<p>`` / ``hit90_<p>`` (1 when the truth lies in the central 50 / 90% interval),
 ``nll_<p>`` (Gaussian NLL of the truth under N(mean, std)), ``mean_<p>``, ``std_<p>`` and the
@@ -8,7 +10,9 @@ posterior quantiles ``q<k>_<p>`` at levels :data:`QUANTILES` (from samples when 
 samples, else Gaussian); per case and frame count ``check_ok`` (1 when the posterior's model
 check passed, 0 when it failed) and ``check_rms_m``, for methods that return a check.
 
-Two physics (the cell's ``condition``): ``""``, the test videos as simulated by our physics, and
+Cases off the system's own physics, for a system that declares them in
+``System.calibration_conditions`` (the ball; the cell's ``condition``): ``""`` is the test
+cases as simulated by our physics, and
 ``"perturbed"`` (issue 29: intervals on physics that is not ours), the same test cases, from the
 same initial state, floor and parameters, re-simulated by
 :func:`sysid_bench.physics.simulate_perturbed` for ``PERTURBED_CONFIG[scale]["frames"]`` frames
@@ -31,9 +35,8 @@ from pathlib import Path
 import numpy as np
 from scipy.special import ndtri
 
-from sysid_bench.bench.cases import observation
+from sysid_bench.bench.cases import bench_case
 from sysid_bench.bench.experiment import (
-    SPAN,
     Cell,
     CellOutput,
     Context,
@@ -41,14 +44,18 @@ from sysid_bench.bench.experiment import (
     ci_summary,
     fmt_ci,
     median_ci,
-    normalise,
     share_ci,
     timed_prefixes,
 )
-from sysid_bench.bench.identification import _save, case_cells, method_color, method_inputs
+from sysid_bench.bench.identification import (
+    _save,
+    case_cells,
+    method_color,
+    method_inputs,
+    system_params,
+)
 from sysid_bench.estimator import Observation
 from sysid_bench.metrics import gaussian_nll
-from sysid_bench.physics import PARAMS
 
 #: the cell condition of the perturbed-physics cases ("" is our physics)
 PERTURBED = "perturbed"
@@ -77,7 +84,7 @@ DWELL = 0.01
 #: plus one compile of its 100-frame sampler per worker, ~55 s there).
 PERTURBED_CONFIG = {
     "smoke": {"n": 2, "frames": 100, "lengths": (100,), "reference_min": 1},
-    "quick": {"n": 1, "frames": 100, "lengths": (100,), "reference_min": 1},
+    "quick": {"n": 1, "frames": 100, "lengths": (100,), "reference_min": 0},
     "default": {"n": 10, "frames": 100, "lengths": (100,), "reference_min": 10},
     "paper": {"n": 100, "frames": 100, "lengths": (50, 100), "reference_min": 100},
 }
@@ -89,6 +96,36 @@ REFERENCE_MIN_CASES = 10
 #: fewer cases than this get no verdict in a reading (as the in-model sentence says)
 FEW_CASES = 5
 EGD = ("e", "g", "d")
+
+
+def _system(name):
+    from sysid_bench import systems
+
+    return systems.get(name)
+
+
+def informed_params(system: str) -> tuple[str, ...]:
+    """The parameters a clip informs on ``system``: its first :attr:`headline_group
+    <sysid_bench.systems.System.headline_groups>` where it declares more than one (the ball's
+    e, g, d: r is unknowable until the ball rolls), else every parameter. The coverage column,
+    the honest share and the perturbed reading are over these."""
+    sys_ = _system(system)
+    groups = tuple(sys_.headline_groups)
+    return tuple(groups[0]) if len(groups) > 1 else tuple(sys_.params)
+
+
+def _rows_system(df) -> str:
+    """The system whose rows ``df`` holds (the report hands each experiment one system's)."""
+    return str(df.system.iloc[0]) if "system" in df.columns and len(df) else "ball"
+
+
+def _informed(df) -> tuple[str, ...]:
+    return informed_params(_rows_system(df))
+
+
+def _label(params) -> str:
+    """``"(e, g, d)"``."""
+    return "(" + ", ".join(params) + ")"
 
 
 def n_cases(n: int) -> str:
@@ -249,16 +286,16 @@ def _group_shares(df, rows):
                                        "cases"])
 
 
-def honest_rows(g):
-    """Per (case, n_frames, p in e, g, d) of one method's rows ``g``: 1 when the 90% interval
+def honest_rows(g, params=EGD):
+    """Per (case, n_frames, p in ``params``) of one method's rows ``g``: 1 when the 90% interval
     holds the truth or the posterior's model check failed (issue 29's "honest"), as rows with
     ``case`` and ``value``; empty when the method gives no check."""
     import pandas as pd
 
-    own = g[g.metric.isin([f"honest_{p}" for p in EGD])]  # meaningless: judged in the cell
+    own = g[g.metric.isin([f"honest_{p}" for p in params])]  # meaningless: judged in the cell
     if not own.empty:
         return pd.DataFrame({"case": own.case, "value": own.value.astype(float)})
-    hits = g[g.metric.isin([f"hit90_{p}" for p in EGD])]
+    hits = g[g.metric.isin([f"hit90_{p}" for p in params])]
     ok = g[g.metric == "check_ok"][["case", "n_frames", "value"]].rename(columns={"value": "ok"})
     if hits.empty or ok.empty:
         return pd.DataFrame(columns=["case", "value"])
@@ -311,7 +348,6 @@ def posterior_quantiles(post) -> np.ndarray:
 
 class Calibration(Experiment):
     name = "calibration"
-    systems = ("ball",)  # the ball's alone until it runs per system
     title = "5. Calibration and agreement with NUTS (beyond the paper)"
     description = (
         "Is each posterior honest? Coverage: share of (case, parameter, frame count) whose true "
@@ -320,11 +356,13 @@ class Calibration(Experiment):
         "(median, as point-estimate methods give infinite values). Agreement: 1-Wasserstein "
         "distance between each method's marginals and the NUTS reference posterior on the same "
         "case and input (normalised units; 0 = identical), and |mean - nuts mean| / nuts std. "
-        "Physics: `ours`, the test videos; `perturbed`, the first test cases re-simulated from "
+        "Every system: its own test cases (physics `ours`). The ball also: "
+        "`perturbed`, the first test cases re-simulated from "
         f"the same start with a spin loss U(0, {SPIN:g}) of the horizontal speed and a contact "
         f"dwell U(0, {DWELL * 1e3:g} ms) at every bounce, {PERTURBED_CONFIG['default']['frames']} "
-        "frames (physics that is not ours: every method still fits ours). `coverage 90% (e, g, "
-        "d)`: r left out, as a clip rarely informs it; `honest (e, g, d)`: the 90% interval "
+        "frames (physics that is not ours: every method still fits ours). The ball's `coverage "
+        "90% (e, g, d)`: r left out, as a clip rarely informs it; `honest (...)`, over the "
+        "parameters a clip informs (the ball's e, g, d; every parameter elsewhere): the 90% interval "
         "holds the truth or the model check fails (issue 29 asks 80-97% and at least 80% off "
         "our physics). `meaningless` (model check table only): one clip of each of "
         f"{len(MEANINGLESS_KINDS)} kinds no physics explains ({', '.join(MEANINGLESS_KINDS)}); "
@@ -336,14 +374,16 @@ class Calibration(Experiment):
     )
 
     def cells(self, scale, methods, system="ball"):
-        out = case_cells(self.name, scale, methods, scale.calibration_inputs)
+        out = case_cells(self.name, scale, methods, scale.calibration_inputs, system)
+        conditions = _system(system).calibration_conditions
         for m in methods:
-            n = perturbed_cases(scale, m)
-            out += [Cell(self.name, m, inp, PERTURBED, i)
-                    for inp in method_inputs(m, scale.calibration_inputs) for i in range(n)]
-            if scale.name in MEANINGLESS_SCALES and "video" in method_inputs(
-                    m, scale.calibration_inputs):
-                out += [Cell(self.name, m, "video", MEANINGLESS, k)
+            if PERTURBED in conditions:
+                n = perturbed_cases(scale, m)
+                out += [Cell(self.name, m, inp, PERTURBED, i, system)
+                        for inp in method_inputs(m, scale.calibration_inputs) for i in range(n)]
+            if (MEANINGLESS in conditions and scale.name in MEANINGLESS_SCALES
+                    and "video" in method_inputs(m, scale.calibration_inputs)):
+                out += [Cell(self.name, m, "video", MEANINGLESS, k, system)
                         for k in range(len(MEANINGLESS_KINDS))]
         return out
 
@@ -358,19 +398,22 @@ class Calibration(Experiment):
         obs, truth = meaningless_observation(ds, k)
         out = CellOutput()
         T = obs.n_frames
+        sys_ = _system(cell.system)
+        informed = informed_params(cell.system)
+        span = sys_.prior_hi - sys_.prior_lo
         try:
-            post = ctx.estimator(cell.method).identify(obs)
+            post = ctx.estimator(cell.method, system=cell.system).identify(obs)
         except ValueError:
             out.add(k, T, "refused", 1.0)
-            for p in EGD:
+            for p in informed:
                 out.add(k, T, f"honest_{p}", 1.0)
             return out
         lo, hi = post.interval(0.9)
         lo99, hi99 = post.interval(OUTLIER_HOLD_LEVEL)
         ok = post.check is not None and bool(post.check.ok)
-        for p in EGD:
-            j = PARAMS.index(p)
-            narrow = (hi[j] - lo[j]) < NARROW_FRACTION * 0.9 * SPAN[j]
+        for p in informed:
+            j = sys_.params.index(p)
+            narrow = (hi[j] - lo[j]) < NARROW_FRACTION * 0.9 * span[j]
             holds = truth is not None and lo99[j] <= truth[j] <= hi99[j]
             out.add(k, T, f"honest_{p}", float(not (narrow and ok and not holds)))
         if post.check is not None:
@@ -383,22 +426,28 @@ class Calibration(Experiment):
         i = int(cell.case)
         if cell.condition == MEANINGLESS:
             return self._run_meaningless(cell, ctx)
+        sys_ = _system(cell.system)
+        if cell.condition and cell.condition not in sys_.calibration_conditions:
+            raise ValueError(f"condition: {cell.condition!r} is not among the "
+                             f"{cell.system} system's calibration_conditions "
+                             f"{sys_.calibration_conditions!r}")
         if cell.condition == PERTURBED:
             cfg = perturbed_config(sc)
             ds = ctx.test_set("interleaved", max(sc.n_for(self.name, cell.system), i + 1))
             spin, dwell = perturbation(sc.seed, i)
             obs = perturbed_observation(ds, i, cell.input, int(cfg["frames"]), spin, dwell)
             wanted = (max(cfg["lengths"]),) if sc.thinned(cell.method) else cfg["lengths"]
+            truth = np.asarray(ds.theta[i, 0])
         elif cell.condition == "":
-            ds = ctx.test_set("interleaved", sc.n_for(self.name, cell.system))
-            obs = observation(ds, i, cell.input)
+            obs, truth, _ = bench_case(cell.system, i, sc.n_for(self.name, cell.system), sc.seed,
+                                       cell.input)
             wanted = sc.calibration_lengths_for(cell.method)
         else:
             raise ValueError(f"condition: expected '', {PERTURBED!r} or {MEANINGLESS!r}, got "
                              f"{cell.condition!r}")
-        truth = np.asarray(ds.theta[i, 0])
-        tn = normalise(truth)
-        est = ctx.estimator(cell.method)
+        tn = sys_.normalise(truth)
+        span = sys_.prior_hi - sys_.prior_lo
+        est = ctx.estimator(cell.method, system=cell.system)
         out = CellOutput()
         lengths = [n for n in wanted if n <= obs.n_frames]
         for n, post, _ in timed_prefixes(est, obs, lengths, out, case=i):
@@ -407,9 +456,9 @@ class Calibration(Experiment):
                 lo, hi = post.interval(level)
                 hits[level] = (truth >= lo) & (truth <= hi)
             nll = gaussian_nll(truth, post.mean, post.std)
-            qs = normalise(posterior_quantiles(post))
-            mn, sd = normalise(post.mean), post.std / SPAN
-            for j, p in enumerate(PARAMS):
+            qs = sys_.normalise(posterior_quantiles(post))
+            mn, sd = sys_.normalise(post.mean), post.std / span
+            for j, p in enumerate(sys_.params):
                 out.add(i, n, f"hit50_{p}", hits[0.5][j])
                 out.add(i, n, f"hit90_{p}", hits[0.9][j])
                 out.add(i, n, f"nll_{p}", nll[j])
@@ -428,8 +477,11 @@ class Calibration(Experiment):
 
     # -- report -----------------------------------------------------------------------------
     @staticmethod
-    def _pooled(df, prefix, params=PARAMS):
-        """Rows of metrics ``<prefix>_<p>`` (``p`` in ``params``) pooled over parameters."""
+    def _pooled(df, prefix, params=None):
+        """Rows of metrics ``<prefix>_<p>`` (``p`` in ``params``; None: the system's every
+        parameter) pooled over parameters."""
+        if params is None:
+            params = system_params(df)
         return df[df.metric.isin([f"{prefix}_{p}" for p in params])]
 
     def agreement(self, df):
@@ -482,6 +534,7 @@ class Calibration(Experiment):
         ok = df[df.metric == "check_ok"]
         rms = df[df.metric == "check_rms_m"]
         hon = {(r.method, r.input, r.condition): r for r in Calibration.honest(df).itertuples()}
+        honest_label = f"honest {_label(_informed(df))}"
         rows = []
         for (m, inp, cond), g in ok.groupby(["method", "input", "condition"]):
             s = share_ci(g.assign(value=1.0 - g.value))
@@ -493,25 +546,28 @@ class Calibration(Experiment):
                                    else g.case.nunique()), "posteriors": len(g),
                          "failing the check": fmt_ci(s["mean"], s["lo"], s["hi"], 2),
                          "median residual RMS (m)": fmt_ci(*median_ci(r, (m, inp, cond, "rms"))),
-                         "honest (e, g, d)": (fmt_ci(hs.mean, hs.lo, hs.hi, 2)
-                                              if hs is not None else "-")})
+                         honest_label: (fmt_ci(hs.mean, hs.lo, hs.hi, 2)
+                                        if hs is not None else "-")})
         return pd.DataFrame(rows)
 
     @staticmethod
     def honest(df):
-        """Per method, input and condition: the share of honest answers over e, g, d
-        (:func:`honest_rows`), mean and 95% CI over cases; methods without a check are absent.
+        """Per method, input and condition: the share of honest answers over the informed
+        parameters (:func:`informed_params`: the ball's e, g, d; :func:`honest_rows`), mean and
+        95% CI over cases; methods without a check are absent.
 
         Returns
         -------
         pandas.DataFrame
             ``method``, ``input``, ``condition``, ``mean``, ``lo``, ``hi``, ``cases``.
         """
-        return _group_shares(df, honest_rows)
+        params = _informed(df)
+        return _group_shares(df, lambda g: honest_rows(g, params))
 
-    def coverage(self, df, level: str = "90", params=PARAMS):
+    def coverage(self, df, level: str = "90", params=None):
         """Per method, input and condition: coverage of the central ``level``% intervals pooled
-        over ``params`` (each case's hits averaged first), mean and 95% CI over cases.
+        over ``params`` (None: every parameter of the rows' system; each case's hits averaged
+        first), mean and 95% CI over cases.
 
         Returns
         -------
@@ -527,14 +583,17 @@ class Calibration(Experiment):
             return {}
         every = df  # the model check table counts the meaningless clips too
         df = _conditioned(df)
+        informed = _informed(df)
+        columns = [("50", None, "coverage 50%"), ("90", None, "coverage 90%")]
+        if set(informed) != set(system_params(df)):  # the ball: r left out
+            columns.append(("90", informed, f"coverage 90% {_label(informed)}"))
         recs = []
         for (m, inp, cond), g in df.groupby(["method", "input", "condition"]):
             rec = {"method": m, "input": inp, "physics": physics_label(cond),
                    "cases": g.case.nunique(),
                    "frames": ", ".join(str(n) for n in sorted(
                        self._pooled(g, "hit90").n_frames.unique()))}
-            for lev, params, lab in (("50", PARAMS, "coverage 50%"), ("90", PARAMS, "coverage 90%"),
-                                     ("90", EGD, "coverage 90% (e, g, d)")):
+            for lev, params, lab in columns:
                 h = self._pooled(g, f"hit{lev}", params)
                 s = share_ci(h) if len(h) else None
                 rec[lab] = fmt_ci(s["mean"], s["lo"], s["hi"], 2) if s is not None else "-"
@@ -626,7 +685,7 @@ class Calibration(Experiment):
             verdict = _verdict_ci(*[(c["lo"], c["hi"]) for c in ci])
             n = g.case.nunique()
             few = ", too few cases to tell" if n < FEW_CASES else ""
-            parts.append(f"{m} ({inp}, {n} cases) {c50:.2f} [{ci[0]['lo']:.2f}, "
+            parts.append(f"{m} ({inp}, {n_cases(n)}) {c50:.2f} [{ci[0]['lo']:.2f}, "
                          f"{ci[0]['hi']:.2f}]/{c90:.2f} [{ci[1]['lo']:.2f}, {ci[1]['hi']:.2f}], "
                          f"{verdict}{few}")
         if parts:
@@ -647,7 +706,7 @@ class Calibration(Experiment):
         """Sentences on the perturbed-physics rows: coverage of e, g, d against issue 29's band
         (the reference's own band), the change from our physics where the CIs separate, and the
         honest share; verdicts only where the 95% CIs support them."""
-        cov = self.coverage(df, "90", EGD)
+        cov = self.coverage(df, "90", _informed(df))
         pert = cov[cov.condition == PERTURBED]
         if pert.empty:
             return []

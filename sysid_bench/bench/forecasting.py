@@ -1,9 +1,10 @@
 """Experiment 2: forward prediction (paper, Figs. "forw_pred" and "forw_uncert").
 
-After 20, 50 and 100 observed frames every method that forecasts (DMD included) predicts the
-positions up to the video's end, as the paper does; the scores use the next ``horizon`` (100)
-frames. Rows per case and prefix length: ``pos_mse`` (MSE of x and y over the horizon, divided
-by the 10 m view, squared), ``cov50`` / ``cov90`` (fraction of predicted coordinates whose truth
+On every registered system, after 20, 50 and 100 observed frames every method that forecasts
+(DMD included) predicts the tracked points up to the video's end, as the paper does; the scores
+use the next ``horizon`` (100) frames. Rows per case and prefix length: ``pos_mse`` (MSE of x
+and y of every tracked point over the horizon, divided by the width of the system's view (the
+ball's 10 m box), squared), ``cov50`` / ``cov90`` (fraction of predicted coordinates whose truth
 lies in the forecast's central 50 / 90% interval), ``spread`` (mean forecast std / 10 m: how
 certain the method says it is), ``width90_m`` (mean width of the 90% band over the horizon,
 metres), ``width90_common_m`` and ``cov90_common`` (band width and 90% coverage over the
@@ -15,6 +16,10 @@ the ball is often rolling, where rolling resistance, learnt last, decides the pa
 the common frames test the paper's "more certain as frames are observed" on equal terms.
 Every case keeps its per-frame band width (``width90_<t0>``) for the uncertainty figure; the
 first two keep their forecasts for the example figure.
+
+Cases: the ball's are the paper's test videos (20 at the default scale); every other system's
+its test split, 4 at the default scale (``n_cases["forecasting"]["*"]``): the methods' errors
+there span orders of magnitude (section 0), which 4 cases separate; three digits would need 20.
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench.bench.cases import observation
+from sysid_bench.bench.cases import bench_case
 from sysid_bench.bench.experiment import (
     Cell,
     CellOutput,
@@ -34,9 +39,8 @@ from sysid_bench.bench.experiment import (
     fmt_ci,
     paper_methods,
 )
-from sysid_bench.bench.identification import _save, case_cells
+from sysid_bench.bench.identification import _save, case_cells, paper_system
 from sysid_bench.metrics import central_z, position_mse
-from sysid_bench.physics import BOX_WIDTH
 
 N_EXAMPLES = 2
 
@@ -53,7 +57,6 @@ def forecast_interval(fc, level: float) -> tuple[np.ndarray, np.ndarray]:
 
 class Forecasting(Experiment):
     name = "forecasting"
-    systems = ("ball",)  # the ball's alone until it runs per system
     title = "2. Forward prediction"
     description = (
         "After 20, 50 and 100 observed frames, each method predicts the positions up to the "
@@ -65,15 +68,21 @@ class Forecasting(Experiment):
     )
 
     def cells(self, scale, methods, system="ball"):
-        return case_cells(self.name, scale, methods, ("video", "privileged"))
+        return case_cells(self.name, scale, methods, ("video", "privileged"), system)
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
+        from sysid_bench import systems
+
         sc = ctx.scale
-        ds = ctx.test_set("interleaved", sc.n_for(self.name, cell.system))
+        sys_ = systems.get(cell.system)
         i = int(cell.case)
-        obs = observation(ds, i, cell.input)
-        truth = np.asarray(ds.states[i, :, :2])
-        est = ctx.estimator(cell.method)
+        obs, _, points = bench_case(cell.system, i, sc.n_for(self.name, cell.system), sc.seed,
+                                    cell.input)
+        # (T, 2) for one tracked point (the ball's shape, as its forecasts), else (T, K, 2)
+        K = points.shape[1]
+        truth = np.asarray(points[:, 0] if K == 1 else points)
+        view = float(sys_.extent[1] - sys_.extent[0])
+        est = ctx.estimator(cell.method, system=cell.system)
         out = CellOutput()
         if i < N_EXAMPLES:
             out.artifacts["truth"] = truth
@@ -90,18 +99,20 @@ class Forecasting(Experiment):
                 out.fail(t0, exc, i)
                 continue
             wall = time.perf_counter() - start
+            fc = _shaped(fc, truth.shape[1:])
             fut = truth[t0:]  # to the end, as the forecast
             band = {level: forecast_interval(fc, level) for level in (0.5, 0.9)}
             lo90, hi90 = band[0.9]
-            out.add(i, t0, "pos_mse", position_mse(fut[:h], fc.mean[:h]))
+            out.add(i, t0, "pos_mse", position_mse(fut[:h], fc.mean[:h], view=view))
             for level, (lo, hi) in band.items():
                 out.add(i, t0, f"cov{int(level * 100)}", _inside(fut, lo, hi, slice(h)))
-            width = (hi90 - lo90).mean(axis=1)  # (frames to the end,), mean of x and y
+            # (frames to the end,): mean of x and y (of every point)
+            width = (hi90 - lo90).reshape(len(hi90), -1).mean(axis=1)
             late = slice(common - t0, None)
             out.add(i, t0, "width90_m", float(np.mean(width[:h])))
             out.add(i, t0, "width90_common_m", float(np.mean(width[late])))
             out.add(i, t0, "cov90_common", _inside(fut, lo90, hi90, late))
-            out.add(i, t0, "spread", float(np.mean(fc.std[:h])) / BOX_WIDTH)
+            out.add(i, t0, "spread", float(np.mean(fc.std[:h])) / view)
             out.add(i, t0, "wall_s", wall)
             out.artifacts[f"width90_{t0}"] = width.astype(np.float32)
             if i < N_EXAMPLES:
@@ -181,28 +192,35 @@ class Forecasting(Experiment):
         ax.legend(fontsize=7)
         figs["Forward prediction accuracy"] = _save(fig, outdir / "forecast_accuracy.png")
 
-        arts = store.artifacts(f"%/{self.name}|%|0")
+        system = str(df.system.iloc[0]) if "system" in df.columns else "ball"
+        arts = store.artifacts(f"{system}/{self.name}|%|0")
         meths = sorted({c.split("|")[1] for c, _ in arts if c.split("|")[2] == "video"})
         if meths:
             fig, axes = plt.subplots(len(meths), len(afters), figsize=(4 * len(afters), 2.4 * len(meths)),
                                      squeeze=False, sharex=True, sharey=True)
+            axis = 1
             for r, m in enumerate(meths):
-                cid = f"{self.name}|{m}|video||0"
+                cid = f"{system}/{self.name}|{m}|video||0"
                 truth = arts.get((cid, "truth"))
+                if truth is not None:
+                    truth = truth.reshape(len(truth), -1, 2)[:, 0]  # the first tracked point
+                    # the height, unless the point moves along a track (spring, pucks)
+                    axis = 1 if np.ptp(truth[:, 1]) > 0.01 * np.ptp(truth[:, 0]) else 0
                 for c, t0 in enumerate(afters):
                     ax = axes[r, c]
                     if truth is not None:
                         t = np.arange(len(truth))
-                        ax.plot(t[:t0], truth[:t0, 1], color="g", lw=1.5)
-                        ax.plot(t[t0:], truth[t0:, 1], color="g", ls="--", lw=1)
+                        ax.plot(t[:t0], truth[:t0, axis], color="g", lw=1.5)
+                        ax.plot(t[t0:], truth[t0:, axis], color="g", ls="--", lw=1)
                     mean = arts.get((cid, f"mean_{t0}"))
                     if mean is not None:
+                        first = lambda a, k=axis: a.reshape(len(a), -1, 2)[:, 0, k]  # noqa: E731
                         tt = t0 + np.arange(len(mean))
-                        ax.plot(tt, mean[:, 1], color="r", lw=1)
-                        ax.fill_between(tt, arts[(cid, f"lo90_{t0}")][:, 1],
-                                        arts[(cid, f"hi90_{t0}")][:, 1], color="r", alpha=0.2)
+                        ax.plot(tt, first(mean), color="r", lw=1)
+                        ax.fill_between(tt, first(arts[(cid, f"lo90_{t0}")]),
+                                        first(arts[(cid, f"hi90_{t0}")]), color="r", alpha=0.2)
                     ax.set_title(f"{m}, after {t0}", fontsize=8)
-                axes[r, 0].set_ylabel("y (m)")
+                axes[r, 0].set_ylabel("y (m)" if axis == 1 else "x (m)")
             for ax in axes[-1]:
                 ax.set_xlabel("frame")
             # what the colours mean goes in the caption: a title over the panels' titles would
@@ -210,7 +228,7 @@ class Forecasting(Experiment):
             figs["Example forecasts of height with 90% bands (test case 0, video input): observed "
                  "(green), future truth (dashed green), prediction and 90% band (red)"] = _save(
                 fig, outdir / "forecast_examples.png")
-        fig = _band_figure(store.artifacts(f"%/{self.name}|%"), afters)
+        fig = _band_figure(store.artifacts(f"{system}/{self.name}|%"), afters)
         if fig is not None:
             figs["Forecast uncertainty as frames are observed"] = _save(
                 fig, outdir / "forecast_uncertainty.png")
@@ -227,13 +245,13 @@ class Forecasting(Experiment):
         paper = paper_methods(df.method.unique())
         v2p = (paper[0] if paper else None, "video")
         afters = sorted(df.n_frames.unique())
-        others = {k[0] for k in s.index if k[0] not in paper} - {"prior"}
+        others = {k[0] for k in s.index if k[0] not in paper and not _free(k[0])}
         if others and any((*v2p, t) in s.index for t in afters):
             # a verdict only where the 95% CIs separate: a lower mean inside the other's CI
             # (4 cases of emcee against 20) is "not separable", not "better"
             better, tied = [], []
             for (m, inp) in sorted({k[:2] for k in s.index}):
-                if m in paper or m == "prior":
+                if m in paper or _free(m):
                     continue
                 ts = [t for t in afters if (m, inp, t) in s.index and (*v2p, t) in s.index]
                 sig = [t for t in ts if s.loc[(m, inp, t), "hi"] < s.loc[(*v2p, t), "lo"]]
@@ -272,9 +290,13 @@ class Forecasting(Experiment):
         if cal:
             out.append("Calibration: share of the true positions inside the 90% band: "
                        + "; ".join(cal) + ".")
-        lsq = ("lsq", "video")
+        # the paper's baseline that simulates (declared ``paper_baseline``, not a Bayesian
+        # optimiser's few cases: the first in registry order with rows here)
+        base = next((b for b in _baselines(df) if any((b, "video", t) in s.index
+                                                      for t in afters)), None)
         rows, how = [], []
-        for m in paper:
+        for m in paper if base else []:
+            lsq = (base, "video")
             ts = [t for t in afters if (m, "video", t) in s.index and (*lsq, t) in s.index]
             if ts:
                 rows.append(f"{m} " + ", ".join(
@@ -282,14 +304,61 @@ class Forecasting(Experiment):
                     for t in ts))
                 how.append(f"{m}: {_claims(m)}")
         if rows:
-            out.append("Learning the dynamics or simulating them: position MSE relative to lsq on "
-                       "the same videos (" + "; ".join(how) + "): " + "; ".join(rows) + ".")
-        if any(k[0] == "dmd" for k in s.index):
-            d = s.xs("dmd", level="method")
-            out.append("DMD (the paper scaled its error down 1000x, 50x and 5x to plot it): here "
-                       + ", ".join(f"{r['mean']:.3g} after {t} ({i})" for (i, t), r in d.iterrows())
-                       + ", unscaled.")
+            out.append(f"Learning the dynamics or simulating them: position MSE relative to {base} "
+                       "on the same videos (" + "; ".join(how) + "): " + "; ".join(rows) + ".")
+        # methods that forecast without identifying (DMD): the paper scaled their error to plot it
+        for m in sorted({k[0] for k in s.index}):
+            if paper_system(df) and _forecast_only(m):
+                d = s.xs(m, level="method")
+                out.append(f"{m} (the paper scaled DMD's error down 1000x, 50x and 5x to plot it): "
+                           "here " + ", ".join(f"{r['mean']:.3g} after {t} ({i})"
+                                               for (i, t), r in d.iterrows()) + ", unscaled.")
         return out
+
+
+def _shaped(fc, point_shape):
+    """``fc`` with its mean, std and samples shaped (H, *point_shape): a method may answer a
+    system's K points as (H, 2 K) or (H, K, 2)."""
+    import dataclasses
+
+    H = len(fc.mean)
+    if np.shape(fc.mean)[1:] == tuple(point_shape):
+        return fc
+    samples = None if fc.samples is None else np.reshape(fc.samples, (len(fc.samples), H,
+                                                                       *point_shape))
+    return dataclasses.replace(fc, mean=np.reshape(fc.mean, (H, *point_shape)),
+                               std=np.reshape(fc.std, (H, *point_shape)), samples=samples)
+
+
+def _spec(method: str):
+    import methods as registry
+
+    try:
+        return registry.spec(method)
+    except (ValueError, ImportError):  # a store's method no longer registered or installed
+        return None
+
+
+def _free(method: str) -> bool:
+    """A method that declares cost 0 (the prior: it computes nothing to compare)."""
+    sp = _spec(method)
+    return sp is not None and sp.cost == 0
+
+
+def _forecast_only(method: str) -> bool:
+    """A method that forecasts without identifying parameters (DMD)."""
+    sp = _spec(method)
+    return sp is not None and sp.forecasts and not sp.identifies
+
+
+def _baselines(df) -> list[str]:
+    """The methods in ``df`` that declare ``paper_baseline``, cheapest first (registry order
+    among equals), on the paper's system only."""
+    if not paper_system(df):
+        return []
+    found = [(sp.cost, m) for m in df.method.unique() if (sp := _spec(m)) is not None
+             and sp.paper_baseline]
+    return [m for _, m in sorted(found)]
 
 
 def _claims(method: str) -> str:

@@ -294,7 +294,7 @@ class Online(Experiment):
             w1, c1 = _clock()
             wall, cpu, first = w1 - w0, c1 - c0, 1
         else:
-            first = max(1, int(getattr(est, "min_frames", 1)))
+            first = _first_answer(est, obs, max(1, int(getattr(est, "min_frames", 1))))
             _run_batch(est, obs.prefix(min(first + 2, T)), min(first + 2, T), 1)  # warm
             n, wall, cpu = _run_batch(est, obs, first, int(stride))
         for metric, v in (("total_s", wall), ("cpu_s", cpu), ("per_frame_s", wall / T),
@@ -371,6 +371,21 @@ class Online(Experiment):
                 f"{base['per frame ms']} ms a frame; re-running the cheapest other method "
                 f"({cheapest.method}) on every prefix costs {cheapest['x stream']:.3g}x as much "
                 "(median over cases, measured in this run)."]
+
+
+def _first_answer(est, obs, first: int) -> int:
+    """The first prefix length from ``first`` on where ``est`` answers: a method's declared
+    ``min_frames`` is the fewest it accepts anywhere, and a system may need more (sindy's
+    smoothing window on the pendulum: 17 frames); a ``ValueError`` on a prefix means "too few
+    frames here". Raises the last error when no prefix up to half the video answers."""
+    last = None
+    for n in range(first, max(first, obs.n_frames // 2) + 1):
+        try:
+            est.identify(obs.prefix(n))
+            return n
+        except ValueError as exc:
+            last = exc
+    raise last
 
 
 def _is_online(registry, method: str) -> bool:

@@ -122,6 +122,10 @@ class System(abc.ABC):
     headline_groups : tuple of tuple of str
         Groups of parameters whose mean error the report's summary shows beside the overall
         one (e.g. the ball's r, unknowable until the ball rolls, apart from e, g, d).
+    datasets : bool
+        Whether the benchmark draws this system's test cases from :mod:`sysid_bench.datasets`
+        (the paper's split generator, its render nuisances and variants: the ball's) instead
+        of :func:`sysid_bench.bench.cases.system_cases`.
 
     Every public method validates its arguments here, once for all systems (a user's included):
     ``simulate``, ``observe``, ``render`` and ``track`` are defined on this class, and a
@@ -144,11 +148,33 @@ class System(abc.ABC):
     min_size: ClassVar[tuple[int, int]] = (4, 4)
     paper: ClassVar[str] = ""
     headline_groups: ClassVar[tuple[tuple[str, ...], ...]] = ()
+    datasets: ClassVar[bool] = False
     #: Whether ``_simulate`` takes constant parameters as (B, 1, P) (see the module docstring).
     _theta_row_ok: ClassVar[bool] = False
+    #: Experiment 3 (changing parameters): the parameters that jump (None: every one); each is
+    #: re-drawn from its test sub-ranges every ``every`` frames (:meth:`changing_theta`).
+    changing_params: ClassVar[tuple[str, ...] | None] = None
+    #: The :mod:`sysid_bench.datasets` variant that holds this system's own changing-parameter
+    #: test videos ("": none, the bench simulates them from :meth:`changing_theta`).
+    changing_dataset: ClassVar[str] = ""
+    #: True where :mod:`sysid_bench.datasets` makes this system's training sets for every
+    #: sensitivity condition (extrapolation, label noise, simplified physics): experiment 4
+    #: trains condition models only there.
+    sensitivity_training: ClassVar[bool] = False
+    #: Experiment 5's cases off the system's own physics, beside its test cases: ``"perturbed"``
+    #: (test cases re-simulated by physics that is not ours, with its own render) and
+    #: ``"meaningless"`` (clips no physics explains). Both are made from the paper's datasets
+    #: and :func:`sysid_bench.physics.simulate_perturbed`, so a system declares them only with
+    #: :attr:`datasets` (the ball); every system gets its own test cases.
+    calibration_conditions: ClassVar[tuple[str, ...]] = ()
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
+        conds = tuple(cls.calibration_conditions)
+        if set(conds) - {"perturbed", "meaningless"} or (conds and not cls.datasets):
+            raise TypeError(f"{cls.__name__}.calibration_conditions: expected a subset of "
+                            "('perturbed', 'meaningless'), declared only with datasets = True, "
+                            f"got {conds!r} (datasets = {cls.datasets!r})")
         fn = cls.__dict__.get("sample_state0")
         if fn is not None and not getattr(fn, "_checked", False):
             cls.sample_state0 = _checked_sample_state0(fn)
@@ -222,6 +248,35 @@ class System(abc.ABC):
         else:
             raise ValueError(f"split: expected None, 'train' or 'test', got {split!r}")
         return self.denormalise(u)
+
+    def changing_theta(self, n: int, n_frames: int, every: int, rng=None) -> np.ndarray:
+        """Piecewise-constant parameters for experiment 3: a test draw per case, then every
+        ``every`` frames the :attr:`changing_params` re-drawn from their test sub-ranges.
+
+        Parameters
+        ----------
+        n, n_frames, every : int
+        rng : int, None or numpy.random.Generator
+
+        Returns
+        -------
+        ndarray, shape (n, n_frames, P)
+            ``theta[:, t]`` holds from frame t to frame t+1 (as :meth:`simulate` takes it).
+        """
+        n = check_positive_int(n, "n")
+        n_frames = check_positive_int(n_frames, "n_frames")
+        every = check_positive_int(every, "every")
+        rng = check_seed(rng)
+        names = self.params if self.changing_params is None else self.changing_params
+        bad = sorted(set(names) - set(self.params))
+        if bad:
+            raise ValueError(f"changing_params: expected names among {self.params} "
+                             f"({self.name}), got {bad}")
+        moving = np.isin(np.asarray(self.params), np.asarray(names))
+        n_seg = -(-n_frames // every)
+        seg = self.sample_theta(n * n_seg, rng, "test").reshape(n, n_seg, self.n_params)
+        seg[:, 1:, ~moving] = seg[:, :1, ~moving]  # the fixed ones keep the first draw
+        return np.repeat(seg, every, axis=1)[:, :n_frames]
 
     # ------------------------------------------------------------------------------------------
     # validation at the public boundary

@@ -41,6 +41,15 @@ class Ball(System):
     paper = "Vid2Param (Asenov et al.)"
     #: r is unknowable until the ball rolls (about half the test videos never do)
     headline_groups = (("e", "g", "d"), ("r",))
+    #: the paper's test videos: sysid_bench.datasets (splits, nuisances, variants)
+    datasets = True
+    #: experiment 5 also on re-simulated perturbed physics and on clips no physics explains
+    calibration_conditions = ("perturbed", "meaningless")
+    # experiments 3 and 4 use the paper's own test and training sets (sysid_bench.datasets):
+    # all four parameters jump every `every` frames
+    changing_params = physics.PARAMS
+    changing_dataset = "changing"
+    sensitivity_training = True
 
     def state_bounds_for(self, scene):
         if scene == self.default_scene:

@@ -401,6 +401,8 @@ class Pendulum(System):
     state = ("theta", "omega")
     state_bounds = {"theta": (-2 * np.pi, 2 * np.pi), "omega": (-50.0, 50.0)}
     n_points = 1
+    #: experiment 3: gravity and friction may change during a clip; a rod does not change length
+    changing_params = ("g", "b", "mu")
     extent = (-2.5, 2.5, -2.5, 2.5)
     size = (64, 64)
     noise_m = 0.01
