@@ -32,14 +32,13 @@ import numpy as np
 
 from methods._tracks import (
     _FLOOR_ACC,
-    _FLOOR_SE_ONE,
-    _FLOOR_SE_UNSEEN,
     _MIN_STATE_STD,
     _WALL_ACC,
     Contact,
     Segments,
     Track,
     clip_state,
+    floor_estimate,
     local_state,
     start_before_contact,
 )
@@ -438,20 +437,8 @@ def _prepare_group(obs: list[Observation], pos: np.ndarray, dt: float) -> list[T
             floor_known.append(True)
             continue
         floor_known.append(False)
-        y = pos[i, :, 1]
-        lowest = float(np.nanmin(y))
-        if seg.contacts:
-            h = np.array([c.height for c in seg.contacts])
-            floor = float(np.median(h))
-            spread = float(np.std(h, ddof=1)) / np.sqrt(h.size) if h.size >= 2 else _FLOOR_SE_ONE
-            fs = max(spread, noise, _MIN_STATE_STD[1])
-        elif seg.on_floor.any():
-            yf = y[seg.on_floor]
-            floor = float(np.median(yf))
-            fs = max(float(np.std(yf)) / np.sqrt(yf.size), noise, _MIN_STATE_STD[1])
-        else:
-            floor, fs = lowest, _FLOOR_SE_UNSEEN
-        floors.append(min(floor, lowest))
+        floor, fs = floor_estimate(pos[i, :, 1], seg, noise)
+        floors.append(floor)
         floor_std.append(fs)
         if not seg.on_floor.any():
             redo.append(i)
