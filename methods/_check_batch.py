@@ -6,8 +6,11 @@ simulations, and ~90% of a check's time was the optimiser's own overhead, not si
 (~170 ms a video on 2 cores). :func:`check_batch` runs the same checks for a whole batch of
 videos in lock step: every fit is a bounded Levenberg-Marquardt iteration vectorised over the
 videos (a batched linear solve), and each iteration is one simulator call for all of them (the
-point and its forward-difference steps). The steps of a check are those of
-:func:`~methods._simulation.check_posterior` for the first prefix of a video (no warm start):
+point and its forward-difference steps). The videos are tracked by one
+:func:`~sysid_bench.tracking.track_batch` and prepared by one
+:func:`~methods._tracks_batch.prepare_batch` (bitwise ``prepare``'s Tracks). The steps of a
+check are those of :func:`~methods._simulation.check_posterior` for the first prefix of a
+video (no warm start):
 
 1. the posterior mean from its start fitted inside :func:`~methods._simulation.state0_box`
    (``theta`` held, at most :data:`~methods._simulation.CHECK_STATE_SIMS` simulations);
@@ -50,7 +53,8 @@ from methods._simulation import (
     widen_failed,
     widen_uninformed,
 )
-from methods._tracks import Track, clip_state, prepare
+from methods._tracks import Track, clip_state
+from methods._tracks_batch import prepare_batch
 from sysid_bench import physics
 from sysid_bench.estimator import Check, Observation, Posterior
 from sysid_bench.physics import BOX_WIDTH
@@ -319,11 +323,9 @@ def check_batch(posts: list[Posterior], frames: np.ndarray, noise_m: float,
     pos[..., 0] = np.clip(pos[..., 0], 0.0, BOX_WIDTH)  # as observed_positions
     out: list[Posterior | None] = [None] * n
     tracks, idx = [], []
-    for i in range(n):
-        try:
-            track = prepare(Observation(positions=pos[i, start:], **obs_kw))
-        except ValueError:
-            track = None
+    # every video's prepare at once (bitwise the per-video Tracks; None where it would raise)
+    prepared = prepare_batch([Observation(positions=pos[i, start:], **obs_kw) for i in range(n)])
+    for i, track in enumerate(prepared):
         if track is None or track.state0_known:
             # nothing to fit here (or a known start): the sequential path says why
             out[i] = check_prefixes([posts[i]], Observation(frames=fr[i], **obs_kw), [T],

@@ -397,6 +397,24 @@ class Track:
         }
 
 
+def floor_estimate(y: np.ndarray, seg: Segments, noise: float) -> tuple[float, float]:
+    """The floor's height and its standard error, m, from a track's heights ``y`` (T,) and its
+    segments (contacts first, then rolling frames, else only a bound: the lowest point)."""
+    lowest = float(np.nanmin(y))
+    if seg.contacts:
+        h = np.array([c.height for c in seg.contacts])
+        floor = float(np.median(h))
+        spread = float(np.std(h, ddof=1)) / np.sqrt(h.size) if h.size >= 2 else _FLOOR_SE_ONE
+        floor_std = max(spread, noise, _MIN_STATE_STD[1])
+    elif seg.on_floor.any():
+        yf = y[seg.on_floor]
+        floor = float(np.median(yf))
+        floor_std = max(float(np.std(yf)) / np.sqrt(yf.size), noise, _MIN_STATE_STD[1])
+    else:  # no contact seen: the floor is at most the lowest point; how far below, unknown
+        floor, floor_std = lowest, _FLOOR_SE_UNSEEN
+    return min(floor, lowest), floor_std  # every seen centre is above the floor
+
+
 def prepare(obs: Observation) -> Track:
     """Validate an observation and estimate what it does not give (floor, initial state).
 
@@ -425,19 +443,7 @@ def prepare(obs: Observation) -> Track:
         floor, floor_std, floor_known = float(obs.floor), 0.0, True
     else:
         floor_known = False
-        lowest = float(np.nanmin(pos[:, 1]))
-        if seg.contacts:
-            h = np.array([c.height for c in seg.contacts])
-            floor = float(np.median(h))
-            spread = float(np.std(h, ddof=1)) / np.sqrt(h.size) if h.size >= 2 else _FLOOR_SE_ONE
-            floor_std = max(spread, noise, _MIN_STATE_STD[1])
-        elif seg.on_floor.any():
-            y = pos[seg.on_floor, 1]
-            floor = float(np.median(y))
-            floor_std = max(float(np.std(y)) / np.sqrt(y.size), noise, _MIN_STATE_STD[1])
-        else:  # no contact seen: the floor is at most the lowest point; how far below, unknown
-            floor, floor_std = lowest, _FLOOR_SE_UNSEEN
-        floor = min(floor, lowest)  # every seen centre is above the floor
+        floor, floor_std = floor_estimate(pos[:, 1], seg, noise)
         if not seg.on_floor.any():
             # the rolling test used the lowest point as floor level; redo it with the estimate
             seg = segment_track(pos, dt, floor=floor)

@@ -44,8 +44,12 @@ from sysid_bench.render import view_geometry
 
 __all__ = ["track", "track_batch", "ball_seen", "ball_centre", "noise_level"]
 
-#: Frames processed at once (bounds scratch memory to a few arrays of this many pixels).
+#: Frames processed at once (bounds scratch memory to a few arrays of this many pixels). Not
+#: smaller: a frame's centre can move in the last bit with its row in a chunk (``@`` is BLAS's
+#: gemv), and 1 << 19 moved one of 200k training frames by 1e-7 m.
 _CHUNK_PIXELS = 1 << 22
+#: A uint8 frame's pixels as ``_centroids`` scales them (``fr / 255`` in float32), by value.
+_GREY = np.arange(256, dtype=np.float32) / np.float32(255.0)
 #: Robust noise standard deviations a pixel must differ from the background by to stand out.
 NOISE_K = 5.0
 #: Area of the pixels standing out near a ball, as a fraction of its disc's: accepted range.
@@ -254,13 +258,69 @@ def ball_centre(diff, threshold: float, guess, radius: float) -> tuple[np.ndarra
     return centre, float(m)
 
 
+def _at_least(img: np.ndarray, fr: np.ndarray, level: float) -> np.ndarray:
+    """``img >= level`` (bool, ``img``'s shape), from the grey levels when ``fr`` is uint8:
+    ``img`` is then a non-decreasing function of ``fr`` (:data:`_GREY`), so the comparison is
+    one integer cut-off on 1-byte pixels."""
+    if fr.dtype != np.uint8:
+        return img >= level
+    cut = np.flatnonzero(_GREY >= level)  # the same comparison on the 256 possible values
+    return fr >= cut[0] if cut.size else np.zeros(fr.shape, dtype=bool)
+
+
+def _kept(img: np.ndarray, fr: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``np.where(mask, img, 0)`` in float32 (for uint8 frames a product by the mask: ``img`` is
+    finite and >= 0 there, so bitwise the same and cheaper)."""
+    if fr.dtype == np.uint8:
+        return img * mask
+    return np.where(mask, img, np.float32(0.0))
+
+
+def _background(img: np.ndarray, fr: np.ndarray, k: int) -> np.ndarray:
+    """The ``k``-th smallest pixel (0-based) of each frame of ``img`` (F, H, W), float32 (F,).
+
+    uint8 frames: where more than ``k`` pixels equal the frame's darkest (a rendered wall),
+    that is it; the others' grey level by ``np.partition`` of the bytes, scaled as ``img``
+    (the same value as sorting ``img``: the scaling does not decrease)."""
+    f = img.shape[0]
+    if fr.dtype != np.uint8:
+        return np.sort(img.reshape(f, -1), axis=1)[:, k]
+    flat = fr.reshape(f, -1)
+    v = flat.min(axis=1)
+    rest = np.flatnonzero((flat == v[:, None]).sum(axis=1) <= k)
+    if rest.size:
+        v[rest] = np.partition(flat[rest], k, axis=1)[:, k]
+    return _GREY[v]
+
+
+def _stand_out(contrast: np.ndarray, threshold: float, k: int) -> np.ndarray:
+    """``max(threshold, NOISE_K * 1.4826 * (k-th smallest |contrast|))`` of each frame, float32
+    (F,): the grey levels a pixel must stand out by.
+
+    Where more than ``k`` pixels are within ``q`` of the background, ``q`` the largest value
+    whose noise bound is still at most ``threshold``, the answer is ``threshold`` without a
+    sort (clean renders: most pixels are the wall); the others' k-th value by sorting."""
+    f = contrast.shape[0]
+    thr = np.float32(threshold)
+    q = np.float32(threshold / (NOISE_K * 1.4826))
+    while np.float32(NOISE_K) * (np.float32(1.4826) * q) > thr:
+        q = np.nextafter(q, np.float32(0.0))
+    absc = np.abs(contrast.reshape(f, -1))
+    tau = np.full(f, thr, dtype=np.float32)
+    rest = np.flatnonzero((absc <= q).sum(axis=1) <= k)
+    if rest.size:
+        noise = np.float32(1.4826) * np.sort(absc[rest], axis=1)[:, k]
+        tau[rest] = np.maximum(thr, np.float32(NOISE_K) * noise)
+    return tau
+
+
 def _centroids(fr: np.ndarray, radius: float, threshold: float, min_mass: float) -> np.ndarray:
     """Sub-pixel ball centres of ``fr`` (F, H, W) as continuous ``(col, row)``, NaN if unseen."""
     f, h, w = fr.shape
     img = fr.astype(np.float32) / np.float32(255.0)
     # first pass on the ball's core only (halfway between threshold and white), so pixel noise
     # spread over the whole image barely moves the first estimate
-    wgt = np.where(img >= (1.0 + threshold) / 2, img, np.float32(0.0))
+    wgt = _kept(img, fr, _at_least(img, fr, (1.0 + threshold) / 2))
     jc = np.arange(w, dtype=np.float32) + 0.5
     ic = np.arange(h, dtype=np.float32) + 0.5
     colsum = wgt.sum(axis=1)  # (F, W)
@@ -274,7 +334,7 @@ def _centroids(fr: np.ndarray, radius: float, threshold: float, min_mass: float)
     near = (
         (jc[None, None, :] - c[:, None, None]) ** 2 + (ic[None, :, None] - r[:, None, None]) ** 2
     ) <= win
-    wgt = np.where(near & (img >= threshold), img, np.float32(0.0))
+    wgt = _kept(img, fr, near & _at_least(img, fr, threshold))
     colsum = wgt.sum(axis=1)
     rowsum = wgt.sum(axis=2)
     mass = colsum.sum(axis=1)
@@ -284,13 +344,11 @@ def _centroids(fr: np.ndarray, radius: float, threshold: float, min_mass: float)
     seen = mass >= min_mass * np.pi * radius**2
     # the suite's rule: a compact disc standing out from the frame's own background (its median)
     # by threshold and by NOISE_K noise standard deviations, not a white, grey or noise frame
-    # (in units of white; the lower median of a sorted copy: np.median costs several times more
-    # on a single frame, and track runs once per frame in the control loop)
+    # (in units of white; the lower median, as of a sorted copy: np.median costs several times
+    # more on a single frame, and track runs once per frame in the control loop)
     k = (h * w - 1) // 2
-    bg = np.sort(img.reshape(f, h * w), axis=1)[:, k]
-    contrast = img - bg[:, None, None]
-    noise = np.float32(1.4826) * np.sort(np.abs(contrast.reshape(f, h * w)), axis=1)[:, k]
-    tau = np.maximum(np.float32(threshold), np.float32(NOISE_K) * noise)
+    contrast = img - _background(img, fr, k)[:, None, None]
+    tau = _stand_out(contrast, threshold, k)
     seen &= ball_seen(contrast, np.stack([c, r], axis=-1), radius, tau)
     out = np.stack([c, r], axis=-1).astype(np.float64)
     out[~seen] = np.nan

@@ -162,3 +162,30 @@ def test_noise_level_is_the_standard_deviation():
     x = rng.normal(100.0, 10.0, (3, 5000))
     x[:, :100] = 255  # a ball's worth of outliers does not move it
     np.testing.assert_allclose(noise_level(x, axis=1), 10.0, rtol=0.05)
+
+
+def test_uint8_shortcuts_equal_the_plain_formula():
+    # _centroids' shortcuts for uint8 frames (integer cut-offs, the background by the bytes, no
+    # sort where the wall dominates) against the formulas they replace, on walls and on noise
+    from sysid_bench import tracking as tr
+
+    rng = np.random.default_rng(39)
+    fr = rng.integers(0, 256, (40, 28, 28), dtype=np.uint8)
+    fr[:10] = 0  # dark walls with a few bright specks: the cheap branches
+    fr[:10, ::7, ::5] = rng.integers(0, 256, (10, 4, 6), dtype=np.uint8)
+    fr[10:15] = rng.integers(120, 124, (5, 28, 28), dtype=np.uint8)  # grey, narrow spread
+    img = fr.astype(np.float32) / np.float32(255.0)
+    k = (28 * 28 - 1) // 2
+    for level in (0.1, 0.25, 0.625, 0.999, 1.5):
+        mask = tr._at_least(img, fr, level)
+        np.testing.assert_array_equal(mask, img >= level)
+        want = np.where(mask, img, np.float32(0.0))
+        got = tr._kept(img, fr, mask)
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+    bg = np.sort(img.reshape(40, -1), axis=1)[:, k]
+    assert tr._background(img, fr, k).tobytes() == bg.tobytes()
+    contrast = img - bg[:, None, None]
+    for thr in (0.05, 0.25, 0.6):
+        noise = np.float32(1.4826) * np.sort(np.abs(contrast.reshape(40, -1)), axis=1)[:, k]
+        want = np.maximum(np.float32(thr), np.float32(tr.NOISE_K) * noise)
+        assert tr._stand_out(contrast, thr, k).tobytes() == want.tobytes()
