@@ -4,7 +4,7 @@ Entries are ``"module:Class"`` strings resolved on first use, so importing ``met
 neither torch nor JAX; only the method that needs them does.
 
 Adding a method is one file and one ``register("name", "methods.file:Class")`` line below;
-everything the harness needs is declared on the class (:mod:`sysid_bench.spec`) and read with
+everything the harness needs is declared on the class (:mod:`sysid_bench.core.spec`) and read with
 :func:`spec`. Reading a declaration imports the method's module (its class holds them): the
 declarations live in the one file that defines the method, with their code, instead of in a
 second copy on the register line that could drift from it. Only the names (``available``) and
@@ -21,7 +21,7 @@ import the modules they run or draw anyway.
 >>> est = methods.get("nuts", system="pendulum")    # doctest: +SKIP
 
 Every method is one class that runs on each system it declares (``systems``, a tuple of names
-or ``"any"``; :mod:`sysid_bench.spec`), picked by its ``system`` hyperparameter: on the ball it
+or ``"any"``; :mod:`sysid_bench.core.spec`), picked by its ``system`` hyperparameter: on the ball it
 runs the ball's machinery (:mod:`methods._simulation`, :mod:`methods._tracks`), on another system
 it composes the generic likelihood on the system's tracked points (:mod:`methods._points`; nuts
 samples through the system's JAX twin) or, for sindy, the system's feature
@@ -41,8 +41,8 @@ import difflib
 import importlib
 from dataclasses import dataclass
 
-from sysid_bench.estimator import Estimator
-from sysid_bench.spec import MethodSpec
+from sysid_bench.core.estimator import Estimator
+from sysid_bench.core.spec import MethodSpec
 
 __all__ = ["available", "references", "get", "get_class", "register", "unregister", "spec",
            "commands", "Registration", "MethodSpec", "NotAvailable"]
@@ -182,7 +182,7 @@ def get_class(name: str, system: str = "ball") -> type[Estimator]:
     if name not in _REGISTRY:
         raise _unknown(name)
     reg = _REGISTRY[name]
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     sys_name = systems.get(system).name  # ValueError listing the known systems
     cls = _import_class(reg, reg.entry_point)
@@ -200,7 +200,7 @@ def get_class(name: str, system: str = "ball") -> type[Estimator]:
 def get(name: str, system: str = "ball", **options) -> Estimator:
     """A ready-to-use estimator for ``system``; ``options`` are its keyword hyperparameters.
 
-    ``system`` is a registered system name (:func:`sysid_bench.systems.available`): the method's
+    ``system`` is a registered system name (:func:`sysid_bench.core.systems.available`): the method's
     one class, built with ``system=`` where it takes that hyperparameter. A system
     the method does not declare (``systems``) raises :class:`NotAvailable` (a ``ValueError``
     and a ``NotImplementedError``, so recorded as n/a); so does a declared one where the
@@ -220,7 +220,7 @@ def get(name: str, system: str = "ball", **options) -> Estimator:
         raise ValueError(f"{'/'.join(given)}: {name} cannot honour known values or prior ranges "
                          f"({why}); got " + ", ".join(f"{k}={options[k]!r}" for k in given))
     if "system" in cls._param_names():
-        from sysid_bench import systems
+        from sysid_bench.core import systems
 
         options = {**options, "system": systems.get(system).name}
     try:

@@ -7,7 +7,7 @@ simulations, and ~90% of a check's time was the optimiser's own overhead, not si
 videos in lock step: every fit is a bounded Levenberg-Marquardt iteration vectorised over the
 videos (a batched linear solve), and each iteration is one simulator call for all of them (the
 point and its forward-difference steps). The videos are tracked by one
-:func:`~sysid_bench.tracking.track_batch` and prepared by one
+:func:`~sysid_bench.core.tracking.track_batch` and prepared by one
 :func:`~methods._tracks_batch.prepare_batch` (bitwise ``prepare``'s Tracks). The steps of a
 check are those of :func:`~methods._simulation.check_posterior` for the first prefix of a
 video (no warm start):
@@ -55,10 +55,10 @@ from methods._simulation import (
 )
 from methods._tracks import Track, clip_state
 from methods._tracks_batch import prepare_batch
-from sysid_bench import physics
-from sysid_bench.estimator import Check, Observation, Posterior
-from sysid_bench.physics import BOX_WIDTH
-from sysid_bench.simulator import CountingSimulator
+from sysid_bench.core import physics
+from sysid_bench.core.estimator import Check, Observation, Posterior
+from sysid_bench.core.physics import BOX_WIDTH
+from sysid_bench.core.simulator import CountingSimulator
 
 __all__ = ["check_batch"]
 
@@ -292,7 +292,7 @@ def check_batch(posts: list[Posterior], frames: np.ndarray, noise_m: float,
     posts : list of Posterior, length N
         Each video's posterior after all its frames.
     frames : ndarray, shape (N, T, H, W)
-        The videos (tracked here with :func:`sysid_bench.tracking.track_batch`).
+        The videos (tracked here with :func:`sysid_bench.core.tracking.track_batch`).
     noise_m : float
         The observation noise (m) the checks judge against.
     window : int, optional
@@ -307,7 +307,7 @@ def check_batch(posts: list[Posterior], frames: np.ndarray, noise_m: float,
         :func:`~methods._simulation.check_prefixes` on each video's full length would;
         ``extras["check_simulations"]`` counts each video's simulations.
     """
-    from sysid_bench.tracking import track_batch
+    from sysid_bench.core.tracking import track_batch
 
     fr = np.asarray(frames)
     n = len(posts)

@@ -2,8 +2,8 @@
 
 Every method is one class (``methods.get(name, system=S)``); on the ball it runs the ball's own
 machinery (:mod:`methods._simulation`, :mod:`methods._tracks`), on any other registered system
-(:mod:`sysid_bench.systems`) it composes the parts below, which need nothing but the
-:class:`~sysid_bench.systems.System` interface (so a system a user registers gets them too):
+(:mod:`sysid_bench.core.systems`) it composes the parts below, which need nothing but the
+:class:`~sysid_bench.core.systems.System` interface (so a system a user registers gets them too):
 
 * :class:`PointsTrack`: the observation as the methods see it: the K tracked points (T, K, 2)
   (tracked from the frames with the system's own ``track`` when only frames are given), which
@@ -11,7 +11,7 @@ machinery (:mod:`methods._simulation`, :mod:`methods._tracks`), on any other reg
   system's ``state0_from_track`` estimate and the box around it (intersected with the system's
   ``state_bounds``) inside which it is searched or sampled;
 * :class:`PointsSimulator`: ``system.simulate`` then ``system.observe``, counting one
-  simulation per trajectory as :class:`sysid_bench.simulator.CountingSimulator` does;
+  simulation per trajectory as :class:`sysid_bench.core.simulator.CountingSimulator` does;
 * :class:`Problem`: the likelihood. Observed points are the simulated ones plus independent
   Gaussian noise of a fixed ``sigma`` per coordinate (default :func:`default_sigma`, the
   system's ``noise_m`` and a fifth more for tracking error); unseen points contribute nothing;
@@ -41,10 +41,10 @@ import numpy as np
 
 from methods._simulation import SimulationMethod, Stopwatch, make_rng, one_blas_thread
 from methods._weights import resample
-from sysid_bench._validate import check_positive_int
-from sysid_bench.estimator import Check, Forecast, Observation, Posterior
-from sysid_bench.footage import parse_known, parse_prior
-from sysid_bench.simulator import DEFAULT_SIGMA, SimulationBudgetExceeded, check_sigma
+from sysid_bench.core._validate import check_positive_int
+from sysid_bench.core.estimator import Check, Forecast, Observation, Posterior
+from sysid_bench.core.footage import parse_known, parse_prior
+from sysid_bench.core.simulator import DEFAULT_SIGMA, SimulationBudgetExceeded, check_sigma
 
 __all__ = [
     "PointsTrack", "PointsSimulator", "Problem", "PointsFit", "Points",
@@ -65,7 +65,7 @@ def default_sigma(system) -> float:
 
 
 def _system(name):
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     return systems.get(name)
 
@@ -222,11 +222,11 @@ class Problem:
         Noise standard deviation (m) per coordinate.
     sim : PointsSimulator
     known : dict of str -> float, optional
-        Parameters held fixed (as :func:`sysid_bench.footage.parse_known` returns): their unit
+        Parameters held fixed (as :func:`sysid_bench.core.footage.parse_known` returns): their unit
         coordinate maps to the value whatever it is (span 0), so every sample holds it exactly.
     prior : dict of str -> (float, float), optional
         Ranges replacing the system's prior for the named parameters (as
-        :func:`sysid_bench.footage.parse_prior` validates them).
+        :func:`sysid_bench.core.footage.parse_prior` validates them).
 
     Notes
     -----
@@ -570,7 +570,7 @@ class SimulationOnSystems(SimulationMethod):
 
     def _knowledge(self) -> tuple[dict, dict]:
         """``known``/``prior`` (absent or None: nothing) checked on the system, as
-        :func:`sysid_bench.footage.parse_known`/``parse_prior`` check the command line's.
+        :func:`sysid_bench.core.footage.parse_known`/``parse_prior`` check the command line's.
 
         Returns
         -------

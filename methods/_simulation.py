@@ -8,7 +8,7 @@ posterior; ``forecast`` resamples ``n_forecast`` draws (by the fit's weights whe
 uniformly otherwise, from the seed's stream 1 so the forecast does not reuse the fit's draws)
 and continues each draw's own trajectory past the last observed frame.
 
-The counting simulator and the likelihood are the harness's (:mod:`sysid_bench.simulator`),
+The counting simulator and the likelihood are the harness's (:mod:`sysid_bench.core.simulator`),
 track preparation is :mod:`methods._tracks`, weighting and resampling :mod:`methods._weights`.
 """
 
@@ -23,11 +23,11 @@ import numpy as np
 
 from methods._tracks import Track, clip_state
 from methods._weights import resample
-from sysid_bench import physics
-from sysid_bench._validate import check_positive_int
-from sysid_bench.estimator import Check, Estimator, Forecast, Observation, Posterior
-from sysid_bench.physics import PRIOR_STD
-from sysid_bench.simulator import CountingSimulator
+from sysid_bench.core import physics
+from sysid_bench.core._validate import check_positive_int
+from sysid_bench.core.estimator import Check, Estimator, Forecast, Observation, Posterior
+from sysid_bench.core.physics import PRIOR_STD
+from sysid_bench.core.simulator import CountingSimulator
 
 __all__ = ["SimulationMethod", "Fit", "forecast_by_simulation", "make_rng", "Stopwatch",
            "one_blas_thread", "model_check", "region_box", "region_check",
@@ -127,7 +127,7 @@ def check_prefixes(posts: list, obs: Observation, lengths, noise_m: float,
     """Model checks of posteriors after each of ``lengths`` frames of ``obs`` (any method).
 
     For a method that does not fit trajectories itself (Vid2Param): the observation is tracked
-    once (:func:`sysid_bench.estimator.observed_positions`: the harness's tracker on frames),
+    once (:func:`sysid_bench.core.estimator.observed_positions`: the harness's tracker on frames),
     and each posterior is checked with our physics over its prefix (:func:`check_posterior`
     with ``fit_state0``: the mean from the start that fits it best, else a parameter vector
     inside its 90% interval), judged against ``noise_m``. A prefix with fewer than 3 seen
@@ -148,7 +148,7 @@ def check_prefixes(posts: list, obs: Observation, lengths, noise_m: float,
         ``posts`` with ``check`` set, widened where it failed (:func:`widen_to_support`).
     """
     from methods._tracks import prepare
-    from sysid_bench.estimator import observed_positions
+    from sysid_bench.core.estimator import observed_positions
 
     try:
         pos = observed_positions(obs, min_seen=0)

@@ -72,8 +72,8 @@ from methods._simulation import (
     make_rng,
     one_blas_thread,
 )
-from sysid_bench._validate import check_positive_int
-from sysid_bench.estimator import Check, Forecast, Observation, Posterior
+from sysid_bench.core._validate import check_positive_int
+from sysid_bench.core.estimator import Check, Forecast, Observation, Posterior
 
 __all__ = ["SINDyPoints", "LIBRARIES", "STILL_OMEGA", "CHECK_EVALS", "model_check", "na_reason"]
 

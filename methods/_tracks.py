@@ -1,6 +1,6 @@
 """Track segmentation and state estimation for the position-based methods.
 
-:func:`prepare` turns an :class:`~sysid_bench.estimator.Observation` into a :class:`Track`:
+:func:`prepare` turns an :class:`~sysid_bench.core.estimator.Observation` into a :class:`Track`:
 validated positions, the floor (given, or estimated) and the initial state (given, or estimated
 by a local polynomial fit, with its standard error). :func:`segment_track` finds floor and wall
 contacts and the rolling phase from positions alone (SINDy fits between them; the state and
@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sysid_bench import physics
-from sysid_bench.estimator import BOX_MARGIN, Observation, observed_positions
+from sysid_bench.core import physics
+from sysid_bench.core.estimator import BOX_MARGIN, Observation, observed_positions
 
 __all__ = ["Track", "Segments", "Contact", "prepare", "start_before_contact", "segment_track",
            "floor_contacts",
@@ -433,7 +433,7 @@ def prepare(obs: Observation) -> Track:
         ``state0`` outside the box.
     """
     if not isinstance(obs, Observation):
-        raise ValueError(f"obs: expected a sysid_bench.estimator.Observation, got {type(obs).__name__}")
+        raise ValueError(f"obs: expected a sysid_bench.core.estimator.Observation, got {type(obs).__name__}")
     pos = observed_positions(obs, min_seen=3)
     mask = np.isfinite(pos).all(axis=1)
     dt = float(obs.dt)

@@ -42,7 +42,7 @@ from methods._tracks import (
     local_state,
     start_before_contact,
 )
-from sysid_bench.estimator import Observation, observed_positions
+from sysid_bench.core.estimator import Observation, observed_positions
 
 try:  # the gufunc np.linalg.lstsq calls; it takes stacks of equal-sized problems
     from numpy.linalg import _umath_linalg as _ulinalg
@@ -387,7 +387,7 @@ def prepare_batch(observations: Sequence[Observation]) -> list[Track | None]:
     ----------
     observations : sequence of Observation, length N
         The ball's, with positions or frames (frames are tracked one video at a time, as
-        ``prepare`` does; :func:`sysid_bench.tracking.track_batch` them first to batch that too).
+        ``prepare`` does; :func:`sysid_bench.core.tracking.track_batch` them first to batch that too).
 
     Returns
     -------
@@ -398,12 +398,12 @@ def prepare_batch(observations: Sequence[Observation]) -> list[Track | None]:
     Raises
     ------
     ValueError
-        An entry is not an :class:`~sysid_bench.estimator.Observation`.
+        An entry is not an :class:`~sysid_bench.core.estimator.Observation`.
     """
     obs = list(observations)
     for i, o in enumerate(obs):
         if not isinstance(o, Observation):
-            raise ValueError(f"observations[{i}]: expected a sysid_bench.estimator.Observation, "
+            raise ValueError(f"observations[{i}]: expected a sysid_bench.core.estimator.Observation, "
                              f"got {type(o).__name__}")
     out: list[Track | None] = [None] * len(obs)
     groups: dict[tuple[int, float], list[tuple[int, np.ndarray]]] = {}
@@ -450,8 +450,8 @@ def _prepare_group(obs: list[Observation], pos: np.ndarray, dt: float) -> list[T
     starts = dict(zip(estimate, _start_states(pos[estimate], dt, [segs[i] for i in estimate],
                                               [floors[i] for i in estimate],
                                               [noises[i] for i in estimate])))
-    from sysid_bench import physics
-    from sysid_bench.estimator import BOX_MARGIN
+    from sysid_bench.core import physics
+    from sysid_bench.core.estimator import BOX_MARGIN
 
     for i, o in enumerate(obs):
         floor = floors[i]

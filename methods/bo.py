@@ -17,7 +17,7 @@ in ``extras["ok"]``/``extras["message"]``.
 Model check (``Posterior.check``, :meth:`methods._simulation.Fit.checked`): the posterior mean
 simulated from the start that fits it best (the initial state it held fixed, refitted by least
 squares with the parameters held: bo does not search the start) against the seen positions, judged against ``sigma``
-(:meth:`sysid_bench.estimator.Check.from_residuals`). A failed check keeps the mean and widens
+(:meth:`sysid_bench.core.estimator.Check.from_residuals`). A failed check keeps the mean and widens
 the intervals to what the data supports (:func:`methods._simulation.widen_to_support`: to hold
 the best fit a local least-squares refinement from the mean finds, or to at least the prior's
 when even that fit fails); its simulations are in ``extras["check_simulations"]``.
@@ -39,11 +39,11 @@ from methods._points import Points, PointsFit, SimulationOnSystems, prepare_poin
 from methods._simulation import Fit, Stopwatch, make_rng, one_blas_thread
 from methods._tracks import clip_state, prepare
 from methods._weights import resample, tempered_weights
-from sysid_bench import physics
-from sysid_bench._validate import check_positive_int
-from sysid_bench.estimator import Observation, Posterior
-from sysid_bench.physics import PRIOR_MEAN, PRIOR_STD
-from sysid_bench.simulator import CountingSimulator, check_sigma, mean_sq_error
+from sysid_bench.core import physics
+from sysid_bench.core._validate import check_positive_int
+from sysid_bench.core.estimator import Observation, Posterior
+from sysid_bench.core.physics import PRIOR_MEAN, PRIOR_STD
+from sysid_bench.core.simulator import CountingSimulator, check_sigma, mean_sq_error
 
 __all__ = ["BayesOpt"]
 
@@ -58,7 +58,7 @@ class BayesOpt(SimulationOnSystems):
     Parameters
     ----------
     system : str
-        A registered system (:func:`sysid_bench.systems.available`); the class runs on any.
+        A registered system (:func:`sysid_bench.core.systems.available`); the class runs on any.
     n_calls : int
         Objective evaluations (one simulation each), initial design included.
     n_initial_points : int
@@ -82,10 +82,10 @@ class BayesOpt(SimulationOnSystems):
     known : dict of str -> float, optional
         Another system only: parameters held at these values (every sample holds the value,
         std 0; the held unit coordinate stays in the search but changes nothing); checked as
-        ``--known`` is (:func:`sysid_bench.footage.parse_known`).
+        ``--known`` is (:func:`sysid_bench.core.footage.parse_known`).
     prior : dict of str -> (float, float), optional
         Another system only: ranges replacing the system's prior for these parameters
-        (:func:`sysid_bench.footage.parse_prior`).
+        (:func:`sysid_bench.core.footage.parse_prior`).
     seed : int
         Seeds skopt's design and acquisition and the surrogate draws.
     """

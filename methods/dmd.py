@@ -29,7 +29,13 @@ import numpy as np
 
 from methods._points import check_system_param, prepare_points, system_of
 from methods._simulation import one_blas_thread
-from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, observed_positions
+from sysid_bench.core.estimator import (
+    Estimator,
+    Forecast,
+    Observation,
+    Posterior,
+    observed_positions,
+)
 
 __all__ = ["DMD"]
 
@@ -40,7 +46,7 @@ class DMD(Estimator):
     Parameters
     ----------
     system : str
-        A registered system (:func:`sysid_bench.systems.available`); the class runs on any.
+        A registered system (:func:`sysid_bench.core.systems.available`); the class runs on any.
     delays : int
         Time-delay embedding depth ``d`` of ``HankelDMD``; 0 picks ``min(n // 2, 60)`` for a
         series of ``n`` frames.
@@ -147,7 +153,7 @@ class DMD(Estimator):
         if self.system not in self.own_path:
             return self._forecast_points(obs, horizon, t0)
         if not isinstance(obs, Observation):
-            raise ValueError(f"obs: expected a sysid_bench.estimator.Observation, got {type(obs).__name__}")
+            raise ValueError(f"obs: expected a sysid_bench.core.estimator.Observation, got {type(obs).__name__}")
         pos = observed_positions(obs, min_seen=3)
         mean, std, info = self._forecast_series(pos, horizon)
         extras = {

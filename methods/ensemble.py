@@ -1,8 +1,8 @@
 """``emcee``: affine-invariant ensemble MCMC on the NumPy simulator.
 
-The posterior is the Gaussian position likelihood of :func:`sysid_bench.simulator.gaussian_loglik`
+The posterior is the Gaussian position likelihood of :func:`sysid_bench.core.simulator.gaussian_loglik`
 (fixed noise ``sigma``, the same as ``nuts``) times the uniform prior of
-:data:`sysid_bench.physics.PRIOR`. When the initial state is not given it is sampled too, as a
+:data:`sysid_bench.core.physics.PRIOR`. When the initial state is not given it is sampled too, as a
 nuisance with a flat prior on a box of ``state0_box`` standard errors around the state estimated
 from the first tracked frames (see :mod:`methods._tracks`; refitted on the frames before the first
 contact when it was extrapolated back across one, ``prepare``'s
@@ -30,7 +30,7 @@ so a stuck chain cannot report a falsely narrow posterior.
 
 Model check (``Posterior.check``, :meth:`methods._simulation.Fit.checked`): the posterior mean
 simulated from the mean of the draws' initial states (and floors) against the seen positions, judged against ``sigma``
-(:meth:`sysid_bench.estimator.Check.from_residuals`). A failed check keeps the mean and widens
+(:meth:`sysid_bench.core.estimator.Check.from_residuals`). A failed check keeps the mean and widens
 the intervals to what the data supports (:func:`methods._simulation.widen_to_support`: to hold
 the best fit a local least-squares refinement from the mean finds, or to at least the prior's
 when even that fit fails); its simulations are in ``extras["check_simulations"]``.
@@ -52,11 +52,11 @@ import numpy as np
 from methods._points import Points, PointsFit, SimulationOnSystems, draw_inside, refine, search
 from methods._simulation import Fit, Stopwatch, make_rng, one_blas_thread
 from methods._tracks import clip_state, prepare
-from sysid_bench import physics
-from sysid_bench._validate import check_number, check_positive_int
-from sysid_bench.estimator import Observation, Posterior
-from sysid_bench.physics import PRIOR_SPAN as SPAN
-from sysid_bench.simulator import (
+from sysid_bench.core import physics
+from sysid_bench.core._validate import check_number, check_positive_int
+from sysid_bench.core.estimator import Observation, Posterior
+from sysid_bench.core.physics import PRIOR_SPAN as SPAN
+from sysid_bench.core.simulator import (
     CountingSimulator,
     check_sigma,
     gaussian_loglik,
@@ -187,7 +187,7 @@ class Emcee(SimulationOnSystems):
     Parameters
     ----------
     system : str
-        A registered system (:func:`sysid_bench.systems.available`); the class runs on any.
+        A registered system (:func:`sysid_bench.core.systems.available`); the class runs on any.
     n_walkers : int
         Walkers (even, at least twice the dimension: 4, or 8 with an unknown initial state;
         another system: its parameters plus, when unknown, its state variables).
@@ -216,10 +216,10 @@ class Emcee(SimulationOnSystems):
     known : dict of str -> float, optional
         Another system only: parameters held at these values (every sample holds the value,
         std 0; the held unit coordinate stays in the sampler but changes nothing); checked as
-        ``--known`` is (:func:`sysid_bench.footage.parse_known`).
+        ``--known`` is (:func:`sysid_bench.core.footage.parse_known`).
     prior : dict of str -> (float, float), optional
         Another system only: ranges replacing the system's prior for these parameters
-        (:func:`sysid_bench.footage.parse_prior`).
+        (:func:`sysid_bench.core.footage.parse_prior`).
     seed : int
         Seeds the draws, the walkers' start and emcee's generator.
     """

@@ -15,7 +15,7 @@ noise of 0.02 m, so its model check failed on nearly every case; refined, the po
 true maximum-likelihood fit and the check means something (a failed check then says the model
 does not explain the track, not that the search was coarse).
 
-Spread: the draws weighted by the Gaussian likelihood of :mod:`sysid_bench.simulator`, with the noise
+Spread: the draws weighted by the Gaussian likelihood of :mod:`sysid_bench.core.simulator`, with the noise
 scale raised to the best fit's RMS residual when that is larger than ``sigma`` (the draws cannot
 fit better than their resolution) and the weights tempered until ``min_ess`` draws carry them.
 The standard deviation is taken about the reported (refined) fit, so it also covers that fit's
@@ -52,10 +52,10 @@ from methods._simulation import (
 )
 from methods._tracks import clip_state, prepare
 from methods._weights import resample, tempered_weights
-from sysid_bench import physics
-from sysid_bench._validate import check_positive_int
-from sysid_bench.estimator import Observation, Posterior
-from sysid_bench.simulator import (
+from sysid_bench.core import physics
+from sysid_bench.core._validate import check_positive_int
+from sysid_bench.core.estimator import Observation, Posterior
+from sysid_bench.core.simulator import (
     CountingSimulator,
     check_sigma,
     gaussian_loglik,
@@ -72,7 +72,7 @@ class LSQ(SimulationOnSystems):
     Parameters
     ----------
     system : str
-        A registered system (:func:`sysid_bench.systems.available`); the class runs on any.
+        A registered system (:func:`sysid_bench.core.systems.available`); the class runs on any.
     n_samples : int
         Prior draws simulated in one batch (the paper: 2000; 5000 for its real videos); at
         least ``min_ess``, so that the reported spread rests on that many effective draws.
@@ -96,10 +96,10 @@ class LSQ(SimulationOnSystems):
         Weighted draws resampled for a forecast.
     known : dict of str -> float, optional
         Another system only: parameters held at these values (every sample holds the value,
-        std 0); checked as ``--known`` is (:func:`sysid_bench.footage.parse_known`).
+        std 0); checked as ``--known`` is (:func:`sysid_bench.core.footage.parse_known`).
     prior : dict of str -> (float, float), optional
         Another system only: ranges replacing the system's prior for these parameters
-        (:func:`sysid_bench.footage.parse_prior`).
+        (:func:`sysid_bench.core.footage.parse_prior`).
     seed : int
         Seed of the draws; the same seed gives the same posterior.
     """

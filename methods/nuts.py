@@ -2,10 +2,10 @@
 
 Model
 -----
-* **Likelihood** — exactly :func:`sysid_bench.simulator.gaussian_loglik`, written in JAX
+* **Likelihood** — exactly :func:`sysid_bench.core.simulator.gaussian_loglik`, written in JAX
   (:func:`loglik_jax`, tested equal): observed positions are the simulated ones plus independent
   N(0, ``sigma``^2) noise per coordinate, ``sigma`` **fixed** (hyperparameter, default
-  ``sysid_bench.simulator.DEFAULT_SIGMA`` = 0.02 m; see there for why it is not inferred); unseen (NaN)
+  ``sysid_bench.core.simulator.DEFAULT_SIGMA`` = 0.02 m; see there for why it is not inferred); unseen (NaN)
   frames contribute nothing.
 * **Prior** — uniform on ``PRIOR`` for ``(e, g, d, r)``. Each parameter is sampled through the
   logit of its position in its range (an unconstrained space; the uniform prior there has
@@ -32,7 +32,7 @@ Model
   standard error. ``Posterior.samples`` stay ``(e, g, d, r)``.
 
 Gradients go through the JAX simulator including its contact times
-(:mod:`sysid_bench.physics_jax`). They are computed in **forward mode** (one ``jvp`` per
+(:mod:`sysid_bench.core.physics_jax`). They are computed in **forward mode** (one ``jvp`` per
 sampled dimension, vectorised) behind a ``custom_jvp``: through a 200-frame ``lax.scan`` with
 masked contact passes this is several times faster on a CPU than reverse mode, and reverse
 mode (what NumPyro asks for) then only transposes a dot product.
@@ -57,7 +57,7 @@ alone:
 
 Counting
 --------
-``extras["n_simulations"]`` counts trajectories as ``sysid_bench.simulator.CountingSimulator`` does (one
+``extras["n_simulations"]`` counts trajectories as ``sysid_bench.core.simulator.CountingSimulator`` does (one
 trajectory = one simulation): the search batches (``n_init`` per round), one per potential
 evaluation of the optimiser, Newton steps and Hessian, one per leapfrog step (``num_steps``,
 warm-up included) and one per chain for NumPyro's initial potential — each of these is one
@@ -74,7 +74,7 @@ basin or a track the model cannot make). A run that fails these is returned, not
 
 Model check (``Posterior.check``, :meth:`methods._simulation.Fit.checked`): the posterior mean
 simulated from the mean of the draws' initial states (and floors, when sampled) against the seen positions, judged against ``sigma``
-(:meth:`sysid_bench.estimator.Check.from_residuals`). A failed check keeps the mean and widens
+(:meth:`sysid_bench.core.estimator.Check.from_residuals`). A failed check keeps the mean and widens
 the intervals to what the data supports (:func:`methods._simulation.widen_to_support`: to hold
 the best fit a local least-squares refinement from the mean finds, or to at least the prior's
 when even that fit fails); its simulations are in ``extras["check_simulations"]``.
@@ -154,12 +154,12 @@ from methods._points import (
 )
 from methods._simulation import Fit, Stopwatch, make_rng
 from methods._tracks import clip_state, prepare
-from sysid_bench import physics
-from sysid_bench import physics_jax as pj
-from sysid_bench._validate import check_positive_int
-from sysid_bench.estimator import Observation, Posterior
-from sysid_bench.physics import PRIOR_LO, PRIOR_SPAN
-from sysid_bench.simulator import (
+from sysid_bench.core import physics
+from sysid_bench.core import physics_jax as pj
+from sysid_bench.core._validate import check_positive_int
+from sysid_bench.core.estimator import Observation, Posterior
+from sysid_bench.core.physics import PRIOR_LO, PRIOR_SPAN
+from sysid_bench.core.simulator import (
     CountingSimulator,
     check_sigma,
     gaussian_loglik,
@@ -179,9 +179,9 @@ _EPS = 1e-6  # keeps initial values off the unit interval's ends, where the logi
 
 
 # ------------------------------------------------------------------------------------------
-# likelihood (JAX mirror of sysid_bench.simulator.gaussian_loglik) with forward-mode gradients
+# likelihood (JAX mirror of sysid_bench.core.simulator.gaussian_loglik) with forward-mode gradients
 def loglik_jax(sim_pos, obs_pos, mask, sigma):
-    """``sysid_bench.simulator.gaussian_loglik`` in JAX.
+    """``sysid_bench.core.simulator.gaussian_loglik`` in JAX.
 
     Parameters
     ----------
@@ -499,7 +499,7 @@ class NUTS(SimulationOnSystems):
     Parameters
     ----------
     system : str
-        A registered system (:func:`sysid_bench.systems.available`).
+        A registered system (:func:`sysid_bench.core.systems.available`).
     num_warmup : int
         Warm-up (step size and mass matrix adaptation) iterations per chain.
     num_samples : int
@@ -535,10 +535,10 @@ class NUTS(SimulationOnSystems):
     known : dict of str -> float, optional
         Another system only: parameters held fixed (a constant in the model: the problem maps
         their coordinate onto the value, so every draw holds it; mean the value, std 0);
-        checked as ``--known`` is (:func:`sysid_bench.footage.parse_known`).
+        checked as ``--known`` is (:func:`sysid_bench.core.footage.parse_known`).
     prior : dict of str -> (float, float), optional
         Another system only: ranges replacing the system's uniform prior for these parameters
-        (:func:`sysid_bench.footage.parse_prior`).
+        (:func:`sysid_bench.core.footage.parse_prior`).
     frame_bucket : int
         Observations are padded (with unseen frames) to a multiple of this many frames, so that
         prefixes of different lengths share one compiled sampler per multiple. Compiling costs

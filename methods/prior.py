@@ -15,8 +15,8 @@ import numpy as np
 
 from methods._points import check_system_param, prepare_points, system_of
 from methods._simulation import make_rng
-from sysid_bench._validate import check_positive_int
-from sysid_bench.estimator import (
+from sysid_bench.core._validate import check_positive_int
+from sysid_bench.core.estimator import (
     Estimator,
     Forecast,
     Observation,
@@ -24,7 +24,7 @@ from sysid_bench.estimator import (
     observed_positions,
     prior_posterior,
 )
-from sysid_bench.footage import check_knowledge
+from sysid_bench.core.footage import check_knowledge
 
 
 class PriorOnly(Estimator):
@@ -34,14 +34,14 @@ class PriorOnly(Estimator):
     Parameters
     ----------
     system : str
-        A registered system (:func:`sysid_bench.systems.available`); the class runs on any.
+        A registered system (:func:`sysid_bench.core.systems.available`); the class runs on any.
     n_samples : int
         Prior draws returned as ``Posterior.samples``.
     seed : int
         Seed of those draws.
     known : dict of str -> float, optional
         Parameters held fixed: mean and every sample the value, std 0 (``extras["known"]``);
-        checked as ``--known`` is (:func:`sysid_bench.footage.check_knowledge`).
+        checked as ``--known`` is (:func:`sysid_bench.core.footage.check_knowledge`).
     prior : dict of str -> (float, float), optional
         Ranges replacing the system's prior for these parameters (``extras["prior"]``).
     """

@@ -38,7 +38,7 @@ the larger of the prior's bound (|v0| <= 8.9 m/s falling 10 m at |g| = 12.81: 18
 twice the track's upper-quartile frame-to-frame speed. One 1000 m outlier used to move the
 floor estimate to -1000 m and give a confident, wrong posterior (issue 14).
 
-Forecast: the identified hybrid model is :func:`sysid_bench.physics.simulate` run from the state
+Forecast: the identified hybrid model is :func:`sysid_bench.core.physics.simulate` run from the state
 estimated at the last seen frame, for ``n_forecast`` draws of parameters and state from their
 standard errors.
 
@@ -68,12 +68,18 @@ from methods._simulation import (
     one_blas_thread,
 )
 from methods._tracks import clip_state, prepare, segment_track
-from sysid_bench._validate import check_number, check_positive_int
-from sysid_bench.estimator import Estimator, Forecast, Observation, Posterior, observed_positions
-from sysid_bench.physics import PRIOR_HI as HI
-from sysid_bench.physics import PRIOR_LO as LO
-from sysid_bench.physics import PRIOR_MEAN, PRIOR_STD
-from sysid_bench.simulator import DEFAULT_SIGMA, CountingSimulator
+from sysid_bench.core._validate import check_number, check_positive_int
+from sysid_bench.core.estimator import (
+    Estimator,
+    Forecast,
+    Observation,
+    Posterior,
+    observed_positions,
+)
+from sysid_bench.core.physics import PRIOR_HI as HI
+from sysid_bench.core.physics import PRIOR_LO as LO
+from sysid_bench.core.physics import PRIOR_MEAN, PRIOR_STD
+from sysid_bench.core.simulator import DEFAULT_SIGMA, CountingSimulator
 
 __all__ = ["SINDy", "bounce_ratios", "free_flight", "pool_ratios", "reject_outliers"]
 
@@ -473,7 +479,7 @@ class SINDy(Estimator):
             raise ValueError(f"threshold: expected a number >= 0, got {self.threshold!r}")
         min_seg = check_positive_int(self.min_segment, "min_segment", minimum=3)
         if not isinstance(obs, Observation):
-            raise ValueError(f"obs: expected a sysid_bench.estimator.Observation, got {type(obs).__name__}")
+            raise ValueError(f"obs: expected a sysid_bench.core.estimator.Observation, got {type(obs).__name__}")
         kind = "positions" if obs.positions is not None else "frames"
         pos = np.array(observed_positions(obs, min_seen=3), dtype=np.float64)  # tracks frames once
         bad = reject_outliers(pos, float(obs.dt))

@@ -100,7 +100,7 @@ def download(meta: dict, dest, *, url: str | None = None, timeout: float = 60.0)
     Path
         The written file.
     """
-    from sysid_bench._io import atomic_write
+    from sysid_bench.core._io import atomic_write
 
     src = meta["source"]
     with urllib.request.urlopen(url or src["url"], timeout=timeout) as resp:
@@ -124,7 +124,7 @@ def trim(meta: dict, path, dest) -> Path:
     import av
     import numpy as np
 
-    from sysid_bench.footage import write_video
+    from sysid_bench.core.footage import write_video
 
     start, end = (float(v) for v in meta["window_s"])
     frames = []

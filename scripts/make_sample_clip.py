@@ -1,7 +1,7 @@
 """Write the sample clip the README's ``identify`` lines run on: ``docs/sample/ball.mp4``.
 
 One simulated episode (test-split parameters, seeded), rendered at 128 x 128 by the suite's
-renderer and written as H.264 at 20 frames/s with :func:`sysid_bench.footage.write_video`:
+renderer and written as H.264 at 20 frames/s with :func:`sysid_bench.core.footage.write_video`:
 
     python scripts/make_sample_clip.py [--out docs/sample/ball.mp4] [--seed 2026]
 
@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench._io import atomic_write
-from sysid_bench.datasets import SUBRANGES_TEST
-from sysid_bench.footage import write_video
-from sysid_bench.physics import N_FRAMES, PARAMS, sample_state0, sample_theta, simulate
-from sysid_bench.render import render
+from sysid_bench.core._io import atomic_write
+from sysid_bench.core.datasets import SUBRANGES_TEST
+from sysid_bench.core.footage import write_video
+from sysid_bench.core.physics import N_FRAMES, PARAMS, sample_state0, sample_theta, simulate
+from sysid_bench.core.render import render
 
 
 def make_clip(out, seed: int = 2026, size: int = 128) -> tuple[Path, dict]:

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench import systems
-from sysid_bench._io import atomic_write
-from sysid_bench.footage import write_video
+from sysid_bench.core import systems
+from sysid_bench.core._io import atomic_write
+from sysid_bench.core.footage import write_video
 
 
 def main(argv=None) -> int:

@@ -1,6 +1,6 @@
 """What ``sysid-bench identify`` gets on camera-like clips of the four systems (issue 38, 5).
 
-Films ``--n`` clips per system with :mod:`sysid_bench.camera_footage` (cached: a clip whose
+Films ``--n`` clips per system with :mod:`sysid_bench.core.camera_footage` (cached: a clip whose
 JSON exists is not filmed again), runs ``python -m sysid_bench identify CLIP <the options a user
 would give, from the clip's JSON> --every 100000 --no-progress --out DIR`` on each (one estimate,
 after the whole clip), and compares the answer with the truth: each parameter's error, whether
@@ -117,8 +117,8 @@ def table(results: list[dict]) -> str:
 
 
 def main(argv=None) -> int:
-    from sysid_bench._io import atomic_write
-    from sysid_bench.camera_footage import SYSTEMS, shots, write_clip
+    from sysid_bench.core._io import atomic_write
+    from sysid_bench.core.camera_footage import SYSTEMS, shots, write_clip
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=5)

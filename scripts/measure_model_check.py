@@ -37,14 +37,14 @@ EGD = slice(0, 3)  # e, g, d: r is often not informed by a clip
 
 
 def _write_csv(df, path: Path) -> None:
-    from sysid_bench._io import atomic_write
+    from sysid_bench.core._io import atomic_write
 
     atomic_write(path, lambda tmp: df.to_csv(tmp, index=False))
 
 
 def _render(pos: np.ndarray) -> np.ndarray:
     """28x28 frames (T, H, W) of a ball at positions (T, 2) (velocities play no part)."""
-    from sysid_bench.render import render
+    from sysid_bench.core.render import render
 
     states = np.zeros((1, len(pos), 4))
     states[0, :, :2] = pos
@@ -80,13 +80,13 @@ def meaningless(rng: np.random.Generator, ds) -> list[tuple[str, dict]]:
 
 
 def perturbed(rng: np.random.Generator, n: int, spin: float, dwell: float):
-    from sysid_bench import physics
+    from sysid_bench.core import physics
 
     theta = physics.sample_theta(n, rng)
     s0 = physics.sample_state0(n, rng)
     states = physics.simulate_perturbed(theta, s0, spin=spin, dwell=dwell)
     pos = states[:, :, :2] + 0.005 * rng.standard_normal(states[:, :, :2].shape)
-    from sysid_bench.render import render
+    from sysid_bench.core.render import render
 
     frames = render(states)
     return [(f"perturbed {k}", {"positions": pos[k], "frames": frames[k], "truth": theta[k]})
@@ -105,8 +105,8 @@ def test_cases(n: int):
 def answer(method: str, item: dict, inp: str) -> dict:
     """One identification: the row of what it claimed."""
     import methods
-    from sysid_bench.estimator import Observation
-    from sysid_bench.physics import PRIOR_SPAN
+    from sysid_bench.core.estimator import Observation
+    from sysid_bench.core.physics import PRIOR_SPAN
 
     rec = {"refused": False, "check_ok": np.nan, "check_rms_m": np.nan, "narrow": False,
            "holds90": np.nan, "own_holds90": np.nan, "region": False, "check_note": "",

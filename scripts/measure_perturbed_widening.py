@@ -103,8 +103,8 @@ def run(methods_: list[str], cases: int, out: Path) -> None:
 def summary(out: Path) -> None:
     import pandas as pd
 
-    from sysid_bench._io import atomic_write
-    from sysid_bench.physics import PRIOR_SPAN
+    from sysid_bench.core._io import atomic_write
+    from sysid_bench.core.physics import PRIOR_SPAN
 
     rows = [json.loads(x) for x in (out / "rows.jsonl").read_text().splitlines()]
     res = []

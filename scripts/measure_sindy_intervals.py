@@ -20,8 +20,8 @@ import numpy as np
 
 def main(argv=None) -> None:
     from methods.sindy import SINDy
-    from sysid_bench.datasets import make_dataset
-    from sysid_bench.estimator import Observation
+    from sysid_bench.core.datasets import make_dataset
+    from sysid_bench.core.estimator import Observation
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--split", default="train", choices=("train", "test"))

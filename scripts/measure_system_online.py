@@ -34,9 +34,9 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(1)
     import methods
-    from sysid_bench._io import atomic_write
     from sysid_bench.bench.online import _timed_prefixes
     from sysid_bench.bench.systems import system_case
+    from sysid_bench.core._io import atomic_write
 
     res = {}
     for s in a.systems:

@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from sysid_bench import systems
+from sysid_bench.core import systems
 
 B = 2000
 
@@ -90,7 +90,7 @@ def accuracy(name: str, n_acc: int, substeps: list[int]) -> None:
     pts_ref = system.observe(ref, theta)
     runs = {"as shipped": system.simulate(theta, state0)}
     if name == "pendulum":
-        from sysid_bench.systems import pendulum as P
+        from sysid_bench.core.systems import pendulum as P
 
         for n in substeps:
             out = np.empty((len(theta), 200, 2))

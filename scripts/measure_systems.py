@@ -45,7 +45,7 @@ def _cases(system, n: int, frames: int, noise: float, seed: int):
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
-    from sysid_bench._io import atomic_write
+    from sysid_bench.core._io import atomic_write
 
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=list(rows[0]))
@@ -67,8 +67,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     import methods
-    from sysid_bench import systems
-    from sysid_bench.estimator import Observation
+    from sysid_bench.core import systems
+    from sysid_bench.core.estimator import Observation
 
     system = systems.get(args.system)
     if args.n < 1 or args.frames < 3:

@@ -20,10 +20,10 @@ import json
 
 import numpy as np
 
-from sysid_bench import physics
-from sysid_bench.render import render, view_geometry
-from sysid_bench.tracking import track_batch
-from sysid_bench.video import find_ball
+from sysid_bench.apps.video import find_ball
+from sysid_bench.core import physics
+from sysid_bench.core.render import render, view_geometry
+from sysid_bench.core.tracking import track_batch
 
 NUIS = {"blur": 0.5, "occlusion": 0.05, "drop": 0.05, "noise": 8.0}
 

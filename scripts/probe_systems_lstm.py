@@ -52,7 +52,7 @@ if str(ROOT) not in sys.path:
 from methods.vid2param.data import normalise_points  # noqa: E402
 from methods.vid2param.model import gaussian_nll, position_names  # noqa: E402
 from methods.vid2param.parts import GaussianHead, Recurrence  # noqa: E402
-from sysid_bench import systems  # noqa: E402
+from sysid_bench.core import systems  # noqa: E402
 
 SYSTEMS = ("pendulum", "spring", "collision")
 VARIANTS = ("a", "b", "c", "d")
@@ -320,8 +320,8 @@ def run(name: str, variant: str, args, scales: dict) -> dict:
 
 
 def _write_json(path: Path, obj) -> None:
-    """Write ``obj`` as JSON atomically (``sysid_bench._io.atomic_write``)."""
-    from sysid_bench._io import atomic_write
+    """Write ``obj`` as JSON atomically (``sysid_bench.core._io.atomic_write``)."""
+    from sysid_bench.core._io import atomic_write
 
     atomic_write(path, json.dumps(obj, indent=1))
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sysid_bench._io import atomic_write
+from sysid_bench.core._io import atomic_write
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the README's rows, in its order (``prior``: always answering the prior mean)
@@ -36,7 +36,7 @@ def headline_table(summary: pd.DataFrame) -> str:
         raise ValueError(f"summary: expected the columns {list(COLUMNS)}, missing {missing} "
                          "(regenerate the report)")
     if "system" in summary.columns:  # the paper's system (the ball) heads the README
-        from sysid_bench import systems
+        from sysid_bench.core import systems
 
         paper = [s for s in summary.system.unique() if s in systems.available()
                  and systems.get(s).paper]
@@ -75,7 +75,7 @@ def systems_table(summary: pd.DataFrame) -> str:
     missing = [c for c in want if c not in summary.columns]
     if missing:
         raise ValueError(f"systems_summary: expected the columns {list(want)}, missing {missing}")
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     known = systems.available()
     names = [x for x in known if x in set(summary.system)]

@@ -155,14 +155,14 @@ def table(name: str, before: str) -> str:
     keys = [k for k in KEYS if k in new.columns]
     if old is None:
         head = f"### {name}\n\nNew since {before} (no before).\n\n"
-        from sysid_bench._markdown import markdown_table
+        from sysid_bench.core._markdown import markdown_table
 
         return head + markdown_table(new.map(_short)) + "\n"
     old = ours(old)
     extra = ""
     if "physics" in new.columns and "physics" not in old.columns:
         # rows on physics that is not ours are new (section 5's perturbed rows): listed apart
-        from sysid_bench._markdown import markdown_table
+        from sysid_bench.core._markdown import markdown_table
 
         added = new[new["physics"] != "ours"]
         if len(added):

@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 
 import methods
-from sysid_bench._io import atomic_write
-from sysid_bench.estimator import Observation
-from sysid_bench.metrics import normalised_param_se
-from sysid_bench.physics import sample_state0, sample_theta, simulate
-from sysid_bench.render import render
-from sysid_bench.video import observe, read_video, write_video
+from sysid_bench.apps.video import observe, read_video, write_video
+from sysid_bench.core._io import atomic_write
+from sysid_bench.core.estimator import Observation
+from sysid_bench.core.metrics import normalised_param_se
+from sysid_bench.core.physics import sample_state0, sample_theta, simulate
+from sysid_bench.core.render import render
 
 NUIS = {"blur": 0.5, "occlusion": 0.05, "drop": 0.05, "noise": 8.0}
 SETUPS = {

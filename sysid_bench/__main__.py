@@ -2,6 +2,6 @@
 
 import sys
 
-from sysid_bench.cli import main
+from sysid_bench.apps.cli import main
 
 sys.exit(main())

@@ -21,8 +21,8 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(scope="session")
 def ball_case():
     """One seeded test-split ball: theta (4,), states (200, 4), 28x28 frames (200, 28, 28)."""
-    from sysid_bench.physics import sample_state0, sample_theta, simulate
-    from sysid_bench.render import render
+    from sysid_bench.core.physics import sample_state0, sample_theta, simulate
+    from sysid_bench.core.render import render
 
     rng = np.random.default_rng(7)
     theta = sample_theta(1, rng, subranges=(1, 3, 5, 7, 9))

@@ -1,6 +1,6 @@
 """An independent event-driven reference for the bouncing ball, written with scipy's solve_ivp.
 
-It shares nothing with ``sysid_bench.physics`` but the constants: adaptive DOP853 at tight
+It shares nothing with ``sysid_bench.core.physics`` but the constants: adaptive DOP853 at tight
 tolerances for flight segments, scipy's own event location for floor and wall contacts, and the
 closed form of constant-deceleration rolling. Slow, one trajectory at a time, by design.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from sysid_bench.physics import BOX_WIDTH, ROLL_SPEED
+from sysid_bench.core.physics import BOX_WIDTH, ROLL_SPEED
 
 RTOL = 1e-12
 ATOL = 1e-12

@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 import methods
-from sysid_bench.testing import check_estimator
+from sysid_bench.core.testing import check_estimator
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "adding-a-method.md"
 
@@ -46,8 +46,8 @@ def test_the_toy_of_the_doc_passes_check_estimator(toy):
 
 
 def test_the_toy_runs_in_the_smoke_benchmark_and_shows_in_the_report(toy, tmp_path):
+    from sysid_bench.apps.report import render
     from sysid_bench.bench.runner import run
-    from sysid_bench.report import render
 
     # in-process (workers=0): the toy's temporary module is registered in this process only;
     # a real method's register line is in methods/__init__.py, which workers import too

@@ -1,4 +1,4 @@
-"""One helper writes files atomically (``sysid_bench._io.atomic_write``): no module of the
+"""One helper writes files atomically (``sysid_bench.core._io.atomic_write``): no module of the
 package, the methods or the scripts renames a temporary file of its own; folders moved into place
 whole (a dataset, an identify run's outputs) go through ``atomic_folder``/``replace_folder``
 (issue 37: three hand-written copies wrote file by file into an existing folder)."""
@@ -14,7 +14,7 @@ HAND_WRITTEN = re.compile(r"\bos\.(replace|rename)\(|\bmkstemp\(|\bmkdtemp\(|Nam
                           r"\bshutil\.move\(")
 #: where it is allowed, and why
 ALLOWED = {
-    "sysid_bench/_io.py": "the helpers themselves",
+    "sysid_bench/core/_io.py": "the helpers themselves",
 }
 
 
@@ -29,7 +29,7 @@ def test_no_hand_written_temp_file_and_rename():
     files = [p for d in ("sysid_bench", "methods", "scripts") for p in (ROOT / d).rglob("*.py")
              if "__pycache__" not in p.parts]
     found = _hand_written(files)
-    assert not found, ("write through sysid_bench._io.atomic_write instead:\n" + "\n".join(found))
+    assert not found, ("write through sysid_bench.core._io.atomic_write instead:\n" + "\n".join(found))
     assert all((ROOT / f).is_file() for f in ALLOWED)  # a stale entry would hide nothing
 
 

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import methods
-from sysid_bench import systems
-from sysid_bench.estimator import (
+from sysid_bench.core import systems
+from sysid_bench.core.estimator import (
     POSITION_NOW,
     Estimator,
     Forecast,

@@ -11,10 +11,10 @@ import types
 import numpy as np
 import pytest
 
-from sysid_bench import systems
-from sysid_bench.systems import System
-from sysid_bench.testing import SystemCheckError, check_system
-from sysid_bench.testing import system_checks as _system_checks
+from sysid_bench.core import systems
+from sysid_bench.core.systems import System
+from sysid_bench.core.testing import SystemCheckError, check_system
+from sysid_bench.core.testing import system_checks as _system_checks
 
 NAMES = ("ball", "collision", "pendulum", "spring")
 

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 import methods
-from sysid_bench import cli, physics
-from sysid_bench.estimator import Forecast, Observation, Posterior, prior_posterior
+from sysid_bench.apps import cli
+from sysid_bench.core import physics
+from sysid_bench.core.estimator import Forecast, Observation, Posterior, prior_posterior
 
 
 def _refused(fn, name: str) -> str:
@@ -70,8 +71,8 @@ def test_types_are_checked_alike_at_every_boundary():
         ("dmd", {"stabilize": "no"}, "stabilize"),
     ]:
         _refused(lambda name=name, opts=opts: methods.get(name, **opts), bad)
+    from sysid_bench.apps.intercept import Scene
     from sysid_bench.bench.runner import run
-    from sysid_bench.intercept import Scene
 
     _refused(lambda: run(scale="smoke", methods=["prior"], progress="no"), "progress")
     _refused(lambda: Scene(min_swing=True), "min_swing")
@@ -216,6 +217,6 @@ def test_command_line_options_are_range_checked(capsys, tmp_path):
                              "--run-dir", str(tmp_path / "r"), "--no-progress"], "bogus")
     _one_line_error(capsys, ["train", "--out", str(tmp_path / "t"), "--steps", "-1"], "steps")
     _one_line_error(capsys, ["evaluate", "--n", "0"], "n")
-    from sysid_bench.video import geometry_from_options
+    from sysid_bench.apps.video import geometry_from_options
 
     _refused(lambda: geometry_from_options((28, 28), px_per_m=1e-6), "px_per_m")

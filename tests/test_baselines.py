@@ -27,10 +27,10 @@ from methods.dmd import DMD
 from methods.ensemble import Emcee
 from methods.lsq import LSQ
 from methods.sindy import SINDy
-from sysid_bench import physics, simulator
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Forecast, Observation, Posterior
-from sysid_bench.metrics import param_mse
+from sysid_bench.core import physics, simulator
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Forecast, Observation, Posterior
+from sysid_bench.core.metrics import param_mse
 
 GUESS = 0.083  # normalised MSE of the prior mean on e, g, d
 N_CASES = 20
@@ -350,7 +350,7 @@ def test_bad_hyperparameters_name_themselves(make, arg):
 @pytest.mark.parametrize("est", [LSQ(n_samples=20), SINDy(), DMD()], ids=["lsq", "sindy", "dmd"])
 @pytest.mark.parametrize("horizon", [0, -3, 2.5, "10", 10**6])
 def test_bad_horizon(est, horizon, ds):
-    from sysid_bench.estimator import MAX_HORIZON
+    from sysid_bench.core.estimator import MAX_HORIZON
 
     with pytest.raises(ValueError, match="horizon"):
         est.forecast(_obs(ds, 0, n=40), horizon)

@@ -19,8 +19,8 @@ from methods.ensemble import Emcee
 from methods.lsq import LSQ
 from methods.nuts import NUTS
 from methods.sindy import SINDy
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Observation
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Observation
 
 # name: (estimator factory, target seconds, rounds)
 CASES = {

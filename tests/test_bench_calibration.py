@@ -1,7 +1,7 @@
 """Calibration of the sampling baselines: do their 90% intervals hold the truth 80-100% of the time?
 
 50 test-split cases (sub-ranges 1, 3, 5, 7, 9), 200 frames. The positions get independent
-Gaussian noise of the likelihood's own ``sigma`` (:data:`sysid_bench.simulator.DEFAULT_SIGMA`), so the
+Gaussian noise of the likelihood's own ``sigma`` (:data:`sysid_bench.core.simulator.DEFAULT_SIGMA`), so the
 model is well specified and a correct sampler covers ~90%; the initial state and floor are given,
 as to the paper's baselines. Noisy positions a wall or the floor would put outside the box are
 moved onto its edge (the suite rejects positions outside the box; this touches a few frames).
@@ -15,11 +15,11 @@ import pytest
 from tqdm import tqdm
 
 import methods
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Observation
-from sysid_bench.metrics import interval_coverage
-from sysid_bench.physics import BOX_WIDTH
-from sysid_bench.simulator import DEFAULT_SIGMA
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Observation
+from sysid_bench.core.metrics import interval_coverage
+from sysid_bench.core.physics import BOX_WIDTH
+from sysid_bench.core.simulator import DEFAULT_SIGMA
 
 METHODS = ["emcee", "nuts"]  # nuts: about 6 minutes on 2 cores (50 x ~6 s + compile)
 N_CASES = 50

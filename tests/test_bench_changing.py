@@ -24,8 +24,8 @@ def test_systems_declare_which_parameters_jump():
     import numpy as np
     import pytest
 
-    from sysid_bench import systems
-    from sysid_bench.systems.ball import Ball
+    from sysid_bench.core import systems
+    from sysid_bench.core.systems.ball import Ball
 
     # the ball reaches the paper's own test videos through its declaration
     assert Ball.changing_dataset == "changing" and set(Ball.changing_params) == set(Ball.params)
@@ -52,10 +52,10 @@ def test_changing_runs_on_another_system_with_its_parameter_names(tmp_path):
 
     import numpy as np
 
-    from sysid_bench import systems
     from sysid_bench.bench.cases import get_scale
     from sysid_bench.bench.changing import Changing
     from sysid_bench.bench.experiment import execute
+    from sysid_bench.core import systems
 
     scale = get_scale("smoke")
     exp = Changing()

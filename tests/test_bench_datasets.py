@@ -9,7 +9,7 @@ outside pytest with ``/usr/bin/time -v`` (see the datasets report). The time tar
 import numpy as np
 import pytest
 
-from sysid_bench import datasets as D
+from sysid_bench.core import datasets as D
 
 
 @pytest.mark.benchmark(group="datasets")

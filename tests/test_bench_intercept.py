@@ -36,7 +36,7 @@ def _median_per_frame(fn, frames, passes: int = 3, before_pass=None,
 @pytest.mark.benchmark(group="intercept")
 def test_bench_vid2param_control_step(benchmark):
 
-    from sysid_bench import intercept as ic
+    from sysid_bench.apps import intercept as ic
 
     torch.set_num_threads(1)
     scene = ic.Scene()
@@ -56,7 +56,7 @@ def test_bench_vid2param_control_step(benchmark):
     step_med = benchmark.stats.stats.median
 
     # the stream's push alone, same frames, same process, right after
-    from sysid_bench.tracking import track
+    from sysid_bench.core.tracking import track
 
     stream = pol.est.stream()
     push_med = _median_per_frame(stream.push, throw.frames, before_pass=stream.reset)

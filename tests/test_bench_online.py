@@ -19,7 +19,7 @@ import torch
 
 from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param
 from sysid_bench.bench.online import online_cost, online_cost_markdown
-from sysid_bench.datasets import make_dataset
+from sysid_bench.core.datasets import make_dataset
 
 pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from physics_reference import reference_trajectory
 
-from sysid_bench.physics import sample_state0, sample_theta, simulate
+from sysid_bench.core.physics import sample_state0, sample_theta, simulate
 
 B = 2000
 

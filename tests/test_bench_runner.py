@@ -17,7 +17,7 @@ from sysid_bench.bench.cases import SCALES, Scale
 from sysid_bench.bench.experiment import Cell, Context
 from sysid_bench.bench.runner import STORE_NAME, build_grid, run
 from sysid_bench.bench.store import Store, StoreConfigError
-from sysid_bench.estimator import Estimator, Forecast, Observation, prior_posterior
+from sysid_bench.core.estimator import Estimator, Forecast, Observation, prior_posterior
 
 ROOT = Path(__file__).resolve().parents[1]
 HAVE_LSQ = "lsq" in methods.available()
@@ -241,7 +241,7 @@ def test_every_experiment_has_cells_for_its_methods():
     # prior does not train: no sensitivity cells, and declares no online_cost: no online cells;
     # every other experiment runs it (the foreign videos' experiment only where MuJoCo imports:
     # its videos come from that engine)
-    from sysid_bench.mujoco_scene import mujoco_available
+    from sysid_bench.core.mujoco_scene import mujoco_available
 
     skipped = {"sensitivity", "online"} | ({"foreign"} if mujoco_available() is not None
                                            else set())
@@ -391,7 +391,7 @@ def test_fingerprint_covers_the_shared_sources():
     recompute its stored cells."""
     from sysid_bench.bench.fingerprint import fingerprint_files
 
-    names = {f.as_posix().split("/sysid_bench/")[-1].split("/methods/")[-1]
+    names = {f.as_posix().split("/sysid_bench/core/")[-1].split("/methods/")[-1]
              for f in fingerprint_files("lsq")}
     assert {"lsq.py", "_points.py", "_simulation.py", "_tracks.py"} <= names
     assert {"systems/pendulum.py", "physics.py", "simulator.py"} <= names

@@ -129,7 +129,7 @@ def test_a_damaged_grid_config_is_refused_reading_or_writing(tmp_path, garbage):
 
 
 def test_report_from_a_store_with_a_garbage_grid_config_exits_non_zero(tmp_path, capsys):
-    from sysid_bench.cli import main
+    from sysid_bench.apps.cli import main
 
     path = tmp_path / "r.sqlite"
     with Store(path, CFG) as s:

@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from sysid_bench import systems
+from sysid_bench.core import systems
 
 B = 2000
 N_REF = 10

@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from methods.vid2param import SHIPPED_CHECKPOINT, SHIPPED_CHECKPOINTS, Vid2Param
-from sysid_bench.datasets import make_dataset
+from sysid_bench.core.datasets import make_dataset
 
 pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")
 
@@ -52,7 +52,7 @@ def _bench_push(benchmark, est, frames, rounds: int, label: str) -> None:
     target; asserted only against identifying the same video from scratch in this run."""
     import time
 
-    from sysid_bench.estimator import Observation
+    from sysid_bench.core.estimator import Observation
 
     stream = est.stream()
     for f in frames[:20]:  # warm up: first calls allocate

@@ -19,7 +19,7 @@ import torch
 import methods.vid2param.fast as fast
 import methods.vid2param.parts as parts
 from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param
-from sysid_bench.datasets import make_dataset
+from sysid_bench.core.datasets import make_dataset
 
 pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")
 

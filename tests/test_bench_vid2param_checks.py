@@ -23,8 +23,8 @@ from methods._check_batch import check_batch
 from methods._simulation import check_prefixes
 from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param
 from methods.vid2param.estimator import DEFAULT_SIGMA
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Observation
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Observation
 
 pytestmark = pytest.mark.skipif(not SHIPPED_CHECKPOINT.exists(), reason="no shipped checkpoint")
 

@@ -4,10 +4,10 @@ system declares them (``System.calibration_conditions``: the ball's)."""
 import pandas as pd
 import pytest
 
-from sysid_bench import systems
 from sysid_bench.bench.calibration import MEANINGLESS, PERTURBED, Calibration
 from sysid_bench.bench.cases import SCALES
 from sysid_bench.bench.experiment import Cell, Context
+from sysid_bench.core import systems
 
 
 def test_every_system_gets_its_test_cases_and_only_the_ball_its_perturbed_and_meaningless():
@@ -43,7 +43,7 @@ def test_a_pendulum_cell_scores_the_pendulums_parameters_and_refuses_an_undeclar
 
 
 def test_a_system_cannot_declare_off_model_clips_without_the_papers_datasets():
-    from sysid_bench.systems import System
+    from sysid_bench.core.systems import System
 
     with pytest.raises(TypeError, match="calibration_conditions"):
         type("Mine", (System,), {"calibration_conditions": ("perturbed",)})

@@ -1,4 +1,4 @@
-"""Camera-like footage of the four systems (sysid_bench.camera_footage): seeded bytes, a truth
+"""Camera-like footage of the four systems (sysid_bench.core.camera_footage): seeded bytes, a truth
 consistent with the physics and the stored rotation, options identify accepts, bad shots refused."""
 
 import argparse
@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from sysid_bench import systems
-from sysid_bench.camera_footage import SYSTEMS, Shot, film, shots, write_clip
-from sysid_bench.footage import read_video, rotate_frames
+from sysid_bench.core import systems
+from sysid_bench.core.camera_footage import SYSTEMS, Shot, film, shots, write_clip
+from sysid_bench.core.footage import read_video, rotate_frames
 
 
 def _tiny(system, **kw):
@@ -73,7 +73,7 @@ def test_write_clip_is_an_h264_file_of_the_capture_rate(tmp_path):
 
 @pytest.mark.parametrize("system", ("ball", "pendulum", "spring"))
 def test_the_options_a_user_would_give_are_accepted_by_identify(system):
-    from sysid_bench.video import add_arguments, check_options
+    from sysid_bench.apps.video import add_arguments, check_options
 
     tr = film(_tiny(system, rotate=90)).truth
     args = add_arguments(argparse.ArgumentParser()).parse_args(["clip.mp4", *tr["options"]])

@@ -6,7 +6,7 @@ import types
 
 import pytest
 
-from sysid_bench import cli
+from sysid_bench.apps import cli
 
 
 def test_list_and_module_entry_points():
@@ -21,7 +21,7 @@ def test_report_module_is_an_alias_of_the_report_subcommand(capsys):
     with pytest.raises(SystemExit) as a:
         cli.main(["report", "--help"])
     text = capsys.readouterr().out
-    from sysid_bench.report import main as report_main
+    from sysid_bench.apps.report import main as report_main
 
     with pytest.raises(SystemExit) as b:
         report_main(["--help"])
@@ -62,7 +62,7 @@ def test_errors_are_one_line_and_status_2(capsys):
 
 
 def test_the_chosen_subcommand_alone_is_imported():
-    code = ("import sys; from sysid_bench.cli import main\n"
+    code = ("import sys; from sysid_bench.apps.cli import main\n"
             "try:\n    main(['run', '--help'])\nexcept SystemExit:\n    pass\n"
             "print('torch' in sys.modules, 'jax' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
@@ -75,7 +75,7 @@ def test_cli_runs_as_a_module():
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, "-m", "sysid_bench.cli", "run", "--help"],
+    out = subprocess.run([sys.executable, "-m", "sysid_bench.apps.cli", "run", "--help"],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "usage: sysid-bench run" in out.stdout

@@ -1,4 +1,4 @@
-"""The contract, over the registry: ``sysid_bench.testing.check_estimator`` on every method.
+"""The contract, over the registry: ``sysid_bench.core.testing.check_estimator`` on every method.
 
 Each method runs with its class's ``contract_options`` (cheap budgets, same code path), on the
 ball and on every other system it declares (``check_on_system_<name>``). Measured
@@ -9,7 +9,7 @@ under 2 s each; nuts and bo are marked slow (``--runslow``).
 import pytest
 
 import methods
-from sysid_bench.testing import EstimatorCheckError, check_estimator, estimator_checks
+from sysid_bench.core.testing import EstimatorCheckError, check_estimator, estimator_checks
 
 #: methods whose checks take more than a few seconds on a loaded 2-core machine
 SLOW = {"nuts", "bo"}
@@ -28,7 +28,7 @@ def test_check_estimator(name):
 
 
 def test_the_contract_runs_on_every_declared_system():
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     every = [s for s in systems.available() if s != "ball"]
     names = [n for n, _ in estimator_checks(methods.get("lsq"))]
@@ -66,7 +66,7 @@ def test_checks_are_named_and_chosen_by_capability():
 
 
 def test_a_broken_method_fails_with_the_check_name():
-    from sysid_bench.estimator import Estimator, prior_posterior
+    from sysid_bench.core.estimator import Estimator, prior_posterior
 
     class Shy(Estimator):
         name = "shy"
@@ -117,7 +117,7 @@ def test_checks_do_not_depend_on_their_order(name):
 
 
 def test_the_stream_contract_is_checked():
-    from sysid_bench.estimator import Estimator, LoopStream, prior_posterior
+    from sysid_bench.core.estimator import Estimator, LoopStream, prior_posterior
 
     class Claims(Estimator):
         """Declares an online stream but has the default one."""
@@ -154,8 +154,8 @@ def test_the_stream_contract_is_checked():
 def test_a_batched_pass_must_answer_as_one_video_does():
     import numpy as np
 
-    from sysid_bench.estimator import Estimator, prior_posterior
-    from sysid_bench.testing import contract_observation
+    from sysid_bench.core.estimator import Estimator, prior_posterior
+    from sysid_bench.core.testing import contract_observation
 
     class Drifts(Estimator):
         """Its own batched pass answers differently from identify_prefixes."""
@@ -184,7 +184,7 @@ def test_a_batched_pass_must_answer_as_one_video_does():
 def test_a_stream_must_check_what_identify_checks():
     import dataclasses
 
-    from sysid_bench.estimator import Check, Estimator, LoopStream, prior_posterior
+    from sysid_bench.core.estimator import Check, Estimator, LoopStream, prior_posterior
 
     class Checks(Estimator):
         """identify checks its answers; its stream's check() drops the verdict."""

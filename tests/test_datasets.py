@@ -5,10 +5,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sysid_bench import datasets as D
-from sysid_bench import physics
-from sysid_bench.estimator import Observation
-from sysid_bench.tracking import track_batch
+from sysid_bench.core import datasets as D
+from sysid_bench.core import physics
+from sysid_bench.core.estimator import Observation
+from sysid_bench.core.tracking import track_batch
 
 SMALL = dict(n_frames=20, size=(28, 28))
 

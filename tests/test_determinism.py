@@ -13,7 +13,7 @@ import pytest
 
 from sysid_bench.bench.experiment import ci_summary
 from sysid_bench.bench.store import Row, Store
-from sysid_bench.metrics import bootstrap_ci
+from sysid_bench.core.metrics import bootstrap_ci
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -99,8 +99,8 @@ import hashlib, sys, warnings
 import numpy as np
 warnings.filterwarnings("ignore")
 import methods
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Observation
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Observation
 name, opts = sys.argv[1], eval(sys.argv[2])
 ds = make_dataset("test", n=1, seed=11)
 obs = Observation(positions=ds.states[0, :, :2])  # floor and state0 unknown: the harder path
@@ -111,8 +111,8 @@ print(hashlib.sha256(p.mean.tobytes() + p.std.tobytes() + p.samples.tobytes()).h
 
 def _digest_here(name):
     import methods
-    from sysid_bench.datasets import make_dataset
-    from sysid_bench.estimator import Observation
+    from sysid_bench.core.datasets import make_dataset
+    from sysid_bench.core.estimator import Observation
 
     ds = make_dataset("test", n=1, seed=11)
     p = methods.get(name, seed=5, **_CHEAP[name]).identify(Observation(positions=ds.states[0, :, :2]))
@@ -139,9 +139,9 @@ def test_an_uninformed_parameter_is_scored_at_the_prior_centre_not_where_the_sea
     track by less than the noise, so the last bits of a BLAS kernel sent the search to either
     end (se_r 0.97 or 1.6e-05 on the same case, the table's MSE 0.027 vs 0.080 between runs).
     Scored at the prior's centre (its interval is the prior's), both ends give the same figure."""
-    from sysid_bench import systems
     from sysid_bench.bench.systems import _scored_point
-    from sysid_bench.estimator import Posterior
+    from sysid_bench.core import systems
+    from sysid_bench.core.estimator import Posterior
 
     ball = systems.get("ball")
     lo, hi = np.asarray(ball.prior_lo, float), np.asarray(ball.prior_hi, float)

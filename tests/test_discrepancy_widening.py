@@ -9,10 +9,10 @@ import pytest
 
 import methods._simulation as S
 from methods._tracks import prepare
-from sysid_bench import physics
-from sysid_bench.estimator import Check, Observation, Posterior
-from sysid_bench.physics import PRIOR_STD
-from sysid_bench.simulator import CountingSimulator
+from sysid_bench.core import physics
+from sysid_bench.core.estimator import Check, Observation, Posterior
+from sysid_bench.core.physics import PRIOR_STD
+from sysid_bench.core.simulator import CountingSimulator
 
 NOISE = 0.02
 

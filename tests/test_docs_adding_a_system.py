@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sysid_bench import systems
-from sysid_bench.testing import SystemCheckError, system_checks
+from sysid_bench.core import systems
+from sysid_bench.core.testing import SystemCheckError, system_checks
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "adding-a-system.md"
-LINE = 'register("decay", "sysid_bench.systems.decay:Decay")'
+LINE = 'register("decay", "sysid_bench.core.systems.decay:Decay")'
 
 
 def _blocks(lang: str) -> list[str]:
@@ -27,7 +27,7 @@ def _blocks(lang: str) -> list[str]:
 @pytest.fixture
 def decay(tmp_path, monkeypatch):
     module = _blocks("python")[0]
-    (tmp_path / "toy_decay.py").write_text(module.replace("sysid_bench.systems.decay:",
+    (tmp_path / "toy_decay.py").write_text(module.replace("sysid_bench.core.systems.decay:",
                                                           "toy_decay:"))
     monkeypatch.syspath_prepend(str(tmp_path))
     assert _blocks("text")[0].strip() == LINE

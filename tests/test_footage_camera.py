@@ -1,4 +1,4 @@
-"""sysid_bench.footage's camera: pixels to each system's world, tracking real-looking footage,
+"""sysid_bench.core.footage's camera: pixels to each system's world, tracking real-looking footage,
 what the user knows, identify's options per system and its output folder."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from sysid_bench import footage
-from sysid_bench.footage import (
+from sysid_bench.core import footage
+from sysid_bench.core.footage import (
     BallTrack,
     Camera,
     camera_for,
@@ -95,7 +95,7 @@ def test_pendulum_camera_from_known_length_and_bad_pivot():
 
 
 def test_floor_from_bounces_meets_between_frames():
-    from sysid_bench.physics import simulate
+    from sysid_bench.core.physics import simulate
 
     st = simulate(np.array([[0.8, -9.81, 0.0005, 0.0]]), np.array([[5.0, 1.0, 0.2, 0.0]]),
                   n_frames=60)[0]
@@ -156,7 +156,7 @@ def camera_pendulum(tmp_path_factory):
     a bright 10 px bob on a textured wall, 3 s at 20 fps, H.264."""
     import av  # noqa: F401 (a dependency of [test]: missing fails, not skips)
 
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     sys_ = systems.get("pendulum")
     theta = np.array([[-9.81, 0.6, 0.05, 0.0]])
@@ -169,7 +169,7 @@ def camera_pendulum(tmp_path_factory):
 
 
 def test_pendulum_on_a_camera_with_known_length(camera_pendulum, tmp_path, capsys):
-    from sysid_bench.cli import main
+    from sysid_bench.apps.cli import main
 
     out = tmp_path / "o"
     rc = main(["identify", str(camera_pendulum), "--system", "pendulum", "--known", "L=0.6",
@@ -208,7 +208,7 @@ def test_pendulum_on_a_camera_with_known_length(camera_pendulum, tmp_path, capsy
 ])
 def test_bad_options_one_line_naming_it_nothing_written(camera_pendulum, tmp_path, capsys,
                                                         args, named):
-    from sysid_bench.cli import main
+    from sysid_bench.apps.cli import main
 
     out = tmp_path / "o"
     rc = main(["identify", str(camera_pendulum), *args, "--method", "lsq", "--out", str(out),
@@ -221,7 +221,7 @@ def test_bad_options_one_line_naming_it_nothing_written(camera_pendulum, tmp_pat
 def test_object_never_found_is_refused(tmp_path, capsys):
     import av  # noqa: F401 (a dependency of [test]: missing fails, not skips)
 
-    from sysid_bench.cli import main
+    from sysid_bench.apps.cli import main
 
     path = footage.write_video(tmp_path / "blank.mp4", np.full((20, 64, 96), 90, np.uint8))
     rc = main(["identify", str(path), "--system", "spring", "--px-per-m", "100", "--method",
@@ -237,8 +237,8 @@ def test_spring_stored_sideways_with_anchor(tmp_path, capsys):
     counter-clockwise: ``--rotate 90`` turns it back and w2, c, L0 come out."""
     import av  # noqa: F401 (a dependency of [test]: missing fails, not skips)
 
-    from sysid_bench import systems
-    from sysid_bench.cli import main
+    from sysid_bench.apps.cli import main
+    from sysid_bench.core import systems
 
     sp = systems.get("spring")
     theta = np.array([[12.0, 2.0, 0.1, 1.4]])

@@ -63,7 +63,7 @@ def test_download_keeps_only_the_recorded_bytes(grc, tmp_path):
 
 
 def test_trim_keeps_the_window(grc, tmp_path):
-    from sysid_bench.footage import read_video, write_video
+    from sysid_bench.core.footage import read_video, write_video
 
     frames = np.zeros((20, 32, 48, 3), np.uint8)
     for i in range(20):

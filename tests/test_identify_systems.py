@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from sysid_bench import systems
-from sysid_bench.cli import main
-from sysid_bench.footage import write_video
+from sysid_bench.apps.cli import main
+from sysid_bench.core import systems
+from sysid_bench.core.footage import write_video
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from sysid_bench import intercept as ic
+from sysid_bench.apps import intercept as ic
 
 
 def _cmp(a: pd.DataFrame, b: pd.DataFrame) -> None:
@@ -222,7 +222,7 @@ def test_vid2param_policy_runs_and_says_how_it_forecast():
 
 # -- CLI and report -------------------------------------------------------------------------------
 def test_cli_prints_rates_and_writes_the_table(tmp_path, capsys):
-    from sysid_bench.cli import main
+    from sysid_bench.apps.cli import main
 
     rc = main(["intercept", "--policy", "random-1hz", "--throws", "3", "--seed", "2",
                "--out", str(tmp_path), "--no-progress"])
@@ -268,7 +268,7 @@ def test_wilson_interval_bad_input():
 def test_vid2param_policy_starts_its_path_at_the_fitted_position_now():
     # a crossing due before the forecast's first step must be visible to the last replan, so
     # the policy hands the forecast's fitted position now (camera frame) to the crossing search
-    from sysid_bench.tracking import track
+    from sysid_bench.core.tracking import track
 
     pol = ic.make_policy("vid2param", every=10)
     sc = ic.Scene()

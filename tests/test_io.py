@@ -7,8 +7,8 @@ import stat
 import numpy as np
 import pytest
 
-from sysid_bench import _io
-from sysid_bench._io import atomic_write
+from sysid_bench.core import _io
+from sysid_bench.core._io import atomic_write
 
 
 def _leftovers(folder):

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 import methods
-from sysid_bench import systems
-from sysid_bench.estimator import Observation
+from sysid_bench.core import systems
+from sysid_bench.core.estimator import Observation
 
 
 def _pendulum(n_frames=30):
@@ -92,7 +92,7 @@ def test_nuts_holds_a_known_parameter_and_keeps_inside_a_range():
 def pendulum_clip(tmp_path_factory):
     import av  # noqa: F401 (a dependency of [test]: missing fails, not skips)
 
-    from sysid_bench.footage import write_video
+    from sysid_bench.core.footage import write_video
 
     sys_ = systems.get("pendulum")
     theta = np.array([[-9.0, 1.2, 0.1, 0.05]])
@@ -109,7 +109,7 @@ def pendulum_clip(tmp_path_factory):
 def test_identify_says_whether_the_method_held_them(pendulum_clip, tmp_path, capsys, method, held):
     import json
 
-    from sysid_bench.cli import main
+    from sysid_bench.apps.cli import main
 
     out = tmp_path / "out"
     rc = main(["identify", str(pendulum_clip), "--system", "pendulum", "--method", method,

@@ -68,7 +68,7 @@ def test_the_outlier_clip_counts_an_answer_the_outlier_moved_not_an_ordinary_mis
     """A precise, passing answer on the outlier clip: e off by 1.8 std (a 90% interval misses
     it, as it misses one truth in ten without an outlier) is honest; off by 4 std (moved by the
     outlier) is not."""
-    from sysid_bench.estimator import Check, Posterior
+    from sysid_bench.core.estimator import Check, Posterior
 
     k = MEANINGLESS_KINDS.index("outlier frame")
     ctx = Context(SCALES["default"], tmp_path, 1)

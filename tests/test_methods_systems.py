@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import methods
-from sysid_bench import systems
-from sysid_bench.estimator import Forecast, Observation, Posterior
+from sysid_bench.core import systems
+from sysid_bench.core.estimator import Forecast, Observation, Posterior
 
 OTHER = [s for s in systems.available() if s != "ball"]
 
@@ -315,7 +315,7 @@ def decay(tmp_path, monkeypatch):
 
 def test_a_registered_system_gets_every_method_that_declares_any(decay):
     from methods import NotAvailable
-    from sysid_bench.testing import check_estimator, estimator_checks
+    from sysid_bench.core.testing import check_estimator, estimator_checks
 
     system = systems.get(decay)
     rng = np.random.default_rng(5)

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from sysid_bench import metrics as M
-from sysid_bench.physics import PRIOR
+from sysid_bench.core import metrics as M
+from sysid_bench.core.physics import PRIOR
 
 
 def test_param_mse_hand_computed():

@@ -10,9 +10,9 @@ import pytest
 
 import methods
 from methods._simulation import widen_failed
-from sysid_bench import physics
-from sysid_bench.estimator import Check, Observation, Posterior
-from sysid_bench.physics import PRIOR_SPAN, PRIOR_STD
+from sysid_bench.core import physics
+from sysid_bench.core.estimator import Check, Observation, Posterior
+from sysid_bench.core.physics import PRIOR_SPAN, PRIOR_STD
 
 T = 120
 
@@ -115,7 +115,7 @@ def test_widen_failed_keeps_passing_posteriors():
 def test_vid2param_hover_video_fails_or_wide():
     import torch  # noqa: F401 (a dependency of [test]: missing fails, not skips)
 
-    from sysid_bench.render import render
+    from sysid_bench.core.render import render
 
     states = np.zeros((1, T, 4))
     states[0, :, :2] = [5.0, 5.0]
@@ -131,8 +131,8 @@ def _cli(tmp_path, name, states, capsys):
 
     import av  # noqa: F401 (a dependency of [test]: missing fails, not skips)
 
-    from sysid_bench import video
-    from sysid_bench.render import render
+    from sysid_bench.apps import video
+    from sysid_bench.core.render import render
 
     clip = video.write_video(tmp_path / f"{name}.mp4", render(states, size=(128, 128))[0], fps=20)
     out = tmp_path / name
@@ -146,7 +146,7 @@ def test_identify_prints_one_warning_and_writes_check_columns(tmp_path, capsys, 
     # the CLI's handling of a failed check, without decoding a video (fast)
     import argparse
 
-    from sysid_bench import video
+    from sysid_bench.apps import video
 
     T_ = 4
     chk = np.array([[np.nan] * 3, [1.0, 0.01, 0.02], [1.0, 0.01, 0.02], [0.0, 0.9, 0.02]])

@@ -16,10 +16,10 @@ from methods._simulation import (
     region_box,
 )
 from methods._tracks import prepare
-from sysid_bench import physics
-from sysid_bench.estimator import Observation, Posterior
-from sysid_bench.physics import PRIOR_SPAN, PRIOR_STD
-from sysid_bench.simulator import DEFAULT_SIGMA, CountingSimulator
+from sysid_bench.core import physics
+from sysid_bench.core.estimator import Observation, Posterior
+from sysid_bench.core.physics import PRIOR_SPAN, PRIOR_STD
+from sysid_bench.core.simulator import DEFAULT_SIGMA, CountingSimulator
 
 T = 120
 THETA = np.array([0.85, -9.5, 0.02, 0.3])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 # the scene module first: it picks MuJoCo's GL backend before mujoco is imported
-from sysid_bench import mujoco_scene as ms
+from sysid_bench.core import mujoco_scene as ms
 
 if ms.mujoco_available() is not None:
     pytest.skip(ms.mujoco_available(), allow_module_level=True)
@@ -60,7 +60,7 @@ def test_rendered_framing_matches_the_suite():
     ep = ms.simulate_ball("rubber", [0.85, -9.8, 0.005, 0.2], [2.0, 7.0, 5.0, 3.0], n_frames=20)
     frames, name = ms.render_frames(ep, size=64)
     assert name.startswith("mujoco")
-    from sysid_bench.tracking import track
+    from sysid_bench.core.tracking import track
 
     pos = track(frames)
     np.testing.assert_allclose(pos, ep.states[:, :2], atol=0.08)
@@ -71,7 +71,7 @@ def test_fallback_renderer_is_labelled(monkeypatch):
     ep = ms.simulate_ball("rubber", [0.85, -9.8, 0.005, 0.2], [2.0, 7.0, 5.0, 3.0], n_frames=10)
     frames, name = ms.render_frames(ep, size=32)
     assert frames.shape == (10, 32, 32) and "fallback: no GL here (test)" in name
-    from sysid_bench.tracking import track
+    from sysid_bench.core.tracking import track
 
     np.testing.assert_allclose(track(frames), ep.states[:, :2], atol=0.1)
 
@@ -86,7 +86,7 @@ def test_make_video_is_cached_and_seeded(tmp_path):
     p3, m3 = ms.make_video(tmp_path / "a", 1, seed=3, n_frames=40, size=64)
     assert p3 == p1 and p1.stat().st_mtime_ns == before and m3 == m1
     assert not list((tmp_path / "a").glob("*.tmp*"))
-    from sysid_bench.video import read_video
+    from sysid_bench.apps.video import read_video
 
     assert read_video(p1).frames.shape == (40, 64, 64)
 

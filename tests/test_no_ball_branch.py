@@ -1,6 +1,6 @@
 """Issue 37: the ball is a system like the others. No code outside the ball's own files asks
 whether it runs on the ball (``== "ball"`` and the like): what differs is declared by the System
-(:mod:`sysid_bench.systems._base` hooks, :mod:`sysid_bench.systems.ball`) or by a method's own
+(:mod:`sysid_bench.core.systems._base` hooks, :mod:`sysid_bench.core.systems.ball`) or by a method's own
 per-system table. And no ``System*`` twin of a class.
 
 The ball's own files are the ball's System and, until issue 37 reaches it (another branch),
@@ -18,9 +18,9 @@ BALL_BRANCH = re.compile(r'== "ball"|!= "ball"|_is_ball|"ball" in|is_ball')
 TWIN = re.compile(r"^\s*class System[A-Z]\w*", re.M)
 
 #: the ball's own files, where a ball branch is the point
-BALL_FILES = ("sysid_bench/systems/ball.py", "methods/vid2param/")
+BALL_FILES = ("sysid_bench/core/systems/ball.py", "methods/vid2param/")
 #: classes named System* that are no twin of another class
-NOT_TWINS = {"sysid_bench/_system_checks.py": ["SystemCheckError"]}
+NOT_TWINS = {"sysid_bench/core/_system_checks.py": ["SystemCheckError"]}
 
 
 def _sources():
@@ -60,8 +60,8 @@ def test_observation_and_stream_ask_the_system(monkeypatch):
     """The ball's observation checks and its stream's tracking are the ball System's hooks."""
     import numpy as np
 
-    from sysid_bench import systems
-    from sysid_bench.estimator import Observation
+    from sysid_bench.core import systems
+    from sysid_bench.core.estimator import Observation
 
     ball = type(systems.get("ball"))
     seen = []

@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 
 from methods import nuts as N
-from sysid_bench import physics
-from sysid_bench import simulator as C
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Forecast, Observation, Posterior
-from sysid_bench.metrics import interval_coverage, param_mse
-from sysid_bench.physics import PRIOR_HI, PRIOR_LO
+from sysid_bench.core import physics
+from sysid_bench.core import simulator as C
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Forecast, Observation, Posterior
+from sysid_bench.core.metrics import interval_coverage, param_mse
+from sysid_bench.core.physics import PRIOR_HI, PRIOR_LO
 
 GUESS = 0.083
 BOUND = 1e-3

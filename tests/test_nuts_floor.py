@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from methods import nuts as N
-from sysid_bench import physics
-from sysid_bench import simulator as C
+from sysid_bench.core import physics
+from sysid_bench.core import simulator as C
 
 
 @pytest.mark.slow  # ~20-45 s: compiling the gradient of the 60-frame scan

@@ -6,7 +6,7 @@ import pytest
 
 import methods
 from sysid_bench.bench.cases import bench_case
-from sysid_bench.estimator import Observation
+from sysid_bench.core.estimator import Observation
 
 
 @pytest.fixture(scope="module")

@@ -49,7 +49,7 @@ def test_online_cost_prefix_stride_interpolates(monkeypatch):
             now[0] += len(obs.frames) * 1e-3
 
     monkeypatch.setattr(online, "_clock", lambda: (now[0], now[0]))
-    from sysid_bench.estimator import Observation
+    from sysid_bench.core.estimator import Observation
 
     obs = Observation(frames=np.zeros((50, 8, 8), np.uint8))
     n, wall, cpu = online._run_batch(Linear(), obs, 3, 10)

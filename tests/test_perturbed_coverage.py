@@ -145,7 +145,7 @@ def test_reference_verdict_needs_cases_and_a_ci_inside_the_band(cases, verdict):
 
 
 def test_summary_coverage_is_our_physics_only():
-    from sysid_bench.report import summary_table
+    from sysid_bench.apps.report import summary_table
 
     df = _frame(_rows("lsq", "", 4, lambda c, p: 1, n=200)
                 + _rows("lsq", PERTURBED, 4, lambda c, p: 0)).assign(experiment="calibration",

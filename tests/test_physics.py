@@ -6,8 +6,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from physics_reference import reference_trajectory
 
-from sysid_bench import physics as P
-from sysid_bench.physics import BOX_WIDTH, PRIOR, ROLL_SPEED, sample_state0, sample_theta, simulate
+from sysid_bench.core import physics as P
+from sysid_bench.core.physics import (
+    BOX_WIDTH,
+    PRIOR,
+    ROLL_SPEED,
+    sample_state0,
+    sample_theta,
+    simulate,
+)
 
 N_REF = 200
 
@@ -213,7 +220,7 @@ def test_roll_threshold_is_named():
 
 
 def test_simulate_perturbed_zero_equals_simulate_and_deviations_act_at_bounces():
-    from sysid_bench.physics import simulate_perturbed
+    from sysid_bench.core.physics import simulate_perturbed
 
     rng = np.random.default_rng(5)
     th, s0 = sample_theta(50, rng), sample_state0(50, rng)
@@ -249,7 +256,7 @@ def test_simulate_perturbed_zero_equals_simulate_and_deviations_act_at_bounces()
 )
 def test_extreme_inputs_raise_naming_the_input_instead_of_nan(theta, state0, kwargs, names):
     """Issue 14: these returned NaN states (or were accepted) without a word."""
-    from sysid_bench.physics import simulate_perturbed
+    from sysid_bench.core.physics import simulate_perturbed
 
     for fn in (simulate, simulate_perturbed):
         with pytest.raises(ValueError, match=names):
@@ -261,7 +268,7 @@ def test_envelope_corners_simulate_finite_and_inside_the_box():
     """Every corner of the documented envelope, at short to the longest dt, gives finite states
     in the box, or (beyond the per-frame limits on drag and contacts) a ValueError naming
     theta, state0 and dt."""
-    from sysid_bench.physics import DT_MAX, ENVELOPE, FLOOR_MAX, PRIOR, V_MAX, check_step
+    from sysid_bench.core.physics import DT_MAX, ENVELOPE, FLOOR_MAX, PRIOR, V_MAX, check_step
 
     grid = {"e": (0.0, 0.97, 1.0), "g": (ENVELOPE["g"][0], -12.81, -1e-6), "d": ENVELOPE["d"],
             "r": ENVELOPE["r"]}

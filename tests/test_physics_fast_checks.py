@@ -4,7 +4,7 @@ checks refuse, returns what they return, and leaves every answer bitwise the sam
 import numpy as np
 import pytest
 
-from sysid_bench import physics as ph
+from sysid_bench.core import physics as ph
 
 
 def _random_inputs(rng, B=3):

@@ -12,8 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sysid_bench import physics as P
-from sysid_bench import physics_jax as PJ
+from sysid_bench.core import physics as P
+from sysid_bench.core import physics_jax as PJ
 
 TOL = 1e-9  # m
 

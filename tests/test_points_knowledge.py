@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from methods._points import Points, PointsSimulator, Problem
-from sysid_bench import systems
-from sysid_bench.estimator import Observation
+from sysid_bench.core import systems
+from sysid_bench.core.estimator import Observation
 
 
 def _obs():

@@ -21,10 +21,10 @@ import pytest
 
 from methods import _simulation
 from methods._simulation import check_prefixes
-from sysid_bench import physics
-from sysid_bench.estimator import Observation, Posterior
-from sysid_bench.physics import PRIOR_SPAN, PRIOR_STD
-from sysid_bench.simulator import DEFAULT_SIGMA
+from sysid_bench.core import physics
+from sysid_bench.core.estimator import Observation, Posterior
+from sysid_bench.core.physics import PRIOR_SPAN, PRIOR_STD
+from sysid_bench.core.simulator import DEFAULT_SIGMA
 
 ROOT = Path(__file__).resolve().parents[1]
 THETA = np.array([0.85, -9.5, 0.02, 0.3])
@@ -69,8 +69,8 @@ def test_the_readme_clip_is_widened_to_its_best_fit_not_to_the_prior():
     warm search from the box's edge missed, then the rest were not searched), now to hold the
     best fit, which explains the track to the noise. ~15 s."""
     import methods
-    from sysid_bench.footage import observe
-    from sysid_bench.video import read_video
+    from sysid_bench.apps.video import read_video
+    from sysid_bench.core.footage import observe
 
     truth = json.loads((ROOT / "docs/sample/ball.json").read_text())
     theta = np.array([truth["theta"][p] for p in physics.PARAMS])

@@ -6,7 +6,7 @@ import sys
 import pytest
 
 import methods
-from sysid_bench.estimator import Estimator
+from sysid_bench.core.estimator import Estimator
 
 
 def test_available_lists_contenders_and_reference_helpers_apart():
@@ -39,7 +39,7 @@ def test_exactly_one_reference_posterior():
 
 
 def test_bad_declarations_name_the_attribute():
-    from sysid_bench.estimator import Estimator
+    from sysid_bench.core.estimator import Estimator
 
     class Odd(Estimator):
         name = "odd"

@@ -3,9 +3,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sysid_bench import physics
-from sysid_bench.render import RADIUS_FRACTION, render, view_geometry
-from sysid_bench.tracking import track_batch
+from sysid_bench.core import physics
+from sysid_bench.core.render import RADIUS_FRACTION, render, view_geometry
+from sysid_bench.core.tracking import track_batch
 
 
 def _still(x, y, vx=0.0, vy=0.0, t=1):
@@ -226,7 +226,7 @@ def _discs_whole_frame(cols, rows, size, radius):
 @pytest.mark.parametrize("size", [(28, 28), (50, 100), (9, 31)])
 @pytest.mark.parametrize("n_sub", [1, 7])
 def test_disc_window_gives_the_whole_frame_bytes(size, n_sub):
-    from sysid_bench.render import _draw_discs
+    from sysid_bench.core.render import _draw_discs
 
     rng = np.random.default_rng(size[0] * 10 + n_sub)
     h, w = size
@@ -242,7 +242,7 @@ def test_disc_window_gives_the_whole_frame_bytes(size, n_sub):
 def test_camera_render_bytes_are_those_of_the_whole_frame_renderer(monkeypatch):
     """Whole camera videos (blur, noise, occlusions, a raised floor) come out byte for byte as
     the whole-frame disc drawing makes them."""
-    import sysid_bench.render as R
+    import sysid_bench.core.render as R
 
     rng = np.random.default_rng(5)
     sts = physics.simulate(physics.sample_theta(4, rng), physics.sample_state0(4, rng), n_frames=60)

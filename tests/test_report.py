@@ -5,14 +5,14 @@ import pandas as pd
 import pytest
 
 import methods
+from sysid_bench.apps.cli import main as cli_main
+from sysid_bench.apps.report import main as report_main
+from sysid_bench.apps.report import markdown_table, render
 from sysid_bench.bench import EXPERIMENTS
 from sysid_bench.bench.calibration import QUANTILES, Calibration
 from sysid_bench.bench.changing import frames_to_follow
 from sysid_bench.bench.runner import STORE_NAME, run
 from sysid_bench.bench.store import Store
-from sysid_bench.cli import main as cli_main
-from sysid_bench.report import main as report_main
-from sysid_bench.report import markdown_table, render
 
 try:
     methods.get_class("lsq")
@@ -105,7 +105,7 @@ def test_report_cli_from_store_and_bad_names(store_path, tmp_path, capsys):
 
 
 def test_cli_list_and_run(tmp_path, capsys):
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     assert cli_main(["list"]) == 0
     out = capsys.readouterr().out

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sysid_bench.cli import main as cli_main
+from sysid_bench.apps.cli import main as cli_main
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIP = ROOT / "docs" / "sample" / "ball.mp4"
@@ -65,7 +65,7 @@ def test_intercept_default_out_is_under_runs(tmp_path, monkeypatch, capsys):
 
 
 def test_store_label_is_relative(tmp_path, monkeypatch):
-    from sysid_bench.report import store_label
+    from sysid_bench.apps.report import store_label
 
     store = tmp_path / "runs" / "default" / "results.sqlite"
     monkeypatch.chdir(tmp_path)
@@ -104,9 +104,9 @@ def test_interception_is_an_experiment_of_the_store_and_rendered(tmp_path, monke
     """Section 8 runs through the runner and the store like the others (issue 37: not a side
     path of the report): a built-in policy's cells have no method, a rerun keeps them, and the
     ball's page shows their table; the provenance names the store, not a machine path."""
+    from sysid_bench.apps.report import render
     from sysid_bench.bench import interception
     from sysid_bench.bench.runner import STORE_NAME, run
-    from sysid_bench.report import render
 
     monkeypatch.setattr(interception, "policies", lambda methods=None: ["oracle", "random-1hz"])
     run_dir = tmp_path / "run"
@@ -194,7 +194,7 @@ def _headline():
 def test_readme_headline_table_is_the_summary_under_its_names():
     import pandas as pd
 
-    from sysid_bench.report import summary_table
+    from sysid_bench.apps.report import summary_table
 
     rows = []
     for m, se in (("vid2param", 0.01), ("lsq", 0.03), ("prior", 0.075)):

@@ -43,7 +43,7 @@ def _alive(pid: int) -> bool:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_sigkilled_run_takes_its_workers_with_it(tmp_path):
     """Workers of a run killed with SIGKILL used to live on, orphaned and computing."""
-    cmd = [sys.executable, "-m", "sysid_bench.cli", "run", "--scale", "smoke", "--methods", "nuts",
+    cmd = [sys.executable, "-m", "sysid_bench.apps.cli", "run", "--scale", "smoke", "--methods", "nuts",
            "emcee", "--experiments", "calibration", "--workers", "2", "--run-dir",
            str(tmp_path / "r"), "--no-progress"]
     proc = subprocess.Popen(cmd, cwd=ROOT, env=_ENV, stdout=subprocess.DEVNULL,
@@ -93,9 +93,9 @@ def _hold_lock(run_dir) -> subprocess.Popen:
 
 
 def test_second_run_on_a_busy_run_dir_is_refused_and_writes_nothing(tmp_path, capsys):
+    from sysid_bench.apps.cli import main
     from sysid_bench.bench.runner import STORE_NAME, run
     from sysid_bench.bench.store import RunDirBusyError, Store
-    from sysid_bench.cli import main
 
     args = dict(scale="smoke", methods=["prior"], experiments=["identification"],
                 run_dir=tmp_path, workers=0, progress=False)
@@ -162,8 +162,8 @@ def test_processes_a_run_starts_ignore_ctrl_c():
 
 
 def test_an_interrupted_run_is_one_line_saying_how_to_resume(tmp_path, monkeypatch, capsys):
+    from sysid_bench.apps.cli import main
     from sysid_bench.bench import runner
-    from sysid_bench.cli import main
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt

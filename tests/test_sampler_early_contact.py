@@ -16,7 +16,7 @@ import pytest
 
 from sysid_bench.bench.cases import SCALES, observation
 from sysid_bench.bench.cases import test_set as _test_set
-from sysid_bench.estimator import Observation
+from sysid_bench.core.estimator import Observation
 
 EGD = slice(0, 3)
 

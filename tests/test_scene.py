@@ -9,9 +9,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from sysid_bench import physics, systems
-from sysid_bench.estimator import Observation
-from sysid_bench.systems import BallScene, CollisionScene, PendulumScene, Scene, SpringScene
+from sysid_bench.core import physics, systems
+from sysid_bench.core.estimator import Observation
+from sysid_bench.core.systems import BallScene, CollisionScene, PendulumScene, Scene, SpringScene
 
 NAMES = ("ball", "collision", "pendulum", "spring")
 

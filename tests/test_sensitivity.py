@@ -11,9 +11,9 @@ import methods
 from sysid_bench.bench.cases import get_scale
 from sysid_bench.bench.experiment import Context
 from sysid_bench.bench.sensitivity import Sensitivity, conditions, trained_model
-from sysid_bench.estimator import Estimator, Posterior
-from sysid_bench.physics import PARAMS
-from sysid_bench.spec import spec_of
+from sysid_bench.core.estimator import Estimator, Posterior
+from sysid_bench.core.physics import PARAMS
+from sysid_bench.core.spec import spec_of
 
 
 def _rows(cond, se_by_param, n_cases=20, n_frames=50, distance=None, seed=0):

@@ -11,9 +11,9 @@ import pytest
 
 from methods._tracks import segment_track
 from methods.sindy import SINDy, _segment_jackknife, bounce_ratios, free_flight, pool_ratios
-from sysid_bench import physics
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Observation
+from sysid_bench.core import physics
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Observation
 
 
 @pytest.fixture(scope="module")

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from methods.sindy import SINDy, reject_outliers
-from sysid_bench import physics
-from sysid_bench.estimator import Observation
+from sysid_bench.core import physics
+from sysid_bench.core.estimator import Observation
 
 
 @pytest.fixture(scope="module")

@@ -7,9 +7,9 @@ touching pucks and on frames without pucks, the initial state from a track, and 
 import numpy as np
 import pytest
 
-from sysid_bench import systems
-from sysid_bench._system_checks import system_checks
-from sysid_bench.systems import collision as col
+from sysid_bench.core import systems
+from sysid_bench.core._system_checks import system_checks
+from sysid_bench.core.systems import collision as col
 
 SYS = systems.get("collision")
 DT = 0.05
@@ -171,7 +171,7 @@ def test_jax_twin_gradients_match_finite_differences_across_contacts():
     import jax
     import jax.numpy as jnp
 
-    from sysid_bench.systems.collision_jax import simulate_core
+    from sysid_bench.core.systems.collision_jax import simulate_core
 
     theta = np.array([0.7, 0.75, 0.12, 0.8])
     state0 = np.array([2.0, 3.0, 7.5, -2.5])
@@ -197,7 +197,7 @@ def test_jax_twin_gradients_match_finite_differences_across_contacts():
 def test_jax_twin_marks_a_frame_short_of_passes_bad():
     import jax  # noqa: F401 (a dependency of [test]: missing fails, not skips)
 
-    from sysid_bench.systems.collision_jax import simulate_core
+    from sysid_bench.core.systems.collision_jax import simulate_core
 
     theta = np.array([2.0, 0.5, 0.05, 0.6])
     state0 = np.array([1.0, 1.0, 3.0, -4.0])  # first contact at 0.3 s

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import methods
-from sysid_bench import systems
-from sysid_bench.estimator import Observation
+from sysid_bench.core import systems
+from sysid_bench.core.estimator import Observation
 
 _CHEAP = {"num_warmup": 20, "num_samples": 20, "n_init": 200, "search_rounds": 2,
           "n_starts": 1, "max_opt_evals": 10, "n_forecast": 10, "frame_bucket": 100}

@@ -5,8 +5,8 @@ import threading
 import numpy as np
 import pytest
 
-from sysid_bench import systems
-from sysid_bench.systems import _base, pendulum, spring
+from sysid_bench.core import systems
+from sysid_bench.core.systems import _base, pendulum, spring
 
 
 def test_use_parallel_rule():

@@ -4,9 +4,9 @@ solve_ivp reference, its camera and its input checks."""
 import numpy as np
 import pytest
 
-from sysid_bench._system_checks import system_checks
-from sysid_bench.systems import get
-from sysid_bench.systems import pendulum as P
+from sysid_bench.core._system_checks import system_checks
+from sysid_bench.core.systems import get
+from sysid_bench.core.systems import pendulum as P
 
 S = get("pendulum")
 TOL = 1e-6  # design: simulator vs event-driven solve_ivp reference, metres over 200 frames
@@ -281,7 +281,7 @@ def test_carried_sine_step_is_the_plain_rk4_step():
 def test_jax_twin_matches_on_events_and_time_varying_theta():
     import jax  # noqa: F401 (a dependency of [test]: missing fails, not skips)
 
-    from sysid_bench.systems.pendulum_jax import simulate
+    from sysid_bench.core.systems.pendulum_jax import simulate
 
     theta = np.array([-6.81, 2.0, 0.1, 0.5])  # turnarounds, then a stick
     np.testing.assert_allclose(np.asarray(simulate(theta, np.array([0.9, -0.2]))),
@@ -299,7 +299,7 @@ def test_jax_gradient_across_events_matches_finite_differences():
     import jax
     import jax.numpy as jnp
 
-    from sysid_bench.systems.pendulum_jax import simulate
+    from sysid_bench.core.systems.pendulum_jax import simulate
 
     p, s0, T = np.array([-9.81, 1.0, 0.1, 0.3]), np.array([1.2, 0.3]), 10
 

@@ -6,9 +6,9 @@ bad input."""
 import numpy as np
 import pytest
 
-from sysid_bench import systems
-from sysid_bench._system_checks import system_checks
-from sysid_bench.systems import spring as spring_mod
+from sysid_bench.core import systems
+from sysid_bench.core._system_checks import system_checks
+from sysid_bench.core.systems import spring as spring_mod
 
 SPRING = systems.get("spring")
 DT = 0.05
@@ -180,7 +180,7 @@ def test_jax_twin_time_varying_and_gradients():
     import jax
     import jax.numpy as jnp
 
-    from sysid_bench.systems.spring_jax import simulate
+    from sysid_bench.core.systems.spring_jax import simulate
 
     th = np.empty((80, 4))
     th[:40], th[40:] = [9.0, 5.0, 0.2, 1.4], [20.0, 15.0, 0.5, 1.6]

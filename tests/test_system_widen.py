@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 import methods
-from sysid_bench import systems
 from sysid_bench.bench.systems import system_case
-from sysid_bench.estimator import Observation
+from sysid_bench.core import systems
+from sysid_bench.core.estimator import Observation
 
 pytestmark = pytest.mark.skipif("lsq" not in methods.available(), reason="lsq not installed")
 

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from sysid_bench import physics
-from sysid_bench.render import render, view_geometry
-from sysid_bench.tracking import track, track_batch
+from sysid_bench.core import physics
+from sysid_bench.core.render import render, view_geometry
+from sysid_bench.core.tracking import track, track_batch
 
 
 @pytest.fixture(scope="module")

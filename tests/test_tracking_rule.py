@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from shaded_ball import path, shaded_frames
 
-from sysid_bench import physics, tracking
-from sysid_bench.render import render, view_geometry
-from sysid_bench.tracking import ball_centre, ball_seen, noise_level, track
-from sysid_bench.video import find_ball
+from sysid_bench.apps.video import find_ball
+from sysid_bench.core import physics, tracking
+from sysid_bench.core.render import render, view_geometry
+from sysid_bench.core.tracking import ball_centre, ball_seen, noise_level, track
 
 
 def _meaningless(kind: str, size, n: int = 12) -> np.ndarray:
@@ -167,7 +167,7 @@ def test_noise_level_is_the_standard_deviation():
 def test_uint8_shortcuts_equal_the_plain_formula():
     # _centroids' shortcuts for uint8 frames (integer cut-offs, the background by the bytes, no
     # sort where the wall dominates) against the formulas they replace, on walls and on noise
-    from sysid_bench import tracking as tr
+    from sysid_bench.core import tracking as tr
 
     rng = np.random.default_rng(39)
     fr = rng.integers(0, 256, (40, 28, 28), dtype=np.uint8)

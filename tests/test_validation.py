@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import methods
-from sysid_bench.estimator import BOX_MARGIN, DT_RANGE, MAX_HORIZON, Observation
+from sysid_bench.core.estimator import BOX_MARGIN, DT_RANGE, MAX_HORIZON, Observation
 
 
 def _track(n=20):
@@ -42,7 +42,7 @@ def test_positions_outside_the_box(where, value):
 
 
 def test_positions_within_the_margin_are_accepted_and_moved_onto_the_edge():
-    from sysid_bench.estimator import observed_positions
+    from sysid_bench.core.estimator import observed_positions
 
     pos = _track()
     pos[0, 0] = -0.01  # a tracked ball touching the wall

@@ -13,9 +13,9 @@ from methods.vid2param.checkpoint import load_checkpoint, save_atomic
 from methods.vid2param.data import rolls_mask, targets_from_dataset
 from methods.vid2param.model import V2PConfig
 from methods.vid2param.train import TrainConfig, export, train
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Observation, Posterior
-from sysid_bench.physics import PARAMS, PRIOR
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Observation, Posterior
+from sysid_bench.core.physics import PARAMS, PRIOR
 
 LO = np.array([PRIOR[p][0] for p in PARAMS])
 HI = np.array([PRIOR[p][1] for p in PARAMS])
@@ -631,7 +631,7 @@ def test_fine_tune_records_its_starting_checkpoint_even_if_replaced(tiny_ckpt, t
 def test_roll_features_read_the_deceleration_of_a_rolling_track_and_ignore_flight():
     """The rolling statistic, fed exact positions, reads r; a bouncing ball adds nothing."""
     from methods.vid2param.model import Vid2ParamNet
-    from sysid_bench.physics import simulate
+    from sysid_bench.core.physics import simulate
 
     cfg = V2PConfig(**{**BARE, "roll_features": True}, latent=8, hidden=16, feat=16,
                     channels=(4, 8))
@@ -686,7 +686,7 @@ def test_run_fit_statistic_reads_r_at_any_floor_height_and_ignores_flight():
     (the camera's raised floors), across a wall bounce, and a bouncing ball adds nothing."""
     from methods.vid2param.model import Vid2ParamNet
     from methods.vid2param.parts import FIT_FLAT, RunFits
-    from sysid_bench.physics import simulate
+    from sysid_bench.core.physics import simulate
 
     cfg = V2PConfig(**{**BARE, "roll_features": True, "roll_stat": "fit"}, latent=8, hidden=16,
                     feat=16, channels=(4, 8))
@@ -714,7 +714,7 @@ def test_run_fit_statistic_numpy_path_equals_torch_on_noisy_tracks():
     """``fast.FrameFilter``'s float arithmetic of ``RunFits`` gives the torch path's columns."""
     from methods.vid2param.fast import FrameFilter
     from methods.vid2param.parts import RunFits
-    from sysid_bench.physics import simulate
+    from sysid_bench.core.physics import simulate
 
     rng = np.random.default_rng(3)
     theta = np.column_stack([rng.uniform(0.6, 0.7, 8), np.full(8, -9.8), np.full(8, 0.01),

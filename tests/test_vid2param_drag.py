@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from methods.vid2param.drag import ACC_CAP, DragBlend, DragStatistic, fit_blend, statistic_track
-from sysid_bench.physics import PRIOR, simulate
+from sysid_bench.core.physics import PRIOR, simulate
 
 LO, HI = PRIOR["d"]
 
@@ -40,7 +40,7 @@ def test_the_statistic_reads_drag_off_a_clean_flight():
 
 
 def test_a_ball_that_loses_speed_at_bounces_moves_only_the_all_window_statistic():
-    from sysid_bench.physics import simulate_perturbed
+    from sysid_bench.core.physics import simulate_perturbed
 
     theta = np.array([[0.85, -9.81, 0.01, 0.3]] * 2)
     state0 = np.array([[5.0, 4.0, 4.0, 6.0]] * 2)
@@ -149,8 +149,8 @@ def camera_with_and_without_drag(tmp_path_factory):
 def test_an_estimator_with_drag_evidence_agrees_batched_streamed_and_identified(
         camera_with_and_without_drag):
     from methods.vid2param import Vid2Param
-    from sysid_bench.datasets import make_dataset
-    from sysid_bench.estimator import Observation
+    from sysid_bench.core.datasets import make_dataset
+    from sysid_bench.core.estimator import Observation
 
     path_with, path_without = camera_with_and_without_drag
     with_drag = Vid2Param(checkpoint=str(path_with), n_samples=0, device="cpu")

@@ -18,7 +18,7 @@ import torch
 
 from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param
 from methods.vid2param.fast import FrameFilter, LazyPosterior, Unsupported, fast_support
-from sysid_bench.datasets import make_dataset
+from sysid_bench.core.datasets import make_dataset
 
 needs = {k: pytest.mark.skipif(not p.exists(), reason=f"no shipped {k} checkpoint")
          for k, p in SHIPPED_CHECKPOINTS.items()}
@@ -183,7 +183,7 @@ def test_unsupported_network_falls_back_to_torch(tmp_path):
 
 def test_lazy_posterior_draws_when_read_and_is_keyed():
     # a ball posterior within the prior (g negative: Posterior checks the physics' envelope)
-    from sysid_bench.physics import PARAMS, PRIOR
+    from sysid_bench.core.physics import PARAMS, PRIOR
 
     lo, hi = (np.array([PRIOR[p][k] for p in PARAMS]) for k in (0, 1))
     loc, std = (lo + hi) / 2, (hi - lo) / 5

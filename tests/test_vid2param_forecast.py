@@ -9,10 +9,10 @@ import torch
 import methods
 from methods.vid2param import FORECASTS, SHIPPED_CHECKPOINTS, V2PConfig
 from methods.vid2param.rollout import backtest_error, fit_state, sample_trajectories
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Observation
-from sysid_bench.metrics import position_mse
-from sysid_bench.physics import simulate, simulate_perturbed
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Observation
+from sysid_bench.core.metrics import position_mse
+from sysid_bench.core.physics import simulate, simulate_perturbed
 
 needs_shipped = pytest.mark.skipif(not SHIPPED_CHECKPOINTS["28x28"].exists(),
                                    reason="shipped checkpoint missing")

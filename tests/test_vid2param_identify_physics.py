@@ -8,9 +8,9 @@ import pytest
 import methods
 from methods.vid2param import SHIPPED_CHECKPOINTS
 from methods.vid2param.rollout import _correlation_time, fit_state, fit_track, simulations
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Observation
-from sysid_bench.physics import PRIOR, simulate
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Observation
+from sysid_bench.core.physics import PRIOR, simulate
 
 needs_shipped = pytest.mark.skipif(not SHIPPED_CHECKPOINTS["28x28"].exists(),
                                    reason="shipped checkpoint missing")

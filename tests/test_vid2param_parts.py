@@ -31,10 +31,10 @@ import torch
 from methods.vid2param import SHIPPED_CHECKPOINTS, Vid2Param
 from methods.vid2param.checkpoint import build_net, load_checkpoint
 from methods.vid2param.data import targets_from_arrays
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Observation
-from sysid_bench.physics import simulate
-from sysid_bench.render import render
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Observation
+from sysid_bench.core.physics import simulate
+from sysid_bench.core.render import render
 
 FIXTURE = Path(__file__).parent / "data" / "vid2param_shipped_outputs.npz"
 N_FRAMES = 60

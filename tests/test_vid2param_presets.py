@@ -13,7 +13,7 @@ import torch  # noqa: F401 (a dependency of [test]: missing fails, not skips)
 from methods.vid2param import presets  # noqa: E402
 from methods.vid2param.model import V2PConfig, system_targets  # noqa: E402
 from methods.vid2param.train import _parse, _stages, _train_config  # noqa: E402
-from sysid_bench import systems  # noqa: E402
+from sysid_bench.core import systems  # noqa: E402
 
 
 @pytest.fixture

@@ -112,7 +112,7 @@ OTHERS = [n for n in SHIPPED_CHECKPOINTS if n not in ("28x28", "camera")]
 
 @pytest.mark.parametrize("name", OTHERS)
 def test_the_other_checkpoints_answer_bitwise_the_same_in_the_stages_format(name, tmp_path):
-    from sysid_bench.datasets import make_dataset
+    from sysid_bench.core.datasets import make_dataset
 
     src = SHIPPED_CHECKPOINTS[name]
     ck = dict(load_checkpoint(src))

@@ -17,8 +17,8 @@ from methods.vid2param.stages import (
     Stage,
     register_stage,
 )
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Observation
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Observation
 
 #: Each shipped checkpoint's stages (from the older format's keys, converted on load).
 EXPECTED = {
@@ -61,7 +61,7 @@ def test_describe_checkpoints_gives_one_line_each():
 
 
 def test_sysid_bench_list_checkpoints_prints_one_line_each(capsys):
-    from sysid_bench.cli import main
+    from sysid_bench.apps.cli import main
 
     assert main(["list", "--checkpoints"]) == 0
     out = capsys.readouterr().out.strip().splitlines()

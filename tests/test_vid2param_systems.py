@@ -15,8 +15,8 @@ from methods.vid2param import Vid2Param
 from methods.vid2param._points import SYSTEM_CHECKPOINTS
 from methods.vid2param.data import make_system_split
 from methods.vid2param.model import V2PConfig, Vid2ParamNet, position_names
-from sysid_bench.datasets import make_dataset
-from sysid_bench.estimator import Observation
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.estimator import Observation
 
 #: a tiny network: small enough that two CPU steps take about a second
 TINY = ["--hidden", "16", "--feat", "16", "--latent", "12", "--channels", "4", "--keypoints", "2",
@@ -173,7 +173,7 @@ def test_no_shipped_model_is_na_with_the_command():
 
 
 def est_size(name):
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     return systems.get(name).size
 
@@ -204,7 +204,7 @@ def user_system(tmp_path, monkeypatch):
     import sys
     from pathlib import Path
 
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     doc = Path(__file__).resolve().parents[1] / "docs" / "adding-a-system.md"
     module = re.findall(r"```python\n(.*?)```", doc.read_text(), flags=re.S)[0]
@@ -222,8 +222,8 @@ def test_a_users_system_loads_its_checkpoint(user_system, tmp_path):
     untrained tiny network here: reachability and shapes, not accuracy)."""
     from methods.vid2param.checkpoint import FORMAT, FORMAT_VERSION, save_atomic
     from methods.vid2param.model import system_targets
-    from sysid_bench import systems
-    from sysid_bench.testing import estimator_checks
+    from sysid_bench.core import systems
+    from sysid_bench.core.testing import estimator_checks
 
     sys_ = systems.get(user_system)
     with pytest.raises(methods.NotAvailable, match="n/a on the decay system: no model is shipped for it .pass checkpoint=F"):

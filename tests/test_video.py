@@ -1,4 +1,4 @@
-"""sysid_bench.video: reading files, geometry, finding the ball, identify end to end, the CLI."""
+"""sysid_bench.apps.video: reading files, geometry, finding the ball, identify end to end, the CLI."""
 
 from __future__ import annotations
 
@@ -11,10 +11,7 @@ import av
 import numpy as np
 import pytest
 
-from sysid_bench.metrics import normalised_param_se
-from sysid_bench.physics import PRIOR, simulate
-from sysid_bench.render import render, view_geometry
-from sysid_bench.video import (
+from sysid_bench.apps.video import (
     VideoError,
     find_ball,
     geometry_from_options,
@@ -22,6 +19,9 @@ from sysid_bench.video import (
     read_video,
     write_video,
 )
+from sysid_bench.core.metrics import normalised_param_se
+from sysid_bench.core.physics import PRIOR, simulate
+from sysid_bench.core.render import render, view_geometry
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -117,7 +117,7 @@ def test_write_video_validates_and_is_atomic(tmp_path):
 def test_write_video_is_reproducible_on_noisy_frames(tmp_path):
     # with x264's macroblock-tree rate control, writes of the same camera-like frames (pixel
     # noise, blur, occluders) differed every time; same frames, same bytes
-    from sysid_bench.datasets import make_dataset
+    from sysid_bench.core.datasets import make_dataset
 
     nuis = {"blur": 0.5, "occlusion": 0.05, "drop": 0.05, "noise": 8.0}
     frames = np.asarray(make_dataset("test", 1, 5, size=(100, 200), nuisance=nuis).frames[0])
@@ -282,8 +282,8 @@ def test_cli_bad_geometry_and_existing_out_untouched(tmp_path, video_file):
 
 def test_run_identify_registered():
     """`sysid-bench identify` is a sub-command of the one CLI."""
-    from sysid_bench import video
-    from sysid_bench.cli import _parser
+    from sysid_bench.apps import video
+    from sysid_bench.apps.cli import _parser
 
     args = _parser("identify").parse_args(["identify", "v.mp4", "--checkpoint", "camera"])
     assert args.fn is video.run and args.checkpoint == "camera"

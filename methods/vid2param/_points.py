@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench.estimator import MAX_HORIZON, Forecast, Observation, Posterior, Stream
+from sysid_bench.core.estimator import MAX_HORIZON, Forecast, Observation, Posterior, Stream
 
 __all__ = ["PointsModel", "PointsStream", "SYSTEM_CHECKPOINTS", "train_command"]
 
@@ -52,7 +52,7 @@ class PointsModel:
     # -- loading ------------------------------------------------------------------------------
     def _load(self) -> None:
         from methods import NotAvailable
-        from sysid_bench import systems
+        from sysid_bench.core import systems
 
         est = self._est
         sys_ = systems.get(est.system)

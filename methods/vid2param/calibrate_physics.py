@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from methods.vid2param.inference import HI, LO, physical, unseen_as_nan
-from sysid_bench.physics import DT, PARAMS
+from sysid_bench.core.physics import DT, PARAMS
 
 __all__ = ["calibrate_physics_stage", "LENGTHS", "SEED"]
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 
 from methods.vid2param.model import V2PConfig, Vid2ParamNet
-from sysid_bench._io import atomic_write
+from sysid_bench.core._io import atomic_write
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "RENAMED", "save_atomic", "load_checkpoint", "build_net",
            "upgrade_state_dict", "upgrade_optimizer_state", "git_info", "SHIPPED_CHECKPOINTS",
@@ -114,7 +114,7 @@ RENAMED = {
 
 def save_atomic(obj: dict, path) -> Path:
     """``torch.save`` to a temporary file next to ``path``, then rename over it
-    (``sysid_bench._io.atomic_write``)."""
+    (``sysid_bench.core._io.atomic_write``)."""
     return atomic_write(path, lambda tmp: torch.save(obj, tmp))
 
 

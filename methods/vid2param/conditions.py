@@ -41,7 +41,7 @@ CONDITION_STAGES = (("prior_noise", {"steps": 150}),)
 
 def condition_data(condition: str) -> tuple[str, dict]:
     """``(variant, variant_options)`` of the training data of ``condition`` (a
-    ``sysid_bench.datasets`` variant)."""
+    ``sysid_bench.core.datasets`` variant)."""
     if condition not in SENSITIVITY_CONDITIONS:
         raise ValueError(f"condition: expected one of {SENSITIVITY_CONDITIONS}, got {condition!r}")
     kind, _, arg = condition.partition(":")

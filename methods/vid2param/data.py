@@ -4,7 +4,7 @@ Targets are normalised to about [0, 1]: positions by the view (``x / 10``, ``(y 
 parameters by ``PRIOR`` (``physics.normalise_theta``), velocities (if used) by 10 m/s to about
 [-1, 1].
 
-Data come from ``sysid_bench.datasets.make_dataset``: the ``train`` split (sub-ranges 0, 2, 4, 6,
+Data come from ``sysid_bench.core.datasets.make_dataset``: the ``train`` split (sub-ranges 0, 2, 4, 6,
 8) for training, the ``test`` split for validation (with a seed other than the reported
 evaluation's).
 """
@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sysid_bench.datasets import make_dataset
-from sysid_bench.physics import BOX_WIDTH, normalise_theta
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.physics import BOX_WIDTH, normalise_theta
 
 __all__ = ["targets_from_dataset", "make_split", "rolls_mask", "chunk_seed", "perturb_dataset",
            "PointVideos", "make_system_split", "system_targets_from_arrays", "normalise_points"]
@@ -74,7 +74,7 @@ def system_targets_from_arrays(system, points, theta, names) -> np.ndarray:
 
     Parameters
     ----------
-    system : sysid_bench.systems.System
+    system : sysid_bench.core.systems.System
     points : ndarray, shape (N, T, K, 2)
         The tracked points, metres (``system.observe``).
     theta : ndarray, shape (N, P)
@@ -142,7 +142,7 @@ def make_system_split(system, split: str, n: int, seed: int, n_frames: int = 200
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     s = systems.get(system)
     if split not in ("train", "test"):
@@ -171,7 +171,7 @@ def make_system_split(system, split: str, n: int, seed: int, n_frames: int = 200
 
 
 def targets_from_dataset(ds, names) -> np.ndarray:
-    """Targets (N, T, K) from a ``sysid_bench.datasets.Dataset`` (uses its ``labels``) or a
+    """Targets (N, T, K) from a ``sysid_bench.core.datasets.Dataset`` (uses its ``labels``) or a
     system's :class:`PointVideos`."""
     if isinstance(ds, PointVideos):
         return ds.targets(names)
@@ -209,7 +209,7 @@ def chunk_seed(data_seed: int, k: int) -> int:
 
 def make_split(split: str, n: int, seed: int, size=(28, 28), nuisance=None, n_frames: int = 200,
                variant: str = "interleaved", **variant_options):
-    """One split (``sysid_bench.datasets.make_dataset``; the interleaved variant by default)."""
+    """One split (``sysid_bench.core.datasets.make_dataset``; the interleaved variant by default)."""
     return make_dataset(split, n, seed, variant=variant, n_frames=n_frames, size=tuple(size),
                         nuisance=nuisance, **variant_options)
 
@@ -219,7 +219,7 @@ def perturb_dataset(ds, spin: float, dwell: float, seed: int = 0, p: float = 1.0
 
     A fraction ``p`` of the videos (each independently) draws a spin loss ``U(0, spin)`` and a
     contact dwell ``U(0, dwell)`` s and is re-simulated from its own parameters, initial state
-    and floor with ``sysid_bench.physics.simulate_perturbed``, then rendered again with the
+    and floor with ``sysid_bench.core.physics.simulate_perturbed``, then rendered again with the
     dataset's own camera nuisances (fresh nuisance draws, from ``seed``); the others are kept
     byte for byte.
 
@@ -240,8 +240,8 @@ def perturb_dataset(ds, spin: float, dwell: float, seed: int = 0, p: float = 1.0
     """
     import dataclasses
 
-    from sysid_bench.physics import simulate_perturbed
-    from sysid_bench.render import render
+    from sysid_bench.core.physics import simulate_perturbed
+    from sysid_bench.core.render import render
 
     theta = np.asarray(ds.theta)
     if theta.ndim == 3 and not (theta == theta[:, :1]).all():

@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from sysid_bench.physics import BOX_WIDTH, DT, PRIOR
+from sysid_bench.core.physics import BOX_WIDTH, DT, PRIOR
 
 __all__ = ["DragBlend", "DragStatistic", "DragFitConfig", "statistic_track", "fit_blend",
            "fit_drag_stage", "K", "WALL_M", "FLY_M", "ACC_CAP", "BOUNCE_DV"]
@@ -254,7 +254,7 @@ def _network_d(ctx, ds) -> tuple[np.ndarray, ...]:
     """The normalised d posterior (N, T) each of the network and the stages before this one
     (``ctx``, an ``inference.FitContext``), its track (N, T, 2) m and true d (N,) normalised,
     for the videos of ``ds``."""
-    from sysid_bench.physics import PARAMS
+    from sysid_bench.core.physics import PARAMS
 
     i_d = PARAMS.index("d")
     frames = np.asarray(ds.frames)
@@ -305,7 +305,7 @@ def fit_drag_stage(ctx, cfg: DragFitConfig | None = None) -> dict:
     import torch
 
     from methods.vid2param.data import perturb_dataset
-    from sysid_bench._validate import check_positive_int
+    from sysid_bench.core._validate import check_positive_int
 
     cfg = cfg or DragFitConfig()
     for name in ("n_videos", "n_val", "k"):

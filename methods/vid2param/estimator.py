@@ -48,15 +48,22 @@ from methods.vid2param.inference import (
 )
 from methods.vid2param.stages import Pipeline
 from methods.vid2param.stages import describe as describe_stages
-from sysid_bench._validate import (
+from sysid_bench.core._validate import (
     check_horizon,
     check_positive_float,
     check_positive_int,
     check_seed_value,
 )
-from sysid_bench.estimator import MAX_HORIZON, Estimator, Forecast, Observation, Posterior, Stream
-from sysid_bench.physics import BOX_WIDTH, DT, PARAMS
-from sysid_bench.simulator import DEFAULT_SIGMA
+from sysid_bench.core.estimator import (
+    MAX_HORIZON,
+    Estimator,
+    Forecast,
+    Observation,
+    Posterior,
+    Stream,
+)
+from sysid_bench.core.physics import BOX_WIDTH, DT, PARAMS
+from sysid_bench.core.simulator import DEFAULT_SIGMA
 
 __all__ = ["Vid2Param", "Vid2ParamChanging", "Vid2ParamStream", "SHIPPED_CHECKPOINT",
            "SHIPPED_CHECKPOINTS", "CONDITION_CHECKPOINTS", "SENSITIVITY_CONDITIONS",
@@ -80,7 +87,7 @@ def describe_checkpoints() -> dict[str, str]:
 #: Forecast kinds (the ``forecast`` option).
 FORECASTS = {
     "latent": "unroll the prior in latent space (physics step of the latent state + residual)",
-    "physics": "simulate posterior samples of state and parameters with sysid_bench.physics",
+    "physics": "simulate posterior samples of state and parameters with sysid_bench.core.physics",
 }
 
 def _check_lengths(lengths, T: int) -> list[int]:
@@ -145,7 +152,7 @@ class Vid2Param(Estimator):
     Parameters
     ----------
     system : str
-        A registered system (:func:`sysid_bench.systems.available`); ``"ball"`` by default.
+        A registered system (:func:`sysid_bench.core.systems.available`); ``"ball"`` by default.
     checkpoint : str or Path, optional
         A checkpoint written by ``methods.vid2param.train``, or the name of a shipped one
         (``SHIPPED_CHECKPOINTS``: ``"28x28"``, ``"camera"``); ``None`` means ``"28x28"`` on the
@@ -179,13 +186,13 @@ class Vid2Param(Estimator):
         here, "physics" for ``vid2param-physics``): ``"latent"`` unrolls the network's
         prior in latent space (the paper's forecast; no frame is decoded), ``"physics"`` draws
         states and parameters from the filtered posterior and simulates them with
-        ``sysid_bench.physics``.
+        ``sysid_bench.core.physics``.
 
     Model check (``Posterior.check``, :func:`methods._simulation.check_prefixes`): the
     network's posterior mean simulated with our physics, from the start that fits it best,
     against the harness tracker's positions (not the network's own filtered track, which
     follows any input, a hovering ball's included), judged against the tracking noise
-    ``sysid_bench.simulator.DEFAULT_SIGMA``; a failed check widens the intervals to at least
+    ``sysid_bench.core.simulator.DEFAULT_SIGMA``; a failed check widens the intervals to at least
     the prior's. ``identify``, ``identify_prefixes`` and ``identify_batch`` check (the last
     can be told not to, to time the network alone); a ``stream``'s pushes carry no check
     (``check`` None: a check costs a least-squares fit, ~100x a push) and ``stream.check()``
@@ -506,7 +513,7 @@ class Vid2Param(Estimator):
 
     # -- the interface --------------------------------------------------------------------------
     def fit(self, train=None) -> Vid2Param:
-        """Train on a ``sysid_bench.datasets.Dataset`` for ``fit_steps`` steps.
+        """Train on a ``sysid_bench.core.datasets.Dataset`` for ``fit_steps`` steps.
 
         Short by default (a fine-tune of the loaded checkpoint when ``warm_start`` and the frame
         sizes match; else a fresh network). For a full training run use
@@ -797,7 +804,7 @@ class Vid2Param(Estimator):
         the network's posterior (the prior) and its own positions of the last
         ``rollout.WINDOW`` frames (the likelihood), with their Laplace covariance
         (``methods.vid2param.rollout``). ``"physics"`` simulates each draw with
-        ``sysid_bench.physics``. ``"latent"`` unrolls the network's physics prior (one frame of
+        ``sysid_bench.core.physics``. ``"latent"`` unrolls the network's physics prior (one frame of
         physics plus the learned process noise, ``methods.vid2param.prior``) in latent space:
         its mean is that of the draws' noise-free paths (the prior's mean unrolled; with the
         noise sampled, wall and floor contacts of noisy particles bias the average), std and
@@ -885,7 +892,7 @@ class Vid2Param(Estimator):
 
 class Vid2ParamPhysics(Vid2Param):
     """Vid2Param with the known physics: forecasts by simulating its filtered posterior's draws
-    through ``sysid_bench.physics`` (``forecast="physics"``), and identifies by fitting that
+    through ``sysid_bench.core.physics`` (``forecast="physics"``), and identifies by fitting that
     physics to the network's own track, registered beside ``vid2param`` so that the
     benchmark shows what the physics adds to the learnt model.
 

@@ -11,7 +11,7 @@ the validation seed used during training), video only:
   -> fit) on the first ``--lsq-n`` cases at ``--lsq-lengths``, with the seconds per
   identification of each;
 * with ``--spin`` / ``--dwell``, a robustness study: the same test cases re-simulated with
-  ``sysid_bench.physics.simulate_perturbed`` (each video its own spin loss ~ U[0, spin] and
+  ``sysid_bench.core.physics.simulate_perturbed`` (each video its own spin loss ~ U[0, spin] and
   contact dwell ~ U[0, dwell]) and rendered again, scored the same way, plus the RMS position
   error (m) of forecasts of ``--horizon`` frames after ``--forecast-from`` observed frames on
   both the clean and the perturbed videos (first ``--forecast-n`` cases).
@@ -32,10 +32,10 @@ from tqdm.auto import tqdm
 
 from methods.vid2param.data import perturb_dataset, rolls_mask
 from methods.vid2param.estimator import Vid2Param
-from sysid_bench._io import atomic_write
-from sysid_bench.datasets import make_dataset
-from sysid_bench.metrics import central_z
-from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
+from sysid_bench.core._io import atomic_write
+from sysid_bench.core.datasets import make_dataset
+from sysid_bench.core.metrics import central_z
+from sysid_bench.core.physics import BOX_WIDTH, PARAMS, PRIOR
 
 _LO = np.array([PRIOR[p][0] for p in PARAMS])
 _HI = np.array([PRIOR[p][1] for p in PARAMS])
@@ -117,8 +117,8 @@ def video_observation(ds, i: int):
     obs = ds.observation(i)
     if not (ds.meta.get("nuisance") or {}).get("floor_offset", 0.0):
         return obs
-    from sysid_bench.estimator import Observation, observed_positions
-    from sysid_bench.physics import BOX_WIDTH
+    from sysid_bench.core.estimator import Observation, observed_positions
+    from sysid_bench.core.physics import BOX_WIDTH
 
     # the suite's own tracking path, framed on the camera's floor 0
     pos = observed_positions(Observation(frames=obs.frames, dt=obs.dt, floor=0.0), min_seen=0)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench._io import atomic_write
+from sysid_bench.core._io import atomic_write
 
 __all__ = ["evaluate_system", "main"]
 

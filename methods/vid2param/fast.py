@@ -34,7 +34,7 @@ from torch import nn
 
 from methods.vid2param import parts as _parts
 from methods.vid2param.parts import RecurrentState
-from sysid_bench.estimator import Posterior
+from sysid_bench.core.estimator import Posterior
 
 __all__ = ["FrameFilter", "LazyPosterior", "Unsupported", "fast_support", "frame_filter_for",
            "encode_frames_batch", "ENCODE_CHUNK"]
@@ -556,7 +556,7 @@ def frame_filter_for(net: nn.Module, device, previous: FrameFilter | None = None
 
 
 class LazyPosterior(Posterior):
-    """A :class:`~sysid_bench.estimator.Posterior` whose ``samples`` are drawn when first read.
+    """A :class:`~sysid_bench.core.estimator.Posterior` whose ``samples`` are drawn when first read.
 
     The samples are ``clip(loc + std * eps, lo, hi)`` with ``eps`` the first ``(n_samples, 4)``
     standard normals of ``numpy.random.default_rng(seed)``: each posterior has its own keyed

@@ -31,7 +31,7 @@ from methods.vid2param.checkpoint import upgrade_state_dict
 from methods.vid2param.data import make_split, perturb_dataset
 from methods.vid2param.model import V2PConfig, Vid2ParamNet
 from methods.vid2param.rollout import backtest_error, fit_state, sample_trajectories
-from sysid_bench._validate import check_positive_int
+from sysid_bench.core._validate import check_positive_int
 
 __all__ = ["PriorFitConfig", "with_physics_prior", "fit_prior_stage"]
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from sysid_bench.physics import BOX_WIDTH, PARAMS, PRIOR
+from sysid_bench.core.physics import BOX_WIDTH, PARAMS, PRIOR
 
 __all__ = ["LO", "HI", "SPAN", "UNSEEN_SD_M", "physical", "positions", "param_index",
            "unseen_as_nan",

@@ -33,7 +33,7 @@ from methods.vid2param.parts import (
     _roll_features,
 )
 from methods.vid2param.prior import PhysicsPrior
-from sysid_bench.physics import BOX_WIDTH, DT
+from sysid_bench.core.physics import BOX_WIDTH, DT
 
 __all__ = ["V2PConfig", "Vid2ParamNet", "RecurrentState", "TARGETS",
            "LEGACY_DEFAULTS", "REMOVED", "position_names", "system_targets"]
@@ -55,7 +55,7 @@ def system_targets(system: str) -> tuple[str, ...]:
 
     if presets.space_of(system) == presets.BOX:
         return V2PConfig.targets
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     s = systems.get(system)
     return position_names(s.n_points) + tuple(s.params)
@@ -112,7 +112,7 @@ class V2PConfig:
     physics_prior : bool
         The latent rollout's physics transition (``methods.vid2param.prior``).
     system : str
-        The system (``sysid_bench.systems``) whose videos the network reads. ``"ball"``: the
+        The system (``sysid_bench.core.systems``) whose videos the network reads. ``"ball"``: the
         targets are ``TARGETS``' names, positions normalised by the ball's box. Any other: the
         targets are ``system_targets(system)`` (its K points' x, y normalised by its view's
         extent, its parameters by its prior), and the ball's parts (``roll_features``,
@@ -189,7 +189,7 @@ class V2PConfig:
 
         if presets.space_of(self.system) == presets.BOX:
             return 1
-        from sysid_bench import systems
+        from sysid_bench.core import systems
 
         return systems.get(self.system).n_points
 
@@ -249,7 +249,7 @@ class V2PConfig:
         p = presets.get(name)
         d = dict(p.net)
         if p.space == presets.VIEW:
-            from sysid_bench import systems
+            from sysid_bench.core import systems
 
             d.setdefault("system", p.system)
             d.setdefault("targets", system_targets(p.system))

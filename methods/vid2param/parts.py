@@ -14,7 +14,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from sysid_bench.physics import BOX_WIDTH, DT, PRIOR
+from sysid_bench.core.physics import BOX_WIDTH, DT, PRIOR
 
 __all__ = ["FrameEncoder", "KeypointPosition", "RecurrentState", "Recurrence", "GaussianHead",
            "PriorHead", "RollingEvidence", "Decoder"]
@@ -160,7 +160,7 @@ class KeypointPosition(nn.Module):
     """
 
     def __init__(self, c):
-        from sysid_bench.render import view_geometry
+        from sysid_bench.core.render import view_geometry
 
         super().__init__()
         self.keypoints, self.use_visibility = c.keypoints, bool(c.kp_visibility)

@@ -4,7 +4,7 @@ and the stages fitted after training.
 
 A preset is looked up by its name (``"28x28"``, ``"camera"``, ``"pendulum"``, ...) or by a
 system's name (``"ball"`` is the ``"28x28"`` preset); a system a user registered
-(``sysid_bench.systems.register``) gets a record derived from the ``System`` (:func:`get`).
+(``sysid_bench.core.systems.register``) gets a record derived from the ``System`` (:func:`get`).
 Code branches on a record's fields (``space``), never on a system's name.
 """
 
@@ -39,7 +39,7 @@ class Preset:
     name : str
         The preset's name (``--preset``).
     system : str
-        The system (``sysid_bench.systems``) whose videos the network reads.
+        The system (``sysid_bench.core.systems``) whose videos the network reads.
     space : {"box", "view"}
         What the network's targets are (:data:`BOX`: the ball's; :data:`VIEW`: a system's K
         tracked points and P parameters).
@@ -146,7 +146,7 @@ def get(name: str) -> Preset:
     name = _BY_SYSTEM.get(name, name)
     if name in PRESETS:
         return PRESETS[name]
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     if name not in systems.available():
         raise ValueError(f"preset: expected a preset ({', '.join(sorted(PRESETS))}) or a "
@@ -163,7 +163,7 @@ def space_of(system: str) -> str:
         ``system`` is not a registered system (the registry's message, naming the known ones).
     """
     if _BY_SYSTEM.get(system, system) not in PRESETS:
-        from sysid_bench import systems
+        from sysid_bench.core import systems
 
         systems.get(system)  # an unknown system: its ValueError names the registered ones
     return get(system).space

@@ -2,7 +2,7 @@
 
 The paper "integrates a physically based dynamics model with a recurrent variational
 autoencoder". Here the prior's mean of the ball's state ``[x, y, vx, vy]`` at the next frame is
-one frame of ``sysid_bench.physics`` applied to the latent state with the latent parameters
+one frame of ``sysid_bench.core.physics`` applied to the latent state with the latent parameters
 (``e, g, d, r``, which persist along the rollout), and its std a learned per-frame process
 noise. The physics stays the suite's one NumPy source: it is called, not re-coded.
 """
@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from methods.vid2param.rollout import clamp_state
-from sysid_bench.physics import PARAMS, PRIOR, simulate
+from sysid_bench.core.physics import PARAMS, PRIOR, simulate
 
 __all__ = ["PhysicsPrior", "NOISE0", "BOUNCE_NOISE0", "SKILL_REF", "SKILL_RANGE", "physics_step"]
 
@@ -36,7 +36,7 @@ SKILL_RANGE = (0.002, 2.0)
 
 
 def physics_step(state: np.ndarray, theta: np.ndarray, dt: float) -> np.ndarray:
-    """One frame of ``sysid_bench.physics.simulate`` for each row.
+    """One frame of ``sysid_bench.core.physics.simulate`` for each row.
 
     Parameters
     ----------

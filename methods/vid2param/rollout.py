@@ -4,7 +4,7 @@ Vid2Param's latent space carries positions and parameters but no velocity. Both 
 (``forecast="physics"`` and the latent rollout's physics prior) need the ball's full state
 ``[x, y, vx, vy]`` at the last observed frame. It is a fixed function of what the network
 already has -- its own filtered positions of the last ``window`` frames and its parameter
-estimate -- found by fitting one simulated trajectory of ``sysid_bench.physics`` to those
+estimate -- found by fitting one simulated trajectory of ``sysid_bench.core.physics`` to those
 positions (Levenberg-Marquardt on the state at the window's start, parameters held). Bounces and
 walls inside the window are simulated, not cut out, so the fit uses every frame.
 
@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sysid_bench.physics import BOX_WIDTH, DT, PARAMS, PRIOR
-from sysid_bench.physics import simulate as _physics_simulate
+from sysid_bench.core.physics import BOX_WIDTH, DT, PARAMS, PRIOR
+from sysid_bench.core.physics import simulate as _physics_simulate
 
 __all__ = ["StateFit", "WINDOW", "HOLDOUT", "backtest_error", "clamp_state", "fit_state", "fit_track",
            "simulations", "sample_posterior",
@@ -32,7 +32,7 @@ _counter = threading.local()
 
 
 def simulate(theta, state, n_frames, dt):
-    """``sysid_bench.physics.simulate``, counting the trajectories (``simulations``)."""
+    """``sysid_bench.core.physics.simulate``, counting the trajectories (``simulations``)."""
     _counter.n = getattr(_counter, "n", 0) + len(theta)
     return _physics_simulate(theta, state, n_frames, dt)
 

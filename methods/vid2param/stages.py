@@ -44,7 +44,7 @@ import numpy as np
 from methods.vid2param import presets
 from methods.vid2param.drag import DragBlend, DragStatistic, statistic_track
 from methods.vid2param.inference import param_index, positions
-from sysid_bench.physics import PARAMS
+from sysid_bench.core.physics import PARAMS
 
 __all__ = ["Stage", "STAGES", "register_stage", "Pipeline", "StdScale", "PriorNoise",
            "DragEvidence", "PhysicsCalibration", "LEGACY_KEYS",

@@ -69,9 +69,9 @@ from methods.vid2param.stages import (
     Pipeline,
     calibrate,
 )
-from sysid_bench import systems
-from sysid_bench._io import atomic_write
-from sysid_bench._validate import SEED_MAX, arg_number
+from sysid_bench.core import systems
+from sysid_bench.core._io import atomic_write
+from sysid_bench.core._validate import SEED_MAX, arg_number
 
 __all__ = ["TrainConfig", "train", "evaluate", "export", "fit_stages", "parse_stages",
            "calibrate", "resolve_device", "load_matching", "main"]
@@ -141,7 +141,7 @@ class TrainConfig:
     init : str, optional
         Checkpoint the weights started from (fine-tuning; see :func:`load_matching`).
     variant : str
-        ``sysid_bench.datasets`` variant of the training chunks: ``"interleaved"`` (the shipped
+        ``sysid_bench.core.datasets`` variant of the training chunks: ``"interleaved"`` (the shipped
         models), or a sensitivity condition's (``"extrapolation"``, ``"noisy"``,
         ``"simplified"``, ``"changing"``), with its ``variant_options`` (e.g.
         ``{"param": "e"}``, ``{"label_noise": 0.25}``). Validation stays on the interleaved
@@ -180,7 +180,7 @@ class TrainConfig:
     variant_options: dict | None = field(default=None)
 
     def __post_init__(self) -> None:
-        from sysid_bench.datasets import VARIANTS
+        from sysid_bench.core.datasets import VARIANTS
 
         if self.variant not in VARIANTS:
             raise ValueError(f"variant: expected one of {VARIANTS}, got {self.variant!r}")

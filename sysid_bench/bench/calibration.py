@@ -15,7 +15,7 @@ Cases off the system's own physics, for a system that declares them in
 cases as simulated by our physics, and
 ``"perturbed"`` (issue 29: intervals on physics that is not ours), the same test cases, from the
 same initial state, floor and parameters, re-simulated by
-:func:`sysid_bench.physics.simulate_perturbed` for ``PERTURBED_CONFIG[scale]["frames"]`` frames
+:func:`sysid_bench.core.physics.simulate_perturbed` for ``PERTURBED_CONFIG[scale]["frames"]`` frames
 and rendered again. Each case draws its own spin loss ``U(0, SPIN)`` of the horizontal speed and
 contact dwell ``U(0, DWELL)`` s at every floor bounce (:func:`perturbation`; the distribution of
 the suite's robustness study, ``methods.vid2param.evaluate --spin 0.3 --dwell 0.01``), so the
@@ -54,8 +54,8 @@ from sysid_bench.bench.identification import (
     method_inputs,
     system_params,
 )
-from sysid_bench.estimator import Observation
-from sysid_bench.metrics import gaussian_nll
+from sysid_bench.core.estimator import Observation
+from sysid_bench.core.metrics import gaussian_nll
 
 #: the cell condition of the perturbed-physics cases ("" is our physics)
 PERTURBED = "perturbed"
@@ -99,14 +99,14 @@ EGD = ("e", "g", "d")
 
 
 def _system(name):
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     return systems.get(name)
 
 
 def informed_params(system: str) -> tuple[str, ...]:
     """The parameters a clip informs on ``system``: its first :attr:`headline_group
-    <sysid_bench.systems.System.headline_groups>` where it declares more than one (the ball's
+    <sysid_bench.core.systems.System.headline_groups>` where it declares more than one (the ball's
     e, g, d: r is unknowable until the ball rolls), else every parameter. The coverage column,
     the honest share and the perturbed reading are over these."""
     sys_ = _system(system)
@@ -150,7 +150,7 @@ def meaningless_observation(ds, k: int, n_frames: int = 200):
     -------
     (Observation, ndarray of shape (4,) or None)
     """
-    from sysid_bench.render import render
+    from sysid_bench.core.render import render
 
     if not 0 <= int(k) < len(MEANINGLESS_KINDS):
         raise ValueError(f"k: expected a kind in [0, {len(MEANINGLESS_KINDS)}), got {k!r}")
@@ -219,7 +219,7 @@ def perturbation(seed: int, case: int) -> tuple[float, float]:
 def perturbed_observation(ds, i: int, input: str, n_frames: int, spin: float,
                           dwell: float) -> Observation:
     """Test case ``i`` of ``ds`` re-simulated with ``spin`` and ``dwell`` (see
-    :func:`sysid_bench.physics.simulate_perturbed`) for ``n_frames`` frames from its own initial
+    :func:`sysid_bench.core.physics.simulate_perturbed`) for ``n_frames`` frames from its own initial
     state, parameters and floor, as the ``input`` kind (``video``: rendered as the test set
     was; ``privileged``: true positions and initial state).
 
@@ -228,8 +228,8 @@ def perturbed_observation(ds, i: int, input: str, n_frames: int, spin: float,
     Observation
         ``frames`` (n_frames, H, W) or ``positions`` (n_frames, 2) and ``state0`` (4,).
     """
-    from sysid_bench.physics import simulate_perturbed
-    from sysid_bench.render import render
+    from sysid_bench.core.physics import simulate_perturbed
+    from sysid_bench.core.render import render
 
     if input not in ("video", "privileged"):
         raise ValueError(f"input: expected 'video' or 'privileged', got {input!r}")

@@ -1,6 +1,6 @@
 """Scales of a benchmark run and the test cases every method sees.
 
-Cases come from :func:`sysid_bench.datasets.make_dataset` on the **test** split with the run's
+Cases come from :func:`sysid_bench.core.datasets.make_dataset` on the **test** split with the run's
 seed, so they are a pure function of (variant, options, seed): every worker, local or on a Dask
 cluster, regenerates the same bytes (a few hundred ms per set, cached per process) instead of
 shipping arrays around. Because a dataset of n videos is a prefix of one of more videos, a run
@@ -9,7 +9,7 @@ that asks for more cases later extends the earlier ones instead of replacing the
 Inputs
 ------
 ``video``       the frames and the floor height (what Vid2Param gets; position methods go
-                through :mod:`sysid_bench.tracking`). The floor is given because the simulated
+                through :mod:`sysid_bench.core.tracking`). The floor is given because the simulated
                 test videos, like Vid2Param's training videos, all have the floor at the bottom
                 of the view: a learned method knows it implicitly, and leaving position methods
                 to guess it made them forecast bounces on the lowest point seen so far.
@@ -26,7 +26,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from sysid_bench.estimator import Observation
+from sysid_bench.core.estimator import Observation
 
 __all__ = ["INPUTS", "Scale", "SCALES", "get_scale", "test_set", "train_set", "observation",
            "inputs_for", "unknown_name", "system_cases", "system_case", "N_FRAMES", "bench_case"]
@@ -314,7 +314,7 @@ def get_scale(name: str | Scale) -> Scale:
 
 @lru_cache(maxsize=16)
 def _dataset(split: str, variant: str, n: int, seed: int, options: tuple):
-    from sysid_bench.datasets import make_dataset
+    from sysid_bench.core.datasets import make_dataset
 
     ds = make_dataset(split, n, seed, variant=variant, **dict(options))
     # cached per worker process and shared by its cells: read-only (as a loaded dataset's
@@ -330,14 +330,14 @@ def test_set(variant: str, n: int, seed: int, **options):
 
     Returns
     -------
-    sysid_bench.datasets.Dataset
+    sysid_bench.core.datasets.Dataset
     """
     return _dataset("test", variant, int(n), int(seed), tuple(sorted(options.items())))
 
 
 def train_set(variant: str, n: int, seed: int, **options):
     """Training videos of ``variant`` (not cached: only sensitivity training uses them once)."""
-    from sysid_bench.datasets import make_dataset
+    from sysid_bench.core.datasets import make_dataset
 
     return make_dataset("train", int(n), int(seed), variant=variant, **options)
 
@@ -381,7 +381,7 @@ def system_cases(system: str, n: int, seed: int):
         The true tracked points.
     noisy : ndarray, shape (n, T, K, 2)
     """
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     sys_ = systems.get(system)
     # one stream per system, fixed by the scale's seed and the system's name
@@ -417,7 +417,7 @@ def system_case(system: str, i: int, n: int, seed: int, input_kind: str):
     points : ndarray, shape (T, K, 2)
         The true tracked points.
     """
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     sys_ = systems.get(system)
     theta, states, points, noisy = system_cases(system, n, seed)
@@ -437,7 +437,7 @@ def system_case(system: str, i: int, n: int, seed: int, input_kind: str):
 def bench_case(system: str, i: int, n: int, seed: int, input_kind: str,
                variant: str = "interleaved"):
     """Test case ``i`` of ``n`` of ``system`` as the ``input_kind`` observation, wherever the
-    system's cases come from: :mod:`sysid_bench.datasets`' ``variant`` test set for a system
+    system's cases come from: :mod:`sysid_bench.core.datasets`' ``variant`` test set for a system
     that declares ``datasets`` (the ball: the paper's split, nuisances and variants), else
     :func:`system_case`.
 
@@ -449,7 +449,7 @@ def bench_case(system: str, i: int, n: int, seed: int, input_kind: str,
     points : ndarray, shape (T, K, 2)
         The true tracked points.
     """
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     sys_ = systems.get(system)
     if sys_.datasets:
@@ -474,7 +474,7 @@ def changing_cases(system: str, n: int, seed: int, every: int):
         The parameters in force at each frame.
     states : ndarray, shape (n, T, S)
     """
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     sys_ = systems.get(system)
     rng = np.random.default_rng([seed, zlib.crc32(f"changing/{system}".encode())])
@@ -498,7 +498,7 @@ def changing_case(system: str, i: int, n: int, seed: int, every: int):
     obs : Observation
     theta : ndarray, shape (T, P)
     """
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     sys_ = systems.get(system)
     theta, states = changing_cases(system, n, seed, every)

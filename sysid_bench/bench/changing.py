@@ -89,7 +89,7 @@ def frames_to_follow(lengths, est, old, new, c, every):
 def _params(df) -> tuple[str, ...]:
     """The parameter names of the system whose rows ``df`` holds (the report hands one system
     per page; rows of several give their names in turn, each once)."""
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     names = df.system.unique() if "system" in df else ["ball"]
     return tuple(dict.fromkeys(p for s in names for p in systems.get(s).params))
@@ -116,7 +116,7 @@ class Changing(Experiment):
                 for m in methods for i in range(scale.cases(self.name, m, system))]
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
-        from sysid_bench import systems
+        from sysid_bench.core import systems
 
         sc = ctx.scale
         sys_ = systems.get(cell.system)

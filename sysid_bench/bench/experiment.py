@@ -20,9 +20,9 @@ import numpy as np
 
 from sysid_bench.bench.cases import Scale, test_set
 from sysid_bench.bench.store import Row
-from sysid_bench.estimator import Estimator, Observation, Posterior
-from sysid_bench.metrics import bootstrap_ci
-from sysid_bench.physics import PRIOR_LO, PRIOR_SPAN
+from sysid_bench.core.estimator import Estimator, Observation, Posterior
+from sysid_bench.core.metrics import bootstrap_ci
+from sysid_bench.core.physics import PRIOR_LO, PRIOR_SPAN
 
 __all__ = [
     "EXPERIMENTS",
@@ -325,7 +325,7 @@ def ci_summary(df, by: list[str], value: str = "value", seed: int = 0):
     """Mean with a 95% bootstrap CI of ``value`` per group (cases are the resampled unit).
 
     Independent of the order of ``df``'s rows (each group's values are sorted, see
-    :func:`~sysid_bench.metrics.bootstrap_ci`); each group's bootstrap is seeded from ``seed``
+    :func:`~sysid_bench.core.metrics.bootstrap_ci`); each group's bootstrap is seeded from ``seed``
     and the group's identity.
 
     Returns

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import matplotlib
 
-from sysid_bench._io import atomic_write
+from sysid_bench.core._io import atomic_write
 
 matplotlib.use("Agg")  # reports are rendered on machines with no display
 
@@ -15,7 +15,7 @@ __all__ = ["save_figure", "method_color", "method_style", "method_claims"]
 
 
 def save_figure(fig, path) -> Path:
-    """Save ``fig`` as PNG at ``path`` atomically (:func:`sysid_bench._io.atomic_write`) and close it."""
+    """Save ``fig`` as PNG at ``path`` atomically (:func:`sysid_bench.core._io.atomic_write`) and close it."""
     import matplotlib.pyplot as plt
 
     try:

@@ -13,8 +13,8 @@ __all__ = ["method_fingerprint", "fingerprint_files"]
 #: harness files the methods are built on: a change to one changes their fingerprints (globs
 #: from the repository root; every private ``methods/_*.py`` module is shared by several
 #: methods, and the physics and systems decide what every method simulates)
-_SHARED_SOURCES = ("sysid_bench/simulator.py", "sysid_bench/physics.py",
-                   "sysid_bench/physics_jax.py", "sysid_bench/systems/*.py", "methods/_*.py")
+_SHARED_SOURCES = ("sysid_bench/core/simulator.py", "sysid_bench/core/physics.py",
+                   "sysid_bench/core/physics_jax.py", "sysid_bench/core/systems/*.py", "methods/_*.py")
 
 
 def fingerprint_files(name: str) -> list[Path]:

@@ -40,7 +40,7 @@ from sysid_bench.bench.experiment import (
     paper_methods,
 )
 from sysid_bench.bench.identification import _save, case_cells, paper_system
-from sysid_bench.metrics import central_z, position_mse
+from sysid_bench.core.metrics import central_z, position_mse
 
 N_EXAMPLES = 2
 
@@ -71,7 +71,7 @@ class Forecasting(Experiment):
         return case_cells(self.name, scale, methods, ("video", "privileged"), system)
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
-        from sysid_bench import systems
+        from sysid_bench.core import systems
 
         sc = ctx.scale
         sys_ = systems.get(cell.system)

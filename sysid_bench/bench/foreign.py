@@ -1,11 +1,11 @@
 """Experiment 6: physics that is not ours (the paper's "real videos", from MuJoCo).
 
-Videos come from an independent engine (:mod:`sysid_bench.mujoco_scene`: soft contacts with a
+Videos come from an independent engine (:mod:`sysid_bench.core.mujoco_scene`: soft contacts with a
 finite contact time, friction that spins the ball up at each bounce and lets it roll, MuJoCo's
 fluid drag with Magnus lift) for rubber, tennis and ping-pong balls, rendered by MuJoCo's own
 renderer in the suite's framing, written as H.264 files and generated once per run directory
 (``<run_dir>/foreign_videos``, seeded by the scale's seed). Every method reads them as a user's
-file would be read (:func:`sysid_bench.footage.read_video`, the ball found by background
+file would be read (:func:`sysid_bench.core.footage.read_video`, the ball found by background
 subtraction; Vid2Param sees frames re-drawn at the track, position methods the track).
 
 Rows per case and frame count: ``se_<p>`` (squared error against what the engine measurably
@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench._io import atomic_write
 from sysid_bench.bench.calibration import (
     COVERAGE_BAND,
     EGD,
@@ -47,8 +46,9 @@ from sysid_bench.bench.experiment import (
     fmt_ci,
     timed_prefixes,
 )
-from sysid_bench.metrics import GUESS_MSE, normalised_param_se, position_mse
-from sysid_bench.physics import PARAMS
+from sysid_bench.core._io import atomic_write
+from sysid_bench.core.metrics import GUESS_MSE, normalised_param_se, position_mse
+from sysid_bench.core.physics import PARAMS
 
 #: per scale: cases (ball types in turn), frames per video, identification prefixes, forecast
 #: prefixes (forecasting the last ten frames); methods of the expensive tier
@@ -100,7 +100,7 @@ def _lock(path: Path):
 
 def case_video(run_dir, scale, case: int):
     """(path, meta) of case ``case``'s MuJoCo video (generated on first use)."""
-    from sysid_bench.mujoco_scene import make_video
+    from sysid_bench.core.mujoco_scene import make_video
 
     cfg = config(scale)
     d = video_dir(run_dir)
@@ -109,7 +109,7 @@ def case_video(run_dir, scale, case: int):
 
 
 def case_observation(path: Path, size):
-    """:func:`sysid_bench.footage.observe` of a case's file; the track is cached beside it.
+    """:func:`sysid_bench.core.footage.observe` of a case's file; the track is cached beside it.
 
     Every method reads the same file, so the ball is found once per case (the tracker is
     deterministic; the cache is keyed by the file's size and the tracker's source).
@@ -117,8 +117,8 @@ def case_observation(path: Path, size):
     import hashlib
     import inspect
 
-    from sysid_bench import footage as video
-    from sysid_bench.estimator import Observation
+    from sysid_bench.core import footage as video
+    from sysid_bench.core.estimator import Observation
 
     key = hashlib.sha256(inspect.getsource(video).encode()
                          + str(path.stat().st_size).encode()).hexdigest()[:12]
@@ -163,13 +163,13 @@ class Foreign(Experiment):
 
     @property
     def description(self) -> str:
-        from sysid_bench.mujoco_scene import mujoco_available
+        from sysid_bench.core.mujoco_scene import mujoco_available
 
         why = mujoco_available()
         return self._description + (f" **Skipped on this machine: {why}**" if why else "")
 
     def cells(self, scale, methods, system="ball"):
-        from sysid_bench.mujoco_scene import mujoco_available
+        from sysid_bench.core.mujoco_scene import mujoco_available
 
         if mujoco_available() is not None:
             return []

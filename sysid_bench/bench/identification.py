@@ -7,7 +7,7 @@ baselines; methods that read pixels get video only). Rows per case and frame cou
 ``se_<p>`` (squared error of parameter p normalised by its prior range), ``se`` (their mean),
 ``wall_s`` (seconds for that identification) and ``n_simulations`` when the method reports it.
 
-Cases: the ball's are the paper's test videos (:mod:`sysid_bench.datasets`, 20 at the default
+Cases: the ball's are the paper's test videos (:mod:`sysid_bench.core.datasets`, 20 at the default
 scale); every other system's are its test split (:func:`~sysid_bench.bench.cases.system_cases`),
 fewer at the default scale (``n_cases["identification"]["*"]``): the position methods there
 reach 1e-4 to 1e-2 within a few cases (section 0's CIs), so 4 cases show the curves and their
@@ -31,7 +31,7 @@ from sysid_bench.bench.experiment import (
     paper_methods,
     timed_prefixes,
 )
-from sysid_bench.metrics import GUESS_MSE
+from sysid_bench.core.metrics import GUESS_MSE
 
 
 def method_inputs(method: str, wanted) -> list[str]:
@@ -56,7 +56,7 @@ def case_cells(experiment: str, scale, methods: list[str], wanted,
 def system_params(df) -> tuple[str, ...]:
     """The parameter names of the system whose rows ``df`` holds (the report hands each
     experiment one system's rows)."""
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     name = str(df.system.iloc[0]) if "system" in df.columns and len(df) else "ball"
     return tuple(systems.get(name).params)
@@ -64,7 +64,7 @@ def system_params(df) -> tuple[str, ...]:
 
 def paper_system(df) -> bool:
     """Whether ``df``'s system is the one of the paper whose claims the readings check."""
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     name = str(df.system.iloc[0]) if "system" in df.columns and len(df) else "ball"
     return bool(systems.get(name).paper)
@@ -72,7 +72,7 @@ def paper_system(df) -> bool:
 
 def normalised_se(system: str, truth, mean) -> np.ndarray:
     """Squared error (P,) of each parameter normalised by ``system``'s prior range."""
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     sys_ = systems.get(system)
     span = np.asarray(sys_.prior_hi, float) - np.asarray(sys_.prior_lo, float)
@@ -96,7 +96,7 @@ class Identification(Experiment):
         return case_cells(self.name, scale, methods, ("video", "privileged"), system)
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
-        from sysid_bench import systems
+        from sysid_bench.core import systems
 
         sc = ctx.scale
         i = int(cell.case)

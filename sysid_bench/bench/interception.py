@@ -2,7 +2,7 @@
 
 A slow end effector must meet a bouncing ball whose physics it does not know, from a camera-like
 video seen one frame at a time (:mod:`sysid_bench.bench.intercept`; the task in full in
-:mod:`sysid_bench.intercept`, the ``sysid-bench intercept`` app). Every policy of the run is
+:mod:`sysid_bench.apps.intercept`, the ``sysid-bench intercept`` app). Every policy of the run is
 scored on the same seeded throws: the built-in ones (``oracle``, random targets at 1 and 2 Hz,
 ``react``, ``kalman``), those the run's online methods declare (``policies``) and the run's
 forecasting methods of declared cost at most :data:`MAX_COST` (re-identifying every few frames).

@@ -25,9 +25,9 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from sysid_bench._validate import check_positive_int
 from sysid_bench.bench.cases import system_case
 from sysid_bench.bench.experiment import Cell, CellOutput, Context, Experiment, fmt_ci, median_ci
+from sysid_bench.core._validate import check_positive_int
 
 __all__ = ["online_cost", "online_cost_markdown", "online_methods", "Online"]
 
@@ -131,7 +131,7 @@ def online_cost(methods=None, n_videos: int = 3, seed: int = 0, *,
         is ``df.attrs["baseline"]``; NaN without one), ``status`` (``ok`` or ``n/a: <why>``).
     """
     import methods as registry
-    from sysid_bench.datasets import make_dataset
+    from sysid_bench.core.datasets import make_dataset
 
     names = online_methods() if methods is None else list(methods)
     if not names:

@@ -34,11 +34,11 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolE
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
-from sysid_bench._validate import check_flag, check_int, check_positive_int
 from sysid_bench.bench.cases import Scale, get_scale, unknown_name
 from sysid_bench.bench.experiment import Cell, execute
 from sysid_bench.bench.fingerprint import method_fingerprint
 from sysid_bench.bench.store import Store, lock_run_dir
+from sysid_bench.core._validate import check_flag, check_int, check_positive_int
 
 __all__ = ["run", "build_grid", "resolve_methods", "resolve_experiments", "provenance",
            "method_fingerprint", "experiment_fingerprint", "cell_fingerprint", "default_inline", "default_run_dir", "STORE_NAME"]
@@ -143,8 +143,8 @@ def build_grid(scale: Scale, methods: list[str], experiments: list[str],
     """Every cell of the run, in a deterministic order: experiment by experiment, and within
     one, system by system (``systems``: default every registered system) among those the
     experiment runs on."""
-    from sysid_bench import systems as registry
     from sysid_bench.bench import EXPERIMENTS
+    from sysid_bench.core import systems as registry
 
     names = registry.available() if systems is None else list(systems)
     cells: list[Cell] = []
@@ -336,7 +336,7 @@ def _resolve_systems(systems) -> list[str] | None:
     """Registered system names (``ValueError`` with "did you mean" for an unknown one)."""
     if systems is None:
         return None
-    from sysid_bench import systems as registry
+    from sysid_bench.core import systems as registry
 
     if isinstance(systems, str):
         systems = [systems]

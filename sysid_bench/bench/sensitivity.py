@@ -24,7 +24,7 @@ comparison between conditions is fair even though absolute errors are those of a
 Rows per case and frame count: ``se_<p>``, ``se``; ``train_wall_s`` at case -1.
 
 Systems: the conditions need training sets made for them (a parameter's lower half, noisy
-labels, simplified physics), which :mod:`sysid_bench.datasets` makes for the ball alone (its
+labels, simplified physics), which :mod:`sysid_bench.core.datasets` makes for the ball alone (its
 ``System.sensitivity_training``). On every other system each training method gets one cell,
 condition :data:`UNTRAINED`, that the runner records as ``n/a`` with the reason: training a
 model per condition from scratch there does not fit the default run (the ball's shipped condition models took 4000
@@ -42,7 +42,6 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench._io import atomic_write
 from sysid_bench.bench.cases import observation, train_set
 from sysid_bench.bench.experiment import (
     Cell,
@@ -53,8 +52,9 @@ from sysid_bench.bench.experiment import (
     fmt_ci,
 )
 from sysid_bench.bench.identification import _save
-from sysid_bench.metrics import GUESS_MSE, normalised_param_se
-from sysid_bench.physics import PARAMS
+from sysid_bench.core._io import atomic_write
+from sysid_bench.core.metrics import GUESS_MSE, normalised_param_se
+from sysid_bench.core.physics import PARAMS
 
 
 def trains(method: str) -> bool:
@@ -181,7 +181,7 @@ class Sensitivity(Experiment):
     )
 
     def cells(self, scale, methods, system="ball"):
-        from sysid_bench import systems
+        from sysid_bench.core import systems
 
         out = []
         for m in methods:
@@ -331,7 +331,7 @@ class Sensitivity(Experiment):
 
 def _params(df) -> tuple[str, ...]:
     """The parameter names of the one system whose rows ``df`` holds."""
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     return systems.get(df.system.iloc[0] if "system" in df else "ball").params
 

@@ -32,7 +32,7 @@ from sysid_bench.bench.experiment import (
     ci_summary,
     fmt_ci,
 )
-from sysid_bench.metrics import GUESS_MSE
+from sysid_bench.core.metrics import GUESS_MSE
 
 __all__ = ["Systems", "SYSTEM_LENGTHS", "FORECAST_AFTER", "FORECAST_HORIZON", "system_case"]
 
@@ -191,7 +191,7 @@ class Systems(Experiment):
         est = ctx.estimator(cell.method, system=system)
         spec = est.spec()
         out = CellOutput()
-        from sysid_bench import systems
+        from sysid_bench.core import systems
 
         sys_ = systems.get(system)
         u_true = sys_.normalise(truth)

@@ -7,13 +7,13 @@ import time
 
 import numpy as np
 
-from sysid_bench._validate import (
-    check_flag,
-    check_int_array,
-)
 from sysid_bench.bench.intercept.policies import Policy
 from sysid_bench.bench.intercept.registry import make_policy
 from sysid_bench.bench.intercept.scene import _SCENE_FIELDS, Scene, Throw, make_throw
+from sysid_bench.core._validate import (
+    check_flag,
+    check_int_array,
+)
 
 _DECISION_TOL = 0.01
 

@@ -7,9 +7,9 @@ import math
 
 import numpy as np
 
-from sysid_bench import physics
-from sysid_bench._validate import check_positive_int
 from sysid_bench.bench.intercept.policies import _ForecastTarget
+from sysid_bench.core import physics
+from sysid_bench.core._validate import check_positive_int
 
 
 class Kalman(_ForecastTarget):
@@ -79,7 +79,7 @@ class Kalman(_ForecastTarget):
         self.P[i] = self.P[i] - np.outer(K, H @ self.P[i])
 
     def act(self, frame, k):
-        from sysid_bench.tracking import track
+        from sysid_bench.core.tracking import track
 
         sc = self.scene
         t = k * sc.dt

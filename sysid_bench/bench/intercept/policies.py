@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sysid_bench._validate import check_positive_int
 from sysid_bench.bench.intercept.scene import _FINE, Scene, Throw, crossing_from_forecast
+from sysid_bench.core._validate import check_positive_int
 
 
 # ---------------------------------------------------------------------------------------------
@@ -86,7 +86,7 @@ class React(Policy):
     name = "react"
 
     def act(self, frame, k):
-        from sysid_bench.tracking import track
+        from sysid_bench.core.tracking import track
 
         y = track(frame[None])[0, 1]
         if np.isfinite(y):
@@ -143,8 +143,8 @@ class Identify(_ForecastTarget):
         self.last_skip = ""
 
     def act(self, frame, k):
-        from sysid_bench.estimator import Observation
-        from sysid_bench.tracking import track
+        from sysid_bench.core.estimator import Observation
+        from sysid_bench.core.tracking import track
 
         self.frames.append(frame)
         n = len(self.frames)
@@ -171,7 +171,7 @@ class StreamPolicy(_ForecastTarget):
     ``policies`` declaration names the policies and their hyperparameters (Vid2Param:
     ``vid2param`` and ``vid2param-physics``, the camera checkpoint forecasting in latent space or
     through the physics). Reads the stream through its contract only
-    (:class:`sysid_bench.estimator.Stream`): ``position`` and ``forecast``.
+    (:class:`sysid_bench.core.estimator.Stream`): ``position`` and ``forecast``.
 
     Parameters
     ----------
@@ -214,8 +214,8 @@ class StreamPolicy(_ForecastTarget):
         self.every = self.every_opt or 5
 
     def act(self, frame, k):
-        from sysid_bench.estimator import POSITION_NOW
-        from sysid_bench.tracking import track
+        from sysid_bench.core.estimator import POSITION_NOW
+        from sysid_bench.core.tracking import track
 
         self.stream.push(frame)
         self.frames.append(frame)

@@ -8,8 +8,8 @@ from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
-from sysid_bench import physics
-from sysid_bench._validate import check_number
+from sysid_bench.core import physics
+from sysid_bench.core._validate import check_number
 
 #: The camera-like nuisances of the shipped ``camera`` checkpoint (its training record).
 CAMERA_NUISANCE = {"blur": 0.5, "occlusion": 0.05, "drop": 0.05, "noise": 8.0,
@@ -98,7 +98,7 @@ class Scene:
             raise ValueError(f"effector_range: expected finite low < high, got {self.effector_range!r}")
         object.__setattr__(self, "effector_range", (lo, hi))
         num("effector_start", lo - 1e-12, hi + 1e-12)
-        from sysid_bench.render import check_size
+        from sysid_bench.core.render import check_size
 
         object.__setattr__(self, "size", check_size(tuple(self.size)))
         if not isinstance(self.nuisance, dict):
@@ -188,8 +188,8 @@ def make_throw(scene: Scene, seed: int, index: int, max_attempts: int = 100) -> 
     RuntimeError
         No acceptable draw in ``max_attempts`` (a scene whose rules almost no throw meets).
     """
-    from sysid_bench.datasets import SUBRANGES_TEST
-    from sysid_bench.render import render
+    from sysid_bench.core.datasets import SUBRANGES_TEST
+    from sysid_bench.core.render import render
 
     n_fine = (scene.n_frames - 1) * _FINE + 1
     for j in range(max_attempts):

@@ -1,4 +1,4 @@
-"""JAX twin of :mod:`sysid_bench.systems.pendulum`: the same simulator, jit-able and differentiable.
+"""JAX twin of :mod:`sysid_bench.core.systems.pendulum`: the same simulator, jit-able and differentiable.
 
 Same algorithm, step for step and operation for operation, as the NumPy kernel (tested equal to
 it to 1e-9 m in float64; they differ by ~1e-13 m, since the kernel's plain steps carry ``sin`` of
@@ -6,7 +6,7 @@ the angle by angle addition where this twin calls ``sin`` at every stage): RK4 o
 ``s * omega <= 0`` is cut at its event -- the time by the same quadratic guess, safeguarded
 Newton steps and last Newton step, the stick rule, the rest of the step from rest in the new
 direction. The constants (``SUBSTEPS``, ``_NEWTON_ITERS``, ``_TINY_W``) come from
-:mod:`sysid_bench.systems.pendulum`: there is one source of physics.
+:mod:`sysid_bench.core.systems.pendulum`: there is one source of physics.
 
 How it is laid out for XLA:
 
@@ -28,7 +28,7 @@ How it is laid out for XLA:
   no useful gradient across it.
 
 Importing this module turns on ``jax_enable_x64`` (``jax.config.update``), as
-:mod:`sysid_bench.physics_jax` does.
+:mod:`sysid_bench.core.physics_jax` does.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax import lax  # noqa: E402
 
-from sysid_bench.systems.pendulum import (  # noqa: E402
+from sysid_bench.core.systems.pendulum import (  # noqa: E402
     _NEWTON_ITERS,
     _TINY_W,
     Pendulum,

@@ -1,4 +1,4 @@
-"""JAX twin of the collision system's simulator (:mod:`sysid_bench.systems.collision`).
+"""JAX twin of the collision system's simulator (:mod:`sysid_bench.core.systems.collision`).
 
 The same exact event stepping, pass for pass: per frame, the earliest event time in closed form
 among {puck-puck contact, wall 1, wall 2, stop 1, stop 2}, both pucks moved there exactly, that
@@ -40,7 +40,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax import lax  # noqa: E402
 
-from sysid_bench.systems.collision import XL, XR, R  # noqa: E402
+from sysid_bench.core.systems.collision import XL, XR, R  # noqa: E402
 
 __all__ = ["simulate", "simulate_core", "MAX_PASSES"]
 
@@ -189,7 +189,7 @@ def simulate(theta, state0, n_frames: int = 200, dt: float = 0.05):
     :data:`MAX_PASSES` passes in a frame raises ``RuntimeError``. Under ``jit``/``grad``/
     ``vmap`` only shapes are checked and such a trajectory's states are NaN from that frame on.
     """
-    from sysid_bench.systems import get
+    from sysid_bench.core.systems import get
 
     system = get("collision")
     n_frames, dt = system._check_frames_dt(n_frames, dt)

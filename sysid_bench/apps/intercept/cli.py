@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import json
 
-from sysid_bench import physics
-from sysid_bench._validate import (
+from sysid_bench.apps.intercept.results import write_results
+from sysid_bench.bench.intercept.evaluation import evaluate, summarise
+from sysid_bench.bench.intercept.scene import CATCH_RADIUS_MAX
+from sysid_bench.core import physics
+from sysid_bench.core._validate import (
     SEED_MAX,
     arg_number,
 )
-from sysid_bench.bench.intercept.evaluation import evaluate, summarise
-from sysid_bench.bench.intercept.scene import CATCH_RADIUS_MAX
-from sysid_bench.intercept.results import write_results
 
 
 def _option_value(text: str):
@@ -23,7 +23,7 @@ def _option_value(text: str):
 
 def add_arguments(p):
     """The ``intercept`` options on a ``sysid-bench`` subcommand parser
-    (``sysid_bench.cli.SUBCOMMANDS``)."""
+    (``sysid_bench.apps.cli.SUBCOMMANDS``)."""
     p.add_argument("--policy", required=True,
                    help="oracle, random-1hz, random-2hz, react, kalman, a policy an online "
                         "method declares, or a registered method that forecasts (lsq, ...)")

@@ -57,6 +57,8 @@ and scoring), :mod:`.results` (files, figure, report section), :mod:`.cli` (the 
 
 from __future__ import annotations
 
+from sysid_bench.apps.intercept.cli import add_arguments, run
+from sysid_bench.apps.intercept.results import write_results
 from sysid_bench.bench.intercept.evaluation import evaluate, summarise, wilson_interval
 from sysid_bench.bench.intercept.figure import intercept_figure
 from sysid_bench.bench.intercept.kalman import Kalman
@@ -82,8 +84,6 @@ from sysid_bench.bench.intercept.scene import (
     crossing_from_forecast,
     make_throw,
 )
-from sysid_bench.intercept.cli import add_arguments, run
-from sysid_bench.intercept.results import write_results
 
 __all__ = [
     "Scene",

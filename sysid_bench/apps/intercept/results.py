@@ -5,10 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from sysid_bench._io import atomic_write
 from sysid_bench.bench.intercept.evaluation import summarise
 from sysid_bench.bench.intercept.figure import slug as _slug
 from sysid_bench.bench.intercept.figure import thin_trace
+from sysid_bench.core._io import atomic_write
 
 
 def write_results(df, out_dir, command: str = "", extra: dict | None = None) -> tuple[Path, Path]:

@@ -1,7 +1,7 @@
 """Drawing helpers every system's renderer shares: a view, anti-aliased discs and rods, and the
 camera nuisances of the ball's renderer (blur, occlusion, dropped frames, pixel noise).
 
-Pixel convention as :mod:`sysid_bench.render`: continuous ``(col, row)`` puts pixel ``[i, j]``'s
+Pixel convention as :mod:`sysid_bench.core.render`: continuous ``(col, row)`` puts pixel ``[i, j]``'s
 centre at ``(j + 0.5, i + 0.5)``; rows run downwards.
 """
 

@@ -72,7 +72,7 @@ with 5, 1.05e-6 m with 6, 4.3e-7 m with 7, 1.9e-7 m with 8 and 4.5e-8 m with 10 
 it is smaller, and on 100 random prior cases it is at most 5.7e-8 m with 7. 7 is the fewest
 steps that keep a 2x margin under the design's 1e-6 m (``tests/test_system_pendulum.py`` checks
 that corner at half the tolerance); it was 8 until the simulator had to run 2000 x 200 at
->= 1000x its reference loop. The JAX twin, :mod:`sysid_bench.systems.pendulum_jax`, takes the
+>= 1000x its reference loop. The JAX twin, :mod:`sysid_bench.core.systems.pendulum_jax`, takes the
 same steps with the same operations, but for ``sin`` of every stage angle where the kernel's
 plain steps carry it (see above): they agree to ~1e-13 m.
 
@@ -103,10 +103,10 @@ import math
 import numba
 import numpy as np
 
-from sysid_bench._validate import as_float_array, check_positive_int, check_seed
-from sysid_bench.systems import _draw
-from sysid_bench.systems._base import System, use_parallel
-from sysid_bench.systems._scene import PendulumScene
+from sysid_bench.core._validate import as_float_array, check_positive_int, check_seed
+from sysid_bench.core.systems import _draw
+from sysid_bench.core.systems._base import System, use_parallel
+from sysid_bench.core.systems._scene import PendulumScene
 
 __all__ = [
     "Pendulum",
@@ -406,7 +406,7 @@ class Pendulum(System):
     extent = (-2.5, 2.5, -2.5, 2.5)
     size = (64, 64)
     noise_m = 0.01
-    jax_twin = "sysid_bench.systems.pendulum_jax:simulate"
+    jax_twin = "sysid_bench.core.systems.pendulum_jax:simulate"
     scene_type = PendulumScene
     _theta_row_ok = True  # the kernel reads row 0 for every frame of a (B, 1, P) theta
     #: the smallest frames with room for the bob (drawn >= 1.5 px) and its swing

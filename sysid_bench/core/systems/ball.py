@@ -1,19 +1,19 @@
 """The bouncing ball of the Vid2Param paper as a :class:`System`.
 
-A thin wrapper: the physics is :mod:`sysid_bench.physics` (and its JAX twin
-:mod:`sysid_bench.physics_jax`), the look :mod:`sysid_bench.render`, the tracker
-:mod:`sysid_bench.tracking`, all unchanged, with the floor at 0 (the renderer's convention).
+A thin wrapper: the physics is :mod:`sysid_bench.core.physics` (and its JAX twin
+:mod:`sysid_bench.core.physics_jax`), the look :mod:`sysid_bench.core.render`, the tracker
+:mod:`sysid_bench.core.tracking`, all unchanged, with the floor at 0 (the renderer's convention).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from sysid_bench import physics
-from sysid_bench._observation_checks import BOX_MARGIN, check_dt, check_in_box
-from sysid_bench._validate import as_float_array, check_number
-from sysid_bench.systems._base import System
-from sysid_bench.systems._scene import COORD_MAX, BallScene, check_within
+from sysid_bench.core import physics
+from sysid_bench.core._observation_checks import BOX_MARGIN, check_dt, check_in_box
+from sysid_bench.core._validate import as_float_array, check_number
+from sysid_bench.core.systems._base import System
+from sysid_bench.core.systems._scene import COORD_MAX, BallScene, check_within
 
 __all__ = ["Ball"]
 
@@ -36,18 +36,18 @@ class Ball(System):
     extent = (0.0, physics.BOX_WIDTH, 0.0, physics.BOX_WIDTH)
     size = (28, 28)
     noise_m = 0.01
-    jax_twin = "sysid_bench.systems.ball:_jax_simulate"
+    jax_twin = "sysid_bench.core.systems.ball:_jax_simulate"
     scene_type = BallScene
     #: below 7 x 7 the tracker loses the ball in over 10% of frames (measured, clean video)
     min_size = (7, 7)
     paper = "Vid2Param (Asenov et al.)"
     #: r is unknowable until the ball rolls (about half the test videos never do)
     headline_groups = (("e", "g", "d"), ("r",))
-    #: the paper's test videos: sysid_bench.datasets (splits, nuisances, variants)
+    #: the paper's test videos: sysid_bench.core.datasets (splits, nuisances, variants)
     datasets = True
     #: experiment 5 also on re-simulated perturbed physics and on clips no physics explains
     calibration_conditions = ("perturbed", "meaningless")
-    # experiments 3 and 4 use the paper's own test and training sets (sysid_bench.datasets):
+    # experiments 3 and 4 use the paper's own test and training sets (sysid_bench.core.datasets):
     # all four parameters jump every `every` frames
     changing_params = physics.PARAMS
     changing_dataset = "changing"
@@ -131,19 +131,19 @@ class Ball(System):
         return states[..., None, :2].copy()
 
     def _render(self, points, states, theta, size, **nuisance):
-        from sysid_bench.render import render
+        from sysid_bench.core.render import render
 
         return render(states, size=size, **nuisance)
 
     def _track(self, frames):
-        from sysid_bench.tracking import track
+        from sysid_bench.core.tracking import track
 
         return track(frames)[:, None, :]
 
     def track_observed(self, frames, floor=None):
         # the tracker places heights above the observation's floor (0 when unknown), as
         # observed_positions does; frames as the tracker takes them
-        from sysid_bench.tracking import track
+        from sysid_bench.core.tracking import track
 
         return track(frames, floor=0.0 if floor is None else floor)[:, None, :]
 
@@ -156,7 +156,7 @@ class Ball(System):
 
 def _check_in_ball_scene(pos: np.ndarray, scene, name: str) -> None:
     """The ball's positions (N, 2) in a scene of its own: between its walls and above its floor
-    (where it has them) within :data:`~sysid_bench.estimator.BOX_MARGIN`."""
+    (where it has them) within :data:`~sysid_bench.core.estimator.BOX_MARGIN`."""
     check_within(pos, name)
     seen = pos[np.isfinite(pos).all(axis=1)]
     if not seen.size:
@@ -173,7 +173,7 @@ def _check_in_ball_scene(pos: np.ndarray, scene, name: str) -> None:
 
 def _jax_simulate(theta, state0, n_frames=200, dt=0.05):
     """JAX twin for one trajectory: (4,), (4,) -> (n_frames, 4)."""
-    from sysid_bench import physics_jax
+    from sysid_bench.core import physics_jax
 
     states, _bad = physics_jax.simulate_core(theta[None], state0[None], 0.0, int(n_frames), float(dt))
     return states[0]

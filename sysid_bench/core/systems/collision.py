@@ -24,7 +24,7 @@ time is used up. Simultaneous events are applied one per pass in a fixed order (
 wall 2, stop 1, stop 2), the later ones found again at zero time. Roots are taken in the
 cancellation-free form ``t = 2 d / (s + sqrt(s^2 - 2 a d))``. Positions are therefore exact to
 rounding and do not depend on ``dt``. One scalar kernel per trajectory, compiled by numba and
-cached on disk. The JAX twin (:mod:`sysid_bench.systems.collision_jax`) makes the same passes,
+cached on disk. The JAX twin (:mod:`sysid_bench.core.systems.collision_jax`) makes the same passes,
 a fixed number per frame, masked.
 
 Sequences of contacts: with ``eb, ew < 1`` the light puck can be squeezed between a wall and the
@@ -60,15 +60,15 @@ import math
 import numba
 import numpy as np
 
-from sysid_bench._validate import (
+from sysid_bench.core._validate import (
     as_float_array,
     check_positive_float,
     check_positive_int,
     check_seed,
 )
-from sysid_bench.systems import _draw
-from sysid_bench.systems._base import System
-from sysid_bench.systems._scene import CollisionScene
+from sysid_bench.core.systems import _draw
+from sysid_bench.core.systems._base import System
+from sysid_bench.core.systems._scene import CollisionScene
 
 __all__ = ["Collision", "R", "TRACK", "LEVEL1", "LEVEL2", "MAX_EVENTS"]
 
@@ -290,7 +290,7 @@ class Collision(System):
     extent = (0.0, TRACK, -0.375, 0.875)
     size = (16, 128)
     noise_m = 0.01
-    jax_twin = "sysid_bench.systems.collision_jax:simulate"
+    jax_twin = "sysid_bench.core.systems.collision_jax:simulate"
     scene_type = CollisionScene
     #: below 6 x 48 the pucks (0.5 m in 10 m) are under 2.4 px and the tracker loses them
     min_size = (6, 48)

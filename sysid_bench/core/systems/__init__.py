@@ -16,8 +16,8 @@ from __future__ import annotations
 import difflib
 import importlib
 
-from sysid_bench.systems._base import SUBRANGES_TEST, SUBRANGES_TRAIN, System
-from sysid_bench.systems._scene import (
+from sysid_bench.core.systems._base import SUBRANGES_TEST, SUBRANGES_TRAIN, System
+from sysid_bench.core.systems._scene import (
     BallScene,
     CollisionScene,
     PendulumScene,
@@ -51,10 +51,10 @@ def unregister(name: str) -> None:
     _INSTANCES.pop(name, None)
 
 
-register("ball", "sysid_bench.systems.ball:Ball")
-register("collision", "sysid_bench.systems.collision:Collision")
-register("pendulum", "sysid_bench.systems.pendulum:Pendulum")
-register("spring", "sysid_bench.systems.spring:Spring")
+register("ball", "sysid_bench.core.systems.ball:Ball")
+register("collision", "sysid_bench.core.systems.collision:Collision")
+register("pendulum", "sysid_bench.core.systems.pendulum:Pendulum")
+register("spring", "sysid_bench.core.systems.spring:Spring")
 
 
 def available() -> list[str]:

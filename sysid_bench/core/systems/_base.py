@@ -10,7 +10,7 @@ class attributes, and implements five hooks:
     t+1) and ``state0`` (B, S) in, states (B, T, S) out, frame 0 = ``state0``, events located
     exactly. A subclass that sets ``_theta_row_ok = True`` gets constant parameters as
     (B, 1, P) instead, one row held for every frame (no (B, T, P) copy: ~5 ms at 2000 x 200). This is the one source of the system's physics. ``scene`` (an instance of
-    :attr:`System.scene_type`, validated; see :mod:`sysid_bench.systems._scene`) is the geometry;
+    :attr:`System.scene_type`, validated; see :mod:`sysid_bench.core.systems._scene`) is the geometry;
     a hook without the keyword is called without it, for the default scene only.
 ``sample_state0(n, rng, theta=None)``
     Initial states from the system's documented ranges. ``theta`` (n, P), optional, is the
@@ -20,7 +20,7 @@ class attributes, and implements five hooks:
 ``_observe(states, theta, scene=None)``
     States (B, T, S) to the K tracked points' positions (B, T, K, 2) in metres (in ``scene``).
 ``_render(points, states, theta, size, **nuisance)``
-    Frames (B, T, H, W) uint8; most systems draw discs through :mod:`sysid_bench.systems._draw`.
+    Frames (B, T, H, W) uint8; most systems draw discs through :mod:`sysid_bench.core.systems._draw`.
 ``_track(frames)``
     Frames (T, H, W) to positions (T, K, 2), NaN where a point is not seen.
 
@@ -30,7 +30,7 @@ by ``jax_twin = "module:function"`` (imported only when asked for, so JAX loads 
 
 A system may also override what the rest of the suite would otherwise ask of its name (issue
 37: no branch on the ball's name outside its files): ``check_observation(obs,
-default_scene)`` (an :class:`~sysid_bench.estimator.Observation`'s fields: the ball keeps its
+default_scene)`` (an :class:`~sysid_bench.core.estimator.Observation`'s fields: the ball keeps its
 (T, 2) positions, box and floor), ``track_observed(frames, floor)`` (the ball tracks above a
 known floor), ``known_geometry`` and ``check_posterior_mean``.
 
@@ -49,8 +49,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from sysid_bench._observation_checks import check_dt, check_in_view
-from sysid_bench._validate import (
+from sysid_bench.core._observation_checks import check_dt, check_in_view
+from sysid_bench.core._validate import (
     as_float_array,
     check_batch,
     check_frame_budget,
@@ -58,7 +58,7 @@ from sysid_bench._validate import (
     check_positive_int,
     check_seed,
 )
-from sysid_bench.systems._scene import Scene, check_within
+from sysid_bench.core.systems._scene import Scene, check_within
 
 __all__ = ["System", "Scene", "SUBRANGES_TRAIN", "SUBRANGES_TEST"]
 
@@ -131,7 +131,7 @@ class System(abc.ABC):
         Groups of parameters whose mean error the report's summary shows beside the overall
         one (e.g. the ball's r, unknowable until the ball rolls, apart from e, g, d).
     datasets : bool
-        Whether the benchmark draws this system's test cases from :mod:`sysid_bench.datasets`
+        Whether the benchmark draws this system's test cases from :mod:`sysid_bench.core.datasets`
         (the paper's split generator, its render nuisances and variants: the ball's) instead
         of :func:`sysid_bench.bench.cases.system_cases`.
 
@@ -162,17 +162,17 @@ class System(abc.ABC):
     #: Experiment 3 (changing parameters): the parameters that jump (None: every one); each is
     #: re-drawn from its test sub-ranges every ``every`` frames (:meth:`changing_theta`).
     changing_params: ClassVar[tuple[str, ...] | None] = None
-    #: The :mod:`sysid_bench.datasets` variant that holds this system's own changing-parameter
+    #: The :mod:`sysid_bench.core.datasets` variant that holds this system's own changing-parameter
     #: test videos ("": none, the bench simulates them from :meth:`changing_theta`).
     changing_dataset: ClassVar[str] = ""
-    #: True where :mod:`sysid_bench.datasets` makes this system's training sets for every
+    #: True where :mod:`sysid_bench.core.datasets` makes this system's training sets for every
     #: sensitivity condition (extrapolation, label noise, simplified physics): experiment 4
     #: trains condition models only there.
     sensitivity_training: ClassVar[bool] = False
     #: Experiment 5's cases off the system's own physics, beside its test cases: ``"perturbed"``
     #: (test cases re-simulated by physics that is not ours, with its own render) and
     #: ``"meaningless"`` (clips no physics explains). Both are made from the paper's datasets
-    #: and :func:`sysid_bench.physics.simulate_perturbed`, so a system declares them only with
+    #: and :func:`sysid_bench.core.physics.simulate_perturbed`, so a system declares them only with
     #: :attr:`datasets` (the ball); every system gets its own test cases.
     calibration_conditions: ClassVar[tuple[str, ...]] = ()
 
@@ -465,14 +465,14 @@ class System(abc.ABC):
         """Frames (B, T, H, W) uint8 of states (B, T, S); nuisances as :func:`_draw.finish`.
 
         ``size`` (H, W) must be at least :attr:`min_size` (the object must fit) and the frames
-        at most :data:`sysid_bench._validate.FRAME_BUDGET` pixels in all; both are refused
+        at most :data:`sysid_bench.core._validate.FRAME_BUDGET` pixels in all; both are refused
         before anything is allocated.
         """
         st = as_float_array(_as_array(states, "states"), "states", ndim=3, last=self.n_state)
         th = self.check_theta(theta)
         if th.shape[0] != st.shape[0]:
             raise ValueError(f"theta: expected one row per video ({st.shape[0]}), got {th.shape[0]}")
-        from sysid_bench.render import check_size
+        from sysid_bench.core.render import check_size
 
         size = self.size if size is None else check_size(size)
         self._check_min_size(size, "size")
@@ -507,9 +507,9 @@ class System(abc.ABC):
 
     def track_observed(self, frames, floor: float | None = None) -> np.ndarray:
         """Positions (T, K, 2) tracked in frames (T, H, W) of an observation that may know a
-        ``floor`` (m; an :class:`~sysid_bench.estimator.Observation` field, None: unknown).
+        ``floor`` (m; an :class:`~sysid_bench.core.estimator.Observation` field, None: unknown).
         Here :meth:`track`: only the ball has a floor to track above
-        (:class:`~sysid_bench.systems.ball.Ball`)."""
+        (:class:`~sysid_bench.core.systems.ball.Ball`)."""
         return self.track(frames)
 
     def jax_simulate(self):
@@ -564,19 +564,19 @@ class System(abc.ABC):
         return out
 
     def known_geometry(self, scene: Scene | None = None) -> dict:
-        """Fields of an :class:`~sysid_bench.estimator.Observation` beyond ``scene`` that say
+        """Fields of an :class:`~sysid_bench.core.estimator.Observation` beyond ``scene`` that say
         the scene's geometry is known (none for most systems: the scene says it all; the
         ball's floor is a field of its own). How the harness hands every system's cases to
         a method with the geometry known, the same for all."""
         return {}
 
     def check_observation(self, obs, default_scene: bool) -> None:
-        """Check the fields of an :class:`~sysid_bench.estimator.Observation` of this system
+        """Check the fields of an :class:`~sysid_bench.core.estimator.Observation` of this system
         and store them normalised on ``obs`` (its frames, system name and scene are checked
         already). Here: positions (T, K, 2) ((T, 2) read as K = 1) near the view (in a scene
         other than the default, within the scenes' reach), ``dt`` in ``DT_RANGE``, ``floor`` a
         number, ``state0`` (S,) through :meth:`check_state0`. The ball keeps its own (T, 2),
-        box and floor (:class:`~sysid_bench.systems.ball.Ball`).
+        box and floor (:class:`~sysid_bench.core.systems.ball.Ball`).
 
         Raises
         ------

@@ -1,4 +1,4 @@
-"""JAX twin of :mod:`sysid_bench.systems.spring`: the same simulator, jit-able and differentiable.
+"""JAX twin of :mod:`sysid_bench.core.systems.spring`: the same simulator, jit-able and differentiable.
 
 The same algorithm, step for step and operation for operation, as the numba kernel of
 ``spring.py`` (classical RK4, ``SUBSTEPS`` steps of ``h = dt / SUBSTEPS`` per frame,
@@ -23,7 +23,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax import lax  # noqa: E402
 
-from sysid_bench.systems.spring import SUBSTEPS  # noqa: E402
+from sysid_bench.core.systems.spring import SUBSTEPS  # noqa: E402
 
 __all__ = ["simulate"]
 
@@ -95,7 +95,7 @@ def simulate(theta, state0, n_frames: int = 200, dt: float = 0.05):
     (``ValueError`` naming the argument: shapes, the envelope, the step check); under
     ``jit``/``grad``/``vmap`` only the shapes are checked.
     """
-    from sysid_bench.systems import get
+    from sysid_bench.core.systems import get
 
     system = get("spring")
     n_frames, dt = system._check_frames_dt(n_frames, dt)

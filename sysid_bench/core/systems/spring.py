@@ -47,7 +47,7 @@ multiplications: this order made the kernel ~4x faster, bitwise the same); a bat
 prior's stiffest corner (``w2 = 25``, ``k3 = 20``, ``c = 0``, ``|s0| = 0.6``, ``|v0| = 0.5``) the
 largest position error over 200 frames at ``dt = 0.05`` against ``solve_ivp`` (DOP853, tolerances
 1e-13) is 5.7e-7 m with 8 steps and 2.3e-7 m with 10 (RK4's error falls as ``h^4``), so 10 keeps
-a 4x margin under the design's 1e-6 m. :mod:`sysid_bench.systems.spring_jax` is the JAX twin
+a 4x margin under the design's 1e-6 m. :mod:`sysid_bench.core.systems.spring_jax` is the JAX twin
 (same steps, same operations).
 
 Validity. ``simulate`` raises ``ValueError`` (naming the arguments) when the RK4 step is too
@@ -74,10 +74,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from sysid_bench._validate import as_float_array, check_positive_int, check_seed
-from sysid_bench.systems import _draw
-from sysid_bench.systems._base import System, use_parallel
-from sysid_bench.systems._scene import SpringScene
+from sysid_bench.core._validate import as_float_array, check_positive_int, check_seed
+from sysid_bench.core.systems import _draw
+from sysid_bench.core.systems._base import System, use_parallel
+from sysid_bench.core.systems._scene import SpringScene
 
 __all__ = ["Spring", "SUBSTEPS", "STEP_MAX", "BLOCK_RADIUS", "DIM_LEVEL", "S0_RANGE", "V0_RANGE"]
 
@@ -235,7 +235,7 @@ class Spring(System):
     extent = (-0.2, 3.0, -0.4, 0.4)
     size = (16, 64)
     noise_m = 0.01
-    jax_twin = "sysid_bench.systems.spring_jax:simulate"
+    jax_twin = "sysid_bench.core.systems.spring_jax:simulate"
     scene_type = SpringScene
     _theta_row_ok = True  # the kernel reads row 0 for every frame of a (B, 1, P) theta
     #: the smallest frames with room for the block (3 px at the default 16 x 64)

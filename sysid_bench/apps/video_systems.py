@@ -1,0 +1,258 @@
+"""``sysid-bench identify VIDEO --system S`` for a system other than the ball.
+
+The clip is read as the ball's (:func:`sysid_bench.core.footage.read_video`: any FFmpeg format, grey,
+resampled to 20 frames/s), then taken to be framed as the system's own renderer draws it (its
+``extent`` fills the frame) and resized to the system's default size. Position methods get the
+system's tracker's points, frame methods the frames. Estimates every ``every`` frames go to
+``estimates.csv`` (a row per frame: ``frame, t_s, <p>_mean, <p>_std`` for each of the system's
+parameters, the model check, the tracked points), ``estimates.json`` and ``track.png``, all or
+nothing.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+from sysid_bench.core._io import atomic_folder
+from sysid_bench.core.footage import VideoError
+
+__all__ = ["identify_system_video", "write_system_outputs", "resize_frames"]
+
+
+def resize_frames(frames: np.ndarray, size) -> np.ndarray:
+    """Grey frames (T, h, w) uint8 to (T, H, W) by area averaging (PIL's BOX filter)."""
+    from PIL import Image
+
+    h, w = size
+    if frames.shape[1:] == (h, w):
+        return frames
+    return np.stack([np.asarray(Image.fromarray(f).resize((w, h), Image.BOX)) for f in frames])
+
+
+def _first_method(system: str, *, frames: bool) -> str:
+    """The first registered contender that runs on ``system`` and identifies: with ``frames``,
+    frame methods first (a learned model shipped for the system), then the position methods;
+    without, position methods only (a camera's track)."""
+    import methods
+
+    names = methods.available()
+    ordered = [n for n in names if methods.spec(n).input_kind != "frames"]
+    if frames:
+        ordered = [n for n in names if methods.spec(n).input_kind == "frames"] + ordered
+    for n in ordered:
+        if not methods.spec(n).identifies:
+            continue
+        try:
+            methods.get(n, system=system).fit(None)
+        except (NotImplementedError, ValueError, ImportError):
+            continue
+        return n
+    kind = "" if frames else "position "
+    raise ValueError(f"system: no registered {kind}method identifies the {system} system")
+
+
+def _default_method(system: str) -> str:
+    """:func:`_first_method`, frame methods first."""
+    return _first_method(system, frames=True)
+
+
+def _position_method(system: str) -> str:
+    """:func:`_first_method` among the position methods."""
+    return _first_method(system, frames=False)
+
+
+def identify_system_video(path, system: str, *, method: str | None = None, every: int = 10,
+                          progress=None, camera: dict | None = None, rotate: int = 0,
+                          start: float | None = None, end: float | None = None,
+                          capture_fps: float | None = None, known: dict | None = None,
+                          prior: dict | None = None) -> dict:
+    """Identify the parameters of ``system`` from a video file.
+
+    Parameters
+    ----------
+    path : str or Path
+    system : str
+    method : str, optional
+        Default: the first identifying contender (frame methods first; with a camera, the
+        first position method).
+    every : int
+        Frames between estimates.
+    progress : bool, optional
+    camera : dict, optional
+        A real camera (:func:`sysid_bench.core.footage.camera_for`'s ``px_per_m``,
+        ``object_size_m``, ``pivot``, ``anchor``): the object is followed at the file's
+        resolution (:func:`~sysid_bench.core.footage.find_object`) and its track mapped to the
+        system's world (the pendulum relative to its pivot, y up; the spring from its anchor).
+        None: the clip is framed as the system's renderer draws it.
+    rotate : {0, 90, 180, 270}
+    start, end, capture_fps : float, optional
+        :func:`~sysid_bench.core.footage.read_video`'s window and capture rate.
+    known, prior : dict, optional
+        What the user knows; the pendulum's ``L`` fixes the scale from the bob's arc.
+        Recorded under ``knowledge``.
+
+    Returns
+    -------
+    dict
+        ``mean``, ``std`` (T, P) with NaN rows between estimates, ``check`` (T, 3) (ok, RMS m,
+        noise m), ``points`` (T, K, 2) tracked, ``info`` (what ``estimates.json`` records).
+    """
+    import methods
+    from sysid_bench.core import systems
+    from sysid_bench.core.estimator import Observation
+    from sysid_bench.core.footage import (
+        camera_for,
+        find_object,
+        knowledge_record,
+        read_video,
+        rotate_frames,
+        widen_for_scale,
+    )
+
+    sys_ = systems.get(system)
+    if camera is not None and method is not None and methods.spec(method).input_kind == "frames":
+        raise ValueError(f"method: {method} reads frames drawn as the {sys_.name}'s renderer "
+                         "draws them; on a camera's clip give a position method (e.g. lsq)")
+    clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps)
+    turned = rotate_frames(clip.frames, int(rotate))
+    notes = list(clip.notes)
+    cam = None
+    if camera is None:
+        frames = resize_frames(turned, sys_.size)
+        name = method or _default_method(sys_.name)
+        obs = Observation(frames=frames, system=sys_.name, dt=1.0 / clip.fps)
+        points = sys_.track(frames)
+    else:
+        trk = find_object(turned, progress=bool(progress))
+        if trk.n_found < 3:
+            raise VideoError(f"{path}: the {sys_.name}'s object was found in {trk.n_found} of "
+                             f"{len(turned)} frames; the camera and the methods need a track "
+                             "(at least 3 frames)")
+        cam = camera_for(sys_.name, trk, turned.shape[1:], **camera, known=known,
+                         rotate=int(rotate))
+        points = cam.to_metres(trk.pixels)[:, None, :]
+        name = method or _position_method(sys_.name)
+        obs = Observation(positions=points, system=sys_.name, dt=1.0 / clip.fps)
+        notes.append(f"{name} saw the tracked object in metres ({cam.describe()})")
+    # a method that takes the user's knowledge holds it (issue 38 §4); the others say they did not
+    takes = {"known", "prior"} <= set(methods.get(name, system=sys_.name).get_params())
+    give = {"known": dict(known or {}), "prior": dict(prior or {})} if takes else {}
+    est = methods.get(name, system=sys_.name, **give)
+    est.fit(None)
+    t = obs.n_frames
+    lengths = sorted({*range(every, t + 1, every), t})
+    lengths = [n for n in lengths if n >= max(3, getattr(est.spec(), "min_frames", 3))]
+    if not lengths:
+        raise ValueError(f"video: expected at least 3 frames at 20 frames/s, got {t}")
+    posts = est.identify_prefixes(obs, lengths)
+    p = sys_.n_params
+    mean, std = np.full((t, p), np.nan), np.full((t, p), np.nan)
+    check = np.full((t, 3), np.nan)
+    for n, post in zip(lengths, posts):
+        mean[n - 1], std[n - 1] = post.mean, post.std
+        if post.check is not None:
+            check[n - 1] = (float(post.check.ok), post.check.rms_m, post.check.noise_m)
+    if cam is not None and cam.scale_rel_std > 0:
+        std = widen_for_scale(sys_.name, sys_.params, mean, std, cam.scale_rel_std)
+        notes.append(f"the scale's {100 * cam.scale_rel_std:.2g}% uncertainty is added to the "
+                     "std of every parameter with a length in its unit")
+        if takes and known:  # a held value is the user's, not measured through the scale
+            cols = [sys_.params.index(k) for k in known]
+            std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
+    know = knowledge_record(known or {}, prior or {}, name, held=takes,
+                            why=getattr(type(est), "knowledge_refused", ""))
+    if know["note"]:
+        notes.append(f"--known/--prior {know['note']}")
+    elif known or prior:
+        said = [f"{k} = {v:g} held" for k, v in (known or {}).items()]
+        said += [f"{k} searched in {a:g} to {b:g}" for k, (a, b) in (prior or {}).items()]
+        notes.append(f"--known/--prior: {name} used them ({'; '.join(said)})")
+    info = {"file": str(path), "system": sys_.name, "method": name, "params": list(sys_.params),
+            "model_fps": clip.fps, "frames": t, "source_fps": clip.source_fps,
+            "size": list(sys_.size), "extent": list(sys_.extent), "notes": notes,
+            "points_seen": int(np.isfinite(points).all(axis=(1, 2)).sum()),
+            "input": "tracked positions (camera)" if cam is not None else
+            ("frames (renderer framing)" if methods.spec(name).input_kind == "frames"
+             else "tracked positions (renderer framing)"),
+            "camera": None if cam is None else cam.as_dict(), "rotate": int(rotate),
+            "window_s": [start, end], "capture_fps": capture_fps, "knowledge": know}
+    return {"mean": mean, "std": std, "check": check, "points": points, "info": info}
+
+
+def _finite(x):
+    """JSON without NaN: NaN and inf become null; arrays become lists."""
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return [_finite(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def _plot(res: dict, path: Path, dt: float) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    params = res["info"]["params"]
+    t = np.arange(len(res["mean"])) * dt
+    fig, axes = plt.subplots(1, len(params) + 1, figsize=(3.2 * (len(params) + 1), 3.2))
+    pts = res["points"]
+    for k in range(pts.shape[1]):
+        axes[0].plot(pts[:, k, 0], pts[:, k, 1], ".", ms=3, label=f"point {k + 1}")
+    axes[0].set(xlabel="x (m)", ylabel="y (m)", title="tracked")
+    axes[0].legend(fontsize=7)
+    z = 1.6449
+    for ax, (k, p) in zip(axes[1:], enumerate(params)):
+        m, s = res["mean"][:, k], res["std"][:, k]
+        ok = np.isfinite(m)
+        ax.errorbar(t[ok], m[ok], yerr=z * s[ok], fmt="o", ms=3, color="tab:red", lw=1)
+        ax.set(xlabel="t (s)", title=f"{p} (mean, 90% interval)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def write_system_outputs(res: dict, out) -> Path:
+    """``estimates.csv``, ``estimates.json`` and ``track.png`` into ``out``, all or nothing."""
+    from sysid_bench.core.footage import OUT_MARKER, check_out_folder
+
+    out = check_out_folder(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    dt = 1.0 / res["info"]["model_fps"]
+    params = res["info"]["params"]
+    rows = []
+    for i in range(len(res["mean"])):
+        r = {"frame": i, "t_s": round(i * dt, 6)}
+        for k, p in enumerate(params):
+            r[f"{p}_mean"], r[f"{p}_std"] = float(res["mean"][i, k]), float(res["std"][i, k])
+        c = res["check"][i]
+        r["check_ok"] = int(c[0]) if np.isfinite(c[0]) else None
+        r["check_rms_m"], r["check_noise_m"] = float(c[1]), float(c[2])
+        for k in range(res["points"].shape[1]):
+            r[f"x{k + 1}_m"], r[f"y{k + 1}_m"] = (float(v) for v in res["points"][i, k])
+        rows.append(r)
+
+    def write(tmp: Path) -> None:
+        with open(tmp / "estimates.csv", "w", newline="") as f:
+            wr = csv.DictWriter(f, fieldnames=list(rows[0]))
+            wr.writeheader()
+            wr.writerows(rows)
+        clean = [{k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                  for k, v in r.items()} for r in rows]
+        with open(tmp / "estimates.json", "w") as f:
+            json.dump({"written_by": OUT_MARKER, **_finite(res["info"]), "estimates": clean}, f,
+                      indent=1)
+        _plot(res, tmp / "track.png", dt)
+
+    # files of an existing ``out`` this did not write are kept; the three are replaced together
+    atomic_folder(out, write, keep_others=True)
+    return out

@@ -1,0 +1,1547 @@
+"""Video files to the suite's inputs: decode, encode, map pixels to metres, find the ball.
+
+The core half of ``sysid-bench identify`` (:mod:`sysid_bench.apps.video`, the command, builds on it),
+used as well by the MuJoCo scenes (:mod:`sysid_bench.core.mujoco_scene`) and the benchmark's
+experiment on them; it knows no method.
+
+1. :func:`read_video` decodes the file with **PyAV** (``av``: FFmpeg's libraries in the wheel,
+   libx264 included), converts every frame to grey and resamples to the model's 20 frames/s
+   by taking, for each 50 ms tick, the source frame nearest in time (blending frames would show
+   two half-bright balls). PyAV rather than imageio-ffmpeg because it gives each frame's own
+   presentation time and the stream's rate from the container, in process (imageio-ffmpeg
+   pipes raw frames from an ``ffmpeg`` subprocess and parses its rate from the log text), and
+   because the same wheel writes H.264 (:func:`write_video`) without any system FFmpeg.
+2. :class:`Geometry` maps source pixels to the suite's metres. By default the frame is framed
+   as :mod:`sysid_bench.core.render` frames its videos, at the file's resolution: the box
+   ``[0, 10] m`` spans the width with the ball's radius as margin and the floor contact is at
+   the bottom edge. Other footage gives the pixel scale, the floor row and the left wall's
+   column, or the two floor corners of the box (:func:`geometry_from_options`).
+3. :func:`find_ball` follows the ball at the file's resolution: a median background over the
+   clip is subtracted, pixels that differ by more than the noise (or a floor of contrast) form
+   blobs, and each frame keeps the blob nearest the position predicted from the last two
+   (constant velocity), of a size consistent with the ball's; a track is (re)acquired on the
+   roundest blob. Static clutter is in the background, so it never becomes "the ball".
+4. :func:`observe` turns the track into the Observation a method takes: tracked positions in
+   metres (floor at 0), or frames re-drawn at them in a video model's view
+   (:func:`model_frames`; see ``docs/video.md`` for why re-drawing rather than cropping).
+5. A real camera's clip of any system (issue 38): :func:`find_object` follows the object at
+   any resolution ("not seen" where it is not, or where a blob is not its size), and
+   :func:`camera_for` builds the :class:`Camera` (pixels to metres in the system's world
+   frame) from a given scale, the object's known size frame by frame, or a pendulum's known
+   length and the arc its bob sweeps; the scale's uncertainty widens the intervals
+   (:func:`widen_for_scale`). :func:`parse_known` and :func:`parse_prior` read what the user
+   knows; :func:`check_out_folder` keeps ``--out`` from overwriting files identify did not
+   write.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sysid_bench.core._io import atomic_write
+from sysid_bench.core.physics import BOX_WIDTH
+from sysid_bench.core.render import RADIUS_FRACTION, view_geometry
+from sysid_bench.core.tracking import ball_centre, ball_seen, noise_level
+
+__all__ = [
+    "MODEL_FPS",
+    "VideoError",
+    "Clip",
+    "read_video",
+    "write_video",
+    "Geometry",
+    "geometry_from_options",
+    "find_ball",
+    "BallTrack",
+    "model_frames",
+    "observe",
+    "ROTATIONS",
+    "OBJECT_SIZE_RANGE_M",
+    "LENGTH_POWER",
+    "rotate_frames",
+    "fit_circle",
+    "find_object",
+    "Camera",
+    "camera_for",
+    "widen_for_scale",
+    "parse_known",
+    "parse_prior",
+    "knowledge_record",
+    "OUT_MARKER",
+    "OUT_FILES",
+    "check_out_folder",
+]
+
+#: frame rate of every model in the suite (physics.dt = 0.05 s)
+MODEL_FPS = 20.0
+#: decoded frames above which the reader shows a progress bar (when stderr is a terminal)
+_PROGRESS_FRAMES = 300
+
+
+class VideoError(ValueError):
+    """A video file that cannot be used; the message names the file and the problem."""
+
+
+# -- reading and writing ------------------------------------------------------------------------
+@dataclass
+class Clip:
+    """A decoded video, grey and resampled to the model's frame rate.
+
+    Attributes
+    ----------
+    frames : ndarray, shape (T, H, W), uint8
+        Grey frames at ``fps`` (``MODEL_FPS`` after resampling).
+    times : ndarray, shape (T,)
+        Source presentation time of each kept frame, seconds from the first frame.
+    source_fps : float
+        The file's frame rate (from the stream, else from the frame times).
+    source_frames : int
+        Frames decoded from the file.
+    colour : bool
+        The file stored colour (it was converted to grey: ITU-R BT.601 luma, FFmpeg's "gray").
+    notes : list of str
+        What was done to the file (resampling), one sentence each.
+    """
+
+    frames: np.ndarray
+    times: np.ndarray
+    source_fps: float
+    source_frames: int
+    colour: bool
+    fps: float = MODEL_FPS
+    notes: list = field(default_factory=list)
+    path: str = ""
+
+
+def _fail(path, problem: str) -> VideoError:
+    return VideoError(f"{path}: {problem}")
+
+
+def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
+               start: float | None = None, end: float | None = None,
+               capture_fps: float | None = None) -> Clip:
+    """Decode a video file to grey frames at ``fps``.
+
+    Parameters
+    ----------
+    path : str or Path
+        Any container and codec FFmpeg reads (mp4, avi, mkv, mov, webm, gif, ...).
+    fps : float
+        Frame rate to resample to (nearest source frame in time for each output tick).
+    progress : bool, optional
+        tqdm bar while decoding; default: only for files over 300 frames, on a terminal.
+    start, end : float, optional
+        Seconds of capture time (from the first frame) to keep: frames before ``start`` (a
+        hand still holding the object) and after ``end`` are dropped; ``times`` then count
+        from the first frame kept.
+    capture_fps : float, optional
+        The rate the frames were captured at, when it is not the container's (a slow-motion
+        file: captured at 240 frames/s, stored at 30). Every frame time is stretched by the
+        container rate over ``capture_fps``; the frames' own spacing (variable frame rate)
+        is kept.
+
+    Returns
+    -------
+    Clip
+
+    Raises
+    ------
+    VideoError
+        Missing, unreadable, empty or zero-frame file, not a video, or no readable frame rate;
+        the message starts with the path.
+    ValueError
+        ``start``/``end`` outside the clip or not in order, ``capture_fps`` not > 0; the
+        message names the argument.
+    """
+    try:
+        import av
+    except ImportError as exc:  # pragma: no cover - av is a core dependency
+        raise VideoError(f"{path}: reading videos needs PyAV (pip install av): {exc}") from exc
+    fps = float(fps)
+    if not math.isfinite(fps) or fps <= 0:
+        raise ValueError(f"fps: expected a frame rate > 0, got {fps!r}")
+    for name, v in (("capture_fps", capture_fps), ("start", start), ("end", end)):
+        if v is not None and (not math.isfinite(float(v)) or float(v) < 0
+                              or (name == "capture_fps" and float(v) <= 0)):
+            raise ValueError(f"{name}: expected a finite number "
+                             f"{'> 0' if name == 'capture_fps' else '>= 0'} (seconds"
+                             f"{'' if name != 'capture_fps' else ' -> frames/s'}), got {v!r}")
+    if start is not None and end is not None and float(end) <= float(start):
+        raise ValueError(f"end: expected a time after start = {start:g} s, got {end:g} s")
+    p = Path(path)
+    if not p.exists():
+        raise _fail(path, "no such file")
+    if p.is_dir():
+        raise _fail(path, "is a directory, not a video file")
+    if not os.access(p, os.R_OK):
+        raise _fail(path, "cannot be read (permission denied)")
+    if p.stat().st_size == 0:
+        raise _fail(path, "empty file (0 bytes)")
+    try:
+        container = av.open(str(p), mode="r")
+    except av.error.EOFError:
+        raise _fail(path, "the video has zero frames (the file ends before its first frame)") from None
+    except av.error.FFmpegError as exc:
+        raise _fail(path, f"not a readable video ({_av_reason(exc)})") from None
+    except OSError as exc:
+        raise _fail(path, f"cannot be read ({exc.strerror or exc})") from None
+    try:
+        if not container.streams.video:
+            raise _fail(path, "no video stream in the file")
+        stream = container.streams.video[0]
+        stream.thread_type = "AUTO"
+        rate = stream.average_rate or stream.guessed_rate or stream.base_rate
+        rate = float(rate) if rate else float("nan")
+        colour = not str(stream.codec_context.pix_fmt or "").startswith("gray")
+        n_hint = int(stream.frames or 0)
+        show = (n_hint > _PROGRESS_FRAMES) if progress is None else bool(progress)
+        frames, times = [], []
+        from tqdm.auto import tqdm
+
+        with tqdm(total=n_hint or None, desc=f"reading {p.name}", unit="frame",
+                  disable=not show or (progress is None and not sys.stderr.isatty()),
+                  leave=False) as bar:
+            try:
+                for fr in container.decode(stream):
+                    frames.append(fr.to_ndarray(format="gray"))
+                    times.append(np.nan if fr.time is None else float(fr.time))
+                    bar.update(1)
+            except av.error.EOFError:
+                pass  # a stream declared but holding no frames: "zero frames" below
+            except av.error.FFmpegError as exc:
+                if not frames:
+                    raise _fail(path, f"not a readable video ({_av_reason(exc)})") from None
+                # a truncated file: keep the frames decoded before the damage
+    finally:
+        container.close()
+    if not frames:
+        raise _fail(path, "the video has zero frames")
+    t = np.asarray(times, dtype=np.float64)
+    if np.isfinite(t).all() and len(t) > 1 and np.all(np.diff(t) > 0):
+        t = t - t[0]
+        if not math.isfinite(rate) or rate <= 0:
+            rate = (len(t) - 1) / t[-1]
+    elif math.isfinite(rate) and rate > 0:
+        t = np.arange(len(frames)) / rate  # timestamps missing or out of order: trust the rate
+    elif len(frames) == 1:
+        rate, t = fps, np.zeros(1)
+    else:
+        raise _fail(path, "the frame rate cannot be read (no stream rate, no frame times)")
+    notes = []
+    if capture_fps is not None:
+        stretch = rate / float(capture_fps)
+        t = t * stretch
+        notes.append(f"capture rate {float(capture_fps):g} frames/s (the container says "
+                     f"{rate:.4g}): time runs {stretch:.4g}x the file's")
+        rate = float(capture_fps)
+    if start is not None or end is not None:
+        lo = 0.0 if start is None else float(start)
+        hi = math.inf if end is None else float(end)
+        keep = (t >= lo - 1e-9) & (t <= hi + 1e-9)
+        if keep.sum() < 1:
+            name = "start" if lo > t[-1] else "end" if end is not None and hi < t[0] else "start"
+            raise ValueError(f"{name}: the window {lo:g} to {hi:g} s holds no frame of the clip "
+                             f"(0 to {t[-1]:.4g} s, {len(t)} frames)")
+        first = int(np.flatnonzero(keep)[0])
+        frames = [f for f, k in zip(frames, keep) if k]
+        t = t[keep] - t[first]
+        notes.append(f"window {lo:g} to {min(hi, float(t[-1]) + lo):.4g} s: {len(frames)} frames")
+    raw = np.stack(frames)
+    if abs(rate - fps) > 1e-3 * fps:
+        ticks = np.arange(0.0, t[-1] + 0.5 / rate + 1e-9, 1.0 / fps)
+        # nearest source frame to each tick
+        j = np.clip(np.searchsorted(t, ticks), 1, len(t) - 1)
+        j = np.where(np.abs(t[j - 1] - ticks) <= np.abs(t[j] - ticks), j - 1, j)
+        if len(t) == 1:
+            j = np.zeros(1, dtype=int)
+        raw_kept, t_kept = raw[j], t[j]
+        notes.append(f"resampled from {rate:.4g} to {fps:g} frames/s (nearest frame in time): "
+                     f"{len(frames)} -> {len(j)} frames"
+                     + ("; the source is slower than the model, so frames repeat" if rate < fps
+                        else ""))
+    else:
+        raw_kept, t_kept = raw, t
+    return Clip(frames=np.ascontiguousarray(raw_kept), times=t_kept, source_fps=float(rate),
+                source_frames=len(frames), colour=colour, fps=fps, notes=notes, path=str(path))
+
+
+def _av_reason(exc) -> str:
+    s = str(getattr(exc, "strerror", None) or exc)
+    return s.split(":")[0].strip() if ": '" in s else s.strip()
+
+
+def write_video(path, frames, fps: float = MODEL_FPS, *, codec: str = "libx264",
+                crf: int = 18) -> Path:
+    """Write frames to a video file with PyAV (no system FFmpeg needed), atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file; the container follows its suffix (``.mp4``, ``.mkv``, ``.avi``).
+    frames : ndarray, shape (T, H, W) grey or (T, H, W, 3) RGB, uint8
+    fps : float
+        Frame rate (an exact fraction for common rates: 20, 25, 30000/1001, ...).
+    codec : str
+        ``"libx264"`` (H.264, yuv420p, even sizes), ``"ffv1"`` (lossless; keeps grey as grey),
+        or any encoder PyAV has.
+    crf : int
+        H.264 quality (0 lossless .. 51; 18 is visually lossless).
+
+    Returns
+    -------
+    Path
+    """
+    from fractions import Fraction
+
+    import av
+
+    fr = np.asarray(frames)
+    if fr.dtype != np.uint8 or fr.ndim not in (3, 4) or (fr.ndim == 4 and fr.shape[-1] != 3):
+        raise ValueError("frames: expected uint8 (T, H, W) or (T, H, W, 3), got "
+                         f"{fr.dtype} shape {fr.shape}")
+    if fr.shape[0] < 1:
+        raise ValueError("frames: expected at least one frame, got 0")
+    path = Path(path)
+    rate = Fraction(float(fps)).limit_denominator(1001)
+    grey = fr.ndim == 3
+
+    def encode(tmp: Path) -> None:
+        with av.open(str(tmp), mode="w") as out:
+            st = out.add_stream(codec, rate=rate)
+            st.width, st.height = fr.shape[2], fr.shape[1]
+            if codec in ("libx264", "h264"):
+                st.pix_fmt = "yuv420p"
+                # no macroblock-tree rate control: with it (x264's default, asm on) two writes
+                # of the same noisy camera-like frames came out different every time, one
+                # thread or several, and so did every estimate read back; without it (or
+                # without asm) the bytes repeat
+                st.options = {"crf": str(int(crf)), "preset": "medium", "x264-params": "mbtree=0"}
+            elif grey and codec in ("ffv1", "png", "rawvideo"):
+                st.pix_fmt = "gray"
+            for img in fr:
+                vf = av.VideoFrame.from_ndarray(img, format="gray" if grey else "rgb24")
+                for pkt in st.encode(vf):
+                    out.mux(pkt)
+            for pkt in st.encode():
+                out.mux(pkt)
+
+    atomic_write(path, encode)
+    return path
+
+
+# -- geometry -------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Geometry:
+    """Source pixels <-> the suite's metres (ball centre; floor at y = 0).
+
+    Continuous pixel coordinates put pixel ``[i, j]``'s centre at ``(j + 0.5, i + 0.5)``. A ball
+    of radius ``radius`` px whose centre is at ``x = 0`` touches the left wall (column
+    ``wall_col``); at ``y = 0`` it touches the floor (row ``floor_row``).
+
+    Attributes
+    ----------
+    size : (int, int)
+        ``(H, W)`` of the source frames.
+    wall_col, floor_row : float
+        Column of the left wall's surface and row of the floor's surface, px.
+    px_per_m : (float, float)
+        Pixels per metre across and up.
+    radius : float
+        Ball radius, px.
+    source : str
+        ``"renderer"`` (default framing) or what the options were.
+    """
+
+    size: tuple
+    wall_col: float
+    floor_row: float
+    px_per_m: tuple
+    radius: float
+    source: str = "renderer"
+
+    def to_metres(self, cr) -> np.ndarray:
+        """``[..., (col, row)]`` px to ``[..., (x, y)]`` m."""
+        cr = np.asarray(cr, dtype=np.float64)
+        sx, sy = self.px_per_m
+        x = (cr[..., 0] - self.wall_col - self.radius) / sx
+        y = (self.floor_row - self.radius - cr[..., 1]) / sy
+        return np.stack([x, y], axis=-1)
+
+    def to_pixels(self, xy) -> np.ndarray:
+        """``[..., (x, y)]`` m to ``[..., (col, row)]`` px."""
+        xy = np.asarray(xy, dtype=np.float64)
+        sx, sy = self.px_per_m
+        return np.stack([self.wall_col + self.radius + xy[..., 0] * sx,
+                         self.floor_row - self.radius - xy[..., 1] * sy], axis=-1)
+
+    def box_px(self) -> tuple[float, float, float, float]:
+        """``(col0, col1, row0, row1)`` of the area the ball can cover (walls, floor, top)."""
+        sx, sy = self.px_per_m
+        return (self.wall_col, self.wall_col + BOX_WIDTH * sx + 2 * self.radius,
+                self.floor_row - BOX_WIDTH * sy - 2 * self.radius, self.floor_row)
+
+    def describe(self) -> str:
+        sx, sy = self.px_per_m
+        return (f"{self.source}: x = (col - {self.wall_col:.4g} - {self.radius:.3g}) / {sx:.4g}, "
+                f"y = ({self.floor_row:.4g} - {self.radius:.3g} - row) / {sy:.4g} "
+                f"(metres of the ball's centre; px per metre {sx:.4g} across, {sy:.4g} up; "
+                f"frame {self.size[1]}x{self.size[0]} WxH)")
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["size"] = list(self.size)
+        d["px_per_m"] = list(self.px_per_m)
+        d["box_px"] = list(self.box_px())
+        d["mapping"] = self.describe()
+        return d
+
+
+def geometry_from_options(size, *, px_per_m=None, floor_row=None, wall_col=None, corners=None,
+                          ball_radius_px=None) -> Geometry:
+    """The mapping of ``size`` frames: the renderer's framing, or the user's numbers.
+
+    Parameters
+    ----------
+    size : (int, int)
+        ``(H, W)`` of the source frames.
+    px_per_m : float, optional
+        Pixels per metre (square pixels). Default: the box's 10 m span the width.
+    floor_row : float, optional
+        Row of the floor's surface (default: the bottom edge, ``H``).
+    wall_col : float, optional
+        Column of the left wall's surface (default: the left edge, 0).
+    corners : (c1, r1, c2, r2), optional
+        Two clicked points, the floor's corners with the left and the right wall, px. They
+        give ``wall_col = c1``, ``floor_row = (r1 + r2) / 2`` and the scale that puts the right
+        wall at ``c2``; exclusive with the three options above.
+    ball_radius_px : float, optional
+        The ball's radius in the source, px; default ``30/256`` of the smaller side (the
+        renderer's).
+
+    Raises
+    ------
+    ValueError
+        Options that put the box (walls and floor) outside the frame, or inconsistent ones.
+    """
+    h, w = int(size[0]), int(size[1])
+    radius = RADIUS_FRACTION * min(h, w) if ball_radius_px is None else float(ball_radius_px)
+    if not math.isfinite(radius) or radius <= 0 or 2 * radius >= min(h, w):
+        raise ValueError(f"ball_radius_px: expected pixels in (0, {min(h, w) / 2:g}), got "
+                         f"{ball_radius_px!r}")
+    custom = any(v is not None for v in (px_per_m, floor_row, wall_col))
+    if corners is not None:
+        if custom:
+            raise ValueError("corners: give either corners or px_per_m / floor_row / wall_col, "
+                             "not both")
+        try:
+            c1, r1, c2, r2 = (float(v) for v in corners)
+        except (TypeError, ValueError):
+            raise ValueError(f"corners: expected four numbers c1 r1 c2 r2, got {corners!r}") from None
+        if not all(map(math.isfinite, (c1, r1, c2, r2))) or c2 - c1 <= 2 * radius:
+            raise ValueError("corners: expected the right corner more than a ball's width right "
+                             f"of the left one, got ({c1:g}, {r1:g}) and ({c2:g}, {r2:g})")
+        s = (c2 - c1 - 2 * radius) / BOX_WIDTH
+        geo = Geometry((h, w), c1, (r1 + r2) / 2, (s, s), radius,
+                       source=f"corners ({c1:g}, {r1:g}) ({c2:g}, {r2:g})")
+    elif custom:
+        for name, v in (("px_per_m", px_per_m), ("floor_row", floor_row), ("wall_col", wall_col)):
+            if v is not None and not math.isfinite(float(v)):
+                raise ValueError(f"{name}: expected a finite number, got {v!r}")
+        s = (w - 2 * radius) / BOX_WIDTH if px_per_m is None else float(px_per_m)
+        # the box must be wider than two balls, or every position maps far outside it (a scale
+        # of 1e-6 px/m put each tracked ball ~1e6 m away, clipped, and answered the prior)
+        if s * BOX_WIDTH < 4 * radius:
+            raise ValueError(f"px_per_m: expected at least {4 * radius / BOX_WIDTH:.3g} (the "
+                             f"{BOX_WIDTH:g} m box at least two balls of {radius:.3g} px wide), "
+                             f"got {px_per_m!r}")
+        geo = Geometry((h, w), 0.0 if wall_col is None else float(wall_col),
+                       float(h) if floor_row is None else float(floor_row), (s, s), radius,
+                       source=f"options px_per_m={s:g} floor_row="
+                              f"{h if floor_row is None else floor_row} wall_col="
+                              f"{0 if wall_col is None else wall_col}")
+    else:
+        vg = view_geometry((h, w), radius=radius)
+        geo = Geometry((h, w), 0.0, float(h), vg.px_per_m, vg.radius, source="renderer")
+    c0, c1, r0, r1 = geo.box_px()
+    tol = 1.0  # a pixel of slack for rounding in clicked points
+    if c0 < -tol or c1 > w + tol or r1 > h + tol or r1 <= 0 or c0 >= w:
+        raise ValueError(
+            f"geometry: the box (walls at columns {c0:.1f} and {c1:.1f}, floor at row {r1:.1f}) "
+            f"is outside the {w}x{h} frame; walls and floor must be in view")
+    if r1 - max(r0, 0.0) < 0.25 * (r1 - r0):
+        raise ValueError(f"geometry: less than a quarter of the box's height is in view "
+                         f"(rows {r0:.1f}..{r1:.1f} of a {h}-row frame)")
+    return geo
+
+
+# -- finding the ball -----------------------------------------------------------------------------
+@dataclass
+class BallTrack:
+    """Where the ball was found in each frame.
+
+    Attributes
+    ----------
+    pixels : ndarray, shape (T, 2)
+        Sub-pixel centre ``(col, row)`` in the source frame; NaN where not found.
+    radius : float
+        Median radius of the found blobs, px (NaN if never found).
+    found : ndarray, shape (T,), bool
+    radii : ndarray, shape (T,), optional
+        Each frame's radius, px (NaN where not found): the object's apparent size frame by
+        frame, from which ``--object-size-m`` reads the scale.
+    """
+
+    pixels: np.ndarray
+    radius: float
+    found: np.ndarray
+    radii: np.ndarray | None = None
+
+    @property
+    def n_found(self) -> int:
+        return int(self.found.sum())
+
+
+def _background(frames: np.ndarray, max_frames: int = 150) -> np.ndarray:
+    """Per-pixel median over (up to ``max_frames`` evenly spread) frames: the static scene."""
+    idx = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), max_frames)).astype(int))
+    return np.median(frames[idx], axis=0).astype(np.float32)
+
+
+def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
+              max_gap: int = 5, progress: bool = False, reset_on_loss: bool = False) -> BallTrack:
+    """Follow the ball through ``frames`` by background subtraction.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, H, W)
+        Grey frames, uint8 or floats in [0, 255].
+    min_contrast : float
+        Fewest grey levels a pixel must differ from the background to belong to a blob.
+    noise_k : float
+        ... or this many robust standard deviations of the difference image, if more.
+    max_gap : int
+        Frames without the ball after which the prediction is dropped and the track is
+        acquired afresh (on the roundest blob of plausible size).
+    progress : bool
+        tqdm bar over the frames.
+    reset_on_loss : bool
+        Forget the sizes seen when the track is lost for more than ``max_gap`` frames (real
+        footage: a hand followed before the ball is let go). Off by default: the suite's
+        renders and MuJoCo scenes are tracked as they always were.
+
+    Returns
+    -------
+    BallTrack
+    """
+    fr = np.asarray(frames, dtype=np.float32)
+    if fr.ndim != 3 or fr.shape[0] < 1:
+        raise ValueError(f"frames: expected a (T, H, W) array, got shape {fr.shape}")
+    t_n, h, w = fr.shape
+    bg = _background(fr)
+    # the noise of the signed difference (robust: 1.4826 MAD), as tracking.track measures it
+    sigma = float(noise_level((fr[:: max(1, t_n // 20)] - bg).ravel()))
+    thr = max(float(min_contrast), noise_k * sigma)
+    pix, radii = _follow(fr, bg, thr, max_gap, progress, reset_on_loss)
+    # A ball that sits or rolls slowly over the same pixels for more than half the clip is in
+    # the median, and then invisible there. When the ball is consistently brighter (darker)
+    # than the scene, a low (high) quantile over time is the scene wherever the ball covered a
+    # pixel in less than 90% of the frames; where that background differs from the median
+    # over a twentieth of a ball or more, the ball is followed again against it.
+    found = np.isfinite(pix).all(axis=1)
+    if found.sum() >= 3:
+        # the ball's sign at its centre and at 0.6 radii up, down, left and right of it: a lit,
+        # shaded ball can be brighter than the scene at its top and darker at its bottom
+        r_f = 0.6 * radii[found]
+        offs = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], dtype=np.float64)
+        pts = pix[found][:, None, :] + offs[None] * r_f[:, None, None]  # (N, 5, 2)
+        c = np.clip(pts.astype(int), 0, [w - 1, h - 1])
+        tt = np.broadcast_to(np.flatnonzero(found)[:, None], c.shape[:2])
+        sign = np.sign(fr[tt, c[..., 1], c[..., 0]] - bg[c[..., 1], c[..., 0]])
+        if abs(sign.mean()) > 0.8:
+            idx = np.unique(np.linspace(0, t_n - 1, min(t_n, 150)).astype(int))
+            q = np.percentile(fr[idx], 10 if sign.mean() > 0 else 90, axis=0).astype(np.float32)
+            r = float(np.nanmedian(radii))
+            if (np.abs(q - bg) > thr).sum() >= 0.05 * np.pi * r * r:
+                pix, radii = _follow(fr, q, thr, max_gap, progress, reset_on_loss)
+    found = np.isfinite(pix).all(axis=1)
+    radius = float(np.nanmedian(radii)) if found.any() else float("nan")
+    return BallTrack(pixels=pix, radius=radius, found=found, radii=radii)
+
+
+def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False):
+    """One tracking pass over ``fr`` against background ``bg``: centres (T, 2), radii (T,).
+
+    ``reset_on_loss``: a track lost for more than ``max_gap`` frames forgets the sizes seen so
+    far, so an object of another size followed for a while (a hand holding the ball) does not
+    gate the ball out for the rest of the clip (:func:`find_object`)."""
+    from scipy import ndimage
+    from tqdm.auto import tqdm
+
+    t_n, h, w = fr.shape
+    pix = np.full((t_n, 2), np.nan)
+    radii = np.full(t_n, np.nan)
+    areas: list[float] = []
+    last: list[tuple[int, np.ndarray]] = []  # (frame, centre) of the last detections
+    since = 0  # sizes are taken from frames since (reset_on_loss: the last re-acquisition)
+    for t in tqdm(range(t_n), desc="finding the ball", unit="frame", disable=not progress,
+                  leave=False):
+        signed = fr[t] - bg
+        diff = np.abs(signed)
+        mask = diff > thr
+        if not mask.any():
+            continue
+        lab, n = ndimage.label(mask)
+        if n == 0:
+            continue
+        if reset_on_loss and areas and (not last or t - last[-1][0] > max_gap):
+            areas, since = [], t
+        idx = np.arange(1, n + 1)
+        area = ndimage.sum_labels(np.ones_like(diff), lab, idx)
+        cen = np.array(ndimage.center_of_mass(diff, lab, idx))[:, ::-1] + 0.5  # (col, row)
+        if areas:
+            ref = float(np.median(areas[-20:]))
+            ok = (area >= 0.2 * ref) & (area <= 5.0 * ref)
+        else:
+            ok = area >= 3
+        if not ok.any():
+            continue
+        pred = None
+        if last and t - last[-1][0] <= max_gap:
+            pred = last[-1][1].copy()
+            if len(last) >= 2:
+                (t1, p1), (t2, p2) = last[-2], last[-1]
+                pred = p2 + (p2 - p1) * (t - t2) / max(1, t2 - t1)
+        cand = np.flatnonzero(ok)
+        if pred is not None:
+            r_ref = math.sqrt(float(np.median(areas[-20:])) / math.pi) if areas else 3.0
+            dist = np.hypot(*(cen[cand] - pred).T)
+            gate = 4.0 * r_ref + 2.0 * (t - last[-1][0]) * r_ref
+            near = dist <= max(gate, 0.1 * min(h, w))
+            if not near.any():
+                continue
+            k = cand[near][np.argmin(dist[near])]
+        else:
+            # roundness: blob area against the disc spanned by its bounding box
+            sl = ndimage.find_objects(lab)
+            score = []
+            for c in cand:
+                s = sl[c]
+                ext = max(s[0].stop - s[0].start, s[1].stop - s[1].start)
+                score.append(area[c] / (math.pi * (ext / 2) ** 2 + 1e-9) * math.sqrt(area[c]))
+            k = cand[int(np.argmax(score))]
+        # centre and size: the ball's pixels segmented by |difference| and filled to their hull,
+        # each weighted by the fraction of it the ball covers (tracking.ball_centre): a lit top
+        # that barely differs from the wall counts as much as the dark bottom. The expected
+        # radius is the recent balls'; on (re)acquisition the blob's (and its pieces') own,
+        # then the covered area's.
+        found_r = radii[since:][np.isfinite(radii[since:])][-20:]
+        if found_r.size:
+            r_exp, centre = float(np.median(found_r)), cen[k]
+        else:
+            # a shaded ball can fall apart where its shading crosses the wall's grey: blobs
+            # within two of the chosen blob's radii are its other pieces
+            own = math.sqrt(area[k] / math.pi)
+            part = np.hypot(*(cen - cen[k]).T) <= 2.0 * own + 1.0
+            r_exp = math.sqrt(area[part].sum() / math.pi)
+            centre = (cen[part] * area[part, None]).sum(axis=0) / area[part].sum()
+        for _ in range(3):  # re-centred, the search window takes in the whole ball
+            new, cov = ball_centre(signed, thr, centre, r_exp)
+            if cov <= 0:
+                break
+            moved = float(np.hypot(*(new - centre)))
+            centre = new
+            if not found_r.size:
+                r_exp = math.sqrt(cov / math.pi)
+            if moved < 0.01:
+                break
+        # the suite's one rule (tracking.ball_seen), as tracking.track applies it; a disc wider
+        # than half the frame's smaller side is no ball in flight
+        if (cov <= 0 or r_exp > min(h, w) / 4
+                or not ball_seen(diff[None], centre[None], r_exp, thr)[0]):
+            continue
+        c0, r0 = float(centre[0]), float(centre[1])
+        radii[t] = math.sqrt(cov / math.pi)
+        pix[t] = (c0, r0)
+        areas.append(float(area[k]))
+        last = (last + [(t, np.array([c0, r0]))])[-2:]
+    return pix, radii
+
+
+# -- a camera per video ---------------------------------------------------------------------------
+#: Rotations ``--rotate`` accepts, degrees clockwise.
+ROTATIONS = (0, 90, 180, 270)
+#: Sizes (m) an identified object may have: a tracked object outside this range means the scale
+#: cannot be right for the clip (a ball "10 m wide", or 30 nm wide at 1e9 px/m).
+OBJECT_SIZE_RANGE_M = (0.003, 3.0)
+#: Power of length in each parameter's unit: a scale read ``1 + s`` times too large reads each
+#: parameter ``(1 + s) ** power`` times too large (g in m/s^2: 1; the ball's drag d in 1/m: -1).
+LENGTH_POWER = {
+    "ball": {"e": 0, "g": 1, "d": -1, "r": 1},
+    "pendulum": {"g": 1, "L": 1, "b": 0, "mu": 0},
+    "spring": {"w2": 0, "k3": -2, "c": 0, "L0": 1},
+    "collision": {"lq": 0, "eb": 0, "mu": 1, "ew": 0},
+}
+
+
+def rotate_frames(frames, rotate: int) -> np.ndarray:
+    """Frames stored sideways, turned upright.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, H, W)
+    rotate : {0, 90, 180, 270}
+        Degrees clockwise to turn each frame.
+
+    Returns
+    -------
+    ndarray, shape (T, H, W) or (T, W, H) for 90 and 270
+    """
+    if rotate not in ROTATIONS:
+        raise ValueError(f"rotate: expected one of 90, 180, 270 (degrees clockwise), got "
+                         f"{rotate!r}")
+    fr = np.asarray(frames)
+    if rotate == 0:
+        return fr
+    # np.rot90 turns counter-clockwise for positive k
+    return np.ascontiguousarray(np.rot90(fr, k=-(rotate // 90), axes=(1, 2)))
+
+
+def fit_circle(points) -> tuple[np.ndarray, float, float, float]:
+    """The circle through tracked points: a pendulum's pivot and radius from its bob's arc.
+
+    An algebraic fit (Kasa's linear least squares) starts a geometric one
+    (``scipy.optimize.least_squares`` on the distances), whose Jacobian gives the radius's
+    standard error. The centre may lie outside the frame (a pivot above it).
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 2)
+        ``(col, row)`` px; rows with NaN are skipped.
+
+    Returns
+    -------
+    centre : ndarray, shape (2,)
+        ``(col, row)`` px.
+    radius : float
+        px.
+    radius_std : float
+        Standard error of the radius, px (inf when the arc does not fix it).
+    rms : float
+        RMS distance of the points from the circle, px.
+    """
+    from scipy.optimize import least_squares
+
+    p = np.asarray(points, dtype=np.float64)
+    p = p[np.isfinite(p).all(axis=1)]
+    if len(p) < 5:
+        raise ValueError(f"points: expected at least 5 tracked points for a circle, got {len(p)}")
+    a = np.column_stack([2 * p, np.ones(len(p))])
+    sol, *_ = np.linalg.lstsq(a, (p ** 2).sum(axis=1), rcond=None)
+    c0 = sol[:2]
+    r0 = math.sqrt(max(sol[2] + c0 @ c0, 1e-12))
+
+    def resid(z):
+        return np.hypot(*(p - z[:2]).T) - z[2]
+
+    fit = least_squares(resid, np.array([c0[0], c0[1], r0]), method="lm")
+    centre, radius = fit.x[:2], float(abs(fit.x[2]))
+    res = fit.fun
+    dof = max(len(p) - 3, 1)
+    s2 = float(res @ res) / dof
+    try:
+        cov = np.linalg.inv(fit.jac.T @ fit.jac) * s2
+        r_std = float(math.sqrt(max(cov[2, 2], 0.0)))
+    except np.linalg.LinAlgError:
+        r_std = float("inf")
+    return centre, radius, r_std, float(math.sqrt(np.mean(res ** 2)))
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Source pixels -> metres in the plane of motion, in the system's world frame.
+
+    ``x = (col - origin_col) / s * flip``, ``y = (origin_row - row) / s`` (rows run down, y up),
+    with ``s`` the scale in px per metre: one number, or one per frame where it came from the
+    tracked object's apparent size (an object moving in depth keeps a true scale). Pixel
+    coordinates are continuous (pixel ``[i, j]``'s centre at ``(j + 0.5, i + 0.5)``) and taken
+    after the frames were turned by ``rotate`` degrees clockwise.
+
+    Attributes
+    ----------
+    px_per_m : float
+        The scale (the median of the per-frame scales when there are several).
+    origin : (float, float)
+        ``(col, row)`` of the world's origin: the pendulum's pivot, the ball's floor under the
+        ball's centre (``y = 0`` is the centre of a ball resting on the floor), the spring's
+        anchor.
+    scale_rel_std : float
+        Relative standard deviation of the scale (a 24 px ball read a pixel wrong: 0.042);
+        carried into the intervals of every parameter with a length in its unit.
+    per_frame : ndarray, shape (T,), optional
+        Per-frame scale, px per metre (NaN where the object was not seen: ``px_per_m`` there).
+    rotate : int
+        Degrees clockwise the frames were turned before tracking.
+    flip : float
+        ``+1``, or ``-1`` when the world's x runs right to left (a spring anchored on the right).
+    offset : (float, float)
+        Metres added after the mapping (the ball's x placed mid-box when no walls are given).
+    source : str
+        Where the scale came from, in words.
+    placement : dict
+        What fixed the origin: each item given (``"given"``), estimated (how) or absent.
+    """
+
+    px_per_m: float
+    origin: tuple
+    scale_rel_std: float = 0.0
+    per_frame: np.ndarray | None = None
+    rotate: int = 0
+    flip: float = 1.0
+    offset: tuple = (0.0, 0.0)
+    source: str = ""
+    placement: dict = field(default_factory=dict)
+
+    def scales(self, n: int) -> np.ndarray:
+        """px per metre of each of ``n`` frames, shape (n,)."""
+        if self.per_frame is None:
+            return np.full(n, float(self.px_per_m))
+        s = np.asarray(self.per_frame, dtype=np.float64)[:n]
+        return np.where(np.isfinite(s), s, self.px_per_m)
+
+    def to_metres(self, cr) -> np.ndarray:
+        """``(T, ..., 2)`` px ``(col, row)`` to metres ``(x, y)``, frame by frame."""
+        cr = np.asarray(cr, dtype=np.float64)
+        s = self.scales(cr.shape[0]).reshape((-1,) + (1,) * (cr.ndim - 2))
+        x = self.flip * (cr[..., 0] - self.origin[0]) / s + self.offset[0]
+        y = (self.origin[1] - cr[..., 1]) / s + self.offset[1]
+        return np.stack([x, y], axis=-1)
+
+    def describe(self) -> str:
+        """The mapping in one line."""
+        sign = "" if self.flip > 0 else "-"
+        rel = f" ± {100 * self.scale_rel_std:.2g}%" if self.scale_rel_std else ""
+        per = " (per frame, from the object's size; median shown)" if self.per_frame is not None \
+            else ""
+        rot = f"; frames turned {self.rotate} deg clockwise" if self.rotate else ""
+        return (f"camera: x = {sign}(col - {self.origin[0]:.5g}) / s + {self.offset[0]:.4g}, "
+                f"y = ({self.origin[1]:.5g} - row) / s + {self.offset[1]:.4g}, "
+                f"s = {self.px_per_m:.5g} px/m{rel}{per} [{self.source}]{rot}")
+
+    def as_dict(self) -> dict:
+        """What ``estimates.json`` records under ``camera``."""
+        return {"px_per_m": float(self.px_per_m), "origin": [float(v) for v in self.origin],
+                "scale_rel_std": float(self.scale_rel_std), "rotate": int(self.rotate),
+                "flip": float(self.flip), "offset": [float(v) for v in self.offset],
+                "per_frame_px_per_m": None if self.per_frame is None
+                else [float(v) for v in self.per_frame],
+                "source": self.source, "placement": dict(self.placement),
+                "mapping": self.describe()}
+
+
+def _scale_from_size(track: BallTrack, object_size_m: float) -> tuple[np.ndarray, float, float]:
+    """Per-frame px per metre from the object's apparent diameter, its median and relative std.
+
+    Each frame's diameter is smoothed over its 9 nearest seen frames (a running median: the
+    object moves in depth slowly next to the frame rate, a single frame's size jitters). The
+    relative std is a pixel's error on the median diameter (the size read one pixel wrong, as
+    blur and compression do) combined with the spread of the per-frame sizes about their
+    smoothed values over the frames seen.
+    """
+    from scipy.ndimage import median_filter
+
+    radii = np.asarray(track.radii if track.radii is not None else
+                       np.where(track.found, track.radius, np.nan), dtype=np.float64)
+    seen = np.isfinite(radii)
+    diam = 2.0 * radii
+    smooth = np.full_like(diam, np.nan)
+    if seen.sum() >= 1:
+        smooth[seen] = median_filter(diam[seen], size=min(9, int(seen.sum())), mode="nearest")
+    per_frame = smooth / float(object_size_m)
+    d_med = float(np.nanmedian(diam))
+    spread = float(np.nanstd(diam[seen] - smooth[seen])) / math.sqrt(max(int(seen.sum()), 1))
+    rel = math.hypot(1.0 / d_med, spread / d_med)
+    return per_frame, d_med / float(object_size_m), rel
+
+
+def find_object(frames, *, max_side: int = 640, progress: bool = False) -> BallTrack:
+    """:func:`find_ball` on large frames: followed on a block-averaged copy, in source pixels.
+
+    A 1080p frame is averaged over 3 x 3 blocks (the larger side brought to at most
+    ``max_side``), so the background, the blobs and each frame's search are 9 times smaller;
+    centres and radii are scaled back to the source's pixels (continuous coordinates scale by
+    the block size exactly). Frames this size or smaller are followed as they are.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, H, W), uint8
+    max_side : int
+        Largest side the tracker works at, px.
+    progress : bool
+
+    Returns
+    -------
+    BallTrack
+        In the source frame's pixels; "not seen" frames NaN, as are frames whose blob is not
+        the object's size (a hand: more than half the median radius off it). A lost track
+        forgets the sizes seen before (``find_ball(..., reset_on_loss=True)``).
+    """
+    fr = np.asarray(frames)
+    if fr.ndim != 3 or fr.shape[0] < 1:
+        raise ValueError(f"frames: expected a (T, H, W) array, got shape {fr.shape}")
+    k = max(1, math.ceil(max(fr.shape[1:]) / int(max_side)))
+    if k == 1:
+        trk = find_ball(fr, progress=progress, reset_on_loss=True)
+        return _consistent(_minor_radii(fr, trk))
+    h, w = (fr.shape[1] // k) * k, (fr.shape[2] // k) * k
+    small = np.empty((fr.shape[0], h // k, w // k), dtype=np.float32)
+    for i in range(0, fr.shape[0], 64):  # in chunks, summed in integers (4x faster than mean)
+        blk = fr[i:i + 64, :h, :w]
+        tot = blk.reshape(len(blk), h // k, k, w // k, k).sum(axis=(2, 4), dtype=np.uint32)
+        small[i:i + 64] = tot.astype(np.float32) / float(k * k)
+    trk = find_ball(small, progress=progress, reset_on_loss=True)
+    trk = BallTrack(pixels=trk.pixels * k, radius=trk.radius * k, found=trk.found,
+                    radii=None if trk.radii is None else trk.radii * k)
+    return _consistent(_minor_radii(fr, trk))
+
+
+def _minor_radii(frames, trk: BallTrack) -> BallTrack:
+    """Each frame's radius from the object's narrowest extent, at the source's resolution.
+
+    Motion blur stretches a moving ball along its path (a 21 px ball at 3 m/s and 1/30 s
+    exposure looks 30 px long), so its area overstates its size; across the path it keeps its
+    width. A uniform disc of radius r has variance r**2 / 4 along every axis, so the radius is
+    ``2 sqrt(smallest eigenvalue)`` of the covariance of the pixels covered, each weighted by
+    the fraction covered (its difference from the background over the object's own, the
+    faint texture below a tenth of it left out).
+    """
+    fr = np.asarray(frames)
+    t_n, h, w = fr.shape
+    found = np.flatnonzero(trk.found)
+    if found.size == 0:
+        return trk
+    idx = np.unique(np.linspace(0, t_n - 1, min(t_n, 31)).astype(int))
+    radii = np.array(trk.radii, dtype=np.float64, copy=True)
+    for t in found:
+        c, r = trk.pixels[t]
+        rad = float(trk.radii[t])
+        half = int(math.ceil(2.0 * rad + 3))
+        c0, c1 = max(0, int(c) - half), min(w, int(c) + half + 1)
+        r0, r1 = max(0, int(r) - half), min(h, int(r) + half + 1)
+        if r1 <= r0 or c1 <= c0:
+            continue
+        # the background of this window only (a median of 31 whole 1080p frames took seconds)
+        bg = np.median(fr[idx, r0:r1, c0:c1], axis=0).astype(np.float32)
+        d = np.abs(fr[t, r0:r1, c0:c1].astype(np.float32) - bg)
+        yy, xx = np.mgrid[r0:r1, c0:c1] + 0.5
+        inner = np.hypot(xx - c, yy - r) <= 0.5 * rad
+        if not inner.any():
+            continue
+        peak = float(np.median(d[inner]))
+        if peak <= 0:
+            continue
+        wgt = np.where(d > 0.1 * peak, np.clip(d / peak, 0.0, 1.0), 0.0)
+        # only the blob around the centre: texture elsewhere in the window is not the object
+        from scipy import ndimage
+
+        lab, _ = ndimage.label(wgt > 0)
+        centre_lab = lab[min(max(int(r) - r0, 0), r1 - r0 - 1), min(max(int(c) - c0, 0),
+                                                                    c1 - c0 - 1)]
+        if centre_lab == 0:
+            continue
+        wgt = np.where(lab == centre_lab, wgt, 0.0)
+        sw = wgt.sum()
+        mx, my = (wgt * xx).sum() / sw, (wgt * yy).sum() / sw
+        cxx = (wgt * (xx - mx) ** 2).sum() / sw
+        cyy = (wgt * (yy - my) ** 2).sum() / sw
+        cxy = (wgt * (xx - mx) * (yy - my)).sum() / sw
+        lam = 0.5 * (cxx + cyy) - math.sqrt(0.25 * (cxx - cyy) ** 2 + cxy ** 2)
+        if lam > 0:
+            radii[t] = 2.0 * math.sqrt(lam)
+    return BallTrack(pixels=trk.pixels, radius=float(np.nanmedian(radii)), found=trk.found,
+                     radii=radii)
+
+
+def _consistent(trk: BallTrack, tol: float = 0.5) -> BallTrack:
+    """Frames whose blob is not the object's size (off the track's median radius by more than
+    ``tol`` of it: a hand, a person crossing) become "not seen" rather than a position."""
+    r = np.asarray(trk.radii, dtype=np.float64)
+    if not trk.found.any():
+        return trk
+    med = float(np.nanmedian(r))
+    ok = trk.found & (np.abs(r - med) <= tol * med)
+    pix = np.where(ok[:, None], trk.pixels, np.nan)
+    radii = np.where(ok, r, np.nan)
+    return BallTrack(pixels=pix, radius=float(np.nanmedian(radii)) if ok.any() else float("nan"),
+                     found=ok, radii=radii)
+
+
+def _floor_from_bounces(pix, radii) -> tuple[float, int]:
+    """The floor's row from where the ball's bounces turn: ``(row, n_bounces)``.
+
+    Around each turn of the track (a lowest point) a parabola is fitted to the frames before
+    and one to the frames after; they meet at the contact, between frames (at 20 frames/s a
+    ball at 4 m/s is 20 cm above the floor in the frame nearest its bounce). The floor is the
+    median contact's row plus the ball's radius; NaN when no turn has three frames either side.
+    """
+    seen = np.flatnonzero(np.isfinite(pix).all(axis=1))
+    t_all, row = seen.astype(np.float64), pix[seen, 1]
+    rad = np.where(np.isfinite(radii[seen]), radii[seen], np.nanmedian(radii))
+    contacts = []
+    for j in range(1, len(seen) - 1):
+        if not (row[j] >= row[j - 1] and row[j] >= row[j + 1] and row[j] > min(row[j - 1],
+                                                                                row[j + 1])):
+            continue
+        best = None
+        for split in (j + 1, j):  # the turn frame before the contact, or after it
+            lft = np.arange(max(0, split - 4), split)
+            rgt = np.arange(split, min(len(seen), split + 4))
+            if len(lft) < 3 or len(rgt) < 3 or t_all[rgt[0]] - t_all[lft[-1]] > 3:
+                continue
+            p1 = np.polyfit(t_all[lft], row[lft], 2, full=True)
+            p2 = np.polyfit(t_all[rgt], row[rgt], 2, full=True)
+            roots = np.roots(p1[0] - p2[0])
+            roots = roots[np.isreal(roots)].real
+            roots = roots[(roots >= t_all[lft[-1]] - 1e-9) & (roots <= t_all[rgt[0]] + 1e-9)]
+            if roots.size == 0:
+                continue
+            res = float(np.sum(p1[1]) + np.sum(p2[1])) if len(p1[1]) and len(p2[1]) else 0.0
+            c = float(np.polyval(p1[0], roots[0]))
+            if best is None or res < best[0]:
+                best = (res, c + float(rad[j]))
+        if best is not None:
+            contacts.append(best[1])
+    if not contacts:
+        return float("nan"), 0
+    return float(np.median(contacts)), len(contacts)
+
+
+def _check_size(diam_m: float, option: str, how: str) -> None:
+    lo, hi = OBJECT_SIZE_RANGE_M
+    if not (lo <= diam_m <= hi):
+        raise ValueError(f"{option}: puts the tracked object {diam_m:.3g} m across ({how}); "
+                         f"expected {lo:g} to {hi:g} m: the scale cannot be right for this clip")
+
+
+def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_size_m=None,
+               known: dict | None = None, floor_row=None, walls=None, pivot=None, anchor=None,
+               rotate: int = 0) -> Camera:
+    """The camera of a clip: its scale and the system's origin, given or estimated.
+
+    Parameters
+    ----------
+    system : {"ball", "pendulum", "spring"}
+    track : BallTrack
+        The object followed through the (turned) frames, source pixels.
+    size : (int, int)
+        ``(H, W)`` of the (turned) frames.
+    px_per_m : float, optional
+        The scale, given.
+    object_size_m : float, optional
+        The object's true diameter (or length), m: each frame's scale is its apparent size
+        over this, with a pixel's error on the size as the scale's uncertainty.
+    known : dict, optional
+        Known parameters; the pendulum's ``L`` fixes the scale from the arc's radius when
+        neither of the above is given.
+    floor_row : float, optional
+        Ball: the floor's row; default the lowest the ball's bottom reached (where bounces
+        turn).
+    walls : (float, float), optional
+        Ball: the left and right walls' columns. Absent: the ball's track is placed mid-way
+        in the suite's 10 m box (its walls out of reach).
+    pivot : (float, float), optional
+        Pendulum: the pivot's ``(col, row)``; default the centre of the circle fitted to the
+        bob's track (:func:`fit_circle`), which may lie outside the frame.
+    anchor : float, optional
+        Spring: the anchor's column; absent, the oscillation's centre is placed at 1.5 m (the
+        middle of ``L0``'s prior), so ``L0`` is not measured.
+    rotate : int
+        Degrees clockwise the frames were turned (recorded).
+
+    Returns
+    -------
+    Camera
+
+    Raises
+    ------
+    ValueError
+        A camera that cannot be right for the clip (an object outside
+        :data:`OBJECT_SIZE_RANGE_M`, a pivot the bob does not circle, walls the object does not
+        fit between, too few tracked frames); the message names the argument.
+    """
+    known = dict(known or {})
+    h, w = int(size[0]), int(size[1])
+    pix = np.asarray(track.pixels, dtype=np.float64)
+    seen = np.isfinite(pix).all(axis=1)
+    if seen.sum() < 3:
+        raise ValueError(f"object: found in {int(seen.sum())} of {len(pix)} frames; the camera "
+                         "and the methods need a track (at least 3 frames)")
+    r_px = float(track.radius)
+    given = {k: v for k, v in (("px_per_m", px_per_m), ("object_size_m", object_size_m))
+             if v is not None}
+    if len(given) > 1:
+        raise ValueError("object_size_m: give either px_per_m or object_size_m, not both")
+    for k, v in given.items():
+        if not math.isfinite(float(v)) or float(v) <= 0:
+            raise ValueError(f"{k}: expected a number > 0, got {v!r}")
+    per_frame, rel, placement = None, 0.0, {}
+    if px_per_m is not None:
+        s, src = float(px_per_m), f"px_per_m={float(px_per_m):g} given"
+        _check_size(2 * r_px / s, "px_per_m", f"its {2 * r_px:.3g} px at {s:g} px/m")
+    elif object_size_m is not None:
+        d = float(object_size_m)
+        _check_size(d, "object_size_m", "as given")
+        per_frame, s, rel = _scale_from_size(track, d)
+        src = (f"object_size_m={d:g}: the object's median {2 * r_px:.3g} px across, frame by "
+               f"frame")
+    elif system == "pendulum" and "L" in known:
+        s, src = None, "known L"
+    else:
+        raise ValueError(f"px_per_m: the {system}'s scale is not known: give px_per_m, "
+                         "object_size_m" + (" or known L" if system == "pendulum" else ""))
+    flip, offset = 1.0, (0.0, 0.0)
+    origin = (0.0, 0.0)
+
+    # how a camera places each system's world in the picture: this function's knowledge, one
+    # entry per system it builds a camera for
+    def place_ball():  # the floor at the bounces (or given), the walls given or out of reach
+        nonlocal origin, offset
+        rad_m = r_px / s
+        if floor_row is None:
+            radii = np.asarray(track.radii if track.radii is not None
+                               else np.full(len(pix), r_px), dtype=np.float64)
+            fr_row, n_b = _floor_from_bounces(pix, radii)
+            bottom = float(np.nanmax(pix[seen, 1] + np.where(np.isfinite(radii[seen]),
+                                                              radii[seen], r_px)))
+            if math.isfinite(fr_row) and fr_row >= bottom - 1.0:
+                placement["floor_row"] = (f"estimated {fr_row:.1f}: where the track's parabolas "
+                                          f"meet at {n_b} bounces")
+            else:
+                fr_row = bottom
+                placement["floor_row"] = (f"estimated {fr_row:.1f}: the lowest the ball's bottom "
+                                          "reached (no bounce with three frames either side)")
+        else:
+            fr_row = float(floor_row)
+            if not math.isfinite(fr_row):
+                raise ValueError(f"floor_row: expected a finite row, got {floor_row!r}")
+            low = float(np.max(pix[seen, 1]))
+            if fr_row < low - 1.0:
+                raise ValueError(f"floor_row: the ball's centre is tracked down to row "
+                                 f"{low:.1f}, below the floor given at row {fr_row:g}")
+            placement["floor_row"] = "given"
+        if walls is not None:
+            c1, c2 = (float(v) for v in walls)
+            cols = pix[seen, 0]
+            if not (math.isfinite(c1) and math.isfinite(c2) and c2 - c1 > 2 * r_px):
+                raise ValueError(f"walls: expected the right wall more than the ball's "
+                                 f"{2 * r_px:.3g} px right of the left one, got {c1:g} {c2:g}")
+            if cols.min() < c1 - r_px or cols.max() > c2 + r_px:
+                raise ValueError(f"walls: the ball is tracked from column {cols.min():.1f} to "
+                                 f"{cols.max():.1f}, outside the walls {c1:g} {c2:g}")
+            width = (c2 - c1) / s - 2 * rad_m
+            if abs(width - BOX_WIDTH) > 0.05 * BOX_WIDTH:
+                raise ValueError(
+                    f"walls: the walls are {width:.3g} m apart at this scale; the methods "
+                    f"simulate the suite's {BOX_WIDTH:g} m box until a scene of any size is held "
+                    "(issue 38, part 1): leave out walls (the walls are then out of reach)")
+            origin, offset = (c1, fr_row), (-rad_m, -rad_m)
+            placement["walls"] = "given"
+        else:
+            mid = 0.5 * (np.min(pix[seen, 0]) + np.max(pix[seen, 0]))
+            span = (np.max(pix[seen, 0]) - np.min(pix[seen, 0])) / s
+            if span > BOX_WIDTH - 2.0:
+                raise ValueError(f"walls: the ball travels {span:.3g} m across with no walls "
+                                 f"given; the suite's box is {BOX_WIDTH:g} m wide")
+            origin, offset = (float(mid), fr_row), (BOX_WIDTH / 2, -rad_m)
+            placement["walls"] = (f"absent: the track's middle placed at x = {BOX_WIDTH / 2:g} m, "
+                                  "the simulated walls out of its reach")
+
+    def place_pendulum():  # the pivot at the centre of the bob's arc (or given)
+        nonlocal s, rel, src, origin
+        if pivot is not None:
+            pc, pr = (float(v) for v in pivot)
+            if not (math.isfinite(pc) and math.isfinite(pr)):
+                raise ValueError(f"pivot: expected a finite (col, row), got {pivot!r}")
+            dist = np.hypot(pix[seen, 0] - pc, pix[seen, 1] - pr)
+            r_arc = float(np.median(dist))
+            spread = float(np.percentile(dist, 95) - np.percentile(dist, 5))
+            if r_arc < 2 * r_px or spread > 0.2 * r_arc:
+                raise ValueError(
+                    f"pivot: the bob's distance from ({pc:g}, {pr:g}) runs from "
+                    f"{dist.min():.1f} to {dist.max():.1f} px; a rod keeps it fixed, so the pivot "
+                    "is not the centre of the bob's arc (inside the bob's path?)")
+            r_std = float(np.std(dist)) / math.sqrt(len(dist))
+            placement["pivot"] = "given"
+        else:
+            centre, r_arc, r_std, rms = fit_circle(pix[seen])
+            pc, pr = float(centre[0]), float(centre[1])
+            if not math.isfinite(r_arc) or rms > 0.1 * r_arc or r_arc < 2 * r_px:
+                raise ValueError(f"pivot: the bob's track is not an arc about one pivot (circle "
+                                 f"fit radius {r_arc:.1f} px, RMS off it {rms:.2g} px); give "
+                                 "pivot")
+            if r_arc > 50 * max(h, w):
+                raise ValueError(f"pivot: the bob's arc is too flat to place the pivot (radius "
+                                 f"{r_arc:.3g} px); give pivot")
+            placement["pivot"] = (f"estimated ({pc:.1f}, {pr:.1f}): the centre of the circle "
+                                  f"fitted to the bob's track, radius {r_arc:.1f} ± {r_std:.2g} "
+                                  f"px, RMS off it {rms:.2g} px")
+        if s is None:
+            L = float(known["L"])
+            if not math.isfinite(L) or L <= 0:
+                raise ValueError(f"known: expected L > 0 m, got {known['L']!r}")
+            s = r_arc / L
+            rel = r_std / r_arc
+            src = f"known L={L:g}: the arc's radius {r_arc:.1f} px"
+        _check_size(2 * r_px / s, "known" if src.startswith("known") else next(iter(given)),
+                    f"its {2 * r_px:.3g} px at {s:.4g} px/m")
+        origin = (pc, pr)
+
+    def place_spring():  # the anchor given, or the oscillation's centre placed
+        nonlocal origin, flip, offset
+        row0 = float(np.median(pix[seen, 1]))
+        if anchor is not None:
+            a = float(anchor)
+            cols = pix[seen, 0]
+            if not math.isfinite(a) or cols.min() - r_px < a < cols.max() + r_px:
+                raise ValueError(f"anchor: expected a column outside the block's path (columns "
+                                 f"{cols.min():.1f} to {cols.max():.1f}), got {anchor!r}")
+            flip = 1.0 if np.median(cols) > a else -1.0
+            origin = (a, row0)
+            placement["anchor"] = "given" + ("" if flip > 0 else " (right of the block: x runs "
+                                                                  "right to left)")
+        else:
+            mid = float(np.median(pix[seen, 0]))
+            origin, offset = (mid, row0), (1.5, 0.0)
+            placement["anchor"] = ("absent: the oscillation's centre placed at x = 1.5 m, so L0 "
+                                   "is not measured")
+
+    place = {"ball": place_ball, "pendulum": place_pendulum, "spring": place_spring}.get(system)
+    if place is None:
+        raise ValueError(f"system: a camera is built for ball, pendulum and spring clips, got "
+                         f"{system!r}")
+    place()
+    return Camera(px_per_m=float(s), origin=(float(origin[0]), float(origin[1])),
+                  scale_rel_std=float(rel), per_frame=per_frame, rotate=int(rotate),
+                  flip=flip, offset=offset, source=src, placement=placement)
+
+
+def widen_for_scale(system: str, params, mean, std, scale_rel_std: float) -> np.ndarray:
+    """Standard deviations with the scale's uncertainty added.
+
+    A parameter with length to the power ``q`` in its unit (:data:`LENGTH_POWER`) read at a
+    scale ``1 + s`` times the true one is ``(1 + s) ** -q`` times the true value (positions in
+    metres are ``1 / (1 + s)`` times the true ones); to first order its std gains
+    ``|q| * |mean| * scale_rel_std``, added in quadrature.
+
+    Parameters
+    ----------
+    system : str
+    params : sequence of str, length P
+    mean, std : ndarray, shape (..., P)
+    scale_rel_std : float
+
+    Returns
+    -------
+    ndarray, shape (..., P)
+    """
+    q = np.array([LENGTH_POWER.get(system, {}).get(p, 0) for p in params], dtype=np.float64)
+    m = np.asarray(mean, dtype=np.float64)
+    return np.hypot(np.asarray(std, dtype=np.float64), np.abs(q * m) * float(scale_rel_std))
+
+
+def model_frames(positions, size) -> np.ndarray:
+    """The frames a video model was trained on, drawn at the tracked positions.
+
+    Parameters
+    ----------
+    positions : ndarray, shape (T, 2)
+        Metres, NaN where the ball was not found (those frames stay black, as the renderer's
+        dropped frames).
+    size : (int, int)
+        ``(H, W)`` of the model's view.
+
+    Returns
+    -------
+    ndarray, shape (T, H, W), uint8
+    """
+    from sysid_bench.core.render import render
+
+    pos = np.asarray(positions, dtype=np.float64)
+    seen = np.isfinite(pos).all(axis=1)
+    states = np.zeros((1, len(pos), 4))
+    states[0, seen, :2] = pos[seen]
+    states[0, ~seen, :2] = -100.0  # far outside the view: nothing drawn
+    out = render(states, size=tuple(size))[0]
+    out[~seen] = 0
+    return out
+
+
+def observe(frames, model_size=None, geometry: dict | None = None, dt: float = 0.05,
+            progress: bool = False):
+    """A video's frames as the Observation a method takes, via the ball's track.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, H, W)
+        Grey source frames at the model's rate.
+    model_size : (int, int), optional
+        ``(H, W)`` of a video model's view: the Observation holds frames re-drawn there
+        (:func:`model_frames`). None: it holds the tracked positions (clipped onto the box:
+        a ball at a wall or on the floor is tracked a few mm outside it).
+    geometry : dict, optional
+        Options of :func:`geometry_from_options`; with any of them, the ball's radius is the
+        measured one unless given.
+    dt : float
+
+    Returns
+    -------
+    obs : Observation
+        ``floor = 0`` (the geometry puts the floor there).
+    positions : ndarray, shape (T, 2)
+        Tracked positions in metres (NaN where not found), not clipped.
+    track : BallTrack
+    geometry : Geometry
+    """
+    from sysid_bench.core.estimator import Observation
+
+    fr = np.asarray(frames)
+    t_n, h, w = fr.shape
+    geo_opts = dict(geometry or {})
+    trk = find_ball(fr, progress=progress)
+    if (geo_opts.get("ball_radius_px") is None and trk.n_found
+            and any(geo_opts.get(k) is not None for k in ("px_per_m", "floor_row", "wall_col",
+                                                         "corners"))):
+        geo_opts["ball_radius_px"] = trk.radius  # real footage: the ball's own size
+    geo = geometry_from_options((h, w), **geo_opts)
+    pos = geo.to_metres(trk.pixels)
+    if model_size is not None:
+        obs = Observation(frames=model_frames(pos, model_size), dt=dt, floor=0.0)
+    else:
+        clipped = pos.copy()
+        clipped[:, 0] = np.clip(clipped[:, 0], 0.0, BOX_WIDTH)
+        clipped[:, 1] = np.clip(clipped[:, 1], 0.0, BOX_WIDTH)
+        obs = Observation(positions=clipped, dt=dt, floor=0.0)
+    return obs, pos, trk, geo
+
+
+# -- what the user knows --------------------------------------------------------------------------
+def _param_name(system, name: str, option: str) -> str:
+    import difflib
+
+    if name not in system.params:
+        close = difflib.get_close_matches(name, system.params, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ValueError(f"{option}: {name!r} is no parameter of the {system.name} system; "
+                         f"expected one of {', '.join(system.params)}{hint}")
+    return name
+
+
+def _number(text: str, option: str, what: str) -> float:
+    try:
+        v = float(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"{option}: expected {what}, got {text!r}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{option}: expected {what} (finite), got {text!r}")
+    return v
+
+
+def parse_known(system, items) -> dict[str, float]:
+    """``NAME=VALUE`` strings to ``{name: value}``, checked against ``system``.
+
+    Parameters
+    ----------
+    system : str or System
+        A registered system (:func:`sysid_bench.core.systems.get`).
+    items : sequence of str
+        ``"g=-9.81"``, ``"L=0.62"``, ...
+
+    Returns
+    -------
+    dict of str -> float
+
+    Raises
+    ------
+    ValueError
+        A name that is no parameter of the system, a value that is not a number or lies
+        outside what the physics allows (the system's ``envelope``), a name given twice; the
+        message starts with ``known``.
+    """
+    from sysid_bench.core import systems
+
+    sys_ = systems.get(system) if isinstance(system, str) else system
+    out: dict[str, float] = {}
+    for it in items or ():
+        name, sep, val = str(it).partition("=")
+        if not sep:
+            raise ValueError(f"known: expected NAME=VALUE, got {it!r}")
+        name = _param_name(sys_, name.strip(), "known")
+        v = _number(val.strip(), "known", f"a number for {name}")
+        lo, hi = sys_.envelope[name]
+        if not lo <= v <= hi:
+            raise ValueError(f"known: {name} = {v:g} is outside what the {sys_.name} system's "
+                             f"physics allows ({lo:g} to {hi:g})")
+        if name in out:
+            raise ValueError(f"known: {name} given twice")
+        out[name] = v
+    return out
+
+
+def parse_prior(system, items, known: dict | None = None) -> dict[str, tuple[float, float]]:
+    """``NAME=LO:HI`` strings to ``{name: (lo, hi)}``, checked against ``system``.
+
+    Parameters
+    ----------
+    system : str or System
+    items : sequence of str
+        ``"w2=20:80"``, ...
+    known : dict, optional
+        Parameters held fixed: a range for one of them is refused.
+
+    Returns
+    -------
+    dict of str -> (float, float)
+
+    Raises
+    ------
+    ValueError
+        An unknown name, ``LO >= HI``, a range outside the system's ``envelope``, a name given
+        twice or also known; the message starts with ``prior``.
+    """
+    from sysid_bench.core import systems
+
+    sys_ = systems.get(system) if isinstance(system, str) else system
+    out: dict[str, tuple[float, float]] = {}
+    for it in items or ():
+        name, sep, rng = str(it).partition("=")
+        lo_s, sep2, hi_s = rng.partition(":")
+        if not sep or not sep2:
+            raise ValueError(f"prior: expected NAME=LO:HI, got {it!r}")
+        name = _param_name(sys_, name.strip(), "prior")
+        lo = _number(lo_s.strip(), "prior", f"a number LO for {name}")
+        hi = _number(hi_s.strip(), "prior", f"a number HI for {name}")
+        elo, ehi = sys_.envelope[name]
+        if not lo < hi:
+            raise ValueError(f"prior: {name} = {lo:g}:{hi:g}: expected LO < HI")
+        if lo < elo or hi > ehi:
+            raise ValueError(f"prior: {name} = {lo:g}:{hi:g} reaches outside what the "
+                             f"{sys_.name} system's physics allows ({elo:g} to {ehi:g})")
+        if name in out or name in (known or {}):
+            raise ValueError(f"prior: {name} given twice (or also known)")
+        out[name] = (lo, hi)
+    return out
+
+
+def check_knowledge(system, known=None, prior=None) -> tuple[dict, dict]:
+    """A method's ``known``/``prior`` options (Python dicts) checked as ``--known``/``--prior``.
+
+    Parameters
+    ----------
+    system : str or System
+    known : dict of str -> float, optional
+        ``{name: value}``; None or empty: nothing held.
+    prior : dict of str -> (float, float), optional
+        ``{name: (lo, hi)}``; None or empty: the system's ranges.
+
+    Returns
+    -------
+    known : dict of str -> float
+    prior : dict of str -> (float, float)
+
+    Raises
+    ------
+    ValueError
+        Not a dict, a pair that is not ``(lo, hi)``, or what :func:`parse_known` /
+        :func:`parse_prior` refuse; the message starts with ``known`` or ``prior``.
+    """
+    from sysid_bench.core import systems
+
+    sys_ = systems.get(system) if isinstance(system, str) else system
+    for opt, v in (("known", known), ("prior", prior)):
+        if v is not None and not isinstance(v, dict):
+            raise ValueError(f"{opt}: expected a dict of parameter names, got "
+                             f"{type(v).__name__} {v!r}")
+
+    def text(x):  # a number as parse_known reads it back exactly; anything else as given
+        return repr(float(x)) if isinstance(x, (int, float, np.number)) else str(x)
+
+    k = parse_known(sys_, [f"{n}={text(x)}" for n, x in (known or {}).items()])
+    items = []
+    for n, r in (prior or {}).items():
+        if isinstance(r, (str, bytes)) or np.shape(r) != (2,):
+            raise ValueError(f"prior: expected a (lo, hi) pair for {n}, got {r!r}")
+        items.append(f"{n}={text(r[0])}:{text(r[1])}")
+    return k, parse_prior(sys_, items, k)
+
+
+def knowledge_record(known: dict, prior: dict, method: str, held: bool = False,
+                     why: str = "") -> dict:
+    """What ``estimates.json`` says under ``knowledge``: the user's known values and ranges,
+    and whether the method held them (``why``: the method's reason when it cannot).
+
+    Returns
+    -------
+    dict
+        ``known`` ``{name: value}``, ``prior`` ``{name: [lo, hi]}``, ``held`` (bool) and
+        ``note`` (a sentence; empty when nothing was given).
+    """
+    note = ""
+    if (known or prior) and not held:
+        note = (f"not yet held: {method} does not take known values or prior ranges here"
+                f"{f' ({why})' if why else ''}; its estimates above are its own, over its "
+                "default prior (lsq, bo, emcee, nuts and prior hold them on the systems)")
+    return {"known": {k: float(v) for k, v in (known or {}).items()},
+            "prior": {k: [float(a), float(b)] for k, (a, b) in (prior or {}).items()},
+            "held": bool(held), "note": note}
+
+
+# -- identify's output folder ---------------------------------------------------------------------
+#: ``estimates.json``'s ``written_by``: the marker that tells identify's own output folder
+OUT_MARKER = "sysid-bench identify"
+#: the files identify writes into ``--out``
+OUT_FILES = ("estimates.csv", "estimates.json", "track.png")
+
+
+def check_out_folder(out) -> Path:
+    """Refuse an output folder identify may not write into.
+
+    ``out`` may be missing, an empty folder, or a folder holding a previous identify's output
+    (its ``estimates.json`` carries ``written_by`` = :data:`OUT_MARKER`); only the three
+    :data:`OUT_FILES` are then replaced, anything else there is left as it is. Anything else
+    (a file, a folder of other files: a committed ``docs/`` folder) is refused, so identify
+    never overwrites a file it did not write.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    ValueError
+        The message starts with ``out``.
+    """
+    import json
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out: expected a folder, got the file {out}")
+    if not out.exists():
+        return out
+    names = sorted(p.name for p in out.iterdir())
+    if not names:
+        return out
+    ours = False
+    try:
+        ours = json.loads((out / "estimates.json").read_text()).get("written_by") == OUT_MARKER
+    except (OSError, ValueError, AttributeError):
+        ours = False
+    if not ours:
+        shown = ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
+        raise ValueError(f"out: {out} exists and holds files identify did not write ({shown}); "
+                         "give a new or empty folder")
+    return out

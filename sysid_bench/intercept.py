@@ -1,0 +1,9 @@
+"""Public alias: ``sysid_bench.intercept`` is ``sysid_bench.apps.intercept`` (the same module object, and its submodules).
+
+The code lives in ``sysid_bench/apps/intercept/`` (issue #37 §4: the folder tree is the layer map).
+"""
+
+# alias written by relayout.py (issue #37 §4)
+from sysid_bench._alias import alias
+
+alias(__name__, "sysid_bench.apps.intercept", package=True)
