@@ -102,7 +102,7 @@ class BayesOpt(SimulationOnSystems):
         "smoke": 1,
         "quick": 1,
         "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4,
-                    "foreign": 2, "systems": 3},
+                    "foreign": 2, "systems": 3, "camera": 1},
     }
     # the first look (quick) gets the smoke budget: a GP of 12 calls, rough but every section
     scale_options = {"smoke": {"n_calls": 12, "n_initial_points": 6},
