@@ -1604,7 +1604,8 @@ def clip_options(options) -> dict:
     return out
 
 
-def observe_clip(path, system: str, options=(), *, progress: bool = False) -> CameraClip:
+def observe_clip(path, system: str, options=(), *, progress: bool | None = False,
+                 **given) -> CameraClip:
     """A camera's clip of ``system`` and the options a user would give, as a method takes it.
 
     Decodes the file (:func:`read_video`: the window, the capture rate, resampled to
@@ -1623,8 +1624,13 @@ def observe_clip(path, system: str, options=(), *, progress: bool = False) -> Ca
     options : sequence of str
         ``identify``'s options (:func:`clip_options`); a ``--system`` among them must name
         ``system``.
-    progress : bool
-        tqdm bars while decoding and tracking.
+    progress : bool, optional
+        tqdm bars while decoding (None: :func:`read_video`'s default) and tracking.
+    **given
+        The same options as keywords (``rotate``, ``capture_fps``, ``start``, ``end``,
+        ``px_per_m``, ``object_size_m``, ``floor_row``, ``walls``, ``pivot``, ``anchor``;
+        ``known`` and ``prior`` as dicts, as :func:`parse_known` and :func:`parse_prior`
+        return them); a keyword that is not None overrides the option.
 
     Returns
     -------
@@ -1644,6 +1650,17 @@ def observe_clip(path, system: str, options=(), *, progress: bool = False) -> Ca
 
     sys_ = systems.get(system)
     opts = clip_options(options)
+    dests = {d for _, d in _CLIP_OPTIONS.values() if d is not None}
+    for k, v in given.items():
+        if k not in dests:
+            raise TypeError(f"{k}: expected one of {', '.join(sorted(dests))} as a keyword")
+        if v is None:
+            continue
+        if k == "known":  # back to NAME=VALUE (repr round-trips a float exactly)
+            v = [f"{n}={float(x)!r}" for n, x in dict(v).items()]
+        elif k == "prior":
+            v = [f"{n}={float(a)!r}:{float(b)!r}" for n, (a, b) in dict(v).items()]
+        opts[k] = v
     if opts.get("system", sys_.name) != sys_.name:
         raise ValueError(f"options: --system {opts['system']} given for a clip of the "
                          f"{sys_.name} system")
@@ -1658,9 +1675,9 @@ def observe_clip(path, system: str, options=(), *, progress: bool = False) -> Ca
         raise ValueError(f"--track: means nothing for the {sys_.name} system (collision only)")
     clip = read_video(path, progress=progress, start=opts.get("start"), end=opts.get("end"),
                       capture_fps=opts.get("capture_fps"))
-    rotate = opts.get("rotate", 0)
+    rotate = int(opts.get("rotate", 0))
     frames = rotate_frames(clip.frames, rotate)
-    trk = find_object(frames, progress=progress)
+    trk = find_object(frames, progress=bool(progress))
     if trk.n_found < 3:
         raise VideoError(f"{path}: the {sys_.name}'s object was found in {trk.n_found} of "
                          f"{len(frames)} frames; the camera and the methods need a track (at "

@@ -131,3 +131,22 @@ def test_clip_options_and_observe_clip_refuse_bad_input(tmp_path):
         footage.observe_clip(tmp_path / "none.mp4", "ball", ["--system", "spring"])
     with pytest.raises(ValueError, match="^known:"):
         footage.observe_clip(tmp_path / "none.mp4", "pendulum", ["--known", "q=1"])
+
+
+def test_observe_clip_takes_the_options_as_tokens_or_keywords(ran):
+    import json
+
+    d, _ = ran
+    truth = json.loads((cam_exp.clip_dir(d) / "spring_0.json").read_text())
+    video = cam_exp.clip_dir(d) / truth["file"]
+    a = footage.observe_clip(video, "spring", truth["options"])
+    kw = footage.clip_options(truth["options"])
+    b = footage.observe_clip(video, "spring", px_per_m=kw["px_per_m"], anchor=kw["anchor"],
+                             rotate=kw.get("rotate"), capture_fps=kw.get("capture_fps"),
+                             known={}, prior=None)
+    pa, pb = a.observation.positions, b.observation.positions
+    assert pa.shape == (len(a.lost), 1, 2) and np.array_equal(pa, pb, equal_nan=True)
+    assert np.array_equal(np.isnan(pa).any(axis=(1, 2)), a.lost) and a.lost_share < 0.5
+    assert a.camera.px_per_m == pytest.approx(kw["px_per_m"]) and a.observation.dt == 0.05
+    with pytest.raises(TypeError, match="^zoom:"):
+        footage.observe_clip(video, "spring", zoom=2)
