@@ -52,6 +52,8 @@ WRONG_STDS = 3.0
 #: are tiny (about a second to film), its numbers mean nothing
 CONFIG = {
     "smoke": {"size": (180, 320), "duration_s": 3.0, "subframes": 1},
+    # the first look (<= 3 min for every section): the default's clips without motion blur
+    "quick": {"size": (360, 640), "duration_s": None, "subframes": 1},
     "default": {"size": (360, 640), "duration_s": None, "subframes": None},
 }
 
