@@ -104,7 +104,7 @@ class BayesOpt(SimulationOnSystems):
         # core-seconds on one case (measured, load 1-2); the default run has it
         "quick": 0,
         "default": {"identification": 4, "forecasting": 4, "changing": 2, "calibration": 4,
-                    "foreign": 2, "systems": 3},
+                    "foreign": 2, "systems": 3, "camera": 1},
     }
     scale_options = {"smoke": {"n_calls": 12, "n_initial_points": 6}}
     #: cheap budgets for check_estimator (same code path)

@@ -557,9 +557,9 @@ class NUTS(SimulationOnSystems):
     # and, for its coverage off our physics, 3 of the MuJoCo videos (issue 29)
     scale_cases = {
         "smoke": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 1,
-                  "foreign": 0, "systems": 1},
+                  "foreign": 0, "systems": 1, "camera": 0},
         "default": {"identification": 0, "forecasting": 0, "changing": 0, "calibration": 3,
-                    "foreign": 3, "systems": 3},
+                    "foreign": 3, "systems": 3, "camera": 1},
         # the first look has no time for a sampler's compilation (1-3 min a system under load):
         # the reference posterior is the default run's
         "quick": 0,

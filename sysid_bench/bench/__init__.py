@@ -13,6 +13,7 @@ calibration     5. coverage / NLL of posteriors and agreement with the nuts refe
 foreign         6. MuJoCo videos: physics that is not ours (the paper's real videos)
 online          7. the cost of a posterior after every frame
 interception    8. the paper's robot experiment, simulated (intercept/: the task's parts)
+camera          9. camera footage: clips filmed as a camera would, with their truth
 systems         0. every method on every system, one table across systems
 runner          builds the grid and runs it on a process pool or a Dask cluster
 """
@@ -20,6 +21,7 @@ runner          builds the grid and runs it on a process pool or a Dask cluster
 from __future__ import annotations
 
 from sysid_bench.bench.calibration import Calibration
+from sysid_bench.bench.camera import Camera
 from sysid_bench.bench.changing import Changing
 from sysid_bench.bench.experiment import EXPERIMENTS
 from sysid_bench.bench.forecasting import Forecasting
@@ -34,7 +36,7 @@ from sysid_bench.bench.systems import Systems
 #: name without importing this package's modules back)
 EXPERIMENTS.update(
     (e.name, e) for e in (Systems(), Identification(), Forecasting(), Changing(), Sensitivity(),
-                       Calibration(), Foreign(), Online(), Interception())
+                       Calibration(), Foreign(), Online(), Interception(), Camera())
 )
 
 __all__ = ["EXPERIMENTS"]

@@ -227,7 +227,8 @@ SCALES: dict[str, Scale] = {
         name="smoke",
         seed=7,
         n_cases={"identification": 2, "forecasting": 2, "changing": 1, "sensitivity": 2,
-                 "calibration": 2, "systems": 1, "online": 1, "interception": 3},
+                 "calibration": 2, "systems": 1, "online": 1, "interception": 3,
+                 "camera": 1},
         # expensive methods declare one case and a small budget here (smoke numbers mean nothing)
         lengths=(20, 60, 100),
         forecast_after=(20, 50),
@@ -251,7 +252,8 @@ SCALES: dict[str, Scale] = {
         name="quick",
         declarations="default",
         n_cases={"identification": 2, "forecasting": 2, "changing": 1, "sensitivity": 5,
-                 "calibration": 1, "systems": 1, "online": 1, "interception": 1},
+                 "calibration": 1, "systems": 1, "online": 1, "interception": 1,
+                 "camera": 1},
         lengths=(20, 50, 100, 200),
         forecast_after=(50,),
         changing_stride=25,
@@ -271,7 +273,9 @@ SCALES: dict[str, Scale] = {
                  # cap), as identification there; the ball's perturbed and meaningless clips
                  # come on top (sysid_bench/bench/calibration.py)
                  "calibration": {"ball": 20, "*": 4}, "systems": 10, "online": 2,
-                 "interception": 40},
+                 "interception": 40,
+                 # camera footage: 3 clips per system (360p), filmed once per run
+                 "camera": 3},
         # Measured seconds per cell, one worker at low load (a full default grid without
         # vid2param summed to 690 core-seconds): lsq 0.5-3.4, sindy 0.3-1.4, bo 4-13,
         # emcee 9-25, nuts ~25 per posterior (~100 under a load of 5). The expensive ones declare
@@ -286,7 +290,8 @@ SCALES: dict[str, Scale] = {
     "paper": Scale(
         name="paper",
         n_cases={"identification": 100, "forecasting": 100, "changing": 100, "sensitivity": 100,
-                 "calibration": 100, "systems": 100, "online": 5, "interception": 200},
+                 "calibration": 100, "systems": 100, "online": 5, "interception": 200,
+                 "camera": 20},
         thin_expensive=False,
         changing_stride=1,
         online=(200, 1),

@@ -76,6 +76,10 @@ __all__ = [
     "OUT_MARKER",
     "OUT_FILES",
     "check_out_folder",
+    "CAMERA_SYSTEMS",
+    "CameraClip",
+    "clip_options",
+    "observe_clip",
 ]
 
 #: frame rate of every model in the suite (physics.dt = 0.05 s)
@@ -1545,3 +1549,200 @@ def check_out_folder(out) -> Path:
         raise ValueError(f"out: {out} exists and holds files identify did not write ({shown}); "
                          "give a new or empty folder")
     return out
+
+
+# -- a camera clip to an Observation --------------------------------------------------------------
+#: Systems :func:`camera_for` builds a camera for (the collision's two pucks and its track's
+#: ends are not followed yet: issue 38, parts 2-3).
+CAMERA_SYSTEMS = ("ball", "pendulum", "spring")
+#: ``identify`` options a clip's record may give (:func:`clip_options`): the values each takes
+#: and where it goes (``None``: checked, then not needed to observe the clip)
+_CLIP_OPTIONS = {
+    "--system": (1, None), "--method": (1, None), "--rotate": (1, "rotate"),
+    "--fps": (1, "capture_fps"), "--start": (1, "start"), "--end": (1, "end"),
+    "--px-per-m": (1, "px_per_m"), "--object-size-m": (1, "object_size_m"),
+    "--floor-row": (1, "floor_row"), "--walls": (2, "walls"), "--pivot": (2, "pivot"),
+    "--anchor": (1, "anchor"), "--track": (2, "track"), "--known": (1, "known"),
+    "--prior": (1, "prior"),
+}
+
+
+@dataclass
+class CameraClip:
+    """A camera's clip as a method takes it: the tracked object in metres, and the camera.
+
+    Attributes
+    ----------
+    observation : Observation
+        ``positions`` (T, K, 2) metres in the system's world frame (NaN where the object was
+        not seen), ``dt`` the resampled frame interval, the system's known geometry (the ball's
+        floor at 0, where the camera put it).
+    camera : Camera
+        The pixels-to-metres mapping, its scale and the scale's relative std.
+    lost : ndarray, shape (T,), bool
+        Frames where the tracker did not see the object.
+    known : dict of str -> float
+        ``--known`` values, checked against the system.
+    prior : dict of str -> (float, float)
+        ``--prior`` ranges, checked against the system.
+    notes : list of str
+        What was done to the file (resampling, the camera), one sentence each.
+    source_fps : float
+        The file's frame rate (or ``--fps``).
+    """
+
+    observation: object
+    camera: Camera
+    lost: np.ndarray
+    known: dict
+    prior: dict
+    notes: list = field(default_factory=list)
+    source_fps: float = float("nan")
+
+    @property
+    def lost_share(self) -> float:
+        """Share of frames the tracker did not see the object in."""
+        return float(np.mean(self.lost)) if len(self.lost) else float("nan")
+
+
+def clip_options(options) -> dict:
+    """``identify``'s options for a clip (as a clip's record lists them) to keyword arguments.
+
+    Parameters
+    ----------
+    options : sequence of str
+        ``["--system", "pendulum", "--known", "L=0.8", "--start", "0.6", ...]``: the time
+        window, ``--fps``, ``--rotate``, the scale and placement options, ``--known`` and
+        ``--prior`` (repeatable).
+
+    Returns
+    -------
+    dict
+        ``system`` and ``method`` when given, ``rotate``, ``capture_fps``, ``start``, ``end``,
+        ``px_per_m``, ``object_size_m``, ``floor_row``, ``walls``, ``pivot``, ``anchor``,
+        ``track`` (numbers; pairs as tuples), ``known`` and ``prior`` (lists of the raw
+        ``NAME=VALUE`` / ``NAME=LO:HI`` strings); only the options given.
+
+    Raises
+    ------
+    ValueError
+        An option identify does not take, a missing or non-numeric value; the message names
+        the option.
+    """
+    if isinstance(options, (str, bytes)) or not hasattr(options, "__iter__"):
+        raise TypeError(f"options: expected a sequence of strings, got {type(options).__name__}")
+    toks = [str(t) for t in options]
+    out: dict = {}
+    i = 0
+    while i < len(toks):
+        flag = toks[i]
+        if flag not in _CLIP_OPTIONS:
+            raise ValueError(f"options: expected one of {', '.join(_CLIP_OPTIONS)}, got {flag!r}")
+        n, dest = _CLIP_OPTIONS[flag]
+        vals = toks[i + 1:i + 1 + n]
+        if len(vals) < n or any(v.startswith("--") for v in vals):
+            raise ValueError(f"{flag}: expected {n} value{'s' if n > 1 else ''}, got "
+                             f"{' '.join(vals) or 'none'}")
+        i += 1 + n
+        if flag in ("--system", "--method"):
+            out[flag[2:]] = vals[0]
+        elif dest in ("known", "prior"):
+            out.setdefault(dest, []).append(vals[0])
+        else:
+            nums = [_number(v, flag, "a number") for v in vals]
+            out[dest] = nums[0] if n == 1 else tuple(nums)
+    if "rotate" in out:
+        r = out["rotate"]
+        if r not in ROTATIONS:
+            raise ValueError(f"--rotate: expected 90, 180 or 270 (degrees clockwise), got {r:g}")
+        out["rotate"] = int(r)
+    return out
+
+
+def observe_clip(path, system: str, options=(), *, progress: bool | None = False,
+                 **given) -> CameraClip:
+    """A camera's clip of ``system`` and the options a user would give, as a method takes it.
+
+    Decodes the file (:func:`read_video`: the window, the capture rate, resampled to
+    :data:`MODEL_FPS`), turns it upright (:func:`rotate_frames`), follows the object at the
+    file's resolution (:func:`find_object`), builds the camera (:func:`camera_for`: the scale
+    given, from the object's size frame by frame, or from a known length) and maps the track
+    to metres in the system's world frame. What ``sysid-bench identify --system S`` does
+    before a method runs, for every system with a camera.
+
+    Parameters
+    ----------
+    path : str or Path
+        The video file.
+    system : str
+        A registered system; one of :data:`CAMERA_SYSTEMS`.
+    options : sequence of str
+        ``identify``'s options (:func:`clip_options`); a ``--system`` among them must name
+        ``system``.
+    progress : bool, optional
+        tqdm bars while decoding (None: :func:`read_video`'s default) and tracking.
+    **given
+        The same options as keywords (``rotate``, ``capture_fps``, ``start``, ``end``,
+        ``px_per_m``, ``object_size_m``, ``floor_row``, ``walls``, ``pivot``, ``anchor``;
+        ``known`` and ``prior`` as dicts, as :func:`parse_known` and :func:`parse_prior`
+        return them); a keyword that is not None overrides the option.
+
+    Returns
+    -------
+    CameraClip
+
+    Raises
+    ------
+    NotImplementedError
+        A system without a camera (the collision: two pucks, the track's ends), with why.
+    ValueError
+        Bad options (named), a camera that cannot be right for the clip.
+    VideoError
+        A bad file, or an object found in fewer than 3 frames.
+    """
+    from sysid_bench import systems
+    from sysid_bench.estimator import Observation
+
+    sys_ = systems.get(system)
+    opts = clip_options(options)
+    dests = {d for _, d in _CLIP_OPTIONS.values() if d is not None}
+    for k, v in given.items():
+        if k not in dests:
+            raise TypeError(f"{k}: expected one of {', '.join(sorted(dests))} as a keyword")
+        if v is None:
+            continue
+        if k == "known":  # back to NAME=VALUE (repr round-trips a float exactly)
+            v = [f"{n}={float(x)!r}" for n, x in dict(v).items()]
+        elif k == "prior":
+            v = [f"{n}={float(a)!r}:{float(b)!r}" for n, (a, b) in dict(v).items()]
+        opts[k] = v
+    if opts.get("system", sys_.name) != sys_.name:
+        raise ValueError(f"options: --system {opts['system']} given for a clip of the "
+                         f"{sys_.name} system")
+    if sys_.name not in CAMERA_SYSTEMS:
+        raise NotImplementedError(
+            f"no camera is built for the {sys_.name} system yet (cameras: "
+            f"{', '.join(CAMERA_SYSTEMS)}): its objects and placement (--track) are not "
+            "followed from a camera's clip (issue 38, parts 2-3)")
+    known = parse_known(sys_, opts.get("known", ()))
+    prior = parse_prior(sys_, opts.get("prior", ()), known)
+    if "track" in opts:
+        raise ValueError(f"--track: means nothing for the {sys_.name} system (collision only)")
+    clip = read_video(path, progress=progress, start=opts.get("start"), end=opts.get("end"),
+                      capture_fps=opts.get("capture_fps"))
+    rotate = int(opts.get("rotate", 0))
+    frames = rotate_frames(clip.frames, rotate)
+    trk = find_object(frames, progress=bool(progress))
+    if trk.n_found < 3:
+        raise VideoError(f"{path}: the {sys_.name}'s object was found in {trk.n_found} of "
+                         f"{len(frames)} frames; the camera and the methods need a track (at "
+                         "least 3 frames)")
+    place = {k: opts[k] for k in ("px_per_m", "object_size_m", "floor_row", "walls", "pivot",
+                                  "anchor") if k in opts}
+    cam = camera_for(sys_.name, trk, frames.shape[1:], **place, known=known, rotate=rotate)
+    pos = cam.to_metres(trk.pixels)[:, None, :]  # (T, 1, 2): one tracked object
+    obs = Observation(positions=pos, dt=1.0 / clip.fps, system=sys_.name,
+                      **sys_.known_geometry())
+    notes = [*clip.notes, f"the tracked object in metres ({cam.describe()})"]
+    return CameraClip(observation=obs, camera=cam, lost=~np.isfinite(trk.pixels).all(axis=1),
+                      known=known, prior=prior, notes=notes, source_fps=float(clip.source_fps))
