@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sysid_bench import footage
 from sysid_bench.bench import EXPERIMENTS
 from sysid_bench.bench import camera as cam_exp
 from sysid_bench.bench.cases import get_scale
 from sysid_bench.bench.experiment import execute
 from sysid_bench.bench.runner import build_grid
-from sysid_bench.camera_footage import SYSTEMS
+from sysid_bench.core import footage
+from sysid_bench.core.camera_footage import SYSTEMS
 
 SMOKE = get_scale("smoke")
 
@@ -45,7 +45,7 @@ def test_one_cells_rows(ran):
     _, res = ran
     assert res["status"] == "ok", res["error"]
     rows = {r.metric: r.value for r in res["rows"]}
-    from sysid_bench import systems
+    from sysid_bench.core import systems
 
     params = systems.get("spring").params
     for p in params:  # nothing held on the spring's clips: a ruler gives the scale
@@ -102,7 +102,7 @@ def test_a_resumed_run_reads_the_clip_filmed_once(ran, monkeypatch):
     def no_filming(*a, **k):
         raise AssertionError("filmed again")
 
-    monkeypatch.setattr("sysid_bench.camera_footage.write_clip", no_filming)
+    monkeypatch.setattr("sysid_bench.core.camera_footage.write_clip", no_filming)
     monkeypatch.setattr(footage, "observe_clip", no_filming)
     res = execute(EXPERIMENTS["camera"].cells(SMOKE, ["prior"], "spring")[0], SMOKE, str(d))
     assert res["status"] == "ok", res["error"]

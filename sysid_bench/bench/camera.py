@@ -1,11 +1,11 @@
 """Experiment 9: camera footage (issue 38, part 5) on every system a camera films.
 
-Clips filmed as a camera would (:mod:`sysid_bench.camera_footage`: perspective, a textured and
+Clips filmed as a camera would (:mod:`sysid_bench.core.camera_footage`: perspective, a textured and
 cluttered room, shading, a hand, motion blur, 30/60/120 frames/s, H.264, the ball moving in
 depth, sideways and rolled cameras), each with its truth and the options a user would give
 ``sysid-bench identify``. Each clip is filmed once per run directory
 (``<run_dir>/camera_clips``, seeded by the scale's seed; the JSON is written last and marks a
-complete clip) and followed once (:func:`sysid_bench.footage.observe_clip`: decode, turn,
+complete clip) and followed once (:func:`sysid_bench.core.footage.observe_clip`: decode, turn,
 track, the camera; cached beside the clip), so every method's cell and a resumed run read the
 same file and the same track.
 
@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench._io import atomic_write
 from sysid_bench.bench.experiment import (
     Cell,
     CellOutput,
@@ -41,7 +40,8 @@ from sysid_bench.bench.experiment import (
     share_ci,
 )
 from sysid_bench.bench.foreign import _lock  # one process films a clip, the others wait
-from sysid_bench.camera_footage import SYSTEMS
+from sysid_bench.core._io import atomic_write
+from sysid_bench.core.camera_footage import SYSTEMS
 
 #: z of a central 90% interval (what identify's q05/q95 use)
 Z90 = 1.6449
@@ -67,9 +67,9 @@ def clip_dir(run_dir) -> Path:
 
 
 def case_shot(scale, system: str, k: int):
-    """Clip ``k`` of ``system``: the ``k``-th of :func:`~sysid_bench.camera_footage.shots`
+    """Clip ``k`` of ``system``: the ``k``-th of :func:`~sysid_bench.core.camera_footage.shots`
     (its fps, rotation and tilt mix), at the scale's size."""
-    from sysid_bench.camera_footage import shots
+    from sysid_bench.core.camera_footage import shots
 
     cfg = config(scale)
     shot = shots(system, int(k) + 1, scale.seed, duration_s=cfg["duration_s"],
@@ -79,7 +79,7 @@ def case_shot(scale, system: str, k: int):
 
 def case_clip(run_dir, scale, system: str, k: int) -> tuple[Path, dict]:
     """``(video path, truth)`` of clip ``k`` of ``system``, filmed on first use."""
-    from sysid_bench.camera_footage import write_clip
+    from sysid_bench.core.camera_footage import write_clip
 
     d = clip_dir(run_dir)
     name = f"{system}_{int(k)}"
@@ -92,7 +92,7 @@ def case_clip(run_dir, scale, system: str, k: int) -> tuple[Path, dict]:
 
 
 def case_observation(video: Path, system: str, options) -> tuple:
-    """:func:`sysid_bench.footage.observe_clip` of a clip, its track cached beside it.
+    """:func:`sysid_bench.core.footage.observe_clip` of a clip, its track cached beside it.
 
     Every method reads the same clip, so it is decoded and followed once (the tracker is
     deterministic; the cache is keyed by the footage module's source and the file's size).
@@ -104,8 +104,8 @@ def case_observation(video: Path, system: str, options) -> tuple:
     scale_rel_std : float
     known, prior : dict
     """
-    from sysid_bench import footage, systems
-    from sysid_bench.estimator import Observation
+    from sysid_bench.core import footage, systems
+    from sysid_bench.core.estimator import Observation
 
     key = hashlib.sha256(inspect.getsource(footage).encode() + str(video.stat().st_size).encode()
                          + json.dumps(list(options)).encode()).hexdigest()[:12]
@@ -131,18 +131,18 @@ def case_observation(video: Path, system: str, options) -> tuple:
 class Camera(Experiment):
     name = "camera"
     title = "9. Camera footage"
-    #: the systems :mod:`sysid_bench.camera_footage` films; a user's system has no camera
+    #: the systems :mod:`sysid_bench.core.camera_footage` films; a user's system has no camera
     #: generator, so the experiment does not run on it
     systems = SYSTEMS
-    depends_on = ("sysid_bench.footage", "sysid_bench.camera_footage")
+    depends_on = ("sysid_bench.core.footage", "sysid_bench.core.camera_footage")
     description = (
-        "Clips filmed as a camera would (sysid_bench.camera_footage: a pinhole camera at a "
+        "Clips filmed as a camera would (sysid_bench.core.camera_footage: a pinhole camera at a "
         "room's distance, the system at true size, textured and cluttered background, shading, "
         "a hand holding and releasing the ball or the bob or sweeping across, motion blur, 30, "
         "60 and 120 frames/s, H.264, the ball moving in depth, files stored sideways and cameras "
         "rolled 2-3 degrees, a slow-motion file), read with the options a user would give "
         "`sysid-bench identify` (the scale from the object's size, a ruler or a known length; "
-        "--known, --rotate, --fps, --start) through sysid_bench.footage.observe_clip: each "
+        "--known, --rotate, --fps, --start) through sysid_bench.core.footage.observe_clip: each "
         "method sees the tracked object in metres and identifies once after the whole clip. "
         "Error: squared error against the truth normalised by the prior's range, over the "
         "parameters the method estimated (a --known value a method held is left out); coverage: "
@@ -163,7 +163,7 @@ class Camera(Experiment):
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
         import methods
-        from sysid_bench import footage, systems
+        from sysid_bench.core import footage, systems
 
         system, k = cell.system, int(cell.case)
         sys_ = systems.get(system)
@@ -228,7 +228,7 @@ class Camera(Experiment):
             rec = {"method": m, "clips": int(se.case.nunique())}
             s = ci_summary(se, ["method"]).iloc[0]
             rec["error (normalised MSE)"] = fmt_ci(s["mean"], s["lo"], s["hi"])
-            from sysid_bench import systems
+            from sysid_bench.core import systems
 
             params = [p for p in systems.get(system).params if (g.metric == f"se_{p}").any()]
             for p in params:
@@ -252,7 +252,7 @@ class Camera(Experiment):
         # one column per parameter in the system's order, whichever method estimated it
         cols = list(dict.fromkeys(k for r in recs for k in r))
         first = [c for c in cols if not c.startswith("error ")]
-        from sysid_bench import systems
+        from sysid_bench.core import systems
 
         names = [p for s in df.system.unique() for p in systems.get(s).params]
         errs = sorted((c for c in cols if c.startswith("error ")),

@@ -1700,8 +1700,8 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
     VideoError
         A bad file, or an object found in fewer than 3 frames.
     """
-    from sysid_bench import systems
-    from sysid_bench.estimator import Observation
+    from sysid_bench.core import systems
+    from sysid_bench.core.estimator import Observation
 
     sys_ = systems.get(system)
     opts = clip_options(options)
