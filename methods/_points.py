@@ -43,7 +43,7 @@ from methods._simulation import SimulationMethod, Stopwatch, make_rng, one_blas_
 from methods._weights import resample
 from sysid_bench.core._validate import check_positive_int
 from sysid_bench.core.estimator import Check, Forecast, Observation, Posterior
-from sysid_bench.core.footage import parse_known, parse_prior
+from sysid_bench.core.footage import check_knowledge
 from sysid_bench.core.simulator import DEFAULT_SIGMA, SimulationBudgetExceeded, check_sigma
 
 __all__ = [
@@ -584,21 +584,7 @@ class SimulationOnSystems(SimulationMethod):
             raise ValueError(f"known/prior: expected none on the {self.system} ({self.name}'s "
                              "fit there does not take known values or prior ranges yet), got "
                              f"known={known!r}, prior={prior!r}")
-        for opt, v in (("known", known), ("prior", prior)):
-            if v is not None and not isinstance(v, dict):
-                raise ValueError(f"{opt}: expected a dict of parameter names, got "
-                                 f"{type(v).__name__} {v!r}")
-        sys_ = _system(self.system)
-        def text(x):  # a number as parse_known reads it back exactly; anything else as given
-            return repr(float(x)) if isinstance(x, (int, float, np.number)) else str(x)
-
-        k = parse_known(sys_, [f"{n}={text(x)}" for n, x in (known or {}).items()])
-        items = []
-        for n, r in (prior or {}).items():
-            if isinstance(r, (str, bytes)) or np.shape(r) != (2,):
-                raise ValueError(f"prior: expected a (lo, hi) pair for {n}, got {r!r}")
-            items.append(f"{n}={text(r[0])}:{text(r[1])}")
-        return k, parse_prior(sys_, items, k)
+        return check_knowledge(_system(self.system), known, prior)
 
     def _own_machinery(self) -> bool:
         return self.system in self.own_machinery
