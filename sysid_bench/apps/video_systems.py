@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 
 from sysid_bench.core._io import atomic_folder
-from sysid_bench.core.footage import VideoError
 
 __all__ = ["identify_system_video", "write_system_outputs", "resize_frames"]
 
@@ -105,9 +104,8 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
     from sysid_bench.core import systems
     from sysid_bench.core.estimator import Observation
     from sysid_bench.core.footage import (
-        camera_for,
-        find_object,
         knowledge_record,
+        observe_clip,
         read_video,
         rotate_frames,
         widen_for_scale,
@@ -117,27 +115,23 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
     if camera is not None and method is not None and methods.spec(method).input_kind == "frames":
         raise ValueError(f"method: {method} reads frames drawn as the {sys_.name}'s renderer "
                          "draws them; on a camera's clip give a position method (e.g. lsq)")
-    clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps)
-    turned = rotate_frames(clip.frames, int(rotate))
-    notes = list(clip.notes)
     cam = None
     if camera is None:
-        frames = resize_frames(turned, sys_.size)
+        clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps)
+        notes = list(clip.notes)
+        model_fps, source_fps = clip.fps, clip.source_fps
+        frames = resize_frames(rotate_frames(clip.frames, int(rotate)), sys_.size)
         name = method or _default_method(sys_.name)
         obs = Observation(frames=frames, system=sys_.name, dt=1.0 / clip.fps)
         points = sys_.track(frames)
-    else:
-        trk = find_object(turned, progress=bool(progress))
-        if trk.n_found < 3:
-            raise VideoError(f"{path}: the {sys_.name}'s object was found in {trk.n_found} of "
-                             f"{len(turned)} frames; the camera and the methods need a track "
-                             "(at least 3 frames)")
-        cam = camera_for(sys_.name, trk, turned.shape[1:], **camera, known=known,
-                         rotate=int(rotate))
-        points = cam.to_metres(trk.pixels)[:, None, :]
+    else:  # the core's camera pipeline, as the benchmark's camera section runs it
+        cc = observe_clip(path, sys_.name, progress=progress, rotate=int(rotate), start=start,
+                          end=end, capture_fps=capture_fps, known=known, prior=prior, **camera)
+        cam, obs = cc.camera, cc.observation
+        points = obs.points
         name = method or _position_method(sys_.name)
-        obs = Observation(positions=points, system=sys_.name, dt=1.0 / clip.fps)
-        notes.append(f"{name} saw the tracked object in metres ({cam.describe()})")
+        notes = [*cc.notes[:-1], f"{name} saw {cc.notes[-1]}"]
+        model_fps, source_fps = 1.0 / obs.dt, cc.source_fps
     # a method that takes the user's knowledge holds it (issue 38 §4); the others say they did not
     takes = {"known", "prior"} <= set(methods.get(name, system=sys_.name).get_params())
     give = {"known": dict(known or {}), "prior": dict(prior or {})} if takes else {}
@@ -172,7 +166,7 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
         said += [f"{k} searched in {a:g} to {b:g}" for k, (a, b) in (prior or {}).items()]
         notes.append(f"--known/--prior: {name} used them ({'; '.join(said)})")
     info = {"file": str(path), "system": sys_.name, "method": name, "params": list(sys_.params),
-            "model_fps": clip.fps, "frames": t, "source_fps": clip.source_fps,
+            "model_fps": model_fps, "frames": t, "source_fps": source_fps,
             "size": list(sys_.size), "extent": list(sys_.extent), "notes": notes,
             "points_seen": int(np.isfinite(points).all(axis=(1, 2)).sum()),
             "input": "tracked positions (camera)" if cam is not None else
