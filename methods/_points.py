@@ -639,10 +639,3 @@ def check_system_param(est) -> None:
         raise ValueError(f"system: expected one of {', '.join(declared)} ({est.name} runs on "
                          f"those), got {name!r}")
 
-
-# The names before issue 37 renamed them (they were never twins of another class): kept so that a
-# branch written against them still imports after the merge; drop once no branch uses them.
-SystemTrack = PointsTrack
-SystemFit = PointsFit
-CountingSystemSimulator = PointsSimulator
-prepare_system = prepare_points
