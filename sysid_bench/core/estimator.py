@@ -231,8 +231,9 @@ def _with_knowledge(est, obs):
     if clash:
         raise ValueError(f"obs.known: contradicts the estimator's known values: "
                          f"{'; '.join(clash)}")
-    held = type(est)(**{**params, "known": {**mine, **known}})
-    return held
+    if known.keys() <= mine.keys():  # already held (a copy's own prefixes): no second copy
+        return est
+    return type(est)(**{**params, "known": {**mine, **known}})
 
 
 def _system_name(system) -> str:
