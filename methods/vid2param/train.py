@@ -983,17 +983,17 @@ def train(
         cur = np.array([outd["loss"].item(), outd["rec"].item(), outd["kl"].item(),
                         outd["nll"].item(), outd["nll_prior"].item()])
         run_avg = cur if run_avg is None else 0.98 * run_avg + 0.02 * cur
-        if progress:
-            if max_minutes is not None:
-                shown["budget_left"] = f"{max(0.0, max_minutes - (time.time() - t_start) / 60):.1f}min"
-            bar.set_postfix(loss=f"{run_avg[0]:.1f}", nll=f"{run_avg[3]:.2f}", **shown,
-                            refresh=False)
         if (step + 1) % 100 == 0:
             log(f"step {step + 1} {wall() / 60:.1f} min lr {lr_now:.2e} loss "
                 f"{run_avg[0]:.2f} rec {run_avg[1]:.2f} kl {run_avg[2]:.2f} nll {run_avg[3]:.3f} "
                 f"nll_prior {run_avg[4]:.3f}")
         if val is not None and (step + 1) % tc.val_every == 0:
             validate(step + 1)
+        if progress:  # after the step's validation, so the bar shows its nMSE
+            if max_minutes is not None:
+                shown["budget_left"] = f"{max(0.0, max_minutes - (time.time() - t_start) / 60):.1f}min"
+            bar.set_postfix(loss=f"{run_avg[0]:.1f}", nll=f"{run_avg[3]:.2f}", **shown,
+                            refresh=False)
         if time.time() - t_ckpt > tc.ckpt_every:
             save(step + 1)
             t_ckpt = time.time()
