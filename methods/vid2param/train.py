@@ -1239,16 +1239,17 @@ def _for_tyro(cls):
     """A copy of the dataclass ``cls`` for tyro: the same fields, defaults and docstring (the
     flags' help), each ranged or JSON field carrying its constructor (:func:`_constructor`);
     no checks of its own (the real class's run once parsing is done)."""
+    hints = typing.get_type_hints(cls, include_extras=True)
     fields = []
-    for f, (name, hint) in zip(dataclasses.fields(cls),
-                               typing.get_type_hints(cls, include_extras=True).items()):
-        spec = _constructor(name, hint)
+    for f in dataclasses.fields(cls):
+        hint = hints[f.name]
+        spec = _constructor(f.name, hint)
         typ = typing.get_args(hint)[0] if typing.get_origin(hint) is Annotated else hint
-        fields.append((name, typ if spec is None else Annotated[typ, spec],
-                       dataclasses.field(default=None) if f.default is dataclasses.MISSING
-                       and f.default_factory is dataclasses.MISSING else
-                       dataclasses.field(default=f.default) if f.default is not dataclasses.MISSING
-                       else dataclasses.field(default_factory=f.default_factory)))
+        default = (dataclasses.field(default_factory=f.default_factory)
+                   if f.default is dataclasses.MISSING and f.default_factory is not dataclasses.MISSING
+                   else dataclasses.field(default=None if f.default is dataclasses.MISSING
+                                          else f.default))  # TrainCommand's default sets them
+        fields.append((f.name, typ if spec is None else Annotated[typ, spec], default))
     out = dataclasses.make_dataclass(cls.__name__, fields)
     out.__doc__, out.__module__ = cls.__doc__, __name__
     return out
