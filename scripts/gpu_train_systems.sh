@@ -6,7 +6,7 @@
 # Run from the repository root on the GPU machine (no install needed):
 #     PYTHONPATH=. bash scripts/gpu_train_systems.sh                 # ~7 min per model, in parallel
 #     PYTHONPATH=. bash scripts/gpu_train_systems.sh --max-minutes 0.3 --steps 3 --batch 4 \
-#         --chunk 8 --val-n 8 --stage-n 8 --eval-n 8 --device cpu  # the CPU dry run
+#         --chunk 8 --nll-only-steps 3 --val-n 8 --stage-n 8 --eval-n 8 --device cpu  # the CPU dry run
 #
 # Options: --max-minutes M (each run's budget, default 7), --systems "a b c", --device D
 # (default auto), --threads N (data threads per run, default 4), --eval-n N (default 100),

@@ -810,20 +810,29 @@ def test_training_forecast_keeps_fed_back_positions_inside_the_box(monkeypatch):
     assert float(boxed["nll_prior"]) < 0.05 * float(loose["nll_prior"])
 
 
-def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
-    from dataclasses import asdict
+def test_training_cli_documents_every_field_and_defaults_to_the_recipe(capsys):
+    from dataclasses import fields
 
     from methods.vid2param import presets
-    from methods.vid2param.train import _OWN_FLAGS, _parse, _parser, _train_config
+    from methods.vid2param.train import NetFlags, RunFlags, _parse, _stages, _train_config, main
 
-    actions = {a.dest: a for a in _parser()._actions if a.dest != "help"}
-    fields = [*asdict(TrainConfig()), *V2PConfig().to_dict()]
-    assert {f for f in fields if f not in (*_OWN_FLAGS, "frame_size")} <= set(actions)
-    # every flag says what it is (its field's docstring), not just its name
-    assert [d for d, a in actions.items() if not (a.help or "").replace("(default: %(default)s)", "").strip()] == []
+    # one declaration: every field of the recipe, the network's flags and the run's is a flag of
+    # the same name, listed by --help with its default and (a number) its range, and every one
+    # says what it is (its field's entry in its class's docstring)
+    with pytest.raises(SystemExit) as e:
+        main(["--help"])
+    assert e.value.code == 0
+    text = capsys.readouterr().out
+    for cls in (TrainConfig, NetFlags, RunFlags):
+        for f in fields(cls):
+            assert "--" + f.name.replace("_", "-") in text, f.name
+            assert f"    {f.name} :" in cls.__doc__, f"{cls.__name__}.{f.name} has no help"
+    for shown in ("--steps INT>=1", "(default: 4000)", "--p-full FLOAT[0,1]", "--lr FLOAT>0",
+                  "--size INT>=4 INT>=4", "--nuisance JSON", "--no-resume", "--no-progress"):
+        assert shown in text, shown
     a = _parse(["--out", "x"])
-    assert _train_config(a, V2PConfig()) == TrainConfig()  # no flags: the 28x28 recipe
-    assert a.preset == "28x28" and a.latent is None and a.roll_features is None
+    assert _train_config(a) == TrainConfig()  # no flags: the 28x28 recipe
+    assert a.run.preset == "28x28" and a.net == NetFlags.of(V2PConfig())
     # a preset's recipe, with its shipped init resolved; a flag given overrides the preset
     cam = V2PConfig.preset("camera")
     tc = _train_config(_parse(["--out", "x", "--preset", "camera"]), cam)
@@ -833,10 +842,14 @@ def test_training_cli_documents_every_field_and_defaults_to_the_recipe():
     tc = _train_config(_parse(["--out", "x", "--preset", "camera", "--steps", "7", "--init", "none",
                                "--perturb", "null"]), cam)
     assert (tc.steps, tc.init, tc.perturb, tc.nll_only_steps) == (7, None, None, 150)
+    # the old spellings: two values, a list, a flag pair, JSON
+    b = _parse(["--out", "x", "--size", "32", "40", "--channels", "4", "8", "--no-roll-features",
+                "--nuisance", '{"blur": 0.5}', "--no-resume", "--no-progress", "--hidden", "8"])
+    assert (b.recipe.size, b.net.channels, b.net.roll_features, b.recipe.nuisance) == (
+        (32, 40), (4, 8), False, {"blur": 0.5})
+    assert (b.run.resume, b.run.progress, b.net.hidden) == (False, False, 8)
     # the export's stages: the preset's by default (the camera's drag evidence), --stages
     # overrides them, with options
-    from methods.vid2param.train import _stages
-
     assert _stages(a) == [(n, dict(o)) for n, o in presets.get("28x28").stages]
     cam_a = _parse(["--out", "x", "--preset", "camera"])
     assert [n for n, _ in _stages(cam_a)] == ["prior_noise", "drag_evidence", "physics_calibration"]

@@ -64,7 +64,7 @@ def test_a_users_system_gets_a_derived_preset_and_its_network(decay):
     assert c.frame_size == tuple(s.size) and c.n_points == s.n_points
     assert not c.roll_features and not c.physics_prior
     # the training command's recipe and stages for it (``--system decay``)
-    a = _parse(["--out", "x", "--preset", "28x28"])
-    a.preset = decay
+    a = _parse(["--out", "x", "--system", decay])
+    assert a.run.preset == decay
     assert _train_config(a, c).steps == p.train["steps"]
     assert [n for n, _ in _stages(a)] == ["std_scale"]

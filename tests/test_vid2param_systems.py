@@ -21,7 +21,8 @@ from sysid_bench.core.estimator import Observation
 #: a tiny network: small enough that two CPU steps take about a second
 TINY = ["--hidden", "16", "--feat", "16", "--latent", "12", "--channels", "4", "--keypoints", "2",
         "--n-frames", "24", "--min-obs", "8", "--chunk", "8", "--val-n", "4", "--steps", "2",
-        "--batch", "4", "--threads", "1", "--no-progress", "--no-resume"]
+        "--batch", "4", "--threads", "1", "--no-progress", "--no-resume",
+        "--nll-only-steps", "2"]  # NLL-only throughout, as the presets' longer phase
 
 
 @pytest.fixture(scope="module")
@@ -248,6 +249,38 @@ def test_a_users_system_loads_its_checkpoint(user_system, tmp_path):
     for fr in ds.frames[0]:
         last = st.push(fr)
     np.testing.assert_allclose(last.mean, post.mean, rtol=1e-4, atol=1e-4)
+
+
+def test_a_users_system_trains_by_the_one_command_and_its_file_answers(user_system, tmp_path,
+                                                                       capsys):
+    """Issue 39, 4: ``sysid-bench train --system S`` for a system a user registered (its preset
+    derived from the ``System``), a small budget, a progress bar with the step, the time left
+    and the latest validation nMSE; the exported file loads with ``methods.get("vid2param",
+    system=S, checkpoint=F)`` and answers ``identify`` on the system's observation."""
+    from sysid_bench.apps.cli import main
+    from sysid_bench.core import systems
+
+    out = tmp_path / "v2p_decay.pt"
+    argv = ["train", "--system", user_system, "--out", str(tmp_path / "run"), "--export", str(out),
+            "--stages", "std_scale:n=4", "--max-minutes", "5", "--val-every", "1",
+            *[a for a in TINY if a != "--no-progress"]]
+    assert main(argv) == 0
+    bar = capsys.readouterr().err
+    assert "2/2" in bar and "<00:00" in bar and "budget_left=" in bar
+    card = json.loads(out.with_suffix(".json").read_text())
+    # the bar's nMSE is the last validation's (step 2), averaged over the parameters
+    last = card["val_metrics"]["nmse"]
+    shown = np.mean(list(last[max(last, key=int)].values()))
+    assert f"val_nmse={shown:.4f}" in bar
+    assert card["config"]["system"] == user_system and card["train"]["step"] == 2
+    assert card["train"]["command"].startswith(f"sysid-bench train --system {user_system}")
+    est = methods.get("vid2param", system=user_system, checkpoint=str(out))
+    sys_ = systems.get(user_system)
+    ds = make_system_split(user_system, "test", 1, 5, n_frames=24)
+    post = est.identify(Observation(frames=ds.frames[0], system=user_system))
+    assert post.system == user_system and post.mean.shape == (len(sys_.params),)
+    assert ((post.mean >= sys_.prior_lo) & (post.mean <= sys_.prior_hi)).all()
+    assert (post.std > 0).all()
 
 
 def test_the_benchmark_threads_option_reaches_the_n_a_sentence():

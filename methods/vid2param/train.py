@@ -22,15 +22,19 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
+import functools
 import json
 import math
+import numbers
 import os
-import re
 import sys
 import time
+import typing
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import torch
@@ -62,7 +66,6 @@ from methods.vid2param.data import (
 )
 from methods.vid2param.inference import FitContext, resolve_device
 from methods.vid2param.model import V2PConfig, Vid2ParamNet, count_parameters
-from methods.vid2param.parts import ROLL_STATS
 from methods.vid2param.stages import (
     LEGACY_KEYS,
     STAGES,
@@ -71,10 +74,93 @@ from methods.vid2param.stages import (
 )
 from sysid_bench.core import systems
 from sysid_bench.core._io import atomic_write
-from sysid_bench.core._validate import SEED_MAX, arg_number
+from sysid_bench.core._validate import SEED_MAX
 
 __all__ = ["TrainConfig", "train", "evaluate", "export", "fit_stages", "parse_stages",
            "calibrate", "resolve_device", "load_matching", "main"]
+
+
+@dataclass(frozen=True)
+class Range:
+    """The range of a numeric field, declared once in its annotation
+    (``Annotated[int, Range(1)]``): ``TrainConfig`` checks it on construction and the training
+    command's flags take it (``--help`` shows it, a value outside is refused before anything is
+    built). A tuple field's range holds for each of its values.
+
+    Attributes
+    ----------
+    lo, hi : float, optional
+        Bounds (None: unbounded), inclusive unless ``lo_open``.
+    lo_open : bool
+        Exclude ``lo`` itself (a positive rate).
+    """
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+
+    def text(self, kind: type) -> str:
+        """The range as words: ``"an int >= 1"``, ``"a float in (0, 1]"``."""
+        what = "an int" if kind is int else "a float"
+        lo, hi = self._num(self.lo, kind), self._num(self.hi, kind)
+        if self.hi is not None:
+            return f"{what} in {'(' if self.lo_open else '['}{lo}, {hi}]"
+        return f"{what} {'>' if self.lo_open else '>='} {lo}"
+
+    @staticmethod
+    def _num(x, kind: type) -> str:
+        return "" if x is None else str(int(x)) if kind is int else f"{x:g}"
+
+    def metavar(self, kind: type) -> str:
+        """The range for ``--help``: ``INT>=1``, ``FLOAT(0,1]``."""
+        name = kind.__name__.upper()
+        lo, hi = self._num(self.lo, kind), self._num(self.hi, kind)
+        if self.hi is not None:
+            return f"{name}{'(' if self.lo_open else '['}{lo},{hi}]"
+        return f"{name}{'>' if self.lo_open else '>='}{lo}"
+
+    def check(self, name: str, value, kind: type):
+        """``value`` as ``kind`` if it is one in the range, else a ``ValueError`` naming
+        ``name``, the range and the value."""
+        ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+        if ok:
+            v = float(value)
+            ok = (math.isfinite(v) and (kind is float or v == int(v))
+                  and (self.lo is None or (v > self.lo if self.lo_open else v >= self.lo))
+                  and (self.hi is None or v <= self.hi))
+        if not ok:
+            raise ValueError(f"{name}: expected {self.text(kind)}, got {value!r}")
+        return kind(value)
+
+    @staticmethod
+    @functools.cache
+    def of(cls) -> dict[str, tuple[Range, type]]:
+        """``{field: (range, kind)}`` of the dataclass ``cls``'s ranged fields (``kind``: int or
+        float, a tuple field's element type; ``X | None``: X's)."""
+        out = {}
+        for name, hint in typing.get_type_hints(cls, include_extras=True).items():
+            if typing.get_origin(hint) is not Annotated:
+                continue
+            base, *meta = typing.get_args(hint)
+            rng = next((m for m in meta if isinstance(m, Range)), None)
+            if rng is None:
+                continue
+            kinds = [a for a in (typing.get_args(base) or (base,)) if a not in (type(None), Ellipsis)]
+            out[name] = (rng, kinds[0])
+        return out
+
+    @classmethod
+    def check_fields(cls, obj) -> None:
+        """Check every ranged field of the dataclass instance ``obj`` (None passes: unset)."""
+        for name, (rng, kind) in cls.of(type(obj)).items():
+            v = getattr(obj, name)
+            for x in (v if isinstance(v, (tuple, list)) else () if v is None else (v,)):
+                rng.check(name, x, kind)
+
+
+#: Annotation marker of a field given on the command line as JSON (``'{"blur": 0.5}'``,
+#: ``null`` for None).
+JSON = "json"
 
 
 @dataclass
@@ -87,8 +173,12 @@ class TrainConfig:
         Optimiser steps (batches) in total.
     batch : int
         Videos per batch.
-    lr, lr_min, warmup : float, float, int
+    lr : float
         Adam learning rate: linear warm-up for ``warmup`` steps, then cosine decay to ``lr_min``.
+    lr_min : float
+        The learning rate at the last step (the cosine's end).
+    warmup : int
+        Steps of the linear learning-rate warm-up.
     seed : int
         Initial weights, batch order, sampling noise, observed lengths.
     data_seed : int
@@ -113,8 +203,12 @@ class TrainConfig:
         learns to answer such input with a wide posterior near the prior.
     clip : float
         Gradient-norm clip.
-    val_n, val_seed, val_every : int
-        Validation videos (``test`` split, this seed) and how often (steps) to validate.
+    val_n : int
+        Validation videos (``test`` split; 0: no validation).
+    val_seed : int
+        Seed of the validation videos.
+    val_every : int
+        Steps between validations (and one at the end).
     ckpt_every : float
         Seconds between resumable states.
     threads : int
@@ -125,9 +219,12 @@ class TrainConfig:
         NLL) join afterwards. Measured on CPU (500 steps, all terms from the start): a ridge
         probe found no trace of g in the LSTM state, while the same LSTM trained on the NLL
         alone (a probe script, since removed) reads g by step 500.
-    early_aux_grad, early_aux_grad_steps : float, int
-        For the first ``early_aux_grad_steps`` steps the prior and the decoder send back into the
-        recurrent state this scale of their gradient instead of the model's ``aux_grad``
+    early_aux_grad : float
+        Scale of the gradient the prior and the decoder send into the recurrent state during
+        the first ``early_aux_grad_steps`` steps.
+    early_aux_grad_steps : int
+        Steps of that early phase: the prior and the decoder send back into the recurrent
+        state ``early_aux_grad`` of their gradient instead of the model's ``aux_grad``
         (``Vid2ParamNet.forward``); 0 steps: the model's value throughout (fine-tunes). The
         shipped model first learnt to identify with 0.01.
     size : (int, int)
@@ -147,37 +244,38 @@ class TrainConfig:
         ``{"param": "e"}``, ``{"label_noise": 0.25}``). Validation stays on the interleaved
         test split.
     variant_options : dict, optional
+        Options of ``variant`` (e.g. ``{"param": "e"}``).
     """
 
-    steps: int = 4000
-    batch: int = 32
-    lr: float = 1e-3
-    lr_min: float = 5e-5
-    warmup: int = 100
-    seed: int = 0
-    data_seed: int = 0
-    chunk: int = 2000
-    chunk_epochs: int = 1
-    n_frames: int = 200
-    rec_frac: float = 0.25
-    p_full: float = 0.7
-    min_obs: int = 50
-    p_blank: float = 0.02
-    clip: float = 10.0
-    val_n: int = 200
-    val_seed: int = 1
-    val_every: int = 250
-    ckpt_every: float = 180.0
-    threads: int = 1
-    nll_only_steps: int = 600
-    early_aux_grad: float = 0.01
-    early_aux_grad_steps: int = 3200
-    size: tuple[int, int] = (28, 28)
-    nuisance: dict | None = field(default=None)
-    perturb: dict | None = field(default=None)
+    steps: Annotated[int, Range(1)] = 4000
+    batch: Annotated[int, Range(1)] = 32
+    lr: Annotated[float, Range(0, lo_open=True)] = 1e-3
+    lr_min: Annotated[float, Range(0)] = 5e-5
+    warmup: Annotated[int, Range(0)] = 100
+    seed: Annotated[int, Range(0, SEED_MAX)] = 0
+    data_seed: Annotated[int, Range(0, SEED_MAX)] = 0
+    chunk: Annotated[int, Range(1)] = 2000
+    chunk_epochs: Annotated[int, Range(1)] = 1
+    n_frames: Annotated[int, Range(2)] = 200
+    rec_frac: Annotated[float, Range(0, 1, lo_open=True)] = 0.25
+    p_full: Annotated[float, Range(0, 1)] = 0.7
+    min_obs: Annotated[int, Range(1)] = 50
+    p_blank: Annotated[float, Range(0, 1)] = 0.02
+    clip: Annotated[float, Range(0, lo_open=True)] = 10.0
+    val_n: Annotated[int, Range(0)] = 200
+    val_seed: Annotated[int, Range(0, SEED_MAX)] = 1
+    val_every: Annotated[int, Range(1)] = 250
+    ckpt_every: Annotated[float, Range(0, lo_open=True)] = 180.0
+    threads: Annotated[int, Range(1)] = 1
+    nll_only_steps: Annotated[int, Range(0)] = 600
+    early_aux_grad: Annotated[float, Range(0, 1)] = 0.01
+    early_aux_grad_steps: Annotated[int, Range(0)] = 3200
+    size: Annotated[tuple[int, int], Range(4)] = (28, 28)
+    nuisance: Annotated[dict | None, JSON] = field(default=None)
+    perturb: Annotated[dict | None, JSON] = field(default=None)
     init: str | None = None
     variant: str = "interleaved"
-    variant_options: dict | None = field(default=None)
+    variant_options: Annotated[dict | None, JSON] = field(default=None)
 
     def __post_init__(self) -> None:
         from sysid_bench.core.datasets import VARIANTS
@@ -186,11 +284,7 @@ class TrainConfig:
             raise ValueError(f"variant: expected one of {VARIANTS}, got {self.variant!r}")
         if self.variant_options is not None and not isinstance(self.variant_options, dict):
             raise ValueError(f"variant_options: expected a dict, got {self.variant_options!r}")
-        if not 0.0 <= float(self.early_aux_grad) <= 1.0:
-            raise ValueError(f"early_aux_grad: expected a float in [0, 1], got {self.early_aux_grad!r}")
-        if int(self.early_aux_grad_steps) < 0:
-            raise ValueError(
-                f"early_aux_grad_steps: expected an int >= 0, got {self.early_aux_grad_steps!r}")
+        Range.check_fields(self)  # every field's range, from its annotation
         if self.perturb is not None:
             bad = set(self.perturb) - {"spin", "dwell", "p"}
             if bad or not isinstance(self.perturb, dict):
@@ -526,6 +620,12 @@ def _evaluate_system(config, mu, sd, truth, lengths) -> dict:
     return out
 
 
+def val_nmse(m: dict) -> float:
+    """The validation metrics ``m``'s nMSE after the most frames, averaged over the parameters
+    (what the progress bar shows)."""
+    return float(np.mean(list(m["nmse"][max(m["nmse"])].values())))
+
+
 def _summary(m: dict) -> str:
     L = max(m["nmse"])
     s = " ".join(f"{p}={v:.4f}" for p, v in m["nmse"][L].items())
@@ -833,11 +933,15 @@ def train(
             save_atomic(_state_dict(net, opt, mc, tc, step, wall(), history, init=init_ck),
                         state_path.with_name(name))
 
+    # the bar's latest validation nMSE (a resumed run's last) and time left of a budget
+    shown = {"val_nmse": f"{val_nmse(history[-1][1]):.4f}"} if history else {}
+
     def validate(step: int) -> None:
         net.eval()
         m = evaluate(net, val, device=dev)
         net.train()
         history.append((int(step), m))
+        shown["val_nmse"] = f"{val_nmse(m):.4f}"
         log(f"[val step {step}, {wall() / 60:.1f} min] {_summary(m)}")
 
     net.train()
@@ -879,14 +983,17 @@ def train(
         cur = np.array([outd["loss"].item(), outd["rec"].item(), outd["kl"].item(),
                         outd["nll"].item(), outd["nll_prior"].item()])
         run_avg = cur if run_avg is None else 0.98 * run_avg + 0.02 * cur
-        if progress:
-            bar.set_postfix(loss=f"{run_avg[0]:.1f}", nll=f"{run_avg[3]:.2f}", refresh=False)
         if (step + 1) % 100 == 0:
             log(f"step {step + 1} {wall() / 60:.1f} min lr {lr_now:.2e} loss "
                 f"{run_avg[0]:.2f} rec {run_avg[1]:.2f} kl {run_avg[2]:.2f} nll {run_avg[3]:.3f} "
                 f"nll_prior {run_avg[4]:.3f}")
         if val is not None and (step + 1) % tc.val_every == 0:
             validate(step + 1)
+        if progress:  # after the step's validation, so the bar shows its nMSE
+            if max_minutes is not None:
+                shown["budget_left"] = f"{max(0.0, max_minutes - (time.time() - t_start) / 60):.1f}min"
+            bar.set_postfix(loss=f"{run_avg[0]:.1f}", nll=f"{run_avg[3]:.2f}", **shown,
+                            refresh=False)
         if time.time() - t_ckpt > tc.ckpt_every:
             save(step + 1)
             t_ckpt = time.time()
@@ -926,174 +1033,436 @@ def _resolve_init(init: str | None) -> str | None:
     return record_name(init)
 
 
-#: TrainConfig fields whose flags are not the generic ``--name VALUE`` (JSON, two values, a path)
-_OWN_FLAGS = ("size", "nuisance", "perturb", "init", "variant_options")
+# -- the training command: its flags from three declarations (RunFlags, TrainConfig, NetFlags) -
+@dataclass
+class RunFlags:
+    """What to do with the recipe.
+
+    Attributes
+    ----------
+    out : str, optional
+        Folder of the run's resumable state.pt (required, except with --refit).
+    export : str, optional
+        Write a shipped checkpoint (+ .json card) here at the end: the network, then every stage
+        of --stages fitted in order.
+    export_warmup : str, optional
+        With --export: also export the state kept when the NLL-only warm-up ended
+        (<out>/state_warmup.pt) here, with the same stages.
+    export_only : bool
+        Only export <out>/state.pt to --export, no training.
+    refit : str, optional
+        No training: fit --stages afresh after this checkpoint's network (a shipped name or a
+        path) and write --export.
+    stages : tuple of str
+        The stages fitted after the network, in order, as NAME[:KEY=VALUE,...] (e.g.
+        drag_evidence:n_videos=300; methods.vid2param.stages); the default is the preset's;
+        --stages alone fits none.
+    resume : bool
+        Continue from <out>/state.pt when it exists (--no-resume: start afresh).
+    device : str
+        auto (CUDA when present, else the CPU), cpu, cuda or cuda:N; one this machine does
+        not have is refused before anything is built.
+    max_minutes : float, optional
+        Stop (resumable) after this much wall-clock time.
+    time_schedule : bool
+        With --max-minutes: the learning-rate schedule and warm-up phases advance with the
+        budget spent, so a run the budget ends early has run its schedule through.
+    export_on_stop : bool
+        With --export: export also when --max-minutes ends the run early (the card's train
+        record says stopped: max_minutes and the step).
+    stop_at : int, optional
+        Stop (resumable) after this step.
+    progress : bool
+        The progress bar: step, time left and the latest validation nMSE (--no-progress: none).
+    preset : str
+        The model configuration (V2PConfig.preset), its recipe and its stages: 28x28, camera,
+        pendulum, spring, collision.
+    system : str, optional
+        Train a system's model from scratch with its preset (a system a user registered gets
+        one derived from it); ball keeps --preset.
+    """
+
+    out: str | None = None
+    export: str | None = None
+    export_warmup: str | None = None
+    export_only: bool = False
+    refit: str | None = None
+    stages: tuple[str, ...] = ()
+    resume: bool = True
+    device: str = "auto"
+    max_minutes: Annotated[float | None, Range(0, lo_open=True)] = None
+    time_schedule: bool = False
+    export_on_stop: bool = False
+    stop_at: Annotated[int | None, Range(1)] = None
+    progress: bool = True
+    preset: str = "28x28"
+    system: str | None = None
 
 
-def _field_help(cls) -> dict[str, str]:
-    """First sentence of each attribute's entry in ``cls``'s numpydoc *Attributes* section
-    (``a, b : float`` entries give every name the same text), for ``--help``."""
-    lines = (cls.__doc__ or "").splitlines()
-    try:
-        start = next(i for i, ln in enumerate(lines) if ln.strip() == "Attributes") + 2
-    except StopIteration:
-        return {}
-    out, names, text = {}, [], []
+@dataclass
+class NetFlags:
+    """The network's settings a training command may change (``V2PConfig`` fields; defaults:
+    the preset's).
 
-    def flush():
-        sentence = re.split(r"\.\s+(?=[A-Z])", " ".join(text).replace("``", ""))[0].rstrip(".")
-        for n in names:
-            out[n] = sentence.replace("%", "%%")
+    Attributes
+    ----------
+    latent : int
+        Total latent size (>= the number of targets).
+    hidden : int
+        LSTM hidden size.
+    feat : int
+        Size of the frame and latent features.
+    keypoints : int
+        Keypoint channels of the frame encoder (channel 0 gives the position).
+    pool : int
+        Average-pool the frames by this factor before the conv path and decoder.
+    channels : tuple of int
+        Conv encoder channels; each layer halves the frame size.
+    alpha : float
+        Weight of the reconstruction term.
+    beta : float
+        Weight of the KL term.
+    gamma : float
+        Weight of the parameters' NLL.
+    gamma_prior : float
+        Weight of the NLL of the prior's parameter dimensions (the one-step dynamics).
+    aux_grad : float
+        Scale of the gradient the prior and decoder send back into the recurrent state.
+    kp_threshold : float
+        Grey level (fraction of white) subtracted from keypoint channel 0.
+    kp_visibility : bool
+        A visibility channel beside the keypoints.
+    roll_features : bool
+        The ball's rolling statistic as features of the heads.
+    physics_prior : bool
+        The ball's physics prior in the latent rollout.
+    kp_learn : bool
+        Learn the keypoint map (a second object in learned channels).
+    targets : tuple of str
+        Supervised quantities in the first latent dimensions.
+    roll_stat : str
+        The rolling statistic: steps or fit.
+    """
 
-    for ln in lines[start:]:
-        if not ln.strip():
-            continue
-        indent = len(ln) - len(ln.lstrip())
-        if indent <= 4 and " : " in ln:
-            flush()
-            names = [n.strip() for n in ln.split(" : ")[0].split(",")]
-            text = []
-        elif indent > 4:
-            text.append(ln.strip())
-        else:
-            break
-    flush()
+    latent: Annotated[int, Range(1)] = 16
+    hidden: Annotated[int, Range(1)] = 128
+    feat: Annotated[int, Range(1)] = 64
+    keypoints: Annotated[int, Range(1)] = 4
+    pool: Annotated[int, Range(1)] = 1
+    channels: Annotated[tuple[int, ...], Range(1)] = (16, 32)
+    alpha: Annotated[float, Range(0)] = 1.0
+    beta: Annotated[float, Range(0)] = 1.0
+    gamma: Annotated[float, Range(0)] = 10.0
+    gamma_prior: Annotated[float, Range(0)] = 1.0
+    aux_grad: Annotated[float, Range(0, 1)] = 0.1
+    kp_threshold: Annotated[float, Range(0, 1)] = 0.0
+    kp_visibility: bool = False
+    roll_features: bool = True
+    physics_prior: bool = False
+    kp_learn: bool = False
+    targets: tuple[str, ...] = ()
+    roll_stat: str = "steps"
+
+    def __post_init__(self) -> None:
+        Range.check_fields(self)
+
+    @classmethod
+    def of(cls, mc: V2PConfig) -> NetFlags:
+        """The flags' values in network ``mc`` (a preset's)."""
+        d = mc.to_dict()
+        return cls(**{f: tuple(d[f]) if isinstance(d[f], list) else d[f] for f in _fields(cls)})
+
+
+@dataclass
+class TrainCommand:
+    """The training command's flags: what to do, the recipe and the network."""
+
+    run: RunFlags
+    recipe: TrainConfig
+    net: NetFlags
+
+
+def _fields(cls) -> list[str]:
+    return [f.name for f in dataclasses.fields(cls)]
+
+
+def _constructor(name: str, hint):
+    """tyro's constructor of field ``name`` (annotation ``hint``) when it is not tyro's own:
+    a ranged number (its range as the metavar, INT>=1; a value outside refused naming the
+    range) or JSON (``null``: None). None: tyro's own."""
+    import tyro
+
+    if typing.get_origin(hint) is not Annotated:
+        return None
+    base, *meta = typing.get_args(hint)
+    if JSON in meta:
+        def from_json(args):
+            try:
+                return json.loads(args[0])
+            except json.JSONDecodeError as e:
+                raise ValueError(f"expected JSON (an object or null), got {args[0]!r}: "
+                                 f"{e.msg}") from None
+
+        return tyro.constructors.PrimitiveConstructorSpec(
+            nargs=1, metavar="JSON", instance_from_str=from_json, is_instance=lambda x: True,
+            str_from_instance=lambda x: [json.dumps(x)])
+    rng = next((m for m in meta if isinstance(m, Range)), None)
+    if rng is None:
+        return None
+    args = [t for t in (typing.get_args(base) or (base,)) if t is not type(None)]
+    many = typing.get_origin(base) is tuple
+    if many:
+        kind = args[0]
+        n = "*" if Ellipsis in args else len(args)
+    else:
+        kind, n = args[0], 1
+
+    def one(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise ValueError(f"expected {rng.text(kind)}, got {text!r}") from None
+        try:
+            return rng.check(name, v, kind)
+        except ValueError:
+            raise ValueError(f"expected {rng.text(kind)}, got {text!r}") from None
+
+    meta_one = rng.metavar(kind)
+    return tyro.constructors.PrimitiveConstructorSpec(
+        nargs=n, metavar=" ".join([meta_one] * n) if n != "*" else f"{meta_one} ...",
+        instance_from_str=(lambda a: tuple(one(t) for t in a)) if many else (lambda a: one(a[0])),
+        is_instance=lambda x: True,
+        str_from_instance=(lambda x: [str(v) for v in x]) if many else (lambda x: [str(x)]))
+
+
+def _for_tyro(cls):
+    """A copy of the dataclass ``cls`` for tyro: the same fields, defaults and docstring (the
+    flags' help), each ranged or JSON field carrying its constructor (:func:`_constructor`);
+    no checks of its own (the real class's run once parsing is done)."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    fields = []
+    for f in dataclasses.fields(cls):
+        hint = hints[f.name]
+        spec = _constructor(f.name, hint)
+        typ = typing.get_args(hint)[0] if typing.get_origin(hint) is Annotated else hint
+        default = (dataclasses.field(default_factory=f.default_factory)
+                   if f.default is dataclasses.MISSING and f.default_factory is not dataclasses.MISSING
+                   else dataclasses.field(default=None if f.default is dataclasses.MISSING
+                                          else f.default))  # TrainCommand's default sets them
+        fields.append((f.name, typ if spec is None else Annotated[typ, spec], default))
+    out = dataclasses.make_dataclass(cls.__name__, fields)
+    out.__doc__, out.__module__ = cls.__doc__, __name__
     return out
 
 
-#: Ranges of the numeric flags, ``(lo, hi, lo_open)``; a flag not named here takes ``[0, inf)``.
-#: Checked by argparse (``_arg_type``), so ``--steps -1`` is refused before anything is built.
-_FLAG_RANGES = {
-    "steps": (1, None, False), "batch": (1, None, False), "chunk": (1, None, False),
-    "chunk_epochs": (1, None, False),
-    "n_frames": (2, None, False), "min_obs": (1, None, False), "val_every": (1, None, False),
-    "threads": (1, None, False), "lr": (0, None, True), "clip": (0, None, True),
-    "ckpt_every": (0, None, True), "rec_frac": (0, 1, True), "p_full": (0, 1, False),
-    "p_blank": (0, 1, False), "early_aux_grad": (0, 1, False), "seed": (0, SEED_MAX, False),
-    "data_seed": (0, SEED_MAX, False), "val_seed": (0, SEED_MAX, False),
-    "max_minutes": (0, None, True), "latent": (1, None, False), "hidden": (1, None, False),
-    "feat": (1, None, False), "keypoints": (1, None, False), "pool": (1, None, False),
-    "channels": (1, None, False), "size": (4, None, False),
-}
+def _preset_name(system: str | None, preset: str, given: bool) -> str:
+    """The preset a command trains: ``--system S``'s own (a user's system gets one derived from
+    it) unless it is ``--preset``'s system; ``--system`` with another system's ``--preset`` is
+    refused."""
+    presets.get(preset)  # an unknown preset: a ValueError naming the known ones
+    if system is None:
+        return preset
+    try:
+        own = presets.get(system)
+    except ValueError:
+        raise ValueError(f"--system: expected a registered system ({', '.join(systems.available())}), "
+                         f"got {system!r}") from None
+    if presets.get(preset).system == own.system:
+        return preset
+    if given:
+        raise ValueError(f"--system {system} takes its own preset, not --preset {preset}")
+    return own.name
 
 
-def _arg_type(name: str, kind: type):
-    """The argparse ``type=`` of flag ``name``: a number of ``kind`` in its :data:`_FLAG_RANGES`
-    range (default ``>= 0``); a non-numeric kind is its own type."""
-    if kind not in (int, float):
-        return kind
-    lo, hi, lo_open = _FLAG_RANGES.get(name, (0, None, False))
-    return arg_number(lo, hi, integer=kind is int, lo_open=lo_open)
+def _defaults(argv) -> TrainCommand:
+    """The command's defaults for ``argv``'s ``--preset``/``--system``: the preset's network,
+    recipe (``presets.Preset.train``, its ``init`` by name) and stages."""
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--preset", default="28x28")
+    pre.add_argument("--system", default=None)
+    known, _ = pre.parse_known_args(list(argv))
+    name = _preset_name(known.system, known.preset,
+                        given=any(a == "--preset" or a.startswith("--preset=") for a in argv))
+    p = presets.get(name)
+    mc = V2PConfig.preset(name)
+    recipe = TrainConfig(**copy.deepcopy(dict(p.train)), size=tuple(mc.frame_size))
+    stages = tuple(n + (":" + ",".join(f"{k}={json.dumps(v)}" for k, v in o.items()) if o else "")
+                   for n, o in p.stages)
+    return TrainCommand(run=RunFlags(stages=stages, preset=name, system=known.system),
+                        recipe=recipe, net=NetFlags.of(mc))
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m methods.vid2param.train", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    tc = TrainConfig()
-    tc_help, mc_help = _field_help(TrainConfig), _field_help(V2PConfig)
-    run = p.add_argument_group("run (what to do with the recipe)")
-    run.add_argument("--out", help="folder for the resumable state.pt (not with --refit)")
-    run.add_argument("--export", help="write a shipped checkpoint (+ .json card) here at the end: "
-                                      "the network, then every stage of --stages fitted in order")
-    run.add_argument("--export-warmup", metavar="PATH", default=None,
-                     help="with --export: also export the state kept when the NLL-only warm-up "
-                          "ended (<out>/" + WARMUP_STATE + ") here, with the same stages")
-    run.add_argument("--export-only", action="store_true",
-                     help="only export <out>/state.pt to --export, no training")
-    run.add_argument("--refit", metavar="CHECKPOINT", default=None,
-                     help="no training: fit --stages afresh after this checkpoint's network (a "
-                          "shipped name or a path) and write --export")
-    run.add_argument("--stages", nargs="*", default=None, metavar="NAME[:KEY=VALUE,...]",
-                     help="the stages fitted after the network, in order (methods.vid2param."
-                          "stages: " + ", ".join(
-                              f"{k}: {' '.join(n for n, _ in v.stages)}"
-                              for k, v in presets.PRESETS.items())
-                          + "; default: the preset's); e.g. drag_evidence:n_videos=300")
-    run.add_argument("--no-resume", action="store_true",
-                     help="start afresh even if state.pt exists")
-    run.add_argument("--device", default="auto",
-                     help="auto (CUDA when present, else CPU), cpu or cuda[:N]")
-    run.add_argument("--max-minutes", type=_arg_type("max_minutes", float), default=None,
-                     help="stop (resumable) after this much wall-clock time")
-    run.add_argument("--time-schedule", action="store_true",
-                     help="with --max-minutes: the learning-rate schedule and warm-up phases "
-                          "advance with the budget spent, so a run the budget ends early has "
-                          "run its schedule through")
-    run.add_argument("--export-on-stop", action="store_true",
-                     help="with --export: export also when --max-minutes ends the run early "
-                          "(the card's train record says stopped: max_minutes and the step)")
-    run.add_argument("--stop-at", type=_arg_type("stop_at", int), default=None,
-                     help="stop (resumable) after this step")
-    run.add_argument("--no-progress", action="store_true", help="no progress bar")
-    rec = p.add_argument_group(
-        "recipe (TrainConfig fields; defaults: the from-scratch recipe, one command, as the "
-        "sensitivity models were trained; the shipped 28x28 model is a chain of fine-tunes, "
-        "methods/vid2param/README.md)")
-    for name, val in asdict(tc).items():
-        if name in _OWN_FLAGS:
-            continue
-        rec.add_argument("--" + name.replace("_", "-"), type=_arg_type(name, type(val)),
-                         default=None,
-                         help=f"{tc_help.get(name, name)} (default: {val}, or the preset's)")
-    rec.add_argument("--size", type=_arg_type("size", int), nargs=2, default=None,
-                     metavar=("H", "W"),
-                     help="frame size (default: the preset's)")
-    rec.add_argument("--nuisance", type=json.loads, default=argparse.SUPPRESS,
-                     help='renderer options as JSON, e.g. \'{"blur": 0.5, "drop": 0.05}\'')
-    rec.add_argument("--perturb", type=json.loads, default=argparse.SUPPRESS,
-                     help='deviations from our physics in training, e.g. \'{"spin": 0.3, "dwell": 0.01, "p": 0.5}\'')
-    rec.add_argument("--variant-options", type=json.loads, default=None,
-                     help='options of --variant as JSON, e.g. \'{"param": "e"}\' or \'{"label_noise": 0.25}\'')
-    rec.add_argument("--init", default=None,
-                     help="start from this checkpoint's weights where names and shapes match "
-                          "(a path or a shipped name: 28x28, camera; default: the preset's)")
-    model = p.add_argument_group("model (V2PConfig fields; each overrides the preset's value)")
-    model.add_argument("--preset", default="28x28", choices=sorted(presets.PRESETS),
-                       help="model configuration (V2PConfig.preset) and its data settings")
-    model.add_argument("--system", default=None, choices=systems.available(),
-                       help="train a system's model from scratch: its preset (network, recipe "
-                            "and stages; 'ball' keeps --preset)")
-    for name in ("latent", "hidden", "feat", "keypoints", "pool"):
-        model.add_argument("--" + name, type=_arg_type(name, int), default=None,
-                           help=mc_help.get(name))
-    for name in ("alpha", "beta", "gamma", "gamma_prior", "aux_grad", "kp_threshold"):
-        model.add_argument("--" + name.replace("_", "-"), type=float, default=None,
-                           help=mc_help.get(name))
-    model.add_argument("--channels", type=_arg_type("channels", int), nargs="+", default=None,
-                       help=mc_help.get("channels"))
-    for name in ("kp_visibility", "roll_features", "physics_prior", "kp_learn"):
-        model.add_argument("--" + name.replace("_", "-"), action=argparse.BooleanOptionalAction,
-                           default=None, help=mc_help.get(name))
-    model.add_argument("--targets", nargs="+", default=None, help=mc_help.get("targets"))
-    model.add_argument("--roll-stat", default=None, choices=sorted(ROLL_STATS),
-                       help=mc_help.get("roll_stat"))
-    return p
+class FlagError(ValueError):
+    """A training flag refused while parsing: one line naming the flag."""
 
 
-def _parse(argv=None):
-    return _parser().parse_args(argv)
+def _flag_name(argument) -> str:
+    flags = [f for f in getattr(getattr(argument, "lowered", None), "name_or_flags", ()) or ()
+             if f.startswith("--")]
+    return flags[0] if flags else ""
 
 
-def _train_config(a: argparse.Namespace, mc: V2PConfig) -> TrainConfig:
-    """The recipe of parsed flags ``a``: TrainConfig's defaults, then the preset's
-    (``presets.Preset.train``), then the flags given (a JSON flag given as ``null`` clears the
-    preset's)."""
-    recipe = copy.deepcopy(dict(presets.get(a.preset).train))
-    recipe.update({k: v for k in asdict(TrainConfig()) if k not in _OWN_FLAGS
-                   and (v := getattr(a, k)) is not None})
-    recipe.update({k: getattr(a, k) for k in ("nuisance", "perturb") if hasattr(a, k)})
-    if a.init is not None:
-        recipe["init"] = a.init
-    recipe["init"] = _resolve_init(recipe.get("init"))
-    return TrainConfig(**recipe, size=tuple(mc.frame_size), variant_options=a.variant_options)
+def _on_parse_error(event) -> None:
+    """tyro's parse failures as one line (``FlagError``) instead of a box."""
+    from tyro import _errors as te
+
+    if isinstance(event, te.UnrecognizedArgs):
+        raise FlagError(f"unrecognized arguments: {' '.join(event.tokens)}")
+    if isinstance(event, te.InstantiationFailure):
+        name = _flag_name(event.argument)
+        raise FlagError(f"{name}: {event.message}" if name else event.message)
+    if isinstance(event, te.InvalidChoice):
+        raise FlagError(f"{_flag_name(event.argument)}: expected one of "
+                        f"{', '.join(event.choices)}, got {event.value!r}")
+    if isinstance(event, te.BadValue):
+        raise FlagError(f"{_flag_name(event.argument)}: expected "
+                        f"{event.argument.lowered.metavar or 'a value'}"
+                        + (f", got {event.offending_value!r}" if event.offending_value else ""))
+    return None  # another failure: tyro's own message
 
 
-def _stages(a: argparse.Namespace) -> list[tuple[str, dict]]:
-    """The stages of parsed flags ``a``: ``--stages``, else the preset's
-    (``presets.Preset.stages``)."""
-    if a.stages is not None:
-        return parse_stages(a.stages)
-    return parse_stages(presets.get(a.preset).stages)
+@functools.cache
+def _tyro_command():
+    """The command's dataclass for tyro and its three parts (:func:`_for_tyro`), made once."""
+    Run, Recipe, Net = (_for_tyro(c) for c in (RunFlags, TrainConfig, NetFlags))
+    Command = dataclasses.make_dataclass("TrainCommand", [("run", Run), ("recipe", Recipe),
+                                                          ("net", Net)])
+    Command.__doc__, Command.__module__ = __doc__.split("\n\n")[0], __name__
+    return Command, Run, Recipe, Net
+
+
+def _parse(argv=None) -> TrainCommand:
+    """The training command's flags (``--help`` prints each with its default, the preset's,
+    and its range); a flag refused raises ``FlagError`` (a ``ValueError``) naming it, before
+    anything is built. The recipe is a checked ``TrainConfig`` (its ``init`` as given)."""
+    import contextlib
+
+    import tyro
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    default = _defaults([a for a in argv if a not in ("--help", "-h")])
+    try:
+        from tyro._errors import on_parse_error  # one line per refusal (tyro's hook)
+        hook = on_parse_error(_on_parse_error)
+    except ImportError:  # a tyro without the hook: its own (boxed) messages
+        hook = contextlib.nullcontext()
+    Command, Run, Recipe, Net = _tyro_command()
+    as_tyro = Command(run=Run(**dataclasses.asdict(default.run)),
+                      recipe=Recipe(**{f: getattr(default.recipe, f) for f in _fields(Recipe)}),
+                      net=Net(**dataclasses.asdict(default.net)))
+    with hook:
+        got = tyro.cli(Command, args=argv, default=as_tyro, prog="sysid-bench train",
+                       config=(tyro.conf.OmitArgPrefixes, tyro.conf.HelptextFromCommentsOff))
+    return TrainCommand(run=RunFlags(**dataclasses.asdict(got.run)),
+                        recipe=TrainConfig(**{f: getattr(got.recipe, f) for f in _fields(Recipe)}),
+                        net=NetFlags(**dataclasses.asdict(got.net)))
+
+
+def _network(a: TrainCommand) -> V2PConfig:
+    """The network of parsed flags ``a``: the preset's with the flags' values, frames of the
+    recipe's size."""
+    base = V2PConfig.preset(a.run.preset).to_dict()
+    for name, v in dataclasses.asdict(a.net).items():
+        base[name] = list(v) if isinstance(v, tuple) else v
+    base["frame_size"] = list(a.recipe.size)
+    return V2PConfig(**base)
+
+
+def _train_config(a: TrainCommand, mc: V2PConfig | None = None) -> TrainConfig:
+    """The recipe of parsed flags ``a``: the preset's (``presets.Preset.train``) with the flags
+    given (a JSON flag given as ``null`` clears the preset's), its ``init`` as recorded (a
+    shipped name, ``none``: from scratch), frames of the network's size."""
+    mc = mc or _network(a)
+    return dataclasses.replace(a.recipe, init=_resolve_init(a.recipe.init),
+                               size=tuple(mc.frame_size))
+
+
+def _stages(a: TrainCommand) -> list[tuple[str, dict]]:
+    """The stages of parsed flags ``a``: ``--stages``, else the preset's."""
+    return parse_stages(a.run.stages)
+
+
+def check_device(device: str) -> torch.device:
+    """The device ``device`` names, if this machine has it: ``auto`` (CUDA when present),
+    ``cpu``, ``cuda``, ``cuda:N``, ...; else a ``ValueError`` naming it and what there is."""
+    dev = resolve_device(device)
+    if dev.type == "cpu":
+        return dev
+    if dev.type == "cuda":
+        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if n == 0:
+            raise ValueError(f"device: {device!r} is not on this machine (torch sees no CUDA "
+                             f"device); expected 'auto' or 'cpu'")
+        if dev.index is not None and dev.index >= n:
+            raise ValueError(f"device: expected cuda:0 .. cuda:{n - 1} (this machine has {n} CUDA "
+                             f"device{'s' if n > 1 else ''}), got {device!r}")
+        return dev
+    backend = getattr(torch, dev.type, None)
+    if backend is None or not getattr(backend, "is_available", lambda: False)():
+        raise ValueError(f"device: {device!r} is not on this machine; expected 'auto', 'cpu' "
+                         f"or 'cuda[:N]'")
+    return dev
+
+
+def check_command(a: TrainCommand, mc: V2PConfig, tc: TrainConfig) -> None:
+    """Refuse flags that contradict each other, a device this machine lacks, and an ``--init``
+    or ``--refit`` checkpoint of another system, before anything is trained: one
+    ``ValueError`` naming the flags."""
+    r = a.run
+    for flag, given, needs in (("--export-warmup", r.export_warmup, r.export),
+                               ("--export-only", r.export_only, r.export),
+                               ("--export-on-stop", r.export_on_stop, r.export),
+                               ("--refit", r.refit, r.export),
+                               ("--time-schedule", r.time_schedule, r.max_minutes)):
+        if given and not needs:
+            other = "--max-minutes M" if flag == "--time-schedule" else "--export PATH"
+            raise ValueError(f"{flag}: expected {other} with it")
+    if r.refit is None and r.out is None:
+        raise ValueError("--out: expected the run's folder (required, except with --refit)")
+    try:
+        check_device(r.device)
+    except ValueError as e:
+        raise ValueError(f"--{e}") from None
+    if r.refit is None and not r.export_only:
+        if tc.batch > tc.chunk:
+            raise ValueError(f"--batch: expected at most --chunk ({tc.chunk} videos drawn at a "
+                             f"time), got {tc.batch}")
+        if tc.nll_only_steps > tc.steps:
+            raise ValueError(f"--nll-only-steps: the NLL-only phase ({tc.nll_only_steps} steps) "
+                             f"is longer than the run (--steps {tc.steps}); give "
+                             f"--nll-only-steps N <= {tc.steps}")
+        if tc.min_obs >= tc.n_frames:
+            raise ValueError(f"--min-obs: expected fewer than --n-frames ({tc.n_frames}), got "
+                             f"{tc.min_obs}")
+        if tc.val_n > 0 and tc.val_every > tc.steps:
+            pass  # validated once at the end: not a contradiction
+        if r.stop_at is not None and r.stop_at > tc.steps:
+            raise ValueError(f"--stop-at: expected a step <= --steps ({tc.steps}), got "
+                             f"{r.stop_at}")
+    if tc.init and r.refit is None and not r.export_only:
+        _check_other_checkpoint("--init", tc.init, mc)
+    if r.refit is not None and r.system is not None:
+        _check_other_checkpoint("--refit", r.refit, mc)
+    state = Path(r.out) / "state.pt" if r.out is not None else None
+    if state is not None and state.exists() and r.resume and r.refit is None:
+        _check_other_checkpoint("--out", state, mc, resumable=True)
+
+
+def _check_other_checkpoint(flag: str, path, mc: V2PConfig, resumable: bool = False) -> None:
+    """``flag``'s checkpoint loads (format, version) and is ``mc.system``'s; else a one-line
+    ``ValueError`` naming the flag, the file and both systems."""
+    try:
+        ck = load_checkpoint(checkpoint_path(path), expect_resumable=resumable)
+    except ValueError as e:
+        raise ValueError(f"{flag}: {e}") from None
+    theirs = (ck.get("config") or {}).get("system", "ball")
+    if theirs != mc.system:
+        what = "the run in it resumes" if resumable else "its weights start"
+        raise ValueError(f"{flag}: {Path(str(path)).name} is a model of the {theirs} system, "
+                         f"but this command trains the {mc.system} system's ({what} nothing "
+                         f"here; --no-resume or another --out)" if resumable else
+                         f"{flag}: {record_name(str(path))} is a model of the {theirs} system, "
+                         f"expected one of the {mc.system} system")
 
 
 def _command(argv) -> str:
@@ -1108,50 +1477,37 @@ def _command(argv) -> str:
 
 def main(argv=None) -> int:
     a = _parse(argv)
-    if a.system is not None:
-        own = presets.get(a.system)  # a user's system: a derived preset
-        if presets.get(a.preset).system != own.system:
-            if a.preset != _parser().get_default("preset"):
-                raise SystemExit(f"--system {a.system} takes its own preset, not --preset {a.preset}")
-            a.preset = own.name
+    r = a.run
     stages = _stages(a)  # checked before any training: a misspelt stage fails now, not at export
-    if a.refit is not None:
-        if not a.export:
-            raise SystemExit("--refit needs --export PATH")
-        print(fit_stages(a.refit, a.export, stages, threads=a.threads))
-        return 0
-    if a.out is None:
-        raise SystemExit("--out is required (the run's folder), except with --refit")
-    out = Path(a.out)
-    if a.export_only:
-        if not a.export:
-            raise SystemExit("--export-only needs --export PATH")
-        print(export(out / "state.pt", a.export, stages=stages))
-        return 0
-    base = V2PConfig.preset(a.preset).to_dict()
-    for name in base:
-        v = getattr(a, name, None)
-        if v is not None:
-            base[name] = v
-    if a.size is not None:
-        base["frame_size"] = list(a.size)
-    mc = V2PConfig(**base)
+    mc = _network(a)
     tc = _train_config(a, mc)
-    _, info = train(mc, tc, out=out, resume=not a.no_resume, device=a.device,
-                    max_minutes=a.max_minutes, stop_at=a.stop_at, progress=not a.no_progress,
-                    validate_on_stop=a.export_on_stop, time_schedule=a.time_schedule)
-    early = a.export_on_stop and info["stopped"] == "max_minutes"
-    if a.export and (info["done"] or early):
-        record = {"stopped": "max_minutes", "max_minutes": a.max_minutes} if early else {}
-        if a.time_schedule:
+    check_command(a, mc, tc)
+    if r.refit is not None:
+        print(fit_stages(r.refit, r.export, stages, threads=tc.threads))
+        return 0
+    out = Path(r.out)
+    if r.export_only:
+        print(export(out / "state.pt", r.export, stages=stages))
+        return 0
+    _, info = train(mc, tc, out=out, resume=r.resume, device=r.device,
+                    max_minutes=r.max_minutes, stop_at=r.stop_at, progress=r.progress,
+                    validate_on_stop=r.export_on_stop, time_schedule=r.time_schedule)
+    early = r.export_on_stop and info["stopped"] == "max_minutes"
+    if r.export and (info["done"] or early):
+        record = {"stopped": "max_minutes", "max_minutes": r.max_minutes} if early else {}
+        if r.time_schedule:
             record["time_schedule"] = True
         record["command"] = _command(argv)
-        print(export(out / "state.pt", a.export, stages=stages, record=record))
-        if a.export_warmup and (out / WARMUP_STATE).exists():
+        print(export(out / "state.pt", r.export, stages=stages, record=record))
+        if r.export_warmup and (out / WARMUP_STATE).exists():
             record["snapshot"] = "the end of the NLL-only warm-up"
-            print(export(out / WARMUP_STATE, a.export_warmup, stages=stages, record=record))
+            print(export(out / WARMUP_STATE, r.export_warmup, stages=stages, record=record))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except ValueError as exc:  # bad flags, before anything is trained: one line, as sysid-bench's
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
