@@ -112,7 +112,7 @@ def test_identify_holds_known_g_on_a_ball_clip(ball_clip, tmp_path, capsys, g, o
     res = json.load(open(out / "estimates.json"))
     know, last = res["knowledge"], res["estimates"][-1]
     assert know == {"known": {"g": g}, "prior": {"e": [0.7, 0.9]}, "held": True, "note": ""}
-    assert "not yet held" not in err
+    assert "not yet held" not in err and f"g = {g:g} held; e searched in 0.7 to 0.9" in err
     assert last["g_mean"] == g and last["g_std"] == 0.0 and 0.7 <= last["e_mean"] <= 0.9
     assert bool(last["check_ok"]) is ok and res["check"]["check_ok"] is ok
     if ok:

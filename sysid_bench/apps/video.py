@@ -328,6 +328,10 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         # the last estimate's model check (None: the method cannot tell)
         "check": last_check,
     }
+    if held:  # said as on the other systems (video_systems.identify_system_video)
+        said = [f"{k} = {v:g} held" for k, v in (known or {}).items()]
+        said += [f"{k} searched in {a:g} to {b:g}" for k, (a, b) in (prior or {}).items()]
+        notes.append(f"--known/--prior: {method} used them ({'; '.join(said)})")
     if cam is not None and cam.scale_rel_std > 0:
         std = widen_for_scale("ball", PARAMS, mean, std, cam.scale_rel_std)
         notes.append(f"the scale's {100 * cam.scale_rel_std:.2g}% uncertainty is added to the "
