@@ -580,11 +580,27 @@ class SimulationOnSystems(SimulationMethod):
         known, prior = getattr(self, "known", None), getattr(self, "prior", None)
         if not known and not prior:
             return {}, {}
-        if self._own_machinery():
-            raise ValueError(f"known/prior: expected none on the {self.system} ({self.name}'s "
-                             "fit there does not take known values or prior ranges yet), got "
-                             f"known={known!r}, prior={prior!r}")
         return check_knowledge(_system(self.system), known, prior)
+
+    def _prepare(self, obs: Observation):
+        """The own machinery's :class:`methods._tracks.Track` of ``obs``
+        (:func:`methods._tracks.prepare`), carrying the user's knowledge as its ``box``
+        (:class:`methods._simulation.ThetaBox`; None without any, so every figure without
+        knowledge is the one it was)."""
+        from methods._simulation import ThetaBox
+        from methods._tracks import prepare
+
+        track = prepare(obs)
+        known, prior = self._knowledge()
+        if known or prior:
+            track = dataclasses.replace(track, box=ThetaBox.of(known, prior))
+        return track
+
+    def _box(self, track):
+        """The parameter box of ``track`` (the user's, else the prior's)."""
+        from methods._simulation import box_of
+
+        return box_of(track)
 
     def _own_machinery(self) -> bool:
         return self.system in self.own_machinery

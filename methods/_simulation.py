@@ -29,11 +29,100 @@ from sysid_bench.core.estimator import Check, Estimator, Forecast, Observation, 
 from sysid_bench.core.physics import PRIOR_STD
 from sysid_bench.core.simulator import CountingSimulator
 
-__all__ = ["SimulationMethod", "Fit", "forecast_by_simulation", "make_rng", "Stopwatch",
+__all__ = ["SimulationMethod", "Fit", "ThetaBox", "PRIOR_BOX", "box_of", "forecast_by_simulation", "make_rng", "Stopwatch",
            "one_blas_thread", "model_check", "region_box", "region_check",
            "check_posterior", "widen_failed", "widen_to_support", "check_prefixes",
            "uninformed", "widen_uninformed", "refine_fit", "state0_box",
            "state0_half", "widen_by_discrepancy", "residual_tau"]
+
+@dataclass(frozen=True)
+class ThetaBox:
+    """The ball's parameter box a fit searches and samples and its check judges in: the prior
+    (``PRIOR``), with the user's ranges replacing it per parameter and held values as boxes of
+    width 0 (issue 38 §4; the generic path's :class:`methods._points.Problem` does the same).
+
+    Attributes
+    ----------
+    lo, hi : ndarray, shape (4,)
+        Physical units, ``PARAMS`` order; ``lo == hi`` for a held parameter.
+    known : dict of str -> float
+    prior : dict of str -> (float, float)
+    """
+
+    lo: np.ndarray
+    hi: np.ndarray
+    known: dict
+    prior: dict
+
+    @classmethod
+    def of(cls, known: dict | None = None, prior: dict | None = None) -> ThetaBox:
+        """The box of checked ``known``/``prior`` (:func:`sysid_bench.core.footage.check_knowledge`)."""
+        lo, hi = physics.PRIOR_LO.copy(), physics.PRIOR_HI.copy()
+        known, prior = dict(known or {}), dict(prior or {})
+        for name, (a, b) in {**prior, **{k: (v, v) for k, v in known.items()}}.items():
+            i = physics.PARAMS.index(name)
+            lo[i], hi[i] = float(a), float(b)
+        return cls(lo, hi, known, prior)
+
+    @property
+    def span(self) -> np.ndarray:
+        return self.hi - self.lo
+
+    @property
+    def std(self) -> np.ndarray:
+        """The uniform box's standard deviations (4,) (0 where held)."""
+        return self.span / np.sqrt(12.0)
+
+    @property
+    def held(self) -> np.ndarray:
+        """(4,) bool: the parameters held at a known value."""
+        return np.array([p in self.known for p in physics.PARAMS])
+
+    def normalise(self, theta) -> np.ndarray:
+        """Parameters (..., 4) to [0, 1] by the box (a held one to 0)."""
+        span = self.span
+        return (np.asarray(theta, dtype=np.float64) - self.lo) / np.where(span > 0, span, 1.0)
+
+    def denormalise(self, u) -> np.ndarray:
+        """Inverse of :meth:`normalise` (a held parameter is its value whatever ``u``)."""
+        return self.lo + np.asarray(u, dtype=np.float64) * self.span
+
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """``n`` uniform draws (n, 4) (held columns exactly their values)."""
+        return self.hold_samples(self.denormalise(rng.random((n, 4))))
+
+    def hold_samples(self, samples: np.ndarray) -> np.ndarray:
+        """``samples`` (N, 4) with the held columns set to their values (not ``lo + u * 0``'s
+        rounding)."""
+        for k, v in self.known.items():
+            samples[:, physics.PARAMS.index(k)] = v
+        return samples
+
+    def hold(self, post: Posterior) -> Posterior:
+        """``post`` with the held parameters exact (mean and every sample the value, std 0)
+        and ``extras["known"]``/``extras["prior"]`` saying what was held."""
+        mean, std = np.array(post.mean, dtype=float), np.array(post.std, dtype=float)
+        held = [physics.PARAMS.index(k) for k in self.known]
+        mean[held] = [self.known[k] for k in self.known]
+        std[held] = 0.0
+        samples = post.samples
+        if samples is not None:
+            samples = self.hold_samples(np.array(samples, dtype=float))
+        extras = {**post.extras, "known": dict(self.known),
+                  "prior": {k: [float(a), float(b)] for k, (a, b) in self.prior.items()}}
+        return Posterior(mean=mean, std=std, samples=samples, extras=extras, check=post.check,
+                         system=post.system)
+
+
+#: the box of a track without the user's knowledge: the prior
+PRIOR_BOX = ThetaBox(physics.PRIOR_LO, physics.PRIOR_HI, {}, {})
+
+
+def box_of(track) -> ThetaBox:
+    """The parameter box of ``track`` (its ``box``, else the prior's)."""
+    box = getattr(track, "box", None)
+    return PRIOR_BOX if box is None else box
+
 
 #: ``Check.note`` of a failed check whose intervals were widened
 WIDENED_NOTE = ("intervals widened to at least the prior's: the model at the reported "
@@ -245,36 +334,40 @@ def uninformed(sim: CountingSimulator, theta, state0, floor: float, track: Track
     if len(seen) and np.max(np.abs(seen - np.median(seen, axis=0))) <= 2.0 * float(noise_m):
         # a still track: its start explains it whatever the parameters (a sampler's start a
         # hair above the floor would make e look informed by bounces nobody saw)
-        return np.ones(4, dtype=bool)
+        return ~box_of(track).held
+    box = box_of(track)
     th = np.repeat(np.asarray(theta, dtype=np.float64)[None], 8, axis=0)
     for k in range(4):
-        th[2 * k, k], th[2 * k + 1, k] = physics.PRIOR_LO[k], physics.PRIOR_HI[k]
+        th[2 * k, k], th[2 * k + 1, k] = box.lo[k], box.hi[k]
     s0 = clip_state(np.repeat(np.asarray(state0, dtype=np.float64)[None], 8, axis=0), floor)
     pos = sim.positions(th, s0, track.n_frames, track.dt, float(floor))[:, track.mask]
     d2 = np.sum((pos[0::2] - pos[1::2]) ** 2, axis=(1, 2))
-    return d2 < UNINFORMED_CHI2 * float(noise_m) ** 2
+    # a held parameter is the user's value, not the track's to inform
+    return (d2 < UNINFORMED_CHI2 * float(noise_m) ** 2) & ~box.held
 
 
-def widen_uninformed(post: Posterior, flat: np.ndarray, seed: int = 0) -> Posterior:
+def widen_uninformed(post: Posterior, flat: np.ndarray, seed: int = 0,
+                     box: ThetaBox | None = None) -> Posterior:
     """``post`` with the parameters ``flat`` (4,) bool at least as wide as the prior: std at
     least the prior's, and their sample columns (if any) redrawn from the uniform prior
     (seeded), so intervals and quantiles say the data did not inform them."""
     flat = np.asarray(flat, dtype=bool)
     if not flat.any():
         return post
-    std = np.where(flat, np.maximum(post.std, PRIOR_STD), post.std)
+    box = PRIOR_BOX if box is None else box
+    std = np.where(flat, np.maximum(post.std, box.std), post.std)
     samples = post.samples
     if samples is not None:
         samples = np.array(samples, dtype=np.float64, copy=True)
         u = np.random.default_rng([seed, 29]).random((len(samples), 4))
-        prior = physics.PRIOR_LO + u * physics.PRIOR_SPAN
+        prior = box.lo + u * box.span
         samples[:, flat] = prior[:, flat]
     extras = {**post.extras, "uninformed": [p for p, f in zip(physics.PARAMS, flat) if f]}
     return Posterior(mean=np.asarray(post.mean), std=std, samples=samples, extras=extras,
                      check=post.check, system=post.system)
 
 
-def widen_failed(post: Posterior, check: Check) -> Posterior:
+def widen_failed(post: Posterior, check: Check, box: ThetaBox | None = None) -> Posterior:
     """``post`` with ``check``; when the check fails, spread at least the prior's.
 
     A failed check means the model, at the parameters the method reports, does not explain the
@@ -282,17 +375,20 @@ def widen_failed(post: Posterior, check: Check) -> Posterior:
     the standard deviation becomes at least the prior's (``PRIOR_STD``) and the samples (if
     any) are replaced by as many uniform prior draws (seeded), so every interval
     (``Posterior.interval``) holds at least the central 90% of the prior box. ``extras["check_failed"]`` says so.
+    ``box``: the prior with the user's ranges and held values (:class:`ThetaBox`; None: the
+    prior's).
     """
     if check.ok:
         post.check = check  # in place: a subclass's lazy samples stay lazy
         return post
     check = dataclasses.replace(check, note=check.note or WIDENED_NOTE)
-    prior_std = np.broadcast_to(PRIOR_STD, np.shape(post.std))
+    box = PRIOR_BOX if box is None else box
+    prior_std = np.broadcast_to(box.std, np.shape(post.std))
     extras = {**post.extras, "check_failed": True}
     samples = post.samples
     if samples is not None:
         # as many draws from the uniform prior (seeded): intervals and quantiles the prior's
-        samples = physics.sample_theta(len(samples), np.random.default_rng([29, len(samples)]))
+        samples = box.sample(len(samples), np.random.default_rng([29, len(samples)]))
     return Posterior(mean=np.asarray(post.mean), std=np.maximum(post.std, prior_std),
                      samples=samples, extras=extras, check=check, system=post.system)
 
@@ -509,18 +605,18 @@ def widen_to_support(post: Posterior, check: Check, sim: CountingSimulator, trac
     else:
         lo_s, hi_s = state0_box(track)
         s0 = np.clip(np.asarray(state0, dtype=np.float64), lo_s, hi_s)
+    box = box_of(track)
     try:
-        best, s0_best, rms = refine_fit(sim, track, np.clip(theta0, physics.PRIOR_LO,
-                                                             physics.PRIOR_HI),
+        best, s0_best, rms = refine_fit(sim, track, np.clip(theta0, box.lo, box.hi),
                                         s0, lo_s, hi_s, max_sims, tol=CHECK_TOL)
     except ValueError:
-        return widen_failed(post, check)
+        return widen_failed(post, check, box)
     if info is not None:
         info.update(theta=best, state0=s0_best, rms=rms)
     # judged on the floor the fit used
     if not model_check(sim, best, s0_best, track.floor, track, check.noise_m).ok:
         if DISCREPANCY_READING is None:
-            return widen_failed(post, check)
+            return widen_failed(post, check, box)
         return widen_by_discrepancy(post, check, sim, track, best, s0_best, seed=seed,
                                     reading=DISCREPANCY_READING)
     std = np.maximum(post.std, np.abs(best - post.mean))
@@ -529,7 +625,7 @@ def widen_to_support(post: Posterior, check: Check, sim: CountingSimulator, trac
         samples = np.asarray(samples, dtype=np.float64)
         ratio = np.where(post.std > 0, std / np.where(post.std > 0, post.std, 1.0), 1.0)
         samples = post.mean + (samples - post.mean) * ratio
-        samples = np.clip(samples, physics.PRIOR_LO, physics.PRIOR_HI)
+        samples = np.clip(samples, box.lo, box.hi)
     note = (f"the posterior mean misses the track by {check.rms_m:.3g} m RMS; intervals "
             f"widened to hold the best fit found from it ({rms:.3g} m RMS)")
     check = dataclasses.replace(check, note=note)
@@ -630,16 +726,18 @@ MEAN_NOTE = "passes at the posterior mean"
 REGION_NOTE = "passes inside the 90% interval"
 
 
-def region_box(post: Posterior, level: float = REGION_LEVEL) -> tuple[np.ndarray, np.ndarray]:
+def region_box(post: Posterior, level: float = REGION_LEVEL,
+               box: ThetaBox | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The posterior's central ``level`` box ``(lo, hi)``, (4,) each, inside the prior box.
 
     Per parameter, the interval a user reads (:meth:`Posterior.interval`): the samples'
     ``(1 - level) / 2`` and ``(1 + level) / 2`` quantiles when there are samples, else
     ``mean -/+ z std`` (1.645 std at 90%); an infinite or NaN side is the prior's bound.
     """
+    b = PRIOR_BOX if box is None else box
     lo, hi = post.interval(level)
-    lo = np.clip(np.where(np.isnan(lo), physics.PRIOR_LO, lo), physics.PRIOR_LO, physics.PRIOR_HI)
-    hi = np.clip(np.where(np.isnan(hi), physics.PRIOR_HI, hi), physics.PRIOR_LO, physics.PRIOR_HI)
+    lo = np.clip(np.where(np.isnan(lo), b.lo, lo), b.lo, b.hi)
+    hi = np.clip(np.where(np.isnan(hi), b.hi, hi), b.lo, b.hi)
     return np.minimum(lo, hi), np.maximum(lo, hi)
 
 
@@ -662,7 +760,7 @@ def region_check(sim: CountingSimulator, post: Posterior, track: Track, state0: 
     A wide posterior whose mean drifts off the track across bounces passes when its interval
     holds parameters that fit; a narrow one off the truth cannot move far enough and fails.
     """
-    lo_t, hi_t = region_box(post)
+    lo_t, hi_t = region_box(post, box=box_of(track))
     theta = np.clip(np.asarray(post.mean, dtype=np.float64), lo_t, hi_t)
     s0 = np.asarray(state0, dtype=np.float64)
     stages = REGION_STAGES
@@ -737,7 +835,7 @@ def check_posterior(post: Posterior, sim: CountingSimulator, track: Track, state
                               **budget)
         info["region"] = (r_info["theta"], r_info["state0"])
         info["best_sse"] = min(info["best_sse"], region.rms_m ** 2 * region.n)
-        post.extras["region_box"] = [b.tolist() for b in region_box(post)]
+        post.extras["region_box"] = [b.tolist() for b in region_box(post, box=box_of(track))]
         post.extras["region_rms_m"] = region.rms_m
         post.extras["mean_rms_m"] = check.rms_m
         if region.ok:
@@ -751,11 +849,11 @@ def check_posterior(post: Posterior, sim: CountingSimulator, track: Track, state
         # a track that cannot inform a parameter (a ball at rest: e, g, d) supports no
         # interval narrower than the prior's, however the method ended up
         flat = uninformed(sim, theta, s0, fl, track, noise_m)
-        post = widen_uninformed(post, flat, seed=seed)
+        post = widen_uninformed(post, flat, seed=seed, box=box_of(track))
         post.check = check  # in place: a subclass's lazy samples stay lazy
         return post
     if not search:
-        return widen_failed(post, dataclasses.replace(check, note=UNSEARCHED_NOTE))
+        return widen_failed(post, dataclasses.replace(check, note=UNSEARCHED_NOTE), box_of(track))
     s_info: dict = {}
     post = widen_to_support(post, check, sim, track, s0, fl,
                             start=support_start or info["region"], info=s_info, seed=seed,
@@ -786,9 +884,19 @@ def refine_fit(sim: CountingSimulator, track: Track, theta0, s00, lo_s, hi_s, ma
     free = lo_s is not None
     if not (free or fit_theta):
         raise ValueError("fit_theta: expected True when the initial state is held (no box)")
+    box = box_of(track)
     theta0 = np.asarray(theta0, dtype=np.float64)
     s00 = np.asarray(s00, dtype=np.float64)
-    nt = 4 if fit_theta else 0
+    # the parameters fitted: all four but the held ones (the user's known values)
+    free_t = np.flatnonzero(~box.held) if fit_theta else np.empty(0, dtype=int)
+    if fit_theta and box.held.any():
+        theta0 = box.hold_samples(theta0[None].copy())[0]
+        if free_t.size == 0 and not free:  # everything held: nothing to fit
+            return theta0, s00, float(np.sqrt(np.mean(
+                (sim.positions(theta0[None], s00[None], track.n_frames, track.dt, track.floor)
+                 [0, track.mask] - track.positions[track.mask]) ** 2)))
+        fit_theta = free_t.size > 0
+    nt = free_t.size
     D = nt + (4 if free else 0)
     mask = track.mask
     obs = track.positions[mask].ravel()
@@ -797,18 +905,19 @@ def refine_fit(sim: CountingSimulator, track: Track, theta0, s00, lo_s, hi_s, ma
     # zero-width side is opened by 1e-9 so the optimiser's strict bounds hold)
     lb, ub = np.zeros(D), np.ones(D)
     if fit_theta and theta_box is not None:
-        lb[:4] = np.clip(physics.normalise_theta(np.asarray(theta_box[0], np.float64)[None])[0],
-                         0.0, 1.0)
-        ub[:4] = np.clip(physics.normalise_theta(np.asarray(theta_box[1], np.float64)[None])[0],
-                         0.0, 1.0)
-        lb[:4] = np.minimum(lb[:4], ub[:4])
-        point = ub[:4] - lb[:4] < 1e-9
-        lb[:4] = np.where(point, np.minimum(lb[:4], 1.0 - 1e-9), lb[:4])
-        ub[:4] = np.where(point, lb[:4] + 1e-9, ub[:4])
+        lb[:nt] = np.clip(box.normalise(np.asarray(theta_box[0], np.float64))[free_t], 0.0, 1.0)
+        ub[:nt] = np.clip(box.normalise(np.asarray(theta_box[1], np.float64))[free_t], 0.0, 1.0)
+        lb[:nt] = np.minimum(lb[:nt], ub[:nt])
+        point = ub[:nt] - lb[:nt] < 1e-9
+        lb[:nt] = np.where(point, np.minimum(lb[:nt], 1.0 - 1e-9), lb[:nt])
+        ub[:nt] = np.where(point, lb[:nt] + 1e-9, ub[:nt])
+    u_held = box.normalise(theta0)  # the held parameters' unit coordinates (their values)
 
     def unpack(U):
         if fit_theta:
-            th = physics.denormalise_theta(np.clip(U[:, :4], lb[:4], ub[:4]))
+            uu = np.repeat(u_held[None], len(U), axis=0)
+            uu[:, free_t] = np.clip(U[:, :nt], lb[:nt], ub[:nt])
+            th = box.hold_samples(box.denormalise(uu)) if box.known else box.denormalise(uu)
         else:
             th = np.broadcast_to(theta0, (len(U), 4))
         if free:
@@ -824,7 +933,7 @@ def refine_fit(sim: CountingSimulator, track: Track, theta0, s00, lo_s, hi_s, ma
 
     x0 = np.empty(D)
     if fit_theta:
-        x0[:4] = physics.normalise_theta(theta0[None])[0]
+        x0[:nt] = box.normalise(theta0)[free_t]
     if free:
         x0[nt:] = np.where(span_s > 0, (s00 - lo_s) / np.where(span_s > 0, span_s, 1.0), 0.5)
     x0 = np.clip(x0, lb, ub)
@@ -909,7 +1018,9 @@ class Fit:
         parameter vector inside the 90% interval; failed: :func:`widen_to_support`;
         parameters the track cannot inform widened to the prior, :func:`uninformed`);
         the check's simulations are in ``extras["check_simulations"]``, not in
-        ``n_simulations``."""
+        ``n_simulations``. With the user's knowledge (``track.box``) the check judges the
+        trajectories of the held values and searches and widens inside the user's ranges; the
+        held parameters come back exact (:meth:`ThetaBox.hold`)."""
         w = self.weights
         s0 = self.state0_point
         if s0 is None:
@@ -923,6 +1034,8 @@ class Fit:
         post = check_posterior(self.posterior, sim, self.track, s0, float(fl), noise,
                                fit_state0=self.check_fits_state0, seed=self.track.n_frames)
         post.extras["check_simulations"] = sim.n_simulations
+        if self.track.box is not None:  # the user's held values exact, whatever the widening
+            post = self.track.box.hold(post)
         return post
 
 

@@ -356,6 +356,10 @@ class Track:
     state0_refit : bool
         The estimated start was refitted on the frames before an early contact
         (:func:`start_before_contact`).
+    box : ThetaBox, optional
+        The parameter box the fit and its model check search and sample
+        (:class:`methods._simulation.ThetaBox`: the user's ranges and held values); None: the
+        prior, ``PRIOR``.
     """
 
     positions: np.ndarray
@@ -371,6 +375,7 @@ class Track:
     input_kind: str
     noise: float
     state0_refit: bool = False
+    box: object = None
 
     @property
     def n_frames(self) -> int:

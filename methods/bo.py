@@ -37,12 +37,10 @@ import numpy as np
 
 from methods._points import Points, PointsFit, SimulationOnSystems, prepare_points
 from methods._simulation import Fit, Stopwatch, make_rng, one_blas_thread
-from methods._tracks import clip_state, prepare
+from methods._tracks import clip_state
 from methods._weights import resample, tempered_weights
-from sysid_bench.core import physics
 from sysid_bench.core._validate import check_positive_int
 from sysid_bench.core.estimator import Observation, Posterior
-from sysid_bench.core.physics import PRIOR_MEAN, PRIOR_STD
 from sysid_bench.core.simulator import CountingSimulator, check_sigma, mean_sq_error
 
 __all__ = ["BayesOpt"]
@@ -181,12 +179,23 @@ class BayesOpt(SimulationOnSystems):
         if self.acq_func not in ("EI", "PI", "LCB", "gp_hedge"):
             raise ValueError(f"acq_func: expected an skopt acquisition such as 'EI', got {self.acq_func!r}")
         rng = make_rng(self.seed, 0)
-        track = prepare(obs)
+        track = self._prepare(obs)  # with the user's knowledge, if any, as its box
+        box = self._box(track)
+        free_t = np.flatnonzero(~box.held)  # the GP searches the parameters not held
+        nf = free_t.size
         sim = CountingSimulator()
         s0 = track.state0[None]
 
+        def full(u):
+            """Unit coordinates of the free parameters (..., nf) -> all four (..., 4)."""
+            if nf == 4:
+                return u
+            uu = np.zeros(np.shape(u)[:-1] + (4,))
+            uu[..., free_t] = u
+            return uu
+
         def objective(u):
-            theta = physics.denormalise_theta(np.asarray(u, dtype=np.float64)[None])
+            theta = box.denormalise(full(np.asarray(u, dtype=np.float64)[None]))
             pos = sim.positions(theta, s0, track.n_frames, track.dt, track.floor)
             return float(np.log(max(mean_sq_error(pos, track.positions, track.mask)[0], _MSE_FLOOR)))
 
@@ -197,7 +206,7 @@ class BayesOpt(SimulationOnSystems):
                 # skopt warns when it re-proposes a point already evaluated; that is not a failure
                 warnings.simplefilter("ignore", UserWarning)
                 res = gp_minimize(
-                    objective, [(0.0, 1.0)] * 4, n_calls=n_calls, n_initial_points=n_init,
+                    objective, [(0.0, 1.0)] * nf, n_calls=n_calls, n_initial_points=n_init,
                     acq_func=self.acq_func, random_state=int(rng.integers(2**31)),
                     initial_point_generator=self.initial_point_generator,
                 )
@@ -209,12 +218,12 @@ class BayesOpt(SimulationOnSystems):
 
         n_seen = track.n_seen
         if u_best is None:
-            mean, std, samples = PRIOR_MEAN.copy(), PRIOR_STD.copy(), physics.sample_theta(n_sur, rng)
+            mean, std, samples = (box.lo + box.hi) / 2, box.std, box.sample(n_sur, rng)
             w = np.full(n_sur, 1.0 / n_sur)
             ess, beta = float(n_sur), 0.0
         else:
             # the surrogate's view of the whole prior, turned into likelihood weights
-            u = np.vstack([rng.random((n_sur, 4)), np.asarray(res.x_iters, dtype=np.float64)])
+            u = np.vstack([rng.random((n_sur, nf)), np.asarray(res.x_iters, dtype=np.float64)])
             model = res.models[-1] if res.models else None
             if model is not None:
                 log_mse = model.predict(res.space.transform(u.tolist()))
@@ -225,8 +234,8 @@ class BayesOpt(SimulationOnSystems):
             sigma_eff = max(sigma, float(np.sqrt(np.exp(best_log_mse))))
             ll = -n_seen * np.exp(log_mse) / sigma_eff**2  # -0.5 * SSE / s^2, SSE = 2 n mse
             w, beta, ess = tempered_weights(ll, min_ess)
-            samples = physics.denormalise_theta(u)
-            mean = physics.denormalise_theta(u_best)
+            samples = box.denormalise(full(u))
+            mean = box.denormalise(full(u_best))
             std = np.sqrt(np.sum(w[:, None] * (samples - mean) ** 2, axis=0))
             info["sigma_eff"] = sigma_eff
         idx = resample(w, max(min(n_sur // 4, 1024), 1), rng)

@@ -50,12 +50,11 @@ import warnings
 import numpy as np
 
 from methods._points import Points, PointsFit, SimulationOnSystems, draw_inside, refine, search
-from methods._simulation import Fit, Stopwatch, make_rng, one_blas_thread
-from methods._tracks import clip_state, prepare
+from methods._simulation import Fit, Stopwatch, box_of, make_rng, one_blas_thread
+from methods._tracks import clip_state
 from sysid_bench.core import physics
 from sysid_bench.core._validate import check_number, check_positive_int
 from sysid_bench.core.estimator import Observation, Posterior
-from sysid_bench.core.physics import PRIOR_SPAN as SPAN
 from sysid_bench.core.simulator import (
     CountingSimulator,
     check_sigma,
@@ -81,6 +80,9 @@ class _Problem:
         self.track = track
         self.sigma = sigma
         self.sim = sim
+        # the prior's box, or the user's (a held parameter's coordinate then moves nothing:
+        # every draw holds its value, as the generic path's Problem does)
+        self.box = box_of(track)
         self.nuisance = not track.state0_known
         self.floor_free = not track.floor_known
         self.ndim = 4 + 4 * self.nuisance + self.floor_free
@@ -94,7 +96,7 @@ class _Problem:
 
     def split(self, z: np.ndarray):
         """(..., ndim) -> theta (..., 4), state0 (..., 4), floor (...) in physical units."""
-        theta = physics.denormalise_theta(z[..., :4])
+        theta = self.box.denormalise(z[..., :4])
         if self.nuisance:
             s0 = self.track.state0 + z[..., 4:8] * self.scale
         else:
@@ -377,7 +379,7 @@ class Emcee(SimulationOnSystems):
         # a start extrapolated back across an early contact is refitted on the frames before it
         # (``prepare``: ``start_before_contact``): else the start's prior box (standard errors
         # around it) can exclude the truth
-        track = prepare(obs)
+        track = self._prepare(obs)  # with the user's knowledge, if any, as its box
         sim = CountingSimulator()
         prob = _Problem(track, sigma, box, sim)
         if n_walkers < 2 * prob.ndim or n_walkers % 2:
@@ -394,7 +396,7 @@ class Emcee(SimulationOnSystems):
 
         theta, s0, floors = prob.split(chain)
         std = theta.std(axis=0)
-        lap_std = np.sqrt(np.diag(cov)[:4]) * SPAN
+        lap_std = np.sqrt(np.diag(cov)[:4]) * prob.box.span
         if not converged:
             std = np.maximum(std, lap_std)
         extras = {

@@ -50,9 +50,8 @@ from methods._simulation import (
     state0_box,
     state0_half,
 )
-from methods._tracks import clip_state, prepare
+from methods._tracks import clip_state
 from methods._weights import resample, tempered_weights
-from sysid_bench.core import physics
 from sysid_bench.core._validate import check_positive_int
 from sysid_bench.core.estimator import Observation, Posterior
 from sysid_bench.core.simulator import (
@@ -173,8 +172,8 @@ class LSQ(SimulationOnSystems):
         sigma = check_sigma(self._sigma())
         min_ess = check_positive_int(self.min_ess, "min_ess")
         rng = make_rng(self.seed, 0)
-        track = prepare(obs)
-        theta = physics.sample_theta(n, rng)
+        track = self._prepare(obs)  # with the user's knowledge, if any, as its box
+        theta = self._box(track).sample(n, rng)
         if track.state0_known:
             s0 = np.broadcast_to(track.state0, (n, 4))
         else:

@@ -152,8 +152,8 @@ from methods._points import (
     search,
     sq_error,
 )
-from methods._simulation import Fit, Stopwatch, make_rng
-from methods._tracks import clip_state, prepare
+from methods._simulation import Fit, Stopwatch, box_of, make_rng
+from methods._tracks import clip_state
 from sysid_bench.core import physics
 from sysid_bench.core import physics_jax as pj
 from sysid_bench.core._validate import check_positive_int
@@ -271,15 +271,18 @@ def _state_box(floor):
     return lo, span
 
 
-def _physical(x, floor, s0_fixed, free_state, free_floor=False):
+def _physical(x, floor, s0_fixed, free_state, free_floor=False, box=None):
     """Unconstrained (logit) coordinates x (..., D) -> theta (..., 4), state0 (..., 4), floor.
 
     ``floor`` is the floor (a scalar) when it is known, else ``[lo, span]`` (2,) of its prior
     interval, and the floor is ``lo + span * sigmoid(x[..., -1])``, shape (...). A sampled
     initial state's height is uniform on ``[floor, floor + BOX_WIDTH]`` for its own floor.
+    ``box``: ``(lo, span)`` (4,) each, the user's parameter box (a held parameter's span 0);
+    None: the prior's.
     """
     u = jax.nn.sigmoid(x)
-    theta = _LO + _SPAN * u[..., :4]
+    lo, span = (_LO, _SPAN) if box is None else box
+    theta = lo + span * u[..., :4]
     if free_floor:
         floor = floor[0] + floor[1] * u[..., -1]
     if free_state:
@@ -297,12 +300,13 @@ def _model(data, *, n_frames, dt, free_state, free_floor=False):
     data (the Laplace mode and Cholesky factor of its covariance), so NUTS sees a roughly
     isotropic target and one compiled sampler serves every observation of a given length.
     """
-    obs_pos, mask, floor, sigma, s0_fixed, x_ref, chol = data
+    obs_pos, mask, floor, sigma, s0_fixed, x_ref, chol = data[:7]
+    box = data[7] if len(data) > 7 else None  # the user's (lo, span); absent: the prior's
     D = _dim(free_state, free_floor)
     z = numpyro.sample("z", dist.ImproperUniform(dist.constraints.real_vector, (), event_shape=(D,)))
     x = x_ref + chol @ z
     log_prior = jnp.sum(jax.nn.log_sigmoid(x) + jax.nn.log_sigmoid(-x))
-    theta, state0, fl = _physical(x, floor, s0_fixed, free_state, free_floor)
+    theta, state0, fl = _physical(x, floor, s0_fixed, free_state, free_floor, box)
     ll = _loglik(theta, state0, (obs_pos, mask, fl, sigma), n_frames, dt, free_state, free_floor)
     numpyro.factor("log_post", ll + log_prior)
 
@@ -357,9 +361,9 @@ def _bucket(n, size):
 class _Potential:
     """Potential energy and gradient in plain logit coordinates x (D,), counting evaluations."""
 
-    def __init__(self, pe_vg, data_base, D):
+    def __init__(self, pe_vg, data_base, D, extra=()):
         self.pe_vg, self.base, self.D, self.n = pe_vg, data_base, D, 0
-        self._data = data_base + (jnp.zeros(D), jnp.eye(D))
+        self._data = data_base + (jnp.zeros(D), jnp.eye(D)) + tuple(extra)
 
     def __call__(self, x):
         self.n += 1
@@ -459,8 +463,9 @@ def _search(sim, track, sigma, free, rng, n, rounds, n_starts, floor_box=None):
         v[:, -1] = np.clip((floor - floor_box[0]) / floor_box[1], _EPS, 1 - _EPS)
     pool_v, pool_ll = np.empty((0, D)), np.empty(0)
     n_elite = max(10, n // 20)
+    box = box_of(track)  # the prior's, or the user's ranges and held values
     for r in range(rounds):
-        theta = PRIOR_LO + PRIOR_SPAN * v[:, :4]
+        theta = box.lo + box.span * v[:, :4]
         state = lo_s + span_s * v[:, 4:8] if free else np.repeat(track.state0[None], n, 0)
         fl = floor
         if free_floor:
@@ -653,7 +658,7 @@ class NUTS(SimulationOnSystems):
         sigma = self._check()
         # a start extrapolated back across an early contact is refitted on the frames before
         # it (``prepare``: ``start_before_contact``); the search starts there
-        track = prepare(obs)
+        track = self._prepare(obs)  # with the user's knowledge, if any, as its box
         sim = CountingSimulator()
         T, dt, floor = track.n_frames, track.dt, track.floor
         Tb = _bucket(T, int(self.frame_bucket))
@@ -696,14 +701,19 @@ class NUTS(SimulationOnSystems):
             Tb, dt, free, int(self.num_warmup), int(self.num_samples),
             bool(self.dense_mass), float(self.target_accept), int(self.max_tree_depth), free_floor,
         )
-        pot = _Potential(pe_vg, base, D)
+        # the user's knowledge: the parameter box as data after the whitening (one compiled
+        # sampler for every box; without it the data and the compiled model are as they were)
+        box = None if track.box is None else (jnp.asarray(track.box.lo),
+                                              jnp.asarray(track.box.span))
+        extra = () if box is None else (box,)
+        pot = _Potential(pe_vg, base, D, extra)
         x_map, cov, lap_info = _laplace(pot, starts)
         sim.n_simulations += pot.n
         chol = np.linalg.cholesky(cov)
 
         # 3. NUTS in the whitened coordinates z (x = x_map + chol z), chains started near z = 0
         nc = int(self.num_chains)
-        data = base + (jnp.asarray(x_map), jnp.asarray(chol))
+        data = base + (jnp.asarray(x_map), jnp.asarray(chol)) + extra
         keys = jax.random.split(jax.random.PRNGKey(int(self.seed)), nc)
         zs, steps, divs, step_sizes = [], [], [], []
         for c in range(nc):
@@ -721,7 +731,8 @@ class NUTS(SimulationOnSystems):
         x = x_map + z @ chol.T
         fl_arg = base[2] if free_floor else floor  # the floor's prior interval, or the floor
         th, s0s, fls = (
-            np.asarray(a) for a in _physical(jnp.asarray(x), fl_arg, jnp.asarray(s0_est), free, free_floor)
+            np.asarray(a) for a in _physical(jnp.asarray(x), fl_arg, jnp.asarray(s0_est), free, free_floor,
+                                             box)
         )
         rhat = np.asarray(split_gelman_rubin(th))
         ess = np.asarray(effective_sample_size(th))
@@ -729,15 +740,18 @@ class NUTS(SimulationOnSystems):
         n_div = int(div.sum())
         frac_div = n_div / div.size
         problems = []
-        if not np.all(rhat[:3] < 1.05):
+        # a held parameter is constant: nothing to converge (its R-hat is NaN)
+        judged = ~self._box(track).held[:3]
+        if not np.all(rhat[:3][judged] < 1.05):
             problems.append(f"R-hat {np.round(rhat[:3], 3).tolist()} (e, g, d) not all < 1.05")
-        if not np.all(ess[:3] >= 50):
+        if not np.all(ess[:3][judged] >= 50):
             problems.append(f"ESS {np.round(ess[:3], 1).tolist()} (e, g, d) not all >= 50")
         if frac_div >= 0.02:
             problems.append(f"{n_div} divergent transitions ({100 * frac_div:.1f}%)")
         # how well the mode fits: a wrong basin or a misspecified model shows as RMS >> sigma
         th_map, s0_map, fl_map = (
-            np.asarray(a) for a in _physical(jnp.asarray(x_map), fl_arg, jnp.asarray(s0_est), free, free_floor)
+            np.asarray(a) for a in _physical(jnp.asarray(x_map), fl_arg, jnp.asarray(s0_est), free,
+                                             free_floor, box)
         )
         fl_map = float(fl_map) if free_floor else floor
         fit = sim.positions(th_map[None], s0_map[None], T, dt, fl_map)

@@ -66,12 +66,6 @@ def test_a_method_that_cannot_hold_knowledge_says_so(name, system, opt, value):
     methods.get(name, system=system, **{opt: {}})  # nothing known: nothing to refuse
 
 
-@pytest.mark.parametrize("name", ["lsq", "bo", "emcee", "nuts"])
-def test_the_balls_own_fit_refuses_knowledge_by_name(name):
-    with pytest.raises(ValueError, match=rf"known/prior: .*{name}'s fit"):
-        methods.get(name, system="ball", known={"g": -9.8})
-
-
 @pytest.mark.slow  # ~100 s under load: the sampler's compilation
 def test_nuts_holds_a_known_parameter_and_keeps_inside_a_range():
     system, theta, obs = _pendulum()

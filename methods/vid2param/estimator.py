@@ -905,6 +905,12 @@ class Vid2ParamPhysics(Vid2Param):
     """
 
     name = "vid2param-physics"
+    #: why ``known``/``prior`` are refused (issue 38 §4): the physics stage is not a fit of its
+    #: own but the network's answer refined, and that answer is joint in all four parameters
+    knowledge_refused = (
+        "its physics stage fits the track with the network's joint posterior over all four "
+        "parameters as its prior, inferred without the held value or range; holding one would "
+        "need that posterior conditioned on it and the fit's held coordinates fixed (not done)")
     #: the ball's physics fitted to the ball's network (no other system has either)
     systems = ("ball",)
     default_forecast = "physics"

@@ -104,12 +104,16 @@ class IdentifyResult:
     check: np.ndarray | None = None
 
 
-def _estimator(method: str, checkpoint: str | None, seed: int):
-    """The method with ``checkpoint`` (only for a method that takes one) and ``seed``."""
+def _estimator(method: str, checkpoint: str | None, seed: int, known: dict | None = None,
+               prior: dict | None = None):
+    """The method with ``checkpoint`` (only for a method that takes one) and ``seed``, holding
+    ``known``/``prior`` where it takes them (:func:`_takes_knowledge`)."""
     import methods
 
     params = methods.get_class(method)._param_names()
     opts = {"seed": seed} if "seed" in params else {}
+    if (known or prior) and _takes_knowledge(method):
+        opts.update(known=dict(known or {}), prior=dict(prior or {}))
     if checkpoint is not None:
         if "checkpoint" not in params:
             takes = [m for m in methods.available()
@@ -208,7 +212,9 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     if method not in methods.available(include_reference=True):
         raise ValueError(f"method: expected one of {', '.join(methods.available())}, got "
                          f"{method!r}")
-    est = _estimator(method, checkpoint, seed)  # bad options fail before the file is read
+    # bad options fail before the file is read; known/prior held where the method takes them
+    est = _estimator(method, checkpoint, seed, known, prior)
+    held = bool(known or prior) and _takes_knowledge(method)
     if camera and geometry and any(v is not None for v in geometry.values()):
         raise ValueError("camera: give a camera (px_per_m, object_size_m, walls) or the "
                          "renderer's box geometry (corners, wall_col), not both")
@@ -310,7 +316,7 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         "rotate": int(rotate),
         "window_s": [start, end],
         "capture_fps": capture_fps,
-        "knowledge": knowledge_record(known or {}, prior or {}, method,
+        "knowledge": knowledge_record(known or {}, prior or {}, method, held=held,
                                       why=_knowledge_refused(method)),
         "ball_found": found,
         "frames_with_ball": trk.n_found,
@@ -322,10 +328,17 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         # the last estimate's model check (None: the method cannot tell)
         "check": last_check,
     }
+    if held:  # said as on the other systems (video_systems.identify_system_video)
+        said = [f"{k} = {v:g} held" for k, v in (known or {}).items()]
+        said += [f"{k} searched in {a:g} to {b:g}" for k, (a, b) in (prior or {}).items()]
+        notes.append(f"--known/--prior: {method} used them ({'; '.join(said)})")
     if cam is not None and cam.scale_rel_std > 0:
         std = widen_for_scale("ball", PARAMS, mean, std, cam.scale_rel_std)
         notes.append(f"the scale's {100 * cam.scale_rel_std:.2g}% uncertainty is added to the "
                      "std of g, d and r")
+        if held and known:  # a held value is the user's, not measured through the scale
+            cols = [PARAMS.index(k) for k in known]
+            std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
     res = IdentifyResult(mean, std, pos, fmean, fstd, info, check)
     res.info["estimated"] = estimated
     return res
@@ -755,10 +768,20 @@ def run(args) -> int:
     return 0
 
 
-def _knowledge_refused(method: str) -> str:
-    """Why ``method`` holds no known values or prior ranges on the ball (its declared reason,
-    else the ball's own fit's)."""
+def _takes_knowledge(method: str) -> bool:
+    """Whether ``method`` holds ``known``/``prior`` on the ball (it takes both
+    hyperparameters: lsq, bo, emcee, nuts and prior do)."""
     import methods
 
+    return {"known", "prior"} <= set(methods.get_class(method, "ball")._param_names())
+
+
+def _knowledge_refused(method: str) -> str:
+    """Why ``method`` holds no known values or prior ranges on the ball (its declared reason);
+    empty for a method that holds them (:func:`_takes_knowledge`)."""
+    import methods
+
+    if _takes_knowledge(method):
+        return ""
     return getattr(methods.get_class(method, "ball"), "knowledge_refused",
-                   "the ball's fits do not take them yet")
+                   "it does not take known values or prior ranges")

@@ -1498,7 +1498,7 @@ def knowledge_record(known: dict, prior: dict, method: str, held: bool = False,
     if (known or prior) and not held:
         note = (f"not yet held: {method} does not take known values or prior ranges here"
                 f"{f' ({why})' if why else ''}; its estimates above are its own, over its "
-                "default prior (lsq, bo, emcee, nuts and prior hold them on the systems)")
+                "default prior (lsq, bo, emcee, nuts and prior hold them)")
     return {"known": {k: float(v) for k, v in (known or {}).items()},
             "prior": {k: [float(a), float(b)] for k, (a, b) in (prior or {}).items()},
             "held": bool(held), "note": note}
