@@ -212,7 +212,8 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     if camera and geometry and any(v is not None for v in geometry.values()):
         raise ValueError("camera: give a camera (px_per_m, object_size_m, walls) or the "
                          "renderer's box geometry (corners, wall_col), not both")
-    clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps)
+    clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps,
+                      colour=bool(camera))
     frames = rotate_frames(clip.frames, int(rotate))
     t_n, h, w = frames.shape
     # progress bars on long files, on a terminal (or when asked)
@@ -222,7 +223,8 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     notes = list(clip.notes)
     cam = None
     if camera:
-        trk = find_object(frames, progress=show)
+        trk = find_object(frames, progress=show, colour=None if clip.colour_frames is None
+                          else rotate_frames(clip.colour_frames, int(rotate)))
         if trk.n_found < 3:
             raise VideoError(f"{path}: the ball was found in {trk.n_found} of {t_n} frames; "
                              "the camera and the methods need a track (at least 3 frames)")
@@ -624,14 +626,15 @@ def _camera_options(args, system: str, known: dict) -> dict | None:
         opts["pivot"] = args.pivot
     if system == "spring":
         opts["anchor"] = args.anchor
-    by_length = system == "pendulum" and "L" in known
+    # the pendulum's scale from a known length (the arc's radius) or a known g (its period)
+    by_length = system == "pendulum" and ("L" in known or "g" in known)
     if not any(v is not None for v in opts.values()) and not by_length:
         return None  # framed as the system's renderer draws it
     if not scale and not by_length:
         placed = next(_flag(k) for k, v in opts.items() if v is not None)
         raise ValueError(f"{placed}: the {system}'s scale is not known: give --px-per-m or "
-                         "--object-size-m" + (" or --known L=..." if system == "pendulum"
-                                              else ""))
+                         "--object-size-m" + (", --known L=... or --known g=..."
+                                              if system == "pendulum" else ""))
     return opts
 
 
