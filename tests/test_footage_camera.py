@@ -313,3 +313,18 @@ def test_colour_follows_a_hued_object_not_its_shadow_or_its_ghost():
     assert err.max() < 2.0  # the bob, not its shadow 25 px to the right
     with pytest.raises(ValueError, match="^colour: "):
         find_object(grey, colour=col[:5])
+
+
+def test_scale_from_fall_reads_the_scale_through_bounces_and_drag():
+    from sysid_bench.core import systems
+
+    ball = systems.get("ball")
+    theta = np.array([[0.8, -9.81, 0.03, 0.2]])  # e, g, d, r
+    st = ball.simulate(theta, np.array([[2.0, 6.0, 1.5, 0.0]]), 120)
+    xy = st[0, :, :2]
+    pix = np.stack([100 + 400 * xy[:, 0], 3000 - 400 * xy[:, 1]], 1)
+    pix[5::9] = np.nan
+    s, rel = footage.scale_from_fall(pix, -9.81, 0.05, 0.035 * 400)
+    assert abs(s - 400) < 0.03 * 400 and 0 < rel < 0.03
+    with pytest.raises(ValueError, match="^known: .*does not fall"):
+        footage.scale_from_fall(pix * np.array([1, -1]), -9.81, 0.05, 14.0)

@@ -1206,6 +1206,58 @@ def swing_frequency(pix, pivot, dt: float) -> tuple[float, float, float]:
     return w0, w_std / w, a_med
 
 
+def scale_from_fall(pix, g: float, dt: float, radius_px: float) -> tuple[float, float]:
+    """A camera's scale from a falling object's curvature and a known g: ``(px_per_m, rel_std)``.
+
+    In flight the row's second difference is ``|g| s dt**2`` pixels a frame squared; the median
+    over every three consecutive seen frames away from the floor (the track's lowest two
+    radii: bounces and rolling) is robust to the few triples that straddle a bounce, and air
+    drag, which adds to g on the way down and takes from it on the way up, cancels to first
+    order over rises and falls.
+
+    Parameters
+    ----------
+    pix : ndarray, shape (T, 2)
+        The object's ``(col, row)`` per frame, rows down, NaN where not seen.
+    g : float
+        Gravity, m/s^2 (its sign is ignored).
+    dt : float
+        Seconds between frames.
+    radius_px : float
+        The object's radius, px.
+
+    Returns
+    -------
+    px_per_m : float
+    rel_std : float
+        Relative standard deviation of the scale (the median's, from the spread).
+
+    Raises
+    ------
+    ValueError
+        Fewer than 4 triples in flight, or no downward curvature (named ``known``).
+    """
+    pix = np.asarray(pix, dtype=np.float64)
+    if not math.isfinite(g) or g == 0:
+        raise ValueError(f"known: expected g != 0 m/s^2, got {g!r}")
+    row = pix[:, 1]
+    dd = row[2:] - 2 * row[1:-1] + row[:-2]
+    low = np.nanmax(row) if np.isfinite(row).any() else np.nan
+    ok = np.isfinite(dd) & (row[1:-1] < low - 2.0 * float(radius_px))
+    if ok.sum() < 4:
+        raise ValueError(f"known: g gives the scale through the ball's fall; {int(ok.sum())} "
+                         "runs of three frames in flight were seen (at least 4 needed): give "
+                         "px_per_m or object_size_m")
+    d = dd[ok]
+    med = float(np.median(d))
+    if med <= 0:
+        raise ValueError(f"known: the ball's track does not fall (median curvature "
+                         f"{med:.3g} px/frame^2): give px_per_m or object_size_m")
+    mad = 1.4826 * float(np.median(np.abs(d - med)))
+    rel = 1.2533 * mad / math.sqrt(d.size) / med  # the median's standard error
+    return med / (abs(g) * dt * dt), rel
+
+
 def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_size_m=None,
                known: dict | None = None, floor_row=None, walls=None, pivot=None, anchor=None,
                rotate: int = 0, dt: float | None = None) -> Camera:
@@ -1224,9 +1276,10 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
         The object's true diameter (or length), m: each frame's scale is its apparent size
         over this, with a pixel's error on the size as the scale's uncertainty.
     known : dict, optional
-        Known parameters; the pendulum's ``L`` fixes the scale from the arc's radius when
-        neither of the above is given, else its ``g`` from the swing's period
-        (:func:`swing_frequency`: ``L = |g| / omega0**2``, then the arc's radius).
+        Known parameters; when neither of the above is given, the pendulum's ``L`` fixes the
+        scale from the arc's radius, else its ``g`` from the swing's period
+        (:func:`swing_frequency`: ``L = |g| / omega0**2``, then the arc's radius); the ball's
+        ``g`` from the fall's curvature (:func:`scale_from_fall`).
     floor_row : float, optional
         Ball: the floor's row; default the lowest the ball's bottom reached (where bounces
         turn).
@@ -1282,10 +1335,17 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
                f"frame")
     elif system == "pendulum" and ("L" in known or "g" in known):
         s, src = None, "known L" if "L" in known else "known g"
+    elif system == "ball" and "g" in known:  # the fall's curvature in px/s^2 over g
+        if dt is None:
+            raise ValueError("dt: the scale from known g needs the clip's frame interval")
+        s, rel = scale_from_fall(pix, float(known["g"]), float(dt), r_px)
+        src = (f"known g={float(known['g']):g}: the ball's fall, {s * abs(float(known['g'])):.4g} "
+               "px/s^2 between bounces")
+        _check_size(2 * r_px / s, "known", f"its {2 * r_px:.3g} px at {s:.4g} px/m")
     else:
         raise ValueError(f"px_per_m: the {system}'s scale is not known: give px_per_m, "
-                         "object_size_m" + (", known L or known g" if system == "pendulum"
-                                            else ""))
+                         "object_size_m" + {"pendulum": ", known L or known g",
+                                            "ball": " or known g"}.get(system, ""))
     flip, offset = 1.0, (0.0, 0.0)
     origin = (0.0, 0.0)
 
