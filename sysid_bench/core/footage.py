@@ -539,7 +539,8 @@ def _background(frames: np.ndarray, max_frames: int = 150) -> np.ndarray:
 
 
 def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
-              max_gap: int = 5, progress: bool = False, reset_on_loss: bool = False) -> BallTrack:
+              max_gap: int = 5, progress: bool = False, reset_on_loss: bool = False,
+              round_power: float = 1.0) -> BallTrack:
     """Follow the ball through ``frames`` by background subtraction.
 
     Parameters
@@ -559,6 +560,10 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
         Forget the sizes seen when the track is lost for more than ``max_gap`` frames (real
         footage: a hand followed before the ball is let go). Off by default: the suite's
         renders and MuJoCo scenes are tracked as they always were.
+    round_power : float
+        How much a blob's roundness (its area over its bounding disc's) outweighs its size
+        when the track is (re)acquired: the score is ``roundness**round_power * sqrt(area)``.
+        Real footage uses 2, so that a thrown ball beats the larger arm that threw it.
 
     Returns
     -------
@@ -572,7 +577,7 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
     # the noise of the signed difference (robust: 1.4826 MAD), as tracking.track measures it
     sigma = float(noise_level((fr[:: max(1, t_n // 20)] - bg).ravel()))
     thr = max(float(min_contrast), noise_k * sigma)
-    pix, radii = _follow(fr, bg, thr, max_gap, progress, reset_on_loss)
+    pix, radii = _follow(fr, bg, thr, max_gap, progress, reset_on_loss, round_power)
     # A ball that sits or rolls slowly over the same pixels for more than half the clip is in
     # the median, and then invisible there. When the ball is consistently brighter (darker)
     # than the scene, a low (high) quantile over time is the scene wherever the ball covered a
@@ -593,13 +598,13 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
             q = np.percentile(fr[idx], 10 if sign.mean() > 0 else 90, axis=0).astype(np.float32)
             r = float(np.nanmedian(radii))
             if (np.abs(q - bg) > thr).sum() >= 0.05 * np.pi * r * r:
-                pix, radii = _follow(fr, q, thr, max_gap, progress, reset_on_loss)
+                pix, radii = _follow(fr, q, thr, max_gap, progress, reset_on_loss, round_power)
     found = np.isfinite(pix).all(axis=1)
     radius = float(np.nanmedian(radii)) if found.any() else float("nan")
     return BallTrack(pixels=pix, radius=radius, found=found, radii=radii)
 
 
-def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False):
+def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False, round_power=1.0):
     """One tracking pass over ``fr`` against background ``bg``: centres (T, 2), radii (T,).
 
     ``reset_on_loss``: a track lost for more than ``max_gap`` frames forgets the sizes seen so
@@ -658,7 +663,8 @@ def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False):
             for c in cand:
                 s = sl[c]
                 ext = max(s[0].stop - s[0].start, s[1].stop - s[1].start)
-                score.append(area[c] / (math.pi * (ext / 2) ** 2 + 1e-9) * math.sqrt(area[c]))
+                score.append((area[c] / (math.pi * (ext / 2) ** 2 + 1e-9)) ** round_power
+                             * math.sqrt(area[c]))
             k = cand[int(np.argmax(score))]
         # centre and size: the ball's pixels segmented by |difference| and filled to their hull,
         # each weighted by the fraction of it the ball covers (tracking.ball_centre): a lit top
@@ -981,7 +987,8 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False,
             raise ValueError(f"colour: expected a ({fr.shape[0]}, h, w, 3) array, got shape "
                              f"{col.shape}")
         diff = colour_difference(col)
-        trk = _minor_radii(diff, find_ball(diff, progress=progress, reset_on_loss=True))
+        trk = _minor_radii(diff, find_ball(diff, progress=progress, reset_on_loss=True,
+                                           round_power=2.0))
         sx, sy = fr.shape[2] / col.shape[2], fr.shape[1] / col.shape[1]
         # continuous coordinates scale by the block size; the radius by the mean of the two
         s = 0.5 * (sx + sy)
