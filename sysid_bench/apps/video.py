@@ -218,7 +218,9 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     if camera and geometry and any(v is not None for v in geometry.values()):
         raise ValueError("camera: give a camera (px_per_m, object_size_m, walls) or the "
                          "renderer's box geometry (corners, wall_col), not both")
-    clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps)
+    clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps,
+                      colour=bool(camera) or ("g" in (known or {}) and not any(
+                          v is not None for v in (geometry or {}).values())))
     frames = rotate_frames(clip.frames, int(rotate))
     t_n, h, w = frames.shape
     # progress bars on long files, on a terminal (or when asked)
@@ -227,12 +229,20 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     size = tuple(est.frame_size) if is_video else None
     notes = list(clip.notes)
     cam = None
+    if (not camera and "g" in (known or {}) and abs(w / h - 1.0) > 0.02
+            and not any(v is not None for v in (geometry or {}).values())):
+        # not the renderer's square view: a camera's clip, its scale from the known g's fall
+        camera = {"px_per_m": None, "object_size_m": None, "floor_row": None, "walls": None}
+        notes.append(f"the clip is {w}x{h}, not the renderer's square view of the box: read as "
+                     "a camera's, its scale from the ball's fall and the known g")
     if camera:
-        trk = find_object(frames, progress=show)
+        trk = find_object(frames, progress=show, colour=None if clip.colour_frames is None
+                          else rotate_frames(clip.colour_frames, int(rotate)))
         if trk.n_found < 3:
             raise VideoError(f"{path}: the ball was found in {trk.n_found} of {t_n} frames; "
                              "the camera and the methods need a track (at least 3 frames)")
-        cam = camera_for("ball", trk, (h, w), **camera, known=known, rotate=int(rotate))
+        cam = camera_for("ball", trk, (h, w), **camera, known=known, rotate=int(rotate),
+                         dt=1.0 / clip.fps)
         pos = cam.to_metres(trk.pixels)
         if is_video:
             obs = Observation(frames=model_frames(pos, size), dt=1.0 / clip.fps, floor=0.0)
@@ -637,14 +647,15 @@ def _camera_options(args, system: str, known: dict) -> dict | None:
         opts["pivot"] = args.pivot
     if system == "spring":
         opts["anchor"] = args.anchor
-    by_length = system == "pendulum" and "L" in known
+    # the pendulum's scale from a known length (the arc's radius) or a known g (its period)
+    by_length = system == "pendulum" and ("L" in known or "g" in known)
     if not any(v is not None for v in opts.values()) and not by_length:
         return None  # framed as the system's renderer draws it
     if not scale and not by_length:
         placed = next(_flag(k) for k, v in opts.items() if v is not None)
         raise ValueError(f"{placed}: the {system}'s scale is not known: give --px-per-m or "
-                         "--object-size-m" + (" or --known L=..." if system == "pendulum"
-                                              else ""))
+                         "--object-size-m" + (", --known L=... or --known g=..."
+                                              if system == "pendulum" else ""))
     return opts
 
 

@@ -64,6 +64,23 @@ def _position_method(system: str) -> str:
     return _first_method(system, frames=False)
 
 
+def _check_renderer_framing(sys_, shape, path) -> None:
+    """Refuse, with the options that would read it, a clip that cannot be the system's render.
+
+    Without a camera a clip is read as the system's renderer frames it (its view, any size);
+    a frame of another shape (a phone's 1080x1920, a lab camera's 640x352) is a camera's, and
+    read as a render it would be followed nowhere ("seen in 0 frames")."""
+    h, w = int(shape[0]), int(shape[1])
+    rh, rw = (int(v) for v in sys_.size)
+    if abs(w / h - rw / rh) <= 0.02 * (rw / rh):
+        return
+    how = "--px-per-m or --object-size-m"
+    if "L" in sys_.params and "g" in sys_.params:  # a pendulum-like scale from L or g
+        how += ", --known L=... or --known g=..."
+    raise ValueError(f"px_per_m: the clip is {w}x{h}, not the {sys_.name} renderer's {rw}x{rh} "
+                     f"view, so it is a camera's and its scale is not known: give {how}")
+
+
 def identify_system_video(path, system: str, *, method: str | None = None, every: int = 10,
                           progress=None, camera: dict | None = None, rotate: int = 0,
                           start: float | None = None, end: float | None = None,
@@ -120,7 +137,9 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
         clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps)
         notes = list(clip.notes)
         model_fps, source_fps = clip.fps, clip.source_fps
-        frames = resize_frames(rotate_frames(clip.frames, int(rotate)), sys_.size)
+        turned = rotate_frames(clip.frames, int(rotate))
+        _check_renderer_framing(sys_, turned.shape[1:], path)
+        frames = resize_frames(turned, sys_.size)
         name = method or _default_method(sys_.name)
         obs = Observation(frames=frames, system=sys_.name, dt=1.0 / clip.fps)
         points = sys_.track(frames)

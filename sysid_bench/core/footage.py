@@ -111,6 +111,10 @@ class Clip:
         The file stored colour (it was converted to grey: ITU-R BT.601 luma, FFmpeg's "gray").
     notes : list of str
         What was done to the file (resampling), one sentence each.
+    colour_frames : ndarray, shape (T, h, w, 3), uint8, optional
+        The same frames in RGB, area-averaged so that the larger side is at most
+        :data:`COLOUR_SIDE` (what :func:`find_object` follows a real object by); None unless
+        :func:`read_video` was asked for them and the file stores colour.
     """
 
     frames: np.ndarray
@@ -121,6 +125,11 @@ class Clip:
     fps: float = MODEL_FPS
     notes: list = field(default_factory=list)
     path: str = ""
+    colour_frames: np.ndarray | None = None
+
+
+#: Larger side (px) of :attr:`Clip.colour_frames`: the tracker's working size on real footage.
+COLOUR_SIDE = 640
 
 
 def _fail(path, problem: str) -> VideoError:
@@ -129,7 +138,7 @@ def _fail(path, problem: str) -> VideoError:
 
 def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
                start: float | None = None, end: float | None = None,
-               capture_fps: float | None = None) -> Clip:
+               capture_fps: float | None = None, colour: bool = False) -> Clip:
     """Decode a video file to grey frames at ``fps``.
 
     Parameters
@@ -149,6 +158,9 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
         file: captured at 240 frames/s, stored at 30). Every frame time is stretched by the
         container rate over ``capture_fps``; the frames' own spacing (variable frame rate)
         is kept.
+    colour : bool
+        Also keep each frame in RGB at a working size (:attr:`Clip.colour_frames`), when the
+        file stores colour: a real object is told from a wall of the same grey by its hue.
 
     Returns
     -------
@@ -202,10 +214,11 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
         stream.thread_type = "AUTO"
         rate = stream.average_rate or stream.guessed_rate or stream.base_rate
         rate = float(rate) if rate else float("nan")
-        colour = not str(stream.codec_context.pix_fmt or "").startswith("gray")
+        colour_file = not str(stream.codec_context.pix_fmt or "").startswith("gray")
         n_hint = int(stream.frames or 0)
         show = (n_hint > _PROGRESS_FRAMES) if progress is None else bool(progress)
-        frames, times = [], []
+        frames, times, rgb = [], [], []
+        want_rgb = bool(colour) and colour_file
         from tqdm.auto import tqdm
 
         with tqdm(total=n_hint or None, desc=f"reading {p.name}", unit="frame",
@@ -214,6 +227,11 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
             try:
                 for fr in container.decode(stream):
                     frames.append(fr.to_ndarray(format="gray"))
+                    if want_rgb:  # FFmpeg's area filter: the mean colour of each block
+                        k = max(1, math.ceil(max(fr.width, fr.height) / COLOUR_SIDE))
+                        rgb.append(fr.reformat(width=max(1, fr.width // k),
+                                               height=max(1, fr.height // k), format="rgb24",
+                                               interpolation="AREA").to_ndarray())
                     times.append(np.nan if fr.time is None else float(fr.time))
                     bar.update(1)
             except av.error.EOFError:
@@ -254,6 +272,7 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
                              f"(0 to {t[-1]:.4g} s, {len(t)} frames)")
         first = int(np.flatnonzero(keep)[0])
         frames = [f for f, k in zip(frames, keep) if k]
+        rgb = [f for f, k in zip(rgb, keep) if k] if rgb else rgb
         t = t[keep] - t[first]
         notes.append(f"window {lo:g} to {min(hi, float(t[-1]) + lo):.4g} s: {len(frames)} frames")
     raw = np.stack(frames)
@@ -265,6 +284,7 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
         if len(t) == 1:
             j = np.zeros(1, dtype=int)
         raw_kept, t_kept = raw[j], t[j]
+        rgb = [rgb[i] for i in j] if rgb else rgb
         notes.append(f"resampled from {rate:.4g} to {fps:g} frames/s (nearest frame in time): "
                      f"{len(frames)} -> {len(j)} frames"
                      + ("; the source is slower than the model, so frames repeat" if rate < fps
@@ -272,7 +292,8 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
     else:
         raw_kept, t_kept = raw, t
     return Clip(frames=np.ascontiguousarray(raw_kept), times=t_kept, source_fps=float(rate),
-                source_frames=len(frames), colour=colour, fps=fps, notes=notes, path=str(path))
+                source_frames=len(frames), colour=colour_file, fps=fps, notes=notes,
+                path=str(path), colour_frames=np.stack(rgb) if rgb else None)
 
 
 def _av_reason(exc) -> str:
@@ -518,7 +539,8 @@ def _background(frames: np.ndarray, max_frames: int = 150) -> np.ndarray:
 
 
 def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
-              max_gap: int = 5, progress: bool = False, reset_on_loss: bool = False) -> BallTrack:
+              max_gap: int = 5, progress: bool = False, reset_on_loss: bool = False,
+              round_power: float = 1.0) -> BallTrack:
     """Follow the ball through ``frames`` by background subtraction.
 
     Parameters
@@ -538,6 +560,10 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
         Forget the sizes seen when the track is lost for more than ``max_gap`` frames (real
         footage: a hand followed before the ball is let go). Off by default: the suite's
         renders and MuJoCo scenes are tracked as they always were.
+    round_power : float
+        How much a blob's roundness (its area over its bounding disc's) outweighs its size
+        when the track is (re)acquired: the score is ``roundness**round_power * sqrt(area)``.
+        Real footage uses 2, so that a thrown ball beats the larger arm that threw it.
 
     Returns
     -------
@@ -551,7 +577,7 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
     # the noise of the signed difference (robust: 1.4826 MAD), as tracking.track measures it
     sigma = float(noise_level((fr[:: max(1, t_n // 20)] - bg).ravel()))
     thr = max(float(min_contrast), noise_k * sigma)
-    pix, radii = _follow(fr, bg, thr, max_gap, progress, reset_on_loss)
+    pix, radii = _follow(fr, bg, thr, max_gap, progress, reset_on_loss, round_power)
     # A ball that sits or rolls slowly over the same pixels for more than half the clip is in
     # the median, and then invisible there. When the ball is consistently brighter (darker)
     # than the scene, a low (high) quantile over time is the scene wherever the ball covered a
@@ -572,13 +598,13 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
             q = np.percentile(fr[idx], 10 if sign.mean() > 0 else 90, axis=0).astype(np.float32)
             r = float(np.nanmedian(radii))
             if (np.abs(q - bg) > thr).sum() >= 0.05 * np.pi * r * r:
-                pix, radii = _follow(fr, q, thr, max_gap, progress, reset_on_loss)
+                pix, radii = _follow(fr, q, thr, max_gap, progress, reset_on_loss, round_power)
     found = np.isfinite(pix).all(axis=1)
     radius = float(np.nanmedian(radii)) if found.any() else float("nan")
     return BallTrack(pixels=pix, radius=radius, found=found, radii=radii)
 
 
-def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False):
+def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False, round_power=1.0):
     """One tracking pass over ``fr`` against background ``bg``: centres (T, 2), radii (T,).
 
     ``reset_on_loss``: a track lost for more than ``max_gap`` frames forgets the sizes seen so
@@ -637,7 +663,8 @@ def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False):
             for c in cand:
                 s = sl[c]
                 ext = max(s[0].stop - s[0].start, s[1].stop - s[1].start)
-                score.append(area[c] / (math.pi * (ext / 2) ** 2 + 1e-9) * math.sqrt(area[c]))
+                score.append((area[c] / (math.pi * (ext / 2) ** 2 + 1e-9)) ** round_power
+                             * math.sqrt(area[c]))
             k = cand[int(np.argmax(score))]
         # centre and size: the ball's pixels segmented by |difference| and filled to their hull,
         # each weighted by the fraction of it the ball covers (tracking.ball_centre): a lit top
@@ -873,7 +900,59 @@ def _scale_from_size(track: BallTrack, object_size_m: float) -> tuple[np.ndarray
     return per_frame, d_med / float(object_size_m), rel
 
 
-def find_object(frames, *, max_side: int = 640, progress: bool = False) -> BallTrack:
+#: Weight of the colour (chroma) difference against the grey one in :func:`colour_difference`:
+#: a shadow or a lighting change moves the grey level and barely the hue.
+CHROMA_WEIGHT = 2.0
+#: A pixel that differs from the background in more than this share of the frames is part of a
+#: still scene, or the ghost an object leaves where it rested (it is in the median there).
+STATIC_SHARE = 0.3
+
+
+def colour_difference(colour, max_frames: int = 150) -> np.ndarray:
+    """How far each pixel of each frame is from the static scene, in colour.
+
+    The scene is the per-pixel median colour; the difference weighs the hue's change
+    (:data:`CHROMA_WEIGHT`) above the grey level's, so that a red bob on a beige wall of the
+    same grey stands out and its shadow does not. Pixels that differ in more than
+    :data:`STATIC_SHARE` of the frames (a scene that changed, the ghost of an object that
+    rested there) are set to 0: an object is followed where it moves.
+
+    Parameters
+    ----------
+    colour : ndarray, shape (T, h, w, 3), uint8
+        RGB frames (:attr:`Clip.colour_frames`).
+    max_frames : int
+        Frames (evenly spread) the median and the static share are taken over.
+
+    Returns
+    -------
+    ndarray, shape (T, h, w), float32
+        The difference in grey levels (0 to ~440), as :func:`find_ball` takes frames.
+    """
+    c = np.asarray(colour)
+    if c.ndim != 4 or c.shape[-1] != 3 or c.shape[0] < 1:
+        raise ValueError(f"colour: expected a (T, h, w, 3) array, got shape {c.shape}")
+    t_n = c.shape[0]
+    idx = np.unique(np.linspace(0, t_n - 1, min(t_n, max_frames)).astype(int))
+    bg = np.median(c[idx], axis=0).astype(np.float32)
+    bg_y = bg.mean(axis=-1)
+    bg_c = bg - bg_y[..., None]
+    out = np.empty(c.shape[:3], dtype=np.float32)
+    for i in range(0, t_n, 32):  # in chunks: a 640x360 float copy of the clip is large
+        f = c[i:i + 32].astype(np.float32)
+        y = f.mean(axis=-1)
+        dc = (f - y[..., None]) - bg_c
+        out[i:i + 32] = np.sqrt((y - bg_y) ** 2 + CHROMA_WEIGHT * (dc * dc).sum(axis=-1))
+    sample = out[idx[:: max(1, len(idx) // 20)]]
+    sigma = float(noise_level((sample - np.median(sample)).ravel()))
+    thr = max(20.0, 5.0 * sigma)
+    static = (out[idx] > thr).mean(axis=0) > STATIC_SHARE
+    out[:, static] = 0.0
+    return out
+
+
+def find_object(frames, *, max_side: int = 640, progress: bool = False,
+                colour=None) -> BallTrack:
     """:func:`find_ball` on large frames: followed on a block-averaged copy, in source pixels.
 
     A 1080p frame is averaged over 3 x 3 blocks (the larger side brought to at most
@@ -887,6 +966,10 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False) -> BallT
     max_side : int
         Largest side the tracker works at, px.
     progress : bool
+    colour : ndarray, shape (T, h, w, 3), uint8, optional
+        The same frames in colour (:attr:`Clip.colour_frames`): the object is followed in
+        :func:`colour_difference` at that size (a real camera's object on a wall of its own
+        grey, its shadow, the ghost where it rested); sizes are still measured on ``frames``.
 
     Returns
     -------
@@ -898,6 +981,23 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False) -> BallT
     fr = np.asarray(frames)
     if fr.ndim != 3 or fr.shape[0] < 1:
         raise ValueError(f"frames: expected a (T, H, W) array, got shape {fr.shape}")
+    if colour is not None:
+        col = np.asarray(colour)
+        if col.ndim != 4 or col.shape[0] != fr.shape[0] or col.shape[-1] != 3:
+            raise ValueError(f"colour: expected a ({fr.shape[0]}, h, w, 3) array, got shape "
+                             f"{col.shape}")
+        diff = colour_difference(col)
+        trk = _minor_radii(diff, find_ball(diff, progress=progress, reset_on_loss=True,
+                                           round_power=2.0))
+        sx, sy = fr.shape[2] / col.shape[2], fr.shape[1] / col.shape[1]
+        # continuous coordinates scale by the block size; the radius by the mean of the two
+        s = 0.5 * (sx + sy)
+        trk = BallTrack(pixels=trk.pixels * np.array([sx, sy]), radius=trk.radius * s,
+                        found=trk.found, radii=trk.radii * s)
+        # sizes at the source's resolution where its grey shows the object (a bright ball on a
+        # dark wall), else the colour's: whichever is steadier over the frames
+        fine = _minor_radii(fr, trk)
+        return _consistent(fine if _spread(fine.radii) < _spread(trk.radii) else trk)
     k = max(1, math.ceil(max(fr.shape[1:]) / int(max_side)))
     if k == 1:
         trk = find_ball(fr, progress=progress, reset_on_loss=True)
@@ -971,6 +1071,16 @@ def _minor_radii(frames, trk: BallTrack) -> BallTrack:
                      radii=radii)
 
 
+def _spread(radii) -> float:
+    """Relative robust spread of a track's radii over its frames (inf with fewer than 3)."""
+    r = np.asarray(radii, dtype=np.float64)
+    r = r[np.isfinite(r)]
+    if r.size < 3 or np.median(r) <= 0:
+        return math.inf
+    med = float(np.median(r))
+    return float(np.median(np.abs(r - med))) / med
+
+
 def _consistent(trk: BallTrack, tol: float = 0.5) -> BallTrack:
     """Frames whose blob is not the object's size (off the track's median radius by more than
     ``tol`` of it: a hand, a person crossing) become "not seen" rather than a position."""
@@ -1032,9 +1142,132 @@ def _check_size(diam_m: float, option: str, how: str) -> None:
                          f"expected {lo:g} to {hi:g} m: the scale cannot be right for this clip")
 
 
+def swing_frequency(pix, pivot, dt: float) -> tuple[float, float, float]:
+    """A pendulum's undamped angular frequency from its bob's track: ``(omega0, rel_std, amp)``.
+
+    The angle about ``pivot`` is fitted with a damped cosine (its frequency first read off a
+    Lomb-Scargle periodogram, which takes the frames the tracker lost), ``omega0**2 =
+    omega_d**2 + lambda**2`` undoes the viscous damping, and the large-angle period is
+    corrected to the small-angle one (``T = T0 (1 + A**2/16 + 11 A**4/3072)`` at the median
+    amplitude ``A``). With the pendulum's ``g`` known, ``L = |g| / omega0**2``.
+
+    Parameters
+    ----------
+    pix : ndarray, shape (T, 2)
+        The bob's ``(col, row)`` per frame, NaN where not seen.
+    pivot : (float, float)
+        The pivot's ``(col, row)``.
+    dt : float
+        Seconds between frames.
+
+    Returns
+    -------
+    omega0 : float
+        rad/s.
+    rel_std : float
+        Its relative standard deviation (the fit's).
+    amp : float
+        The median amplitude, rad.
+
+    Raises
+    ------
+    ValueError
+        Fewer than two swings seen, or no period found (named ``known``).
+    """
+    from scipy.optimize import curve_fit
+    from scipy.signal import lombscargle
+
+    pix = np.asarray(pix, dtype=np.float64)
+    seen = np.isfinite(pix).all(axis=1)
+    t = np.flatnonzero(seen) * float(dt)
+    ang = np.arctan2(pix[seen, 0] - pivot[0], pix[seen, 1] - pivot[1])
+    span = t[-1] - t[0] if t.size else 0.0
+    if t.size < 8 or span <= 0:
+        raise ValueError(f"known: g gives the scale through the swing's period; the bob was seen "
+                         f"in {t.size} frames (at least 8 over two swings needed)")
+    a0 = ang - ang.mean()
+    nyq = math.pi / float(dt)
+    freqs = np.linspace(2 * math.pi / span, nyq, 4000)
+    w_pk = float(freqs[np.argmax(lombscargle(t, a0, freqs))])
+    if span * w_pk / (2 * math.pi) < 1.5:
+        raise ValueError(f"known: g gives the scale through the swing's period; {span:.3g} s of "
+                         f"track hold {span * w_pk / (2 * math.pi):.2g} swings (at least 1.5 "
+                         "needed): give px_per_m, object_size_m or known L")
+
+    def model(tt, amp, lam, w, ph, c):
+        return amp * np.exp(-lam * tt) * np.cos(w * tt + ph) + c
+
+    amp0 = float(np.percentile(np.abs(a0), 95))
+    ph0 = float(np.arctan2(-np.sum(a0 * np.sin(w_pk * t)), np.sum(a0 * np.cos(w_pk * t))))
+    try:
+        par, cov = curve_fit(model, t - t[0], ang, p0=(amp0, 0.05, w_pk, ph0, ang.mean()),
+                             bounds=([0, 0, 0.5 * w_pk, -np.inf, -np.pi],
+                                     [np.pi, 5.0, 1.5 * w_pk, np.inf, np.pi]), maxfev=20000)
+    except (RuntimeError, ValueError) as exc:
+        raise ValueError(f"known: the swing's period could not be fitted ({exc})") from None
+    amp, lam, w = float(par[0]), float(par[1]), float(par[2])
+    w_std = float(np.sqrt(max(cov[2, 2], 0.0))) if np.all(np.isfinite(cov)) else w
+    a_med = float(amp * np.exp(-lam * 0.5 * (t[-1] - t[0])))
+    w_d = math.sqrt(w * w + lam * lam)
+    w0 = w_d * (1 + a_med ** 2 / 16 + 11 * a_med ** 4 / 3072)
+    return w0, w_std / w, a_med
+
+
+def scale_from_fall(pix, g: float, dt: float, radius_px: float) -> tuple[float, float]:
+    """A camera's scale from a falling object's curvature and a known g: ``(px_per_m, rel_std)``.
+
+    In flight the row's second difference is ``|g| s dt**2`` pixels a frame squared; the median
+    over every three consecutive seen frames away from the floor (the track's lowest two
+    radii: bounces and rolling) is robust to the few triples that straddle a bounce, and air
+    drag, which adds to g on the way down and takes from it on the way up, cancels to first
+    order over rises and falls.
+
+    Parameters
+    ----------
+    pix : ndarray, shape (T, 2)
+        The object's ``(col, row)`` per frame, rows down, NaN where not seen.
+    g : float
+        Gravity, m/s^2 (its sign is ignored).
+    dt : float
+        Seconds between frames.
+    radius_px : float
+        The object's radius, px.
+
+    Returns
+    -------
+    px_per_m : float
+    rel_std : float
+        Relative standard deviation of the scale (the median's, from the spread).
+
+    Raises
+    ------
+    ValueError
+        Fewer than 4 triples in flight, or no downward curvature (named ``known``).
+    """
+    pix = np.asarray(pix, dtype=np.float64)
+    if not math.isfinite(g) or g == 0:
+        raise ValueError(f"known: expected g != 0 m/s^2, got {g!r}")
+    row = pix[:, 1]
+    dd = row[2:] - 2 * row[1:-1] + row[:-2]
+    low = np.nanmax(row) if np.isfinite(row).any() else np.nan
+    ok = np.isfinite(dd) & (row[1:-1] < low - 2.0 * float(radius_px))
+    if ok.sum() < 4:
+        raise ValueError(f"known: g gives the scale through the ball's fall; {int(ok.sum())} "
+                         "runs of three frames in flight were seen (at least 4 needed): give "
+                         "px_per_m or object_size_m")
+    d = dd[ok]
+    med = float(np.median(d))
+    if med <= 0:
+        raise ValueError(f"known: the ball's track does not fall (median curvature "
+                         f"{med:.3g} px/frame^2): give px_per_m or object_size_m")
+    mad = 1.4826 * float(np.median(np.abs(d - med)))
+    rel = 1.2533 * mad / math.sqrt(d.size) / med  # the median's standard error
+    return med / (abs(g) * dt * dt), rel
+
+
 def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_size_m=None,
                known: dict | None = None, floor_row=None, walls=None, pivot=None, anchor=None,
-               rotate: int = 0) -> Camera:
+               rotate: int = 0, dt: float | None = None) -> Camera:
     """The camera of a clip: its scale and the system's origin, given or estimated.
 
     Parameters
@@ -1050,8 +1283,10 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
         The object's true diameter (or length), m: each frame's scale is its apparent size
         over this, with a pixel's error on the size as the scale's uncertainty.
     known : dict, optional
-        Known parameters; the pendulum's ``L`` fixes the scale from the arc's radius when
-        neither of the above is given.
+        Known parameters; when neither of the above is given, the pendulum's ``L`` fixes the
+        scale from the arc's radius, else its ``g`` from the swing's period
+        (:func:`swing_frequency`: ``L = |g| / omega0**2``, then the arc's radius); the ball's
+        ``g`` from the fall's curvature (:func:`scale_from_fall`).
     floor_row : float, optional
         Ball: the floor's row; default the lowest the ball's bottom reached (where bounces
         turn).
@@ -1066,6 +1301,8 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
         middle of ``L0``'s prior), so ``L0`` is not measured.
     rotate : int
         Degrees clockwise the frames were turned (recorded).
+    dt : float, optional
+        Seconds between the track's frames (the scale from a known ``g`` needs it).
 
     Returns
     -------
@@ -1103,11 +1340,19 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
         per_frame, s, rel = _scale_from_size(track, d)
         src = (f"object_size_m={d:g}: the object's median {2 * r_px:.3g} px across, frame by "
                f"frame")
-    elif system == "pendulum" and "L" in known:
-        s, src = None, "known L"
+    elif system == "pendulum" and ("L" in known or "g" in known):
+        s, src = None, "known L" if "L" in known else "known g"
+    elif system == "ball" and "g" in known:  # the fall's curvature in px/s^2 over g
+        if dt is None:
+            raise ValueError("dt: the scale from known g needs the clip's frame interval")
+        s, rel = scale_from_fall(pix, float(known["g"]), float(dt), r_px)
+        src = (f"known g={float(known['g']):g}: the ball's fall, {s * abs(float(known['g'])):.4g} "
+               "px/s^2 between bounces")
+        _check_size(2 * r_px / s, "known", f"its {2 * r_px:.3g} px at {s:.4g} px/m")
     else:
         raise ValueError(f"px_per_m: the {system}'s scale is not known: give px_per_m, "
-                         "object_size_m" + (" or known L" if system == "pendulum" else ""))
+                         "object_size_m" + {"pendulum": ", known L or known g",
+                                            "ball": " or known g"}.get(system, ""))
     flip, offset = 1.0, (0.0, 0.0)
     origin = (0.0, 0.0)
 
@@ -1194,13 +1439,26 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
             placement["pivot"] = (f"estimated ({pc:.1f}, {pr:.1f}): the centre of the circle "
                                   f"fitted to the bob's track, radius {r_arc:.1f} ± {r_std:.2g} "
                                   f"px, RMS off it {rms:.2g} px")
-        if s is None:
+        if s is None and "L" in known:
             L = float(known["L"])
             if not math.isfinite(L) or L <= 0:
                 raise ValueError(f"known: expected L > 0 m, got {known['L']!r}")
             s = r_arc / L
             rel = r_std / r_arc
             src = f"known L={L:g}: the arc's radius {r_arc:.1f} px"
+        elif s is None:  # known g: the swing's period gives L = |g| / omega0**2
+            g = float(known["g"])
+            if not math.isfinite(g) or g == 0:
+                raise ValueError(f"known: expected g != 0 m/s^2, got {known['g']!r}")
+            if dt is None:
+                raise ValueError("dt: the scale from known g needs the clip's frame interval")
+            w0, w_rel, amp = swing_frequency(pix, (pc, pr), float(dt))
+            L = abs(g) / w0 ** 2
+            s = r_arc / L
+            rel = math.hypot(r_std / r_arc, 2.0 * w_rel)
+            src = (f"known g={g:g}: the swing's period {2 * math.pi / w0:.4g} s (amplitude "
+                   f"{math.degrees(amp):.3g} deg) gives L = {L:.4g} m, the arc's radius "
+                   f"{r_arc:.1f} px")
         _check_size(2 * r_px / s, "known" if src.startswith("known") else next(iter(given)),
                     f"its {2 * r_px:.3g} px at {s:.4g} px/m")
         origin = (pc, pr)
@@ -1729,17 +1987,19 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
     if "track" in opts:
         raise ValueError(f"--track: means nothing for the {sys_.name} system (collision only)")
     clip = read_video(path, progress=progress, start=opts.get("start"), end=opts.get("end"),
-                      capture_fps=opts.get("capture_fps"))
+                      capture_fps=opts.get("capture_fps"), colour=True)
     rotate = int(opts.get("rotate", 0))
     frames = rotate_frames(clip.frames, rotate)
-    trk = find_object(frames, progress=bool(progress))
+    trk = find_object(frames, progress=bool(progress), colour=None if clip.colour_frames is None
+                      else rotate_frames(clip.colour_frames, rotate))
     if trk.n_found < 3:
         raise VideoError(f"{path}: the {sys_.name}'s object was found in {trk.n_found} of "
                          f"{len(frames)} frames; the camera and the methods need a track (at "
                          "least 3 frames)")
     place = {k: opts[k] for k in ("px_per_m", "object_size_m", "floor_row", "walls", "pivot",
                                   "anchor") if k in opts}
-    cam = camera_for(sys_.name, trk, frames.shape[1:], **place, known=known, rotate=rotate)
+    cam = camera_for(sys_.name, trk, frames.shape[1:], **place, known=known, rotate=rotate,
+                     dt=1.0 / clip.fps)
     pos = cam.to_metres(trk.pixels)[:, None, :]  # (T, 1, 2): one tracked object
     obs = Observation(positions=pos, dt=1.0 / clip.fps, system=sys_.name,
                       **sys_.known_geometry())
