@@ -2,7 +2,9 @@
 
 Pipeline
 --------
-1-3. The file is decoded and resampled to the model's 20 frames/s (:func:`read_video`), its
+1-3. The file is decoded (:func:`read_video`): every frame at the capture's own dt for a method
+   that simulates at any step, resampled to 20 frames/s for one built for that rate
+   (Vid2Param, its ``frame_rate``), with a note saying so; its
    pixels mapped to the suite's metres (:class:`Geometry`) and the ball followed
    (:func:`find_ball`): the core half, :mod:`sysid_bench.core.footage`, re-exported here.
 4. Position methods get the tracked positions in metres (floor at 0). Methods that read frames
@@ -27,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from sysid_bench.core._io import atomic_folder
-from sysid_bench.core.estimator import Observation
+from sysid_bench.core.estimator import Observation, frame_rate_of
 from sysid_bench.core.footage import (  # the core half (files, geometry, the tracker), re-exported
     _PROGRESS_FRAMES,
     MODEL_FPS,
@@ -212,7 +214,11 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     if camera and geometry and any(v is not None for v in geometry.values()):
         raise ValueError("camera: give a camera (px_per_m, object_size_m, walls) or the "
                          "renderer's box geometry (corners, wall_col), not both")
-    clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps)
+    # a method that simulates at any step reads every frame at the capture's own dt; one built
+    # for a frame rate (Vid2Param) gets the clip resampled to it, and the notes say so
+    rate = frame_rate_of(est)
+    clip = read_video(path, rate, progress=progress, start=start, end=end,
+                      capture_fps=capture_fps)
     frames = rotate_frames(clip.frames, int(rotate))
     t_n, h, w = frames.shape
     # progress bars on long files, on a terminal (or when asked)
@@ -220,6 +226,11 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     is_video = getattr(type(est), "input_kind", "positions") == "frames"
     size = tuple(est.frame_size) if is_video else None
     notes = list(clip.notes)
+    resampled = len(clip.frames) != clip.source_frames or abs(clip.fps - clip.source_fps) > 1e-9
+    if rate is not None and resampled:
+        notes.append(f"{method} is built for {rate:g} frames/s, so the clip was resampled to it "
+                     "(a method that simulates at any step, e.g. lsq, reads every frame at the "
+                     "capture's own dt)")
     cam = None
     if camera:
         trk = find_object(frames, progress=show)
@@ -299,6 +310,10 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         "file": str(path),
         "fps": clip.source_fps,
         "model_fps": clip.fps,
+        # the time base the method saw: the capture's own dt, or its own rate's
+        "dt_s": 1.0 / clip.fps,
+        "method_frame_rate": rate,
+        "resampled": bool(resampled),
         "source_frames": clip.source_frames,
         "frames": t_n,
         "colour": clip.colour,

@@ -102,7 +102,7 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
     """
     import methods
     from sysid_bench.core import systems
-    from sysid_bench.core.estimator import Observation
+    from sysid_bench.core.estimator import Observation, frame_rate_of
     from sysid_bench.core.footage import (
         knowledge_record,
         observe_clip,
@@ -116,22 +116,33 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
         raise ValueError(f"method: {method} reads frames drawn as the {sys_.name}'s renderer "
                          "draws them; on a camera's clip give a position method (e.g. lsq)")
     cam = None
+    # the method first: its frame rate decides the clip's time base (None: the capture's own dt)
+    name = method or (_default_method(sys_.name) if camera is None
+                      else _position_method(sys_.name))
+    rate = frame_rate_of(methods.get_class(name, system=sys_.name))
     if camera is None:
-        clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps)
+        clip = read_video(path, rate, progress=progress, start=start, end=end,
+                          capture_fps=capture_fps)
         notes = list(clip.notes)
         model_fps, source_fps = clip.fps, clip.source_fps
+        resampled = len(clip.frames) != clip.source_frames or abs(clip.fps - source_fps) > 1e-9
         frames = resize_frames(rotate_frames(clip.frames, int(rotate)), sys_.size)
-        name = method or _default_method(sys_.name)
         obs = Observation(frames=frames, system=sys_.name, dt=1.0 / clip.fps)
         points = sys_.track(frames)
     else:  # the core's camera pipeline, as the benchmark's camera section runs it
-        cc = observe_clip(path, sys_.name, progress=progress, rotate=int(rotate), start=start,
-                          end=end, capture_fps=capture_fps, known=known, prior=prior, **camera)
+        cc = observe_clip(path, sys_.name, progress=progress, fps=rate, rotate=int(rotate),
+                          start=start, end=end, capture_fps=capture_fps, known=known,
+                          prior=prior, **camera)
         cam, obs = cc.camera, cc.observation
         points = obs.points
-        name = method or _position_method(sys_.name)
         notes = [*cc.notes[:-1], f"{name} saw {cc.notes[-1]}"]
         model_fps, source_fps = 1.0 / obs.dt, cc.source_fps
+        resampled = abs(model_fps - source_fps) > 1e-9 or any(
+            n.startswith(("resampled", "variable")) for n in cc.notes)
+    if rate is not None and resampled:
+        notes.append(f"{name} is built for {rate:g} frames/s, so the clip was resampled to it "
+                     "(a method that simulates at any step, e.g. lsq, reads every frame at the "
+                     "capture's own dt)")
     # a method that takes the user's knowledge holds it (issue 38 §4); the others say they did not
     takes = {"known", "prior"} <= set(methods.get(name, system=sys_.name).get_params())
     give = {"known": dict(known or {}), "prior": dict(prior or {})} if takes else {}
@@ -141,7 +152,8 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
     lengths = sorted({*range(every, t + 1, every), t})
     lengths = [n for n in lengths if n >= max(3, getattr(est.spec(), "min_frames", 3))]
     if not lengths:
-        raise ValueError(f"video: expected at least 3 frames at 20 frames/s, got {t}")
+        raise ValueError(f"video: expected at least 3 frames at {model_fps:.4g} frames/s, "
+                         f"got {t}")
     posts = est.identify_prefixes(obs, lengths)
     p = sys_.n_params
     mean, std = np.full((t, p), np.nan), np.full((t, p), np.nan)
@@ -167,6 +179,7 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
         notes.append(f"--known/--prior: {name} used them ({'; '.join(said)})")
     info = {"file": str(path), "system": sys_.name, "method": name, "params": list(sys_.params),
             "model_fps": model_fps, "frames": t, "source_fps": source_fps,
+            "dt_s": float(obs.dt), "method_frame_rate": rate, "resampled": bool(resampled),
             "size": list(sys_.size), "extent": list(sys_.extent), "notes": notes,
             "points_seen": int(np.isfinite(points).all(axis=(1, 2)).sum()),
             "input": "tracked positions (camera)" if cam is not None else

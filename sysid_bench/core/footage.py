@@ -5,9 +5,11 @@ used as well by the MuJoCo scenes (:mod:`sysid_bench.core.mujoco_scene`) and the
 experiment on them; it knows no method.
 
 1. :func:`read_video` decodes the file with **PyAV** (``av``: FFmpeg's libraries in the wheel,
-   libx264 included), converts every frame to grey and resamples to the model's 20 frames/s
-   by taking, for each 50 ms tick, the source frame nearest in time (blending frames would show
-   two half-bright balls). PyAV rather than imageio-ffmpeg because it gives each frame's own
+   libx264 included) and converts every frame to grey. Methods that simulate at any step take
+   every frame at the capture's own ``dt`` (``fps=None``; a variable frame rate put on a grid
+   at its median interval); a method built for one rate (Vid2Param: 20 frames/s) gets the
+   clip resampled by taking, for each tick, the source frame nearest in time (blending frames
+   would show two half-bright balls). PyAV rather than imageio-ffmpeg because it gives each frame's own
    presentation time and the stream's rate from the container, in process (imageio-ffmpeg
    pipes raw frames from an ``ffmpeg`` subprocess and parses its rate from the log text), and
    because the same wheel writes H.264 (:func:`write_video`) without any system FFmpeg.
@@ -95,22 +97,26 @@ class VideoError(ValueError):
 # -- reading and writing ------------------------------------------------------------------------
 @dataclass
 class Clip:
-    """A decoded video, grey and resampled to the model's frame rate.
+    """A decoded video, grey, at the capture's own rate or resampled to a method's.
 
     Attributes
     ----------
     frames : ndarray, shape (T, H, W), uint8
-        Grey frames at ``fps`` (``MODEL_FPS`` after resampling).
+        Grey frames, ``1 / fps`` seconds apart.
     times : ndarray, shape (T,)
-        Source presentation time of each kept frame, seconds from the first frame.
+        Source presentation time of each kept frame, seconds from the first frame (after
+        ``--fps`` and the window).
     source_fps : float
         The file's frame rate (from the stream, else from the frame times).
     source_frames : int
         Frames decoded from the file.
     colour : bool
         The file stored colour (it was converted to grey: ITU-R BT.601 luma, FFmpeg's "gray").
+    fps : float
+        Rate of ``frames``: the one asked of :func:`read_video`, or the capture's own (the
+        median interval's for a variable frame rate).
     notes : list of str
-        What was done to the file (resampling), one sentence each.
+        What was done to the file (capture rate, window, resampling), one sentence each.
     """
 
     frames: np.ndarray
@@ -127,17 +133,22 @@ def _fail(path, problem: str) -> VideoError:
     return VideoError(f"{path}: {problem}")
 
 
-def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
+def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = None,
                start: float | None = None, end: float | None = None,
                capture_fps: float | None = None) -> Clip:
-    """Decode a video file to grey frames at ``fps``.
+    """Decode a video file to grey frames at ``fps``, or at the capture's own rate.
 
     Parameters
     ----------
     path : str or Path
         Any container and codec FFmpeg reads (mp4, avi, mkv, mov, webm, gif, ...).
-    fps : float
-        Frame rate to resample to (nearest source frame in time for each output tick).
+    fps : float or None
+        Frame rate to resample to (nearest source frame in time for each output tick), for a
+        method built for one rate (:func:`sysid_bench.core.estimator.frame_rate_of`). None:
+        the capture's own rate, every frame kept (the container's rate, or ``capture_fps``);
+        a variable-frame-rate file (intervals differing by more than 10% of their median) is
+        put on a uniform grid at its median interval by the nearest frame in time, and a
+        note says so and how far a frame lies from its tick.
     progress : bool, optional
         tqdm bar while decoding; default: only for files over 300 frames, on a terminal.
     start, end : float, optional
@@ -167,9 +178,11 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
         import av
     except ImportError as exc:  # pragma: no cover - av is a core dependency
         raise VideoError(f"{path}: reading videos needs PyAV (pip install av): {exc}") from exc
-    fps = float(fps)
-    if not math.isfinite(fps) or fps <= 0:
-        raise ValueError(f"fps: expected a frame rate > 0, got {fps!r}")
+    if fps is not None:
+        if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)) \
+                or not math.isfinite(float(fps)) or float(fps) <= 0:
+            raise ValueError(f"fps: expected None or a frame rate > 0, got {fps!r}")
+        fps = float(fps)
     for name, v in (("capture_fps", capture_fps), ("start", start), ("end", end)):
         if v is not None and (not math.isfinite(float(v)) or float(v) < 0
                               or (name == "capture_fps" and float(v) <= 0)):
@@ -234,7 +247,7 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
     elif math.isfinite(rate) and rate > 0:
         t = np.arange(len(frames)) / rate  # timestamps missing or out of order: trust the rate
     elif len(frames) == 1:
-        rate, t = fps, np.zeros(1)
+        rate, t = fps or MODEL_FPS, np.zeros(1)
     else:
         raise _fail(path, "the frame rate cannot be read (no stream rate, no frame times)")
     notes = []
@@ -257,22 +270,47 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
         t = t[keep] - t[first]
         notes.append(f"window {lo:g} to {min(hi, float(t[-1]) + lo):.4g} s: {len(frames)} frames")
     raw = np.stack(frames)
-    if abs(rate - fps) > 1e-3 * fps:
-        ticks = np.arange(0.0, t[-1] + 0.5 / rate + 1e-9, 1.0 / fps)
-        # nearest source frame to each tick
+    gaps = np.diff(t)
+    med = float(np.median(gaps)) if len(gaps) else 1.0 / rate
+    # a browser's or phone's variable frame rate; timestamps quantised by the container's
+    # time base (33/34 ms at 30 frames/s in 1/1000 s) stay well inside 10%
+    vfr = len(gaps) > 1 and float(np.max(np.abs(gaps - med))) > 0.1 * med
+    if fps is None and not vfr:
+        # the capture's own rate, every frame kept; a container rate its frames contradict
+        # (by more than 1%) gives way to their own spacing
+        own = rate if abs(rate * med - 1.0) <= 0.01 or len(gaps) == 0 else 1.0 / med
+        if own != rate:
+            notes.append(f"the frames are {1e3 * med:.4g} ms apart, not the {rate:.4g} "
+                         f"frames/s the container says: read at {own:.4g} frames/s")
+        return Clip(frames=np.ascontiguousarray(raw), times=t, source_fps=float(rate),
+                    source_frames=len(frames), colour=colour, fps=float(own), notes=notes,
+                    path=str(path))
+    target = 1.0 / med if fps is None else fps
+    if vfr or abs(rate - target) > 1e-3 * target:
+        ticks = np.arange(0.0, t[-1] + 0.5 / rate + 1e-9, 1.0 / target)
+        # nearest source frame to each tick (blending two would show two half-bright objects)
         j = np.clip(np.searchsorted(t, ticks), 1, len(t) - 1)
         j = np.where(np.abs(t[j - 1] - ticks) <= np.abs(t[j] - ticks), j - 1, j)
         if len(t) == 1:
             j = np.zeros(1, dtype=int)
         raw_kept, t_kept = raw[j], t[j]
-        notes.append(f"resampled from {rate:.4g} to {fps:g} frames/s (nearest frame in time): "
-                     f"{len(frames)} -> {len(j)} frames"
-                     + ("; the source is slower than the model, so frames repeat" if rate < fps
-                        else ""))
+        if vfr:
+            off = float(np.max(np.abs(t_kept - ticks[:len(j)]))) if len(j) else 0.0
+            how = ("its median interval" if fps is None else f"the method's {fps:g} frames/s")
+            notes.append(f"variable frame rate (frames {1e3 * gaps.min():.3g} to "
+                         f"{1e3 * gaps.max():.3g} ms apart, median {1e3 * med:.3g} ms): put on a "
+                         f"uniform grid at {how} by the nearest frame in time, {len(frames)} -> "
+                         f"{len(j)} frames, each at most {1e3 * off:.3g} ms from its tick")
+        else:
+            notes.append(f"resampled from {rate:.4g} to {target:g} frames/s (nearest frame in "
+                         f"time): {len(frames)} -> {len(j)} frames"
+                         + ("; the source is slower than the model, so frames repeat"
+                            if rate < target else ""))
     else:
         raw_kept, t_kept = raw, t
     return Clip(frames=np.ascontiguousarray(raw_kept), times=t_kept, source_fps=float(rate),
-                source_frames=len(frames), colour=colour, fps=fps, notes=notes, path=str(path))
+                source_frames=len(frames), colour=colour, fps=float(target), notes=notes,
+                path=str(path))
 
 
 def _av_reason(exc) -> str:
@@ -1575,8 +1613,8 @@ class CameraClip:
     ----------
     observation : Observation
         ``positions`` (T, K, 2) metres in the system's world frame (NaN where the object was
-        not seen), ``dt`` the resampled frame interval, the system's known geometry (the ball's
-        floor at 0, where the camera put it).
+        not seen), ``dt`` the capture's own frame interval (or the asked ``fps``'s), the
+        system's known geometry (the ball's floor at 0, where the camera put it).
     camera : Camera
         The pixels-to-metres mapping, its scale and the scale's relative std.
     lost : ndarray, shape (T,), bool
@@ -1660,11 +1698,11 @@ def clip_options(options) -> dict:
 
 
 def observe_clip(path, system: str, options=(), *, progress: bool | None = False,
-                 **given) -> CameraClip:
+                 fps: float | None = None, **given) -> CameraClip:
     """A camera's clip of ``system`` and the options a user would give, as a method takes it.
 
-    Decodes the file (:func:`read_video`: the window, the capture rate, resampled to
-    :data:`MODEL_FPS`), turns it upright (:func:`rotate_frames`), follows the object at the
+    Decodes the file (:func:`read_video`: the window, the capture rate; every frame at the
+    capture's own ``dt``, or resampled to ``fps``), turns it upright (:func:`rotate_frames`), follows the object at the
     file's resolution (:func:`find_object`), builds the camera (:func:`camera_for`: the scale
     given, from the object's size frame by frame, or from a known length) and maps the track
     to metres in the system's world frame. What ``sysid-bench identify --system S`` does
@@ -1681,6 +1719,10 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
         ``system``.
     progress : bool, optional
         tqdm bars while decoding (None: :func:`read_video`'s default) and tracking.
+    fps : float, optional
+        The rate of the method that will read the observation
+        (:func:`sysid_bench.core.estimator.frame_rate_of`): the clip is resampled to it. None
+        (default): the capture's own ``dt``, for a method that simulates at any step.
     **given
         The same options as keywords (``rotate``, ``capture_fps``, ``start``, ``end``,
         ``px_per_m``, ``object_size_m``, ``floor_row``, ``walls``, ``pivot``, ``anchor``;
@@ -1728,7 +1770,7 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
     prior = parse_prior(sys_, opts.get("prior", ()), known)
     if "track" in opts:
         raise ValueError(f"--track: means nothing for the {sys_.name} system (collision only)")
-    clip = read_video(path, progress=progress, start=opts.get("start"), end=opts.get("end"),
+    clip = read_video(path, fps, progress=progress, start=opts.get("start"), end=opts.get("end"),
                       capture_fps=opts.get("capture_fps"))
     rotate = int(opts.get("rotate", 0))
     frames = rotate_frames(clip.frames, rotate)
