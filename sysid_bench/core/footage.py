@@ -215,6 +215,8 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         stream.thread_type = "AUTO"
         rate = stream.average_rate or stream.guessed_rate or stream.base_rate
         rate = float(rate) if rate else float("nan")
+        # one tick of the container's clock: timestamps are rounded to it (1 ms in mkv/webm)
+        tick = float(stream.time_base) if stream.time_base else 0.0
         colour = not str(stream.codec_context.pix_fmt or "").startswith("gray")
         n_hint = int(stream.frames or 0)
         show = (n_hint > _PROGRESS_FRAMES) if progress is None else bool(progress)
@@ -253,7 +255,7 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
     notes = []
     if capture_fps is not None:
         stretch = rate / float(capture_fps)
-        t = t * stretch
+        t, tick = t * stretch, tick * stretch
         notes.append(f"capture rate {float(capture_fps):g} frames/s (the container says "
                      f"{rate:.4g}): time runs {stretch:.4g}x the file's")
         rate = float(capture_fps)
@@ -271,21 +273,28 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         notes.append(f"window {lo:g} to {min(hi, float(t[-1]) + lo):.4g} s: {len(frames)} frames")
     raw = np.stack(frames)
     gaps = np.diff(t)
-    med = float(np.median(gaps)) if len(gaps) else 1.0 / rate
-    # a browser's or phone's variable frame rate; timestamps quantised by the container's
-    # time base (33/34 ms at 30 frames/s in 1/1000 s) stay well inside 10%
-    vfr = len(gaps) > 1 and float(np.max(np.abs(gaps - med))) > 0.1 * med
+    mean_gap = float(t[-1] / (len(t) - 1)) if len(t) > 1 else 1.0 / rate
+    # a browser's or phone's variable frame rate: an interval off the mean by more than 10%
+    # beyond one tick of the container's clock (16/17 ms at 60 frames/s in 1/1000 s is not)
+    vfr = len(gaps) > 1 and float(np.max(np.abs(gaps - mean_gap))) > 0.1 * mean_gap + tick
     if fps is None and not vfr:
         # the capture's own rate, every frame kept; a container rate its frames contradict
         # (by more than 1%) gives way to their own spacing
-        own = rate if abs(rate * med - 1.0) <= 0.01 or len(gaps) == 0 else 1.0 / med
+        own = rate if len(gaps) == 0 or abs(rate * mean_gap - 1.0) <= 0.01 else 1.0 / mean_gap
         if own != rate:
-            notes.append(f"the frames are {1e3 * med:.4g} ms apart, not the {rate:.4g} "
+            notes.append(f"the frames are {1e3 * mean_gap:.4g} ms apart, not the {rate:.4g} "
                          f"frames/s the container says: read at {own:.4g} frames/s")
         return Clip(frames=np.ascontiguousarray(raw), times=t, source_fps=float(rate),
                     source_frames=len(frames), colour=colour, fps=float(own), notes=notes,
                     path=str(path))
-    target = 1.0 / med if fps is None else fps
+    med = float(np.median(gaps)) if len(gaps) else mean_gap
+    if fps is None:
+        # the grid: the median interval (blind to dropped frames' long gaps), refined as the
+        # mean of the intervals near it (undoing the clock's rounding: 33/34 ms -> 33.3 ms)
+        near = gaps[np.abs(gaps - med) <= 0.25 * med]
+        target = 1.0 / float(np.mean(near))
+    else:
+        target = fps
     if vfr or abs(rate - target) > 1e-3 * target:
         ticks = np.arange(0.0, t[-1] + 0.5 / rate + 1e-9, 1.0 / target)
         # nearest source frame to each tick (blending two would show two half-bright objects)
@@ -296,7 +305,8 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         raw_kept, t_kept = raw[j], t[j]
         if vfr:
             off = float(np.max(np.abs(t_kept - ticks[:len(j)]))) if len(j) else 0.0
-            how = ("its median interval" if fps is None else f"the method's {fps:g} frames/s")
+            how = (f"its typical interval, {1e3 / target:.4g} ms" if fps is None
+                   else f"the method's {fps:g} frames/s")
             notes.append(f"variable frame rate (frames {1e3 * gaps.min():.3g} to "
                          f"{1e3 * gaps.max():.3g} ms apart, median {1e3 * med:.3g} ms): put on a "
                          f"uniform grid at {how} by the nearest frame in time, {len(frames)} -> "
