@@ -12,8 +12,8 @@ import pytest
 
 from sysid_bench.apps.video import identify_video
 from sysid_bench.core import systems
-from sysid_bench.core.estimator import Estimator, frame_rate_of
-from sysid_bench.core.footage import read_video, write_video
+from sysid_bench.core.estimator import EXPENSIVE_MAX_FRAMES, Estimator, frame_cap_of, frame_rate_of
+from sysid_bench.core.footage import read_video, thin_clip, write_video
 from sysid_bench.core.physics import simulate
 from sysid_bench.core.render import render
 
@@ -144,3 +144,17 @@ def test_pendulum_clip_at_60fps_gives_lsq_every_frame(tmp_path):
     assert res["info"]["dt_s"] == 1 / 60 and res["info"]["frames"] == 90
     # g and L from 1.5 s (the friction mu needs a longer clip)
     assert res["mean"][-1, :2] == pytest.approx(theta[0, :2], rel=0.02)
+
+
+def test_expensive_methods_take_at_most_their_cap(tmp_path):
+    import methods
+
+    assert frame_cap_of(methods.get_class("lsq")) is None
+    assert frame_cap_of(methods.get_class("nuts")) == EXPENSIVE_MAX_FRAMES  # expensive tier
+    clip = read_video(write_video(tmp_path / "c.mkv", _numbered(30), fps=60, codec="ffv1"), None)
+    thin = thin_clip(clip, 10, "nuts")
+    assert thin.fps == 20.0 and np.array_equal(thin.frames[:, 0, 0] // 6, np.arange(0, 30, 3))
+    assert "nuts takes at most 10 observations: one frame in 3 kept (30 -> 10" in thin.notes[-1]
+    assert thin_clip(clip, 30) is clip and thin_clip(clip, None) is clip
+    with pytest.raises(ValueError, match="max_frames: expected None or an int >= 1"):
+        thin_clip(clip, 0)

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from sysid_bench.core._io import atomic_folder
-from sysid_bench.core.estimator import Observation, frame_rate_of
+from sysid_bench.core.estimator import Observation, frame_cap_of, frame_rate_of
 from sysid_bench.core.footage import (  # the core half (files, geometry, the tracker), re-exported
     _PROGRESS_FRAMES,
     MODEL_FPS,
@@ -51,6 +51,7 @@ from sysid_bench.core.footage import (  # the core half (files, geometry, the tr
     parse_prior,
     read_video,
     rotate_frames,
+    thin_clip,
     widen_for_scale,
     write_video,
 )
@@ -219,6 +220,9 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     rate = frame_rate_of(est)
     clip = read_video(path, rate, progress=progress, start=start, end=end,
                       capture_fps=capture_fps)
+    resampled = len(clip.frames) != clip.source_frames or abs(clip.fps - clip.source_fps) > 1e-9
+    # a method whose cost grows with the observations takes at most its cap (NUTS: 400)
+    clip = thin_clip(clip, frame_cap_of(est), method)
     frames = rotate_frames(clip.frames, int(rotate))
     t_n, h, w = frames.shape
     # progress bars on long files, on a terminal (or when asked)
@@ -226,7 +230,6 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     is_video = getattr(type(est), "input_kind", "positions") == "frames"
     size = tuple(est.frame_size) if is_video else None
     notes = list(clip.notes)
-    resampled = len(clip.frames) != clip.source_frames or abs(clip.fps - clip.source_fps) > 1e-9
     if rate is not None and resampled:
         notes.append(f"{method} is built for {rate:g} frames/s, so the clip was resampled to it "
                      "(a method that simulates at any step, e.g. lsq, reads every frame at the "

@@ -102,12 +102,13 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
     """
     import methods
     from sysid_bench.core import systems
-    from sysid_bench.core.estimator import Observation, frame_rate_of
+    from sysid_bench.core.estimator import Observation, frame_cap_of, frame_rate_of
     from sysid_bench.core.footage import (
         knowledge_record,
         observe_clip,
         read_video,
         rotate_frames,
+        thin_clip,
         widen_for_scale,
     )
 
@@ -119,26 +120,27 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
     # the method first: its frame rate decides the clip's time base (None: the capture's own dt)
     name = method or (_default_method(sys_.name) if camera is None
                       else _position_method(sys_.name))
-    rate = frame_rate_of(methods.get_class(name, system=sys_.name))
+    klass = methods.get_class(name, system=sys_.name)
+    rate, cap = frame_rate_of(klass), frame_cap_of(klass)
     if camera is None:
         clip = read_video(path, rate, progress=progress, start=start, end=end,
                           capture_fps=capture_fps)
+        resampled = len(clip.frames) != clip.source_frames or abs(clip.fps - clip.source_fps) > 1e-9
+        clip = thin_clip(clip, cap, name)  # a method whose cost grows with the observations
         notes = list(clip.notes)
         model_fps, source_fps = clip.fps, clip.source_fps
-        resampled = len(clip.frames) != clip.source_frames or abs(clip.fps - source_fps) > 1e-9
         frames = resize_frames(rotate_frames(clip.frames, int(rotate)), sys_.size)
         obs = Observation(frames=frames, system=sys_.name, dt=1.0 / clip.fps)
         points = sys_.track(frames)
     else:  # the core's camera pipeline, as the benchmark's camera section runs it
-        cc = observe_clip(path, sys_.name, progress=progress, fps=rate, rotate=int(rotate),
-                          start=start, end=end, capture_fps=capture_fps, known=known,
-                          prior=prior, **camera)
+        cc = observe_clip(path, sys_.name, progress=progress, fps=rate, max_frames=cap,
+                          rotate=int(rotate), start=start, end=end, capture_fps=capture_fps,
+                          known=known, prior=prior, **camera)
         cam, obs = cc.camera, cc.observation
         points = obs.points
         notes = [*cc.notes[:-1], f"{name} saw {cc.notes[-1]}"]
         model_fps, source_fps = 1.0 / obs.dt, cc.source_fps
-        resampled = abs(model_fps - source_fps) > 1e-9 or any(
-            n.startswith(("resampled", "variable")) for n in cc.notes)
+        resampled = any(n.startswith(("resampled", "variable")) for n in cc.notes)
     if rate is not None and resampled:
         notes.append(f"{name} is built for {rate:g} frames/s, so the clip was resampled to it "
                      "(a method that simulates at any step, e.g. lsq, reads every frame at the "

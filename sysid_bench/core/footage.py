@@ -41,7 +41,7 @@ from __future__ import annotations
 import math
 import os
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +56,7 @@ __all__ = [
     "VideoError",
     "Clip",
     "read_video",
+    "thin_clip",
     "write_video",
     "Geometry",
     "geometry_from_options",
@@ -321,6 +322,41 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
     return Clip(frames=np.ascontiguousarray(raw_kept), times=t_kept, source_fps=float(rate),
                 source_frames=len(frames), colour=colour, fps=float(target), notes=notes,
                 path=str(path))
+
+
+def thin_clip(clip: Clip, max_frames: int | None, method: str = "the method") -> Clip:
+    """Every k-th frame of ``clip``, the fewest k that leaves at most ``max_frames``.
+
+    For a method whose cost grows with the observations (:func:`sysid_bench.core.estimator.
+    frame_cap_of`): a 10 s clip at 240 frames/s is 2400 of them. The frames kept are still
+    evenly spaced, at k times the dt.
+
+    Parameters
+    ----------
+    clip : Clip
+    max_frames : int or None
+        None: the clip as it is.
+    method : str
+        Named in the note.
+
+    Returns
+    -------
+    Clip
+        ``frames`` (ceil(T / k), H, W), ``fps`` divided by k, a note saying so; the same
+        object when nothing was dropped.
+    """
+    if max_frames is None or len(clip.frames) <= max_frames:
+        return clip
+    if isinstance(max_frames, bool) or not isinstance(max_frames, (int, np.integer)) \
+            or max_frames < 1:
+        raise ValueError(f"max_frames: expected None or an int >= 1, got {max_frames!r}")
+    k = -(-len(clip.frames) // int(max_frames))
+    keep = slice(None, None, k)
+    note = (f"{method} takes at most {int(max_frames)} observations: one frame in {k} kept "
+            f"({len(clip.frames)} -> {len(clip.frames[keep])} frames, "
+            f"{clip.fps / k:.4g} frames/s)")
+    return replace(clip, frames=np.ascontiguousarray(clip.frames[keep]), times=clip.times[keep],
+                   fps=clip.fps / k, notes=[*clip.notes, note])
 
 
 def _av_reason(exc) -> str:
@@ -1708,7 +1744,8 @@ def clip_options(options) -> dict:
 
 
 def observe_clip(path, system: str, options=(), *, progress: bool | None = False,
-                 fps: float | None = None, **given) -> CameraClip:
+                 fps: float | None = None, max_frames: int | None = None,
+                 **given) -> CameraClip:
     """A camera's clip of ``system`` and the options a user would give, as a method takes it.
 
     Decodes the file (:func:`read_video`: the window, the capture rate; every frame at the
@@ -1733,6 +1770,9 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
         The rate of the method that will read the observation
         (:func:`sysid_bench.core.estimator.frame_rate_of`): the clip is resampled to it. None
         (default): the capture's own ``dt``, for a method that simulates at any step.
+    max_frames : int, optional
+        The most observations the method takes (:func:`sysid_bench.core.estimator.
+        frame_cap_of`): a longer clip is thinned (:func:`thin_clip`).
     **given
         The same options as keywords (``rotate``, ``capture_fps``, ``start``, ``end``,
         ``px_per_m``, ``object_size_m``, ``floor_row``, ``walls``, ``pivot``, ``anchor``;
@@ -1782,6 +1822,7 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
         raise ValueError(f"--track: means nothing for the {sys_.name} system (collision only)")
     clip = read_video(path, fps, progress=progress, start=opts.get("start"), end=opts.get("end"),
                       capture_fps=opts.get("capture_fps"))
+    clip = thin_clip(clip, max_frames)
     rotate = int(opts.get("rotate", 0))
     frames = rotate_frames(clip.frames, rotate)
     trk = find_object(frames, progress=bool(progress))
