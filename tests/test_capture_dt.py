@@ -12,7 +12,13 @@ import pytest
 
 from sysid_bench.apps.video import identify_video
 from sysid_bench.core import systems
-from sysid_bench.core.estimator import EXPENSIVE_MAX_FRAMES, Estimator, frame_cap_of, frame_rate_of
+from sysid_bench.core.estimator import (
+    EXPENSIVE_MAX_FRAMES,
+    Estimator,
+    Observation,
+    frame_cap_of,
+    frame_rate_of,
+)
 from sysid_bench.core.footage import read_video, thin_clip, write_video
 from sysid_bench.core.physics import simulate
 from sysid_bench.core.render import render
@@ -158,3 +164,32 @@ def test_expensive_methods_take_at_most_their_cap(tmp_path):
     assert thin_clip(clip, 30) is clip and thin_clip(clip, None) is clip
     with pytest.raises(ValueError, match="max_frames: expected None or an int >= 1"):
         thin_clip(clip, 0)
+
+
+def test_every_system_simulates_at_the_capture_dt():
+    # the kernels sub-step: 60 fps and 20 fps agree at the common times (issue 38 §2)
+    rng = np.random.default_rng(0)
+    for name in systems.available():
+        s = systems.get(name)
+        lo, hi = (np.array([s.prior[p][i] for p in s.params]) for i in (0, 1))
+        th = lo + (hi - lo) * rng.random((2, len(lo)))
+        s0 = s.sample_state0(2, rng)
+        a = s.observe(s.simulate(th, s0, n_frames=101, dt=0.05), th)
+        b = s.observe(s.simulate(th, s0, n_frames=301, dt=0.05 / 3), th)[:, ::3]
+        assert np.nanmax(np.abs(a - b)) < 1e-6, name
+
+
+def test_sindy_holds_its_smoothing_window_in_seconds():
+    import methods
+    from methods.sindy import _window_at
+
+    assert _window_at(9, 0.05) == 9 and _window_at(15, 0.1) == 15  # 20 fps and slower: as tuned
+    assert _window_at(9, 1 / 60) == 27 and _window_at(15, 1 / 60) == 45 and _window_at(0, 0.01) == 0
+    # a 60 fps pendulum with 1 cm noise: the 15-frame window of 20 fps read g as -10.6 +- 2.0
+    s = systems.get("pendulum")
+    theta, s0 = np.array([[-9.74, 1.93, 0.07, 0.47]]), np.array([[1.0, 0.0]])
+    pts = s.observe(s.simulate(theta, s0, n_frames=600, dt=1 / 60), theta)[0]
+    pts = pts + np.random.default_rng(5).normal(0, 0.01, pts.shape)
+    post = methods.get("sindy", system="pendulum").identify(
+        Observation(positions=pts, dt=1 / 60, system="pendulum"))
+    assert post.mean[0] == pytest.approx(-9.74, abs=3 * post.std[0]) and post.std[0] < 0.5
