@@ -678,7 +678,7 @@ def _run_system(args, name: str, known: dict, prior: dict, camera: dict | None,
     """``identify --system S`` for a system other than the ball (:mod:`video_systems`)."""
     from sysid_bench.apps.video_systems import identify_system_video, write_system_outputs
 
-    res = identify_system_video(args.video, name, method=args.method, every=args.every or 10,
+    res = identify_system_video(args.video, name, method=args.method, every=args.every,
                                 progress=None if not args.no_progress else False,
                                 camera=camera, rotate=int(args.rotate or 0), start=args.start,
                                 end=args.end, capture_fps=args.fps, known=known, prior=prior)

@@ -64,7 +64,8 @@ def _position_method(system: str) -> str:
     return _first_method(system, frames=False)
 
 
-def identify_system_video(path, system: str, *, method: str | None = None, every: int = 10,
+def identify_system_video(path, system: str, *, method: str | None = None,
+                          every: int | None = None,
                           progress=None, camera: dict | None = None, rotate: int = 0,
                           start: float | None = None, end: float | None = None,
                           capture_fps: float | None = None, known: dict | None = None,
@@ -78,8 +79,9 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
     method : str, optional
         Default: the first identifying contender (frame methods first; with a camera, the
         first position method).
-    every : int
-        Frames between estimates.
+    every : int, optional
+        Frames between estimates; default: half a second of capture (10 frames at 20 frames/s,
+        30 at 60).
     progress : bool, optional
     camera : dict, optional
         A real camera (:func:`sysid_bench.core.footage.camera_for`'s ``px_per_m``,
@@ -151,6 +153,8 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
     est = methods.get(name, system=sys_.name, **give)
     est.fit(None)
     t = obs.n_frames
+    if every is None:  # an estimate every half second of capture (10 frames at 20 frames/s)
+        every = max(1, int(round(0.5 / float(obs.dt))))
     lengths = sorted({*range(every, t + 1, every), t})
     lengths = [n for n in lengths if n >= max(3, getattr(est.spec(), "min_frames", 3))]
     if not lengths:
