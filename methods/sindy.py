@@ -85,6 +85,18 @@ __all__ = ["SINDy", "bounce_ratios", "free_flight", "pool_ratios", "reject_outli
 
 _FEATURES = ("1", "|v|vx", "|v|vy")
 _CLEAN_NOISE = 1e-3  # m; below this a track is "clean" and needs no smoothing
+_TUNED_DT = 0.05  # s; the default windows were chosen on 20 frames/s tracks
+
+
+def _window_at(w: int, dt: float) -> int:
+    """A default smoothing window of ``w`` frames at 20 frames/s held as the same span of time
+    at a faster capture's ``dt`` (odd; never narrower): 9 frames at 60 frames/s would smooth a
+    third of the time, and a second derivative's noise grows as 1/dt^2 (a 60 fps pendulum, 1 cm
+    noise: g -11.5 +- 1.7 with 11 frames, -9.78 +- 0.28 with 31; truth -9.74). Unchanged at
+    20 frames/s and slower."""
+    if not w or dt >= _TUNED_DT:
+        return w
+    return max(w, int(round(w * _TUNED_DT / dt)) // 2 * 2 + 1)
 _CORR_INFLATION = np.sqrt(3.0)  # FD accelerations of adjacent frames share positions
 
 
@@ -371,7 +383,8 @@ class SINDy(Estimator):
         ``None`` picks 0 when the track's own noise estimate is below 1 mm, else 9 (on 20
         tracked 28x28 test videos: normalised MSE on e, g, d 0.096 with 0, 0.040 with 7,
         0.033 with 9, 0.038 with 11). Another system: None (the library's, 15) or an odd
-        number >= 7 (order 4 Savitzky-Golay).
+        number >= 7 (order 4 Savitzky-Golay). None's windows are frames at 20 frames/s: a
+        faster capture's window spans the same time (27 frames at 60 frames/s for 9).
     min_segment : int
         The ball only: shortest free-flight segment used, in frames.
     n_forecast : int
@@ -437,6 +450,18 @@ class SINDy(Estimator):
                            smoothing_window=self.smoothing_window, n_forecast=self.n_forecast,
                            seed=self.seed)
 
+    def _points_at(self, obs: Observation):
+        """:meth:`_points` with the library's default window held in seconds at ``obs.dt``
+        (:func:`_window_at`; the given one, or the same part, at 20 frames/s and slower)."""
+        part = self._points()
+        if self.smoothing_window is None and float(obs.dt) < _TUNED_DT:
+            from methods._sindy_libraries import LIBRARIES
+
+            w = _window_at(LIBRARIES[self.system].window, float(obs.dt))
+            w = min(w, max(LIBRARIES[self.system].window, (obs.n_frames - 3) // 2 * 2 + 1))
+            part.smoothing_window = w
+        return part
+
     def _validate(self) -> None:
         super()._validate()
         from methods._points import check_system_param
@@ -456,12 +481,12 @@ class SINDy(Estimator):
         check_positive_int(self.min_segment, "min_segment", minimum=3)
         check_positive_int(self.n_forecast, "n_forecast")
 
-    def _differentiator(self, noise: float):
+    def _differentiator(self, noise: float, dt: float = _TUNED_DT):
         import pysindy as ps
 
         w = self.smoothing_window
         if w is None:
-            w = 0 if noise < _CLEAN_NOISE else 9
+            w = 0 if noise < _CLEAN_NOISE else _window_at(9, float(dt))
         if isinstance(w, bool) or not isinstance(w, (int, np.integer)) or w < 0 or (w and (w < 5 or w % 2 == 0)):
             raise ValueError(f"smoothing_window: expected 0 or an odd integer >= 5, got {w!r}")
         if w == 0:
@@ -486,7 +511,7 @@ class SINDy(Estimator):
         pos[bad] = np.nan
         track = prepare(dataclasses.replace(obs, frames=None, positions=pos))
         track.input_kind = kind
-        diff, stencil = self._differentiator(track.noise)
+        diff, stencil = self._differentiator(track.noise, track.dt)
         dt = track.dt
         seg = segment_track(track.positions, dt, min_len=max(min_seg, stencil), floor=track.floor)
         mean = PRIOR_MEAN.copy()
@@ -607,7 +632,7 @@ class SINDy(Estimator):
             system: mean/std (P,) from the library's coefficients.
         """
         if self.system not in self.own_library:
-            return self._points().identify(obs)
+            return self._points_at(obs).identify(obs)
         post, track, _ = self._fit(obs)
         sim = CountingSimulator()
         post = check_posterior(post, sim, track, track.state0, track.floor, DEFAULT_SIGMA,
@@ -625,7 +650,7 @@ class SINDy(Estimator):
             identified model run on from the last frame's estimated state, (H, 2) or (H, K, 2).
         """
         if self.system not in self.own_library:
-            return self._points().forecast(obs, horizon)
+            return self._points_at(obs).forecast(obs, horizon)
         m = check_positive_int(self.n_forecast, "n_forecast")
         post, track, clock = self._fit(obs)
         rng = make_rng(self.seed, 1)

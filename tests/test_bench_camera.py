@@ -147,6 +147,10 @@ def test_observe_clip_takes_the_options_as_tokens_or_keywords(ran):
     pa, pb = a.observation.positions, b.observation.positions
     assert pa.shape == (len(a.lost), 1, 2) and np.array_equal(pa, pb, equal_nan=True)
     assert np.array_equal(np.isnan(pa).any(axis=(1, 2)), a.lost) and a.lost_share < 0.5
-    assert a.camera.px_per_m == pytest.approx(kw["px_per_m"]) and a.observation.dt == 0.05
+    # the capture's own dt (a method that simulates at any step), or a method's rate when asked
+    assert a.camera.px_per_m == pytest.approx(kw["px_per_m"])
+    assert a.observation.dt == pytest.approx(1.0 / truth["fps"], rel=1e-9)
+    assert footage.observe_clip(video, "spring", truth["options"],
+                                fps=footage.MODEL_FPS).observation.dt == 0.05
     with pytest.raises(TypeError, match="^zoom:"):
         footage.observe_clip(video, "spring", zoom=2)

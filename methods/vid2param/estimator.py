@@ -209,6 +209,8 @@ class Vid2Param(Estimator):
     #: frames the model check covers (None: the whole prefix)
     check_window = None
     input_kind = "frames"
+    #: the networks saw videos at 20 frames/s (physics.dt): a camera's clip is resampled to it
+    frame_rate = 20.0
     forecasts = True
     streams = True  # identify_prefixes: one pass of the LSTM for every prefix
     online = True  # stream(): one LSTM step per push

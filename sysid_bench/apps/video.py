@@ -2,7 +2,9 @@
 
 Pipeline
 --------
-1-3. The file is decoded and resampled to the model's 20 frames/s (:func:`read_video`), its
+1-3. The file is decoded (:func:`read_video`): every frame at the capture's own dt for a method
+   that simulates at any step, resampled to 20 frames/s for one built for that rate
+   (Vid2Param, its ``frame_rate``), with a note saying so; its
    pixels mapped to the suite's metres (:class:`Geometry`) and the ball followed
    (:func:`find_ball`): the core half, :mod:`sysid_bench.core.footage`, re-exported here.
 4. Position methods get the tracked positions in metres (floor at 0). Methods that read frames
@@ -27,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from sysid_bench.core._io import atomic_folder
-from sysid_bench.core.estimator import Observation
+from sysid_bench.core.estimator import Observation, frame_cap_of, frame_rate_of
 from sysid_bench.core.footage import (  # the core half (files, geometry, the tracker), re-exported
     _PROGRESS_FRAMES,
     MODEL_FPS,
@@ -49,6 +51,7 @@ from sysid_bench.core.footage import (  # the core half (files, geometry, the tr
     parse_prior,
     read_video,
     rotate_frames,
+    thin_clip,
     widen_for_scale,
     write_video,
 )
@@ -218,9 +221,16 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     if camera and geometry and any(v is not None for v in geometry.values()):
         raise ValueError("camera: give a camera (px_per_m, object_size_m, walls) or the "
                          "renderer's box geometry (corners, wall_col), not both")
-    clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps,
+    # a method that simulates at any step reads every frame at the capture's own dt; one built
+    # for a frame rate (Vid2Param) gets the clip resampled to it, and the notes say so
+    rate = frame_rate_of(est)
+    clip = read_video(path, rate, progress=progress, start=start, end=end,
+                      capture_fps=capture_fps,
                       colour=bool(camera) or ("g" in (known or {}) and not any(
                           v is not None for v in (geometry or {}).values())))
+    resampled = len(clip.frames) != clip.source_frames or abs(clip.fps - clip.source_fps) > 1e-9
+    # a method whose cost grows with the observations takes at most its cap (NUTS: 400)
+    clip = thin_clip(clip, frame_cap_of(est), method)
     frames = rotate_frames(clip.frames, int(rotate))
     t_n, h, w = frames.shape
     # progress bars on long files, on a terminal (or when asked)
@@ -228,6 +238,10 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     is_video = getattr(type(est), "input_kind", "positions") == "frames"
     size = tuple(est.frame_size) if is_video else None
     notes = list(clip.notes)
+    if rate is not None and resampled:
+        notes.append(f"{method} is built for {rate:g} frames/s, so the clip was resampled to it "
+                     "(a method that simulates at any step, e.g. lsq, reads every frame at the "
+                     "capture's own dt)")
     cam = None
     if (not camera and "g" in (known or {}) and abs(w / h - 1.0) > 0.02
             and not any(v is not None for v in (geometry or {}).values())):
@@ -315,6 +329,10 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         "file": str(path),
         "fps": clip.source_fps,
         "model_fps": clip.fps,
+        # the time base the method saw: the capture's own dt, or its own rate's
+        "dt_s": 1.0 / clip.fps,
+        "method_frame_rate": rate,
+        "resampled": bool(resampled),
         "source_frames": clip.source_frames,
         "frames": t_n,
         "colour": clip.colour,
@@ -684,7 +702,7 @@ def _run_system(args, name: str, known: dict, prior: dict, camera: dict | None,
     """``identify --system S`` for a system other than the ball (:mod:`video_systems`)."""
     from sysid_bench.apps.video_systems import identify_system_video, write_system_outputs
 
-    res = identify_system_video(args.video, name, method=args.method, every=args.every or 10,
+    res = identify_system_video(args.video, name, method=args.method, every=args.every,
                                 progress=None if not args.no_progress else False,
                                 camera=camera, rotate=int(args.rotate or 0), start=args.start,
                                 end=args.end, capture_fps=args.fps, known=known, prior=prior)

@@ -81,7 +81,8 @@ def _check_renderer_framing(sys_, shape, path) -> None:
                      f"view, so it is a camera's and its scale is not known: give {how}")
 
 
-def identify_system_video(path, system: str, *, method: str | None = None, every: int = 10,
+def identify_system_video(path, system: str, *, method: str | None = None,
+                          every: int | None = None,
                           progress=None, camera: dict | None = None, rotate: int = 0,
                           start: float | None = None, end: float | None = None,
                           capture_fps: float | None = None, known: dict | None = None,
@@ -95,8 +96,9 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
     method : str, optional
         Default: the first identifying contender (frame methods first; with a camera, the
         first position method).
-    every : int
-        Frames between estimates.
+    every : int, optional
+        Frames between estimates; default: half a second of capture (10 frames at 20 frames/s,
+        30 at 60).
     progress : bool, optional
     camera : dict, optional
         A real camera (:func:`sysid_bench.core.footage.camera_for`'s ``px_per_m``,
@@ -119,12 +121,13 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
     """
     import methods
     from sysid_bench.core import systems
-    from sysid_bench.core.estimator import Observation
+    from sysid_bench.core.estimator import Observation, frame_cap_of, frame_rate_of
     from sysid_bench.core.footage import (
         knowledge_record,
         observe_clip,
         read_video,
         rotate_frames,
+        thin_clip,
         widen_for_scale,
     )
 
@@ -133,34 +136,49 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
         raise ValueError(f"method: {method} reads frames drawn as the {sys_.name}'s renderer "
                          "draws them; on a camera's clip give a position method (e.g. lsq)")
     cam = None
+    # the method first: its frame rate decides the clip's time base (None: the capture's own dt)
+    name = method or (_default_method(sys_.name) if camera is None
+                      else _position_method(sys_.name))
+    klass = methods.get_class(name, system=sys_.name)
+    rate, cap = frame_rate_of(klass), frame_cap_of(klass)
     if camera is None:
-        clip = read_video(path, progress=progress, start=start, end=end, capture_fps=capture_fps)
+        clip = read_video(path, rate, progress=progress, start=start, end=end,
+                          capture_fps=capture_fps)
+        resampled = len(clip.frames) != clip.source_frames or abs(clip.fps - clip.source_fps) > 1e-9
+        clip = thin_clip(clip, cap, name)  # a method whose cost grows with the observations
         notes = list(clip.notes)
         model_fps, source_fps = clip.fps, clip.source_fps
         turned = rotate_frames(clip.frames, int(rotate))
         _check_renderer_framing(sys_, turned.shape[1:], path)
         frames = resize_frames(turned, sys_.size)
-        name = method or _default_method(sys_.name)
         obs = Observation(frames=frames, system=sys_.name, dt=1.0 / clip.fps)
         points = sys_.track(frames)
     else:  # the core's camera pipeline, as the benchmark's camera section runs it
-        cc = observe_clip(path, sys_.name, progress=progress, rotate=int(rotate), start=start,
-                          end=end, capture_fps=capture_fps, known=known, prior=prior, **camera)
+        cc = observe_clip(path, sys_.name, progress=progress, fps=rate, max_frames=cap,
+                          rotate=int(rotate), start=start, end=end, capture_fps=capture_fps,
+                          known=known, prior=prior, **camera)
         cam, obs = cc.camera, cc.observation
         points = obs.points
-        name = method or _position_method(sys_.name)
         notes = [*cc.notes[:-1], f"{name} saw {cc.notes[-1]}"]
         model_fps, source_fps = 1.0 / obs.dt, cc.source_fps
+        resampled = any(n.startswith(("resampled", "variable")) for n in cc.notes)
+    if rate is not None and resampled:
+        notes.append(f"{name} is built for {rate:g} frames/s, so the clip was resampled to it "
+                     "(a method that simulates at any step, e.g. lsq, reads every frame at the "
+                     "capture's own dt)")
     # a method that takes the user's knowledge holds it (issue 38 §4); the others say they did not
     takes = {"known", "prior"} <= set(methods.get(name, system=sys_.name).get_params())
     give = {"known": dict(known or {}), "prior": dict(prior or {})} if takes else {}
     est = methods.get(name, system=sys_.name, **give)
     est.fit(None)
     t = obs.n_frames
+    if every is None:  # an estimate every half second of capture (10 frames at 20 frames/s)
+        every = max(1, int(round(0.5 / float(obs.dt))))
     lengths = sorted({*range(every, t + 1, every), t})
     lengths = [n for n in lengths if n >= max(3, getattr(est.spec(), "min_frames", 3))]
     if not lengths:
-        raise ValueError(f"video: expected at least 3 frames at 20 frames/s, got {t}")
+        raise ValueError(f"video: expected at least 3 frames at {model_fps:.4g} frames/s, "
+                         f"got {t}")
     posts = est.identify_prefixes(obs, lengths)
     p = sys_.n_params
     mean, std = np.full((t, p), np.nan), np.full((t, p), np.nan)
@@ -186,6 +204,7 @@ def identify_system_video(path, system: str, *, method: str | None = None, every
         notes.append(f"--known/--prior: {name} used them ({'; '.join(said)})")
     info = {"file": str(path), "system": sys_.name, "method": name, "params": list(sys_.params),
             "model_fps": model_fps, "frames": t, "source_fps": source_fps,
+            "dt_s": float(obs.dt), "method_frame_rate": rate, "resampled": bool(resampled),
             "size": list(sys_.size), "extent": list(sys_.extent), "notes": notes,
             "points_seen": int(np.isfinite(points).all(axis=(1, 2)).sum()),
             "input": "tracked positions (camera)" if cam is not None else

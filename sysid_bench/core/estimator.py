@@ -13,6 +13,7 @@ from __future__ import annotations
 import abc
 import functools
 import inspect
+import math
 import sys
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -57,6 +58,9 @@ __all__ = [
     "MIN_FRAME_SIDE",
     "check_frame",
     "check_stream_floor",
+    "frame_rate_of",
+    "frame_cap_of",
+    "EXPENSIVE_MAX_FRAMES",
 ]
 
 #: Longest forecast any method makes (frames): 100 s at the paper's 20 frames/s, ten videos.
@@ -64,6 +68,10 @@ __all__ = [
 MAX_HORIZON = 2000
 #: Smallest frame height and width (pixels) a video may have.
 MIN_FRAME_SIDE = 4
+#: Most observations an expensive-tier method (NUTS, BO) takes from a camera's clip unless it
+#: declares its own ``max_frames``: twice the benchmark's 200-frame videos its cost was tuned on
+#: (NUTS on a pendulum: 37 CPU-s at 200 frames; a 10 s clip at 240 fps is 2400)
+EXPENSIVE_MAX_FRAMES = 400
 
 
 @dataclass
@@ -815,6 +823,17 @@ class Estimator(abc.ABC):
     #: registered system, one a user registers included); :func:`methods.get` refuses the others
     systems: tuple | str = ("ball",)
     contract_options: dict = MappingProxyType({})
+    #: The frame rate (frames/s) the method is built for, or None: it simulates at any step
+    #: and takes a camera's clip at the capture's own ``dt``. A method with a rate (Vid2Param's
+    #: networks saw 20 frames/s) gets every clip resampled to it, and ``identify`` says so.
+    #: Read through :func:`frame_rate_of`; not part of :meth:`spec` (the fingerprint's
+    #: declarations), since it changes no figure of a simulated case.
+    frame_rate: float | None = None
+    #: The most observations the method takes from a camera's clip (None: every one; an
+    #: expensive-tier method, ``cost >= EXPENSIVE_COST``, defaults to
+    #: :data:`EXPENSIVE_MAX_FRAMES`): a longer clip is thinned to every k-th frame at k times
+    #: the dt, and ``identify`` says so. Read through :func:`frame_cap_of`; not in :meth:`spec`.
+    max_frames: int | None = None
 
     @classmethod
     def spec(cls) -> MethodSpec:
@@ -943,6 +962,73 @@ class Estimator(abc.ABC):
     def stream(self) -> Stream:
         """Frame-by-frame identification; default re-identifies on every prefix."""
         return LoopStream(self)
+
+
+def frame_rate_of(method) -> float | None:
+    """The frame rate a method is built for (its ``frame_rate`` declaration), checked.
+
+    Parameters
+    ----------
+    method : Estimator or Estimator subclass
+
+    Returns
+    -------
+    float or None
+        Frames/s every clip is resampled to for this method; None when it simulates at any
+        step (a camera's clip then keeps the capture's own ``dt``).
+
+    Raises
+    ------
+    TypeError
+        ``method`` is not an Estimator or Estimator subclass.
+    ValueError
+        A declared rate that is not a finite number > 0; the message names ``Class.frame_rate``.
+    """
+    cls = method if isinstance(method, type) else type(method)
+    if not issubclass(cls, Estimator):
+        raise TypeError(f"method: expected an Estimator or Estimator subclass, got "
+                        f"{cls.__name__}")
+    rate = cls.frame_rate
+    if rate is None:
+        return None
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not (
+            math.isfinite(float(rate)) and float(rate) > 0):
+        raise ValueError(f"{cls.__name__}.frame_rate: expected None or frames/s > 0, got "
+                         f"{rate!r}")
+    return float(rate)
+
+
+def frame_cap_of(method) -> int | None:
+    """The most observations a method takes from a camera's clip (its ``max_frames``).
+
+    Parameters
+    ----------
+    method : Estimator or Estimator subclass
+
+    Returns
+    -------
+    int or None
+        The declared ``max_frames``; else :data:`EXPENSIVE_MAX_FRAMES` for an expensive-tier
+        method (``spec().expensive``); else None (every frame).
+
+    Raises
+    ------
+    TypeError
+        ``method`` is not an Estimator or Estimator subclass.
+    ValueError
+        A declared cap that is not an int >= 3; the message names ``Class.max_frames``.
+    """
+    cls = method if isinstance(method, type) else type(method)
+    if not issubclass(cls, Estimator):
+        raise TypeError(f"method: expected an Estimator or Estimator subclass, got "
+                        f"{cls.__name__}")
+    cap = cls.max_frames
+    if cap is None:
+        return EXPENSIVE_MAX_FRAMES if cls.spec().expensive else None
+    if isinstance(cap, bool) or not isinstance(cap, int) or cap < 3:
+        raise ValueError(f"{cls.__name__}.max_frames: expected None or an int >= 3, got "
+                         f"{cap!r}")
+    return cap
 
 
 def _check_obs(obs, est=None) -> None:

@@ -5,9 +5,11 @@ used as well by the MuJoCo scenes (:mod:`sysid_bench.core.mujoco_scene`) and the
 experiment on them; it knows no method.
 
 1. :func:`read_video` decodes the file with **PyAV** (``av``: FFmpeg's libraries in the wheel,
-   libx264 included), converts every frame to grey and resamples to the model's 20 frames/s
-   by taking, for each 50 ms tick, the source frame nearest in time (blending frames would show
-   two half-bright balls). PyAV rather than imageio-ffmpeg because it gives each frame's own
+   libx264 included) and converts every frame to grey. Methods that simulate at any step take
+   every frame at the capture's own ``dt`` (``fps=None``; a variable frame rate put on a grid
+   at its median interval); a method built for one rate (Vid2Param: 20 frames/s) gets the
+   clip resampled by taking, for each tick, the source frame nearest in time (blending frames
+   would show two half-bright balls). PyAV rather than imageio-ffmpeg because it gives each frame's own
    presentation time and the stream's rate from the container, in process (imageio-ffmpeg
    pipes raw frames from an ``ffmpeg`` subprocess and parses its rate from the log text), and
    because the same wheel writes H.264 (:func:`write_video`) without any system FFmpeg.
@@ -39,7 +41,7 @@ from __future__ import annotations
 import math
 import os
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +56,7 @@ __all__ = [
     "VideoError",
     "Clip",
     "read_video",
+    "thin_clip",
     "write_video",
     "Geometry",
     "geometry_from_options",
@@ -95,22 +98,26 @@ class VideoError(ValueError):
 # -- reading and writing ------------------------------------------------------------------------
 @dataclass
 class Clip:
-    """A decoded video, grey and resampled to the model's frame rate.
+    """A decoded video, grey, at the capture's own rate or resampled to a method's.
 
     Attributes
     ----------
     frames : ndarray, shape (T, H, W), uint8
-        Grey frames at ``fps`` (``MODEL_FPS`` after resampling).
+        Grey frames, ``1 / fps`` seconds apart.
     times : ndarray, shape (T,)
-        Source presentation time of each kept frame, seconds from the first frame.
+        Source presentation time of each kept frame, seconds from the first frame (after
+        ``--fps`` and the window).
     source_fps : float
         The file's frame rate (from the stream, else from the frame times).
     source_frames : int
         Frames decoded from the file.
     colour : bool
         The file stored colour (it was converted to grey: ITU-R BT.601 luma, FFmpeg's "gray").
+    fps : float
+        Rate of ``frames``: the one asked of :func:`read_video`, or the capture's own (the
+        median interval's for a variable frame rate).
     notes : list of str
-        What was done to the file (resampling), one sentence each.
+        What was done to the file (capture rate, window, resampling), one sentence each.
     colour_frames : ndarray, shape (T, h, w, 3), uint8, optional
         The same frames in RGB, area-averaged so that the larger side is at most
         :data:`COLOUR_SIDE` (what :func:`find_object` follows a real object by); None unless
@@ -136,17 +143,22 @@ def _fail(path, problem: str) -> VideoError:
     return VideoError(f"{path}: {problem}")
 
 
-def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
+def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = None,
                start: float | None = None, end: float | None = None,
                capture_fps: float | None = None, colour: bool = False) -> Clip:
-    """Decode a video file to grey frames at ``fps``.
+    """Decode a video file to grey frames at ``fps``, or at the capture's own rate.
 
     Parameters
     ----------
     path : str or Path
         Any container and codec FFmpeg reads (mp4, avi, mkv, mov, webm, gif, ...).
-    fps : float
-        Frame rate to resample to (nearest source frame in time for each output tick).
+    fps : float or None
+        Frame rate to resample to (nearest source frame in time for each output tick), for a
+        method built for one rate (:func:`sysid_bench.core.estimator.frame_rate_of`). None:
+        the capture's own rate, every frame kept (the container's rate, or ``capture_fps``);
+        a variable-frame-rate file (intervals differing by more than 10% of their median) is
+        put on a uniform grid at its median interval by the nearest frame in time, and a
+        note says so and how far a frame lies from its tick.
     progress : bool, optional
         tqdm bar while decoding; default: only for files over 300 frames, on a terminal.
     start, end : float, optional
@@ -179,9 +191,11 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
         import av
     except ImportError as exc:  # pragma: no cover - av is a core dependency
         raise VideoError(f"{path}: reading videos needs PyAV (pip install av): {exc}") from exc
-    fps = float(fps)
-    if not math.isfinite(fps) or fps <= 0:
-        raise ValueError(f"fps: expected a frame rate > 0, got {fps!r}")
+    if fps is not None:
+        if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)) \
+                or not math.isfinite(float(fps)) or float(fps) <= 0:
+            raise ValueError(f"fps: expected None or a frame rate > 0, got {fps!r}")
+        fps = float(fps)
     for name, v in (("capture_fps", capture_fps), ("start", start), ("end", end)):
         if v is not None and (not math.isfinite(float(v)) or float(v) < 0
                               or (name == "capture_fps" and float(v) <= 0)):
@@ -214,6 +228,8 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
         stream.thread_type = "AUTO"
         rate = stream.average_rate or stream.guessed_rate or stream.base_rate
         rate = float(rate) if rate else float("nan")
+        # one tick of the container's clock: timestamps are rounded to it (1 ms in mkv/webm)
+        tick = float(stream.time_base) if stream.time_base else 0.0
         colour_file = not str(stream.codec_context.pix_fmt or "").startswith("gray")
         n_hint = int(stream.frames or 0)
         show = (n_hint > _PROGRESS_FRAMES) if progress is None else bool(progress)
@@ -252,13 +268,13 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
     elif math.isfinite(rate) and rate > 0:
         t = np.arange(len(frames)) / rate  # timestamps missing or out of order: trust the rate
     elif len(frames) == 1:
-        rate, t = fps, np.zeros(1)
+        rate, t = fps or MODEL_FPS, np.zeros(1)
     else:
         raise _fail(path, "the frame rate cannot be read (no stream rate, no frame times)")
     notes = []
     if capture_fps is not None:
         stretch = rate / float(capture_fps)
-        t = t * stretch
+        t, tick = t * stretch, tick * stretch
         notes.append(f"capture rate {float(capture_fps):g} frames/s (the container says "
                      f"{rate:.4g}): time runs {stretch:.4g}x the file's")
         rate = float(capture_fps)
@@ -276,24 +292,93 @@ def read_video(path, fps: float = MODEL_FPS, *, progress: bool | None = None,
         t = t[keep] - t[first]
         notes.append(f"window {lo:g} to {min(hi, float(t[-1]) + lo):.4g} s: {len(frames)} frames")
     raw = np.stack(frames)
-    if abs(rate - fps) > 1e-3 * fps:
-        ticks = np.arange(0.0, t[-1] + 0.5 / rate + 1e-9, 1.0 / fps)
-        # nearest source frame to each tick
+    gaps = np.diff(t)
+    mean_gap = float(t[-1] / (len(t) - 1)) if len(t) > 1 else 1.0 / rate
+    # a browser's or phone's variable frame rate: an interval off the mean by more than 10%
+    # beyond one tick of the container's clock (16/17 ms at 60 frames/s in 1/1000 s is not)
+    vfr = len(gaps) > 1 and float(np.max(np.abs(gaps - mean_gap))) > 0.1 * mean_gap + tick
+    if fps is None and not vfr:
+        # the capture's own rate, every frame kept; a container rate its frames contradict
+        # (by more than 1%) gives way to their own spacing
+        own = rate if len(gaps) == 0 or abs(rate * mean_gap - 1.0) <= 0.01 else 1.0 / mean_gap
+        if own != rate:
+            notes.append(f"the frames are {1e3 * mean_gap:.4g} ms apart, not the {rate:.4g} "
+                         f"frames/s the container says: read at {own:.4g} frames/s")
+        return Clip(frames=np.ascontiguousarray(raw), times=t, source_fps=float(rate),
+                    source_frames=len(frames), colour=colour_file, fps=float(own), notes=notes,
+                    path=str(path), colour_frames=np.stack(rgb) if rgb else None)
+    med = float(np.median(gaps)) if len(gaps) else mean_gap
+    if fps is None:
+        # the grid: the median interval (blind to dropped frames' long gaps), refined as the
+        # mean of the intervals near it (undoing the clock's rounding: 33/34 ms -> 33.3 ms)
+        near = gaps[np.abs(gaps - med) <= 0.25 * med]
+        target = 1.0 / float(np.mean(near))
+    else:
+        target = fps
+    if vfr or abs(rate - target) > 1e-3 * target:
+        ticks = np.arange(0.0, t[-1] + 0.5 / rate + 1e-9, 1.0 / target)
+        # nearest source frame to each tick (blending two would show two half-bright objects)
         j = np.clip(np.searchsorted(t, ticks), 1, len(t) - 1)
         j = np.where(np.abs(t[j - 1] - ticks) <= np.abs(t[j] - ticks), j - 1, j)
         if len(t) == 1:
             j = np.zeros(1, dtype=int)
         raw_kept, t_kept = raw[j], t[j]
         rgb = [rgb[i] for i in j] if rgb else rgb
-        notes.append(f"resampled from {rate:.4g} to {fps:g} frames/s (nearest frame in time): "
-                     f"{len(frames)} -> {len(j)} frames"
-                     + ("; the source is slower than the model, so frames repeat" if rate < fps
-                        else ""))
+        if vfr:
+            off = float(np.max(np.abs(t_kept - ticks[:len(j)]))) if len(j) else 0.0
+            how = (f"its typical interval, {1e3 / target:.4g} ms" if fps is None
+                   else f"the method's {fps:g} frames/s")
+            notes.append(f"variable frame rate (frames {1e3 * gaps.min():.3g} to "
+                         f"{1e3 * gaps.max():.3g} ms apart, median {1e3 * med:.3g} ms): put on a "
+                         f"uniform grid at {how} by the nearest frame in time, {len(frames)} -> "
+                         f"{len(j)} frames, each at most {1e3 * off:.3g} ms from its tick")
+        else:
+            notes.append(f"resampled from {rate:.4g} to {target:g} frames/s (nearest frame in "
+                         f"time): {len(frames)} -> {len(j)} frames"
+                         + ("; the source is slower than the model, so frames repeat"
+                            if rate < target else ""))
     else:
         raw_kept, t_kept = raw, t
     return Clip(frames=np.ascontiguousarray(raw_kept), times=t_kept, source_fps=float(rate),
-                source_frames=len(frames), colour=colour_file, fps=fps, notes=notes,
+                source_frames=len(frames), colour=colour_file, fps=float(target), notes=notes,
                 path=str(path), colour_frames=np.stack(rgb) if rgb else None)
+
+
+def thin_clip(clip: Clip, max_frames: int | None, method: str = "the method") -> Clip:
+    """Every k-th frame of ``clip``, the fewest k that leaves at most ``max_frames``.
+
+    For a method whose cost grows with the observations (:func:`sysid_bench.core.estimator.
+    frame_cap_of`): a 10 s clip at 240 frames/s is 2400 of them. The frames kept are still
+    evenly spaced, at k times the dt.
+
+    Parameters
+    ----------
+    clip : Clip
+    max_frames : int or None
+        None: the clip as it is.
+    method : str
+        Named in the note.
+
+    Returns
+    -------
+    Clip
+        ``frames`` (ceil(T / k), H, W), ``fps`` divided by k, a note saying so; the same
+        object when nothing was dropped.
+    """
+    if max_frames is None or len(clip.frames) <= max_frames:
+        return clip
+    if isinstance(max_frames, bool) or not isinstance(max_frames, (int, np.integer)) \
+            or max_frames < 1:
+        raise ValueError(f"max_frames: expected None or an int >= 1, got {max_frames!r}")
+    k = -(-len(clip.frames) // int(max_frames))
+    keep = slice(None, None, k)
+    note = (f"{method} takes at most {int(max_frames)} observations: one frame in {k} kept "
+            f"({len(clip.frames)} -> {len(clip.frames[keep])} frames, "
+            f"{clip.fps / k:.4g} frames/s)")
+    return replace(clip, frames=np.ascontiguousarray(clip.frames[keep]), times=clip.times[keep],
+                   fps=clip.fps / k, notes=[*clip.notes, note],
+                   colour_frames=None if clip.colour_frames is None
+                   else np.ascontiguousarray(clip.colour_frames[keep]))
 
 
 def _av_reason(exc) -> str:
@@ -1833,8 +1918,8 @@ class CameraClip:
     ----------
     observation : Observation
         ``positions`` (T, K, 2) metres in the system's world frame (NaN where the object was
-        not seen), ``dt`` the resampled frame interval, the system's known geometry (the ball's
-        floor at 0, where the camera put it).
+        not seen), ``dt`` the capture's own frame interval (or the asked ``fps``'s), the
+        system's known geometry (the ball's floor at 0, where the camera put it).
     camera : Camera
         The pixels-to-metres mapping, its scale and the scale's relative std.
     lost : ndarray, shape (T,), bool
@@ -1918,11 +2003,12 @@ def clip_options(options) -> dict:
 
 
 def observe_clip(path, system: str, options=(), *, progress: bool | None = False,
+                 fps: float | None = None, max_frames: int | None = None,
                  **given) -> CameraClip:
     """A camera's clip of ``system`` and the options a user would give, as a method takes it.
 
-    Decodes the file (:func:`read_video`: the window, the capture rate, resampled to
-    :data:`MODEL_FPS`), turns it upright (:func:`rotate_frames`), follows the object at the
+    Decodes the file (:func:`read_video`: the window, the capture rate; every frame at the
+    capture's own ``dt``, or resampled to ``fps``), turns it upright (:func:`rotate_frames`), follows the object at the
     file's resolution (:func:`find_object`), builds the camera (:func:`camera_for`: the scale
     given, from the object's size frame by frame, or from a known length) and maps the track
     to metres in the system's world frame. What ``sysid-bench identify --system S`` does
@@ -1939,6 +2025,13 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
         ``system``.
     progress : bool, optional
         tqdm bars while decoding (None: :func:`read_video`'s default) and tracking.
+    fps : float, optional
+        The rate of the method that will read the observation
+        (:func:`sysid_bench.core.estimator.frame_rate_of`): the clip is resampled to it. None
+        (default): the capture's own ``dt``, for a method that simulates at any step.
+    max_frames : int, optional
+        The most observations the method takes (:func:`sysid_bench.core.estimator.
+        frame_cap_of`): a longer clip is thinned (:func:`thin_clip`).
     **given
         The same options as keywords (``rotate``, ``capture_fps``, ``start``, ``end``,
         ``px_per_m``, ``object_size_m``, ``floor_row``, ``walls``, ``pivot``, ``anchor``;
@@ -1986,8 +2079,9 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
     prior = parse_prior(sys_, opts.get("prior", ()), known)
     if "track" in opts:
         raise ValueError(f"--track: means nothing for the {sys_.name} system (collision only)")
-    clip = read_video(path, progress=progress, start=opts.get("start"), end=opts.get("end"),
+    clip = read_video(path, fps, progress=progress, start=opts.get("start"), end=opts.get("end"),
                       capture_fps=opts.get("capture_fps"), colour=True)
+    clip = thin_clip(clip, max_frames)
     rotate = int(opts.get("rotate", 0))
     frames = rotate_frames(clip.frames, rotate)
     trk = find_object(frames, progress=bool(progress), colour=None if clip.colour_frames is None
