@@ -963,26 +963,54 @@ class Camera:
 def _scale_from_size(track: BallTrack, object_size_m: float) -> tuple[np.ndarray, float, float]:
     """Per-frame px per metre from the object's apparent diameter, its median and relative std.
 
-    Each frame's diameter is smoothed over its 9 nearest seen frames (a running median: the
-    object moves in depth slowly next to the frame rate, a single frame's size jitters). The
-    relative std is a pixel's error on the median diameter (the size read one pixel wrong, as
-    blur and compression do) combined with the spread of the per-frame sizes about their
-    smoothed values over the frames seen.
+    A pinhole camera shows an object of diameter ``D`` at depth ``z`` ``f D / z`` px across, and
+    an object drifting in depth at a steady speed has ``z`` linear in time: the inverse of the
+    apparent diameter is fitted as a line in the frame index, robustly (a repeated-medians line,
+    then least squares on the frames within 3 MADs of it), and each frame's scale is read off
+    the line. A frame's own size is not used: at 640x360 the 7 cm ball is 10-16 px across and a single frame's size is
+    5-40% off where the ball crosses a background of its own grey (measured in
+    ``docs/camera-footage.md``), which a running median followed. The relative std is a pixel's
+    error on the median diameter (the size's own bias, which averaging over frames does not
+    remove) combined with the fitted level's standard error (the scatter about the line over
+    the frames kept).
     """
-    from scipy.ndimage import median_filter
-
     radii = np.asarray(track.radii if track.radii is not None else
                        np.where(track.found, track.radius, np.nan), dtype=np.float64)
-    seen = np.isfinite(radii)
+    seen = np.flatnonzero(np.isfinite(radii) & (radii > 0))
     diam = 2.0 * radii
-    smooth = np.full_like(diam, np.nan)
-    if seen.sum() >= 1:
-        smooth[seen] = median_filter(diam[seen], size=min(9, int(seen.sum())), mode="nearest")
-    per_frame = smooth / float(object_size_m)
-    d_med = float(np.nanmedian(diam))
-    spread = float(np.nanstd(diam[seen] - smooth[seen])) / math.sqrt(max(int(seen.sum()), 1))
-    rel = math.hypot(1.0 / d_med, spread / d_med)
-    return per_frame, d_med / float(object_size_m), rel
+    t_all = np.arange(len(radii), dtype=np.float64)
+    d_med = float(np.median(diam[seen]))
+    keep = seen
+    coef = np.array([0.0, 1.0 / d_med])
+    spread = 0.0
+    if len(seen) >= 6:
+        from scipy.stats import siegelslopes
+
+        inv = 1.0 / diam
+        # repeated medians (Siegel: up to half the frames may be off) start the line; then
+        # least squares on the frames within 3 MADs of it
+        sl = siegelslopes(inv[seen], t_all[seen])
+        coef = np.array([sl.slope, sl.intercept])
+        for _ in range(3):
+            res = inv[seen] - np.polyval(coef, t_all[seen])
+            rk = res[np.isin(seen, keep)]
+            mid = float(np.median(rk))
+            mad = 1.4826 * float(np.median(np.abs(rk - mid)))
+            new = seen[np.abs(res - mid) <= 3.0 * max(mad, 1e-12)]
+            if len(new) < 6:
+                break
+            keep = new
+            coef = np.polyfit(t_all[keep], inv[keep], 1)
+        res = inv[keep] - np.polyval(coef, t_all[keep])
+        level = float(np.polyval(coef, np.median(t_all[keep])))
+        spread = float(np.std(res)) / level / math.sqrt(max(len(keep) - 2, 1))
+    inv_fit = np.polyval(coef, t_all)
+    if not np.all(inv_fit > 0):  # a line through zero: no steady drift to read, one scale
+        coef, inv_fit = np.array([0.0, 1.0 / d_med]), np.full(len(radii), 1.0 / d_med)
+    per_frame = 1.0 / inv_fit / float(object_size_m)
+    d_level = float(np.median(1.0 / inv_fit[seen]))
+    rel = math.hypot(1.0 / d_level, spread)
+    return per_frame, d_level / float(object_size_m), rel
 
 
 #: Weight of the colour (chroma) difference against the grey one in :func:`colour_difference`:
@@ -1424,7 +1452,7 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
         _check_size(d, "object_size_m", "as given")
         per_frame, s, rel = _scale_from_size(track, d)
         src = (f"object_size_m={d:g}: the object's median {2 * r_px:.3g} px across, frame by "
-               f"frame")
+               f"frame (its inverse a line in time: a steady drift in depth)")
     elif system == "pendulum" and ("L" in known or "g" in known):
         s, src = None, "known L" if "L" in known else "known g"
     elif system == "ball" and "g" in known:  # the fall's curvature in px/s^2 over g
@@ -1446,6 +1474,36 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
     def place_ball():  # the floor at the bounces (or given), the walls given or out of reach
         nonlocal origin, offset
         rad_m = r_px / s
+        if per_frame is not None and floor_row is None and walls is None:
+            # a scale per frame (the ball drifting in depth) is a scale about the pinhole's
+            # principal point, the picture's centre: a height is (h/2 - row) / s_t there, and
+            # the floor a fixed height in metres (a floor row scaled about itself would drift
+            # with the depth, by cm over a clip)
+            sc = np.asarray(per_frame, dtype=np.float64)
+            m_x = (pix[:, 0] - w / 2) / sc
+            m_y = (h / 2 - pix[:, 1]) / sc
+            down = np.column_stack([m_x, -m_y])
+            y_c, n_b = _floor_from_bounces(down, np.zeros(len(pix)))
+            low = float(np.nanmax(-m_y[seen]))
+            if math.isfinite(y_c) and y_c >= low - 1.0 / s:
+                placement["floor_row"] = (f"estimated: the ball's centre {-y_c:.4g} m from the "
+                                          f"picture's centre at contact, where the track's "
+                                          f"parabolas meet at {n_b} bounces (heights scaled "
+                                          "about the picture's centre, frame by frame)")
+            else:
+                y_c = low
+                placement["floor_row"] = (f"estimated: the lowest the ball's centre reached, "
+                                          f"{-y_c:.4g} m from the picture's centre (no bounce "
+                                          "with three frames either side)")
+            mid = 0.5 * (np.min(m_x[seen]) + np.max(m_x[seen]))
+            span = float(np.max(m_x[seen]) - np.min(m_x[seen]))
+            if span > BOX_WIDTH - 2.0:
+                raise ValueError(f"walls: the ball travels {span:.3g} m across with no walls "
+                                 f"given; the suite's box is {BOX_WIDTH:g} m wide")
+            origin, offset = (w / 2, h / 2), (BOX_WIDTH / 2 - float(mid), float(y_c))
+            placement["walls"] = (f"absent: the track's middle placed at x = {BOX_WIDTH / 2:g} m, "
+                                  "the simulated walls out of its reach")
+            return
         if floor_row is None:
             radii = np.asarray(track.radii if track.radii is not None
                                else np.full(len(pix), r_px), dtype=np.float64)
