@@ -108,3 +108,13 @@ def test_declared_pure_fit_is_pure(name):
     b = methods.get(name, **opts).identify(obs)
     np.testing.assert_array_equal(a.mean, b.mean)
     np.testing.assert_array_equal(a.samples, b.samples)
+
+
+def test_only_the_asked_lengths_are_stored(tmp_path):
+    est = methods.get("lsq", **OPTS)
+    fitcache.share_fits(est, "lsq", OPTS, tmp_path, lengths=[30])
+    obs = _obs()
+    est.identify(obs)  # 40 frames: not stored
+    assert not (tmp_path / fitcache.FOLDER).exists()
+    est.identify(obs.prefix(30))
+    assert len(list((tmp_path / fitcache.FOLDER).glob("*.pkl"))) == 1

@@ -126,7 +126,8 @@ class Context:
         (``fit(None)``) up front; methods about to be trained from scratch skip that.
         ``share_fits``: a method that declares ``pure_fit`` reads the fits another cell of
         the run already computed on the same observation and stores its own
-        (:mod:`sysid_bench.bench.fitcache`).
+        (:mod:`sysid_bench.bench.fitcache`) after the frame counts forecasting and
+        calibration ask for (the others no second cell reads).
         """
         import methods
 
@@ -142,7 +143,9 @@ class Context:
         if share_fits:
             from sysid_bench.bench.fitcache import share_fits as share
 
-            share(est, method, json.loads(key[1]), self.run_dir)
+            sc = self.scale
+            share(est, method, json.loads(key[1]), self.run_dir,
+                  lengths=set(sc.forecast_after) | set(sc.calibration_lengths))
         return est
 
     def test_set(self, variant: str, n: int, **options):

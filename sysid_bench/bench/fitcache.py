@@ -128,9 +128,11 @@ class _suppress:
         return exc[0] is not None and issubclass(exc[0], OSError)
 
 
-def share_fits(est, method: str, options: dict, run_dir) -> bool:
+def share_fits(est, method: str, options: dict, run_dir, lengths=None) -> bool:
     """Make ``est`` (a fresh estimator of ``method`` built with ``options``) read and store its
     fits under ``run_dir/fits`` when its class declares ``pure_fit``; returns whether it does.
+    ``lengths``: only observations of these frame counts (the ones another experiment asks
+    for; None: every one), so the folder holds no fit nobody reads.
 
     The instance's fitting functions are wrapped (its class is untouched): a call whose key
     (see the module) is stored returns the stored fit, a copy, and credits its seconds to
@@ -142,12 +144,16 @@ def share_fits(est, method: str, options: dict, run_dir) -> bool:
     for fn in _FIT_FUNCTIONS:
         inner = getattr(est, fn, None)
         if callable(inner):
-            setattr(est, fn, _wrapped(inner, method, options, fn, folder))
+            setattr(est, fn, _wrapped(inner, method, options, fn, folder, lengths))
     return True
 
 
-def _wrapped(inner, method, options, fn, folder):
+def _wrapped(inner, method, options, fn, folder, lengths):
+    lengths = None if lengths is None else frozenset(int(n) for n in lengths)
+
     def fit(obs, *args):
+        if lengths is not None and obs.n_frames not in lengths:
+            return inner(obs, *args)
         path = folder / f"{_key(method, options, fn, obs)}.pkl"
         rec = _read(path)
         if rec is not None:
