@@ -11,7 +11,8 @@ state kept between calls; ``tests/test_fitcache.py`` checks it) gets its fits st
 run directory, keyed by
 
 * the method's fingerprint (its code, weights and declarations: a changed method never reads an
-  old fit),
+  old fit) and the bytes of every source under ``sysid_bench/core`` and ``methods`` (tracking,
+  rendering and the rest a fit runs through but a method's fingerprint does not hash),
 * its hyperparameters as the cell built them (scale options, system, threads),
 * which fit (``_fit`` or ``_fit_points``) and the observation's bytes (frames or positions,
   dt, floor, state0, scene, known values),
@@ -92,8 +93,20 @@ def _fingerprint(method: str) -> str:
     return method_fingerprint(method)
 
 
+@lru_cache(maxsize=1)
+def _sources() -> str:
+    """SHA-256 of the layer-1 and layer-2 sources (``sysid_bench/core``, ``methods``)."""
+    root = Path(__file__).resolve().parents[2]
+    h = hashlib.sha256()
+    for sub in ("sysid_bench/core", "methods"):
+        for f in sorted((root / sub).rglob("*.py")):
+            h.update(str(f.relative_to(root)).encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 def _key(method: str, options: dict, fn: str, obs) -> str:
-    ident = json.dumps([_FORMAT, method, _fingerprint(method), options, fn,
+    ident = json.dumps([_FORMAT, method, _fingerprint(method), _sources(), options, fn,
                         observation_digest(obs)], sort_keys=True, default=repr)
     return hashlib.sha256(ident.encode()).hexdigest()
 
