@@ -93,6 +93,10 @@ class BayesOpt(SimulationOnSystems):
     min_frames = 3
     forecasts = True
     cost = 30
+    #: its fit (``_fit``/``_fit_points``) is a pure function of its hyperparameters and the
+    #: observation (random streams seeded per call): a run computes each fit once
+    #: (:mod:`sysid_bench.bench.fitcache`)
+    pure_fit = True
     #: the paper compared Vid2Param with it given true positions and the initial state
     paper_baseline = True
     # 4-13 s per cell at the default budget: the first cases only (the same cases as everyone)

@@ -231,6 +231,10 @@ class Emcee(SimulationOnSystems):
     min_frames = 3
     forecasts = True
     cost = 20
+    #: its fit (``_fit``/``_fit_points``) is a pure function of its hyperparameters and the
+    #: observation (random streams seeded per call): a run computes each fit once
+    #: (:mod:`sysid_bench.bench.fitcache`)
+    pure_fit = True
     # 0.3-1.8 s per cell at the default budget (the committed run of 4e20acf): every case, so
     # its figures rest on as many cases as lsq's (issue 29: 4 cases let a reading turn on one)
     scale_cases = {"smoke": 1}

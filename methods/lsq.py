@@ -108,6 +108,10 @@ class LSQ(SimulationOnSystems):
     min_frames = 3
     forecasts = True
     cost = 8
+    #: its fit (``_fit``/``_fit_points``) is a pure function of its hyperparameters and the
+    #: observation (random streams seeded per call): a run computes each fit once
+    #: (:mod:`sysid_bench.bench.fitcache`)
+    pure_fit = True
     #: the paper compared Vid2Param with it given true positions and the initial state
     paper_baseline = True
     online_cost = True  # a row of the online-cost table (re-identifies every prefix)

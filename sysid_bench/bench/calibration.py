@@ -447,7 +447,8 @@ class Calibration(Experiment):
                              f"{cell.condition!r}")
         tn = sys_.normalise(truth)
         span = sys_.prior_hi - sys_.prior_lo
-        est = ctx.estimator(cell.method, system=cell.system)
+        # our physics: identification's fits of the same cases (fitcache)
+        est = ctx.estimator(cell.method, system=cell.system, share_fits=cell.condition == "")
         out = CellOutput()
         lengths = [n for n in wanted if n <= obs.n_frames]
         for n, post, _ in timed_prefixes(est, obs, lengths, out, case=i):

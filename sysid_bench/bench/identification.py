@@ -103,7 +103,8 @@ class Identification(Experiment):
         obs, truth, _ = bench_case(cell.system, i, sc.n_for(self.name, cell.system), sc.seed,
                                    cell.input)
         lengths = [n for n in sc.lengths_for(cell.method) if n <= obs.n_frames]
-        est = ctx.estimator(cell.method, system=cell.system)
+        # the fits forecasting and calibration ask for on these cases are these (fitcache)
+        est = ctx.estimator(cell.method, system=cell.system, share_fits=True)
         params = systems.get(cell.system).params
         out = CellOutput()
         for n, post, wall in timed_prefixes(est, obs, lengths, out, case=i):
