@@ -501,8 +501,8 @@ def _matches(img: np.ndarray, colours: np.ndarray, tol: float) -> np.ndarray:
 
 
 def _object_colours(frames: np.ndarray, k: int, bg: np.ndarray) -> np.ndarray:
-    """The ``k`` objects' chromaticities from the first frames where ``k`` compact blobs of
-    similar size stand out from the background, left to right."""
+    """The ``k`` objects' chromaticities from the first frames where ``k`` blobs of similar
+    size and of a colour (not grey) stand out from the background, left to right."""
     from scipy import ndimage
 
     diff_thr = 60.0
@@ -513,21 +513,20 @@ def _object_colours(frames: np.ndarray, k: int, bg: np.ndarray) -> np.ndarray:
         lab, n = ndimage.label(mask)
         if n < k:
             continue
+        # only pixels of a colour count (a stopped object is in the median background: where
+        # it stood, the wall differs from the background too, in the wall's grey)
+        ch, tot = _chroma(img)
+        vivid = ((ch.max(axis=-1) - ch.min(axis=-1)) > 0.15) & (tot >= COLOUR_MIN_SUM)
         idx = np.arange(1, n + 1)
-        area = ndimage.sum_labels(np.ones(mask.shape), lab, idx)
+        area = ndimage.sum_labels(vivid, lab, idx)
         order = np.argsort(area)[::-1][:k]
         if area[order[-1]] < 6 or area[order[0]] > 4 * area[order[-1]]:
             continue
-        ch, tot = _chroma(img)
         cols, out = [], []
         for j in order:
-            sel = (lab == j + 1) & (tot >= COLOUR_MIN_SUM)
-            if sel.sum() < 3:
-                break
+            sel = (lab == j + 1) & vivid
             cols.append(ndimage.center_of_mass(sel)[1])
             out.append(np.median(ch[sel], axis=0))
-        if len(out) < k:
-            continue
         out = np.array(out)[np.argsort(cols)]
         gaps = [np.linalg.norm(out[i] - out[j]) for i in range(k) for j in range(i + 1, k)]
         if min(gaps) >= COLOUR_TOL:
@@ -584,7 +583,7 @@ def _blob_radius(wgt: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> float:
 
 
 def track_colours(frames, n_objects: int = 2, colours=None, *, tol: float = COLOUR_TOL,
-                  progress: bool = False) -> ColourTrack:
+                  max_side: int = 640, progress: bool = False) -> ColourTrack:
     """Follow ``n_objects`` objects of different colours through a camera's RGB frames.
 
     Parameters
@@ -599,6 +598,9 @@ def track_colours(frames, n_objects: int = 2, colours=None, *, tol: float = COLO
         of similar size stand out from the median background, left to right.
     tol : float
         Chromaticity distance within which a pixel is an object's colour.
+    max_side : int
+        Larger frames are followed on a block-averaged copy (the larger side at most this,
+        px); centres and radii are given back in the source's pixels.
     progress : bool
         tqdm bar over the frames.
 
@@ -622,6 +624,17 @@ def track_colours(frames, n_objects: int = 2, colours=None, *, tol: float = COLO
     if isinstance(n_objects, bool) or not isinstance(n_objects, (int, np.integer)) \
             or n_objects < 1:
         raise ValueError(f"n_objects: expected an int >= 1, got {n_objects!r}")
+    blk = max(1, int(np.ceil(max(fr.shape[1:3]) / int(max_side))))
+    if blk > 1:  # averaged over blk x blk blocks: continuous coordinates scale by blk exactly
+        hh, ww = (fr.shape[1] // blk) * blk, (fr.shape[2] // blk) * blk
+        small = np.empty((fr.shape[0], hh // blk, ww // blk, 3), np.uint8)
+        for i in range(0, fr.shape[0], 32):
+            tot = fr[i:i + 32, :hh, :ww].reshape(-1, hh // blk, blk, ww // blk, blk, 3).sum(
+                axis=(2, 4), dtype=np.uint32)
+            small[i:i + 32] = np.rint(tot / (blk * blk)).astype(np.uint8)
+        out = track_colours(small, n_objects, colours, tol=tol, max_side=max_side,
+                            progress=progress)
+        return ColourTrack(out.pixels * blk, out.radii * blk, out.colours)
     t_n, h, w, _ = fr.shape
     idx = np.unique(np.linspace(0, t_n - 1, min(t_n, 31)).astype(int))
     bg = np.median(fr[idx], axis=0).astype(np.float32)
