@@ -90,6 +90,9 @@ class PointsTrack:
         The box searched / sampled for an unknown initial state (``lo == hi == state0`` when known).
     input_kind : str
         ``"positions"`` or ``"frames"`` (tracked with ``system.track``).
+    scene : Scene or None
+        The observation's scene when it is not the system's default (a camera's track, its
+        ends and objects at their true sizes); None: the default, simulated as it always was.
     """
 
     system: object
@@ -101,6 +104,7 @@ class PointsTrack:
     lo: np.ndarray
     hi: np.ndarray
     input_kind: str
+    scene: object = None
 
     @property
     def n_frames(self) -> int:
@@ -135,18 +139,22 @@ def prepare_points(obs: Observation, system, min_seen: int = 3) -> PointsTrack:
             f"positions: expected the {system.name} system's points seen in at least {min_seen} "
             f"frames, got {n_seen} of {pos.shape[0]}"
         )
-    blo = np.array([system.state_bounds.get(q, (-np.inf, np.inf))[0] for q in system.state])
-    bhi = np.array([system.state_bounds.get(q, (-np.inf, np.inf))[1] for q in system.state])
+    # a scene other than the default (a camera's) is simulated as the observation holds it
+    scene = obs.scene if obs.scene is not None and obs.scene != system.default_scene else None
+    bounds = system.state_bounds if scene is None else system.state_bounds_for(scene)
+    blo = np.array([bounds.get(q, (-np.inf, np.inf))[0] for q in system.state])
+    bhi = np.array([bounds.get(q, (-np.inf, np.inf))[1] for q in system.state])
     if obs.state0 is not None:
         s0 = np.asarray(obs.state0, dtype=np.float64)
-        return PointsTrack(system, pos, mask, float(obs.dt), s0, True, s0.copy(), s0.copy(), kind)
+        return PointsTrack(system, pos, mask, float(obs.dt), s0, True, s0.copy(), s0.copy(), kind,
+                           scene)
     est, half = system.state0_from_track(pos, float(obs.dt))
     est, half = np.asarray(est, dtype=np.float64), np.abs(np.asarray(half, dtype=np.float64))
     lo = np.maximum(est - half, blo)
     hi = np.minimum(est + half, bhi)
     hi = np.maximum(hi, lo + 1e-9)  # an estimate on a bound still leaves a box
     est = np.clip(est, lo, hi)
-    return PointsTrack(system, pos, mask, float(obs.dt), est, False, lo, hi, kind)
+    return PointsTrack(system, pos, mask, float(obs.dt), est, False, lo, hi, kind, scene)
 
 
 # ------------------------------------------------------------------------------------------
@@ -159,12 +167,21 @@ class PointsSimulator:
     system : System
     max_simulations : int, optional
         Budget; a batch that would exceed it raises ``SimulationBudgetExceeded``.
+    scene : Scene, optional
+        Simulated and observed in this scene (None: the system's default, as before).
+        :class:`Problem` sets it from its track's.
     """
 
-    def __init__(self, system, max_simulations: int | None = None) -> None:
+    def __init__(self, system, max_simulations: int | None = None, scene=None) -> None:
         self.system = system
         self.max_simulations = max_simulations
         self.n_simulations = 0
+        self.scene = scene
+
+    def _scene(self) -> dict:
+        """The ``scene`` keyword of simulate/observe: none for the default scene (the calls
+        are then exactly the ones made before scenes were held)."""
+        return {} if self.scene is None else {"scene": self.scene}
 
     def __call__(self, theta, state0, n_frames: int, dt: float) -> np.ndarray:
         """States (B, n_frames, S) of theta (B, P) from state0 (B, S)."""
@@ -174,7 +191,7 @@ class PointsSimulator:
                 f"max_simulations: a batch of {b} would exceed the budget of "
                 f"{self.max_simulations} simulations ({self.n_simulations} used)"
             )
-        out = self.system.simulate(theta, state0, n_frames=n_frames, dt=dt)
+        out = self.system.simulate(theta, state0, n_frames=n_frames, dt=dt, **self._scene())
         self.n_simulations += b
         return out
 
@@ -202,7 +219,7 @@ class PointsSimulator:
             self._fill(out, theta, state0, rows[:half], n_frames, dt)
             self._fill(out, theta, state0, rows[half:], n_frames, dt)
             return
-        out[rows] = self.system.observe(st, theta[rows])
+        out[rows] = self.system.observe(st, theta[rows], **self._scene())
 
 
 def sq_error(pts: np.ndarray, obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -238,6 +255,8 @@ class Problem:
                  known: dict | None = None, prior: dict | None = None):
         sys_ = track.system
         self.track, self.sigma, self.sim, self.system = track, float(sigma), sim, sys_
+        if track.scene is not None and sim.scene is None:  # the observation's world
+            sim.scene = track.scene
         self.P, self.S = sys_.n_params, sys_.n_state
         self.free = not track.state0_known
         self.ndim = self.P + (self.S if self.free else 0)

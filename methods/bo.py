@@ -271,7 +271,7 @@ class BayesOpt(SimulationOnSystems):
         clock = Stopwatch()
         track = prepare_points(obs, part.system, part.min_frames)
         fixed = Observation(positions=track.positions, dt=track.dt, state0=track.state0,
-                            system=track.system.name)
+                            system=track.system.name, scene=track.scene)
         prob = part.problem(fixed)  # the start held at its estimate: P dimensions only
         prob.track.input_kind, prob.track.state0_known = track.input_kind, track.state0_known
         rng = make_rng(self.seed, 0)

@@ -987,6 +987,9 @@ def _fit_on_points(est, obs: Observation, part: Points) -> PointsFit:
     system = prob.system
     if not system.jax_twin:
         raise NotImplementedError(f"nuts is n/a on the {system.name} system: it has no JAX twin")
+    if prob.track.scene is not None:
+        raise NotImplementedError(f"nuts is n/a on a {system.name} scene other than the "
+                                  "default: its JAX twin simulates the default scene only")
     jax_observer(system)  # n/a early, before any work
     P, D, free = prob.P, prob.ndim, prob.free
     T = prob.n_sim_frames

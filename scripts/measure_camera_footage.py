@@ -9,6 +9,8 @@ model check's verdict, and the frames (at identify's 20 frames/s) where the trac
 the object. Writes ``--out``/results.json and prints a Markdown table.
 
     PYTHONPATH=. python scripts/measure_camera_footage.py --n 5 --out runs/camera_footage
+    PYTHONPATH=. python scripts/measure_camera_footage.py --n 5 --system collision \
+        --method emcee --out runs/camera_footage        # another method: results_emcee.json
 """
 
 from __future__ import annotations
@@ -126,10 +128,14 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="runs/camera_footage")
     ap.add_argument("--system", action="append", choices=SYSTEMS, default=None)
     ap.add_argument("--table", action="store_true", help="print the table of --out's results")
+    ap.add_argument("--method", default=None,
+                    help="identify with this method instead of the clip's (lsq); results go to "
+                         "results_<method>.json")
     args = ap.parse_args(argv)
     out = Path(args.out)
+    res_name = "results.json" if args.method is None else f"results_{args.method}.json"
     if args.table:
-        print(table(json.loads((out / "results.json").read_text())))
+        print(table(json.loads((out / res_name).read_text())))
         return 0
     results = []
     for system in args.system or SYSTEMS:
@@ -141,12 +147,16 @@ def main(argv=None) -> int:
                 write_clip(shot, out, name)
             film_s = time.perf_counter() - t0
             truth = json.loads(jpath.read_text())
-            res = _identify(out / truth["file"], truth["options"], out / f"{name}_identify")
+            opts = list(truth["options"])
+            if args.method is not None:
+                opts[opts.index("--method") + 1] = args.method
+            suffix = "" if args.method is None else f"_{args.method}"
+            res = _identify(out / truth["file"], opts, out / f"{name}_identify{suffix}")
             row = _score(truth, res)
             row["film_s"] = round(film_s, 1)
             results.append(row)
             print(json.dumps({k: v for k, v in row.items() if k != "cmd"}), flush=True)
-            atomic_write(out / "results.json", json.dumps(results, indent=1))
+            atomic_write(out / res_name, json.dumps(results, indent=1))
     return 0
 
 

@@ -69,8 +69,6 @@ def test_a_held_value_is_left_out_of_the_scores(ran):
 def test_na_cells_say_why(ran):
     d, _ = ran
     exp = EXPERIMENTS["camera"]
-    col = execute(exp.cells(SMOKE, ["lsq"], "collision")[0], SMOKE, str(d))
-    assert col["status"] == "n/a" and "no camera is built for the collision" in col["error"]
     v2p = execute(exp.cells(SMOKE, ["vid2param"], "spring")[0], SMOKE, str(d))
     assert v2p["status"] == "n/a" and "renderer" in v2p["error"]
 
@@ -125,8 +123,8 @@ def test_clip_options_and_observe_clip_refuse_bad_input(tmp_path):
             footage.clip_options(bad)
     with pytest.raises(TypeError, match="^options:"):
         footage.clip_options("--start 1")
-    with pytest.raises(NotImplementedError, match="collision"):
-        footage.observe_clip(tmp_path / "none.mp4", "collision", ["--track", "1", "2"])
+    with pytest.raises(ValueError, match="^--track: means nothing for the spring"):
+        footage.observe_clip(tmp_path / "none.mp4", "spring", ["--track", "1", "2"])
     with pytest.raises(ValueError, match="^options: --system spring"):
         footage.observe_clip(tmp_path / "none.mp4", "ball", ["--system", "spring"])
     with pytest.raises(ValueError, match="^known:"):
@@ -154,3 +152,19 @@ def test_observe_clip_takes_the_options_as_tokens_or_keywords(ran):
                                 fps=footage.MODEL_FPS).observation.dt == 0.05
     with pytest.raises(TypeError, match="^zoom:"):
         footage.observe_clip(video, "spring", zoom=2)
+
+
+@pytest.mark.slow
+def test_the_collision_has_a_camera_its_scene_cached_with_the_track(tmp_path):
+    # the two carts followed by colour, the track's ends and the carts' sizes as the scene;
+    # a second method's cell reads the cached track and scene
+    cell = EXPERIMENTS["camera"].cells(SMOKE, ["lsq"], "collision")[0]
+    res = execute(cell, SMOKE, str(tmp_path))
+    assert res["status"] == "ok", res["error"]
+    rows = {r.metric: r.value for r in res["rows"]}
+    assert {"se_lq", "hit90_lq", "lost_share"} <= set(rows)
+    video = cam_exp.clip_dir(tmp_path) / "collision_0.mp4"
+    truth = __import__("json").loads(video.with_suffix(".json").read_text())
+    obs, *_ = cam_exp.case_observation(video, "collision", truth["options"])
+    again, *_ = cam_exp.case_observation(video, "collision", truth["options"])  # cached
+    assert again.scene == obs.scene and abs(obs.scene.ends[1] - 2.0) < 0.05

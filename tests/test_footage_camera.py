@@ -196,7 +196,7 @@ def test_pendulum_on_a_camera_with_known_length(camera_pendulum, tmp_path, capsy
     (["--system", "pendulum", "--floor-row", "100"], "--floor-row"),
     (["--system", "pendulum", "--checkpoint", "camera"], "--checkpoint"),
     (["--system", "spring", "--pivot", "1", "2"], "--pivot"),
-    (["--system", "collision", "--px-per-m", "100"], "--px-per-m"),
+    (["--system", "collision", "--px-per-m", "100", "--anchor", "3"], "--anchor"),
     (["--system", "pendulum", "--known", "e=0.5"], "--known"),
     (["--system", "pendulum", "--prior", "L=3:1"], "--prior"),
     (["--system", "pendulum", "--object-size-m", "10"], "--object-size-m"),

@@ -480,8 +480,8 @@ def _finite(x):
 #: Each placement or camera option and the systems it means something for; given on another
 #: system it is refused with one line, never ignored.
 OPTION_SYSTEMS = {
-    "px_per_m": ("ball", "pendulum", "spring"),
-    "object_size_m": ("ball", "pendulum", "spring"),
+    "px_per_m": ("ball", "pendulum", "spring", "collision"),
+    "object_size_m": ("ball", "pendulum", "spring", "collision"),
     "floor_row": ("ball",),
     "walls": ("ball",),
     "wall_col": ("ball",),
@@ -489,7 +489,7 @@ OPTION_SYSTEMS = {
     "ball_radius_px": ("ball",),
     "pivot": ("pendulum",),
     "anchor": ("spring",),
-    "track": (),
+    "track": ("collision",),
     "checkpoint": ("ball",),
     "horizon": ("ball",),
 }
@@ -498,11 +498,7 @@ OPTION_SYSTEMS = {
 #: through :mod:`sysid_bench.apps.video_systems`.
 _PAPER_PIPELINE = ("ball",)
 #: Options that mean something on a system but are not built there yet, with why.
-_NOT_YET = {
-    "collision": "the collision clip is read as its renderer frames it (two pucks on a 10 m "
-                 "track); a camera for it needs the track's ends and each cart's half-length "
-                 "held as the scene (issue 38, part 1)",
-}
+_NOT_YET: dict[str, str] = {}
 
 
 def _flag(dest: str) -> str:
@@ -536,7 +532,8 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
         "camera (any not given is estimated from the clip where physics fixes it, or absent)")
     c.add_argument("--px-per-m", type=float, default=None, help="scale, pixels per metre")
     c.add_argument("--object-size-m", type=float, default=None,
-                   help="the tracked object's true diameter (m): the scale frame by frame")
+                   help="the tracked object's true diameter (m): the scale frame by frame "
+                        "(collision: the carts' length, both the same)")
     c.add_argument("--floor-row", type=float, default=None, help="ball: row of the floor")
     c.add_argument("--walls", type=float, nargs=2, default=None, metavar=("C1", "C2"),
                    help="ball: columns of the left and right walls")
@@ -545,7 +542,8 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     c.add_argument("--anchor", type=float, default=None, metavar="C",
                    help="spring: the anchor's column")
     c.add_argument("--track", type=float, nargs=2, default=None, metavar=("C1", "C2"),
-                   help="collision: the track's ends (not yet built: refused)")
+                   help="collision: columns of the track's left and right ends (default: "
+                        "where the carts turn back, or out of reach)")
     g = p.add_argument_group("the renderer's box (ball; default: framed as the suite's renderer)")
     g.add_argument("--wall-col", type=float, default=None, help="column of the left wall")
     g.add_argument("--corners", type=float, nargs=4, default=None,
@@ -606,7 +604,7 @@ def check_options(args) -> tuple[str, dict, dict]:
                                              "floor_row", "wall_col", "corners", "walls",
                                              "pivot", "anchor"):
             raise ValueError(f"{_flag(dest)}: not yet for the {name} system: {_NOT_YET[name]}")
-        meant = ", ".join(where) if where else "the collision system (not yet built)"
+        meant = ", ".join(where)
         raise ValueError(f"{_flag(dest)}: means nothing for the {name} system (it is for "
                          f"{meant})")
     if args.rotate is not None and args.rotate not in (90, 180, 270):
@@ -665,6 +663,8 @@ def _camera_options(args, system: str, known: dict) -> dict | None:
         opts["pivot"] = args.pivot
     if system == "spring":
         opts["anchor"] = args.anchor
+    if system == "collision":
+        opts["track"] = None if args.track is None else tuple(args.track)
     # the pendulum's scale from a known length (the arc's radius) or a known g (its period)
     by_length = system == "pendulum" and ("L" in known or "g" in known)
     if not any(v is not None for v in opts.values()) and not by_length:

@@ -211,8 +211,18 @@ def identify_system_video(path, system: str, *, method: str | None = None,
             ("frames (renderer framing)" if methods.spec(name).input_kind == "frames"
              else "tracked positions (renderer framing)"),
             "camera": None if cam is None else cam.as_dict(), "rotate": int(rotate),
+            "scene": _scene_record(obs.scene),
             "window_s": [start, end], "capture_fps": capture_fps, "knowledge": know}
     return {"mean": mean, "std": std, "check": check, "points": points, "info": info}
+
+
+def _scene_record(scene) -> dict | None:
+    """The observation's scene as JSON values (None: the system's default)."""
+    if scene is None:
+        return None
+    from dataclasses import asdict
+
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(scene).items()}
 
 
 def _finite(x):

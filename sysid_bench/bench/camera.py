@@ -25,7 +25,7 @@ import hashlib
 import inspect
 import json
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -119,15 +119,23 @@ def case_observation(video: Path, system: str, options) -> tuple:
         with np.load(cache) as z:
             pos, lost = z["positions"], z["lost"].astype(bool)
             dt, rel = float(z["dt"]), float(z["scale_rel_std"])
-        obs = Observation(positions=pos, dt=dt, system=sys_.name, **sys_.known_geometry())
+            # the clip's own scene (the collision's track and carts), when it is not the default
+            fields = json.loads(str(z["scene"])) if "scene" in z.files else None
+        scene = None if fields is None else sys_.scene(**fields)
+        obs = Observation(positions=pos, dt=dt, system=sys_.name, scene=scene,
+                          **sys_.known_geometry(scene))
         return obs, lost, rel, known, prior
     # at the suite's 20 frames/s, as the committed section 9 was computed (identify gives a
     # position method the capture's own dt; switching here re-times every camera cell)
     cc = footage.observe_clip(video, system, options, fps=footage.MODEL_FPS)
     pos = np.asarray(cc.observation.positions, dtype=np.float64)
+    sc = cc.observation.scene
+    extra = {} if sc is None or sc == sys_.default_scene else {
+        "scene": np.array(json.dumps({k: list(v) if isinstance(v, tuple) else v
+                                      for k, v in asdict(sc).items()}))}
     atomic_write(cache, lambda tmp: np.savez(
         tmp, positions=pos, lost=cc.lost, dt=np.float64(cc.observation.dt),
-        scale_rel_std=np.float64(cc.camera.scale_rel_std)))
+        scale_rel_std=np.float64(cc.camera.scale_rel_std), **extra))
     return cc.observation, cc.lost, float(cc.camera.scale_rel_std), cc.known, cc.prior
 
 

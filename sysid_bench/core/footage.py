@@ -83,6 +83,9 @@ __all__ = [
     "CameraClip",
     "clip_options",
     "observe_clip",
+    "TrackCamera",
+    "camera_for_track",
+    "ABSENT_END_M",
 ]
 
 #: frame rate of every model in the suite (physics.dt = 0.05 s)
@@ -145,7 +148,8 @@ def _fail(path, problem: str) -> VideoError:
 
 def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = None,
                start: float | None = None, end: float | None = None,
-               capture_fps: float | None = None, colour: bool = False) -> Clip:
+               capture_fps: float | None = None, colour: bool = False,
+               rgb: bool = False) -> Clip:
     """Decode a video file to grey frames at ``fps``, or at the capture's own rate.
 
     Parameters
@@ -173,6 +177,9 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
     colour : bool
         Also keep each frame in RGB at a working size (:attr:`Clip.colour_frames`), when the
         file stores colour: a real object is told from a wall of the same grey by its hue.
+    rgb : bool
+        Keep colour: ``Clip.frames`` is then (T, H, W, 3) RGB (objects told apart by colour,
+        :func:`sysid_bench.core.tracking.track_colours`).
 
     Returns
     -------
@@ -233,7 +240,7 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         colour_file = not str(stream.codec_context.pix_fmt or "").startswith("gray")
         n_hint = int(stream.frames or 0)
         show = (n_hint > _PROGRESS_FRAMES) if progress is None else bool(progress)
-        frames, times, rgb = [], [], []
+        frames, times, small = [], [], []
         want_rgb = bool(colour) and colour_file
         from tqdm.auto import tqdm
 
@@ -242,12 +249,12 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
                   leave=False) as bar:
             try:
                 for fr in container.decode(stream):
-                    frames.append(fr.to_ndarray(format="gray"))
+                    frames.append(fr.to_ndarray(format="rgb24" if rgb else "gray"))
                     if want_rgb:  # FFmpeg's area filter: the mean colour of each block
                         k = max(1, math.ceil(max(fr.width, fr.height) / COLOUR_SIDE))
-                        rgb.append(fr.reformat(width=max(1, fr.width // k),
-                                               height=max(1, fr.height // k), format="rgb24",
-                                               interpolation="AREA").to_ndarray())
+                        small.append(fr.reformat(width=max(1, fr.width // k),
+                                                 height=max(1, fr.height // k), format="rgb24",
+                                                 interpolation="AREA").to_ndarray())
                     times.append(np.nan if fr.time is None else float(fr.time))
                     bar.update(1)
             except av.error.EOFError:
@@ -288,7 +295,7 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
                              f"(0 to {t[-1]:.4g} s, {len(t)} frames)")
         first = int(np.flatnonzero(keep)[0])
         frames = [f for f, k in zip(frames, keep) if k]
-        rgb = [f for f, k in zip(rgb, keep) if k] if rgb else rgb
+        small = [f for f, k in zip(small, keep) if k] if small else small
         t = t[keep] - t[first]
         notes.append(f"window {lo:g} to {min(hi, float(t[-1]) + lo):.4g} s: {len(frames)} frames")
     raw = np.stack(frames)
@@ -306,7 +313,7 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
                          f"frames/s the container says: read at {own:.4g} frames/s")
         return Clip(frames=np.ascontiguousarray(raw), times=t, source_fps=float(rate),
                     source_frames=len(frames), colour=colour_file, fps=float(own), notes=notes,
-                    path=str(path), colour_frames=np.stack(rgb) if rgb else None)
+                    path=str(path), colour_frames=np.stack(small) if small else None)
     med = float(np.median(gaps)) if len(gaps) else mean_gap
     if fps is None:
         # the grid: the median interval (blind to dropped frames' long gaps), refined as the
@@ -323,7 +330,7 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         if len(t) == 1:
             j = np.zeros(1, dtype=int)
         raw_kept, t_kept = raw[j], t[j]
-        rgb = [rgb[i] for i in j] if rgb else rgb
+        small = [small[i] for i in j] if small else small
         if vfr:
             off = float(np.max(np.abs(t_kept - ticks[:len(j)]))) if len(j) else 0.0
             how = (f"its typical interval, {1e3 / target:.4g} ms" if fps is None
@@ -341,7 +348,7 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         raw_kept, t_kept = raw, t
     return Clip(frames=np.ascontiguousarray(raw_kept), times=t_kept, source_fps=float(rate),
                 source_frames=len(frames), colour=colour_file, fps=float(target), notes=notes,
-                path=str(path), colour_frames=np.stack(rgb) if rgb else None)
+                path=str(path), colour_frames=np.stack(small) if small else None)
 
 
 def thin_clip(clip: Clip, max_frames: int | None, method: str = "the method") -> Clip:
@@ -1635,6 +1642,201 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
                   flip=flip, offset=offset, source=src, placement=placement)
 
 
+#: Where an end not given and not seen (no cart turned there) is placed: this far beyond the
+#: farthest a cart reached, m, so no fit's trajectory reaches it
+ABSENT_END_M = 5.0
+
+
+@dataclass
+class TrackCamera:
+    """The camera of a clip of objects on a straight track (the collision), and what it fixed.
+
+    Attributes
+    ----------
+    camera : Camera
+        Levelled pixels to metres: ``x`` along the track from its left end, ``y`` up from the
+        track's surface.
+    pixels : ndarray, shape (T, K, 2)
+        The tracked centres turned level (the track's tilt in the picture taken out), px.
+    ends_m : (float, float)
+        The track's ends, m (``(0, length)``, or an end placed out of reach).
+    half_sizes_m : tuple of float, length K
+        Each object's half-length, m.
+    tilt_deg : float
+        The track's slope in the picture, degrees (read from the centres' line).
+    """
+
+    camera: Camera
+    pixels: np.ndarray
+    ends_m: tuple
+    half_sizes_m: tuple
+    tilt_deg: float
+
+
+def _turn(cols: np.ndarray, sign: float, min_speed: float) -> float:
+    """Column of the first turn of a track where it moved ``-sign`` then ``+sign`` (a cart
+    thrown back by an end), from lines fitted to 3 frames either side: NaN if none."""
+    t = np.flatnonzero(np.isfinite(cols))
+    x = cols[t]
+    for j in range(2, len(t) - 2):
+        if sign * (x[j] - x[j - 1]) > 0 or sign * (x[j + 1] - x[j]) < 0:
+            continue
+        if not sign * (x[j - 1] - x[j]) >= 0:
+            continue
+        best = None
+        for split in (j, j + 1):
+            lft, rgt = np.arange(max(0, split - 3), split), np.arange(split, min(len(t), split + 3))
+            if len(lft) < 2 or len(rgt) < 2 or t[rgt[-1]] - t[lft[0]] > len(lft) + len(rgt) + 1:
+                continue
+            a1, b1 = np.polyfit(t[lft], x[lft], 1)
+            a2, b2 = np.polyfit(t[rgt], x[rgt], 1)
+            if sign * a1 > -min_speed or sign * a2 < min_speed:
+                continue
+            tc = (b2 - b1) / (a1 - a2)
+            if t[lft[-1]] - 1 <= tc <= t[rgt[0]] + 1:
+                c = a1 * tc + b1
+                best = c if best is None else (min(best, c) if sign > 0 else max(best, c))
+        if best is not None:
+            return float(best)
+    return float("nan")
+
+
+def camera_for_track(track, size, *, px_per_m=None, object_size_m=None, track_ends=None,
+                     rotate: int = 0) -> TrackCamera:
+    """The camera of a clip of objects sliding on a straight track (the collision's carts).
+
+    The track's line is read from the objects' centres (a straight line through them; its
+    slope, a camera rolled a few degrees, is taken out); ``x`` runs along it from the left
+    end, ``y`` up from the track's surface (each centre sits its half-length above it).
+
+    Parameters
+    ----------
+    track : sysid_bench.core.tracking.ColourTrack
+        The objects followed, left to right in the first frames, source pixels (upright).
+    size : (int, int)
+        ``(H, W)`` of the (turned) frames.
+    px_per_m : float, optional
+        The scale, given; each object's half-length is then its apparent radius over it.
+    object_size_m : float, optional
+        The objects' true length (or diameter), m, the same for all: the scale is their
+        median apparent size over it (they keep their distance from the camera on a track).
+    track_ends : (float, float), optional
+        Columns of the track's left and right ends (where a cart would hit), px. Not given:
+        each end is read from where a cart turned back from it (the first object's turns
+        from moving left to moving right, the last's the other way); an end no cart reached
+        is placed :data:`ABSENT_END_M` beyond the farthest one went (out of reach).
+    rotate : int
+        Degrees clockwise the frames were turned (recorded).
+
+    Returns
+    -------
+    TrackCamera
+
+    Raises
+    ------
+    ValueError
+        No scale, both scales, an end inside the carts' path, ends not in order, objects
+        that cannot fit between the ends or whose size is outside
+        :data:`OBJECT_SIZE_RANGE_M`; the message names the argument.
+    """
+    pix = np.asarray(track.pixels, dtype=np.float64)
+    t_n, k = pix.shape[:2]
+    seen = np.isfinite(pix).all(axis=-1)
+    if (seen.sum(axis=0) < 3).any():
+        j = int(np.argmin(seen.sum(axis=0)))
+        raise ValueError(f"object: object {j + 1} found in {int(seen[:, j].sum())} of {t_n} "
+                         "frames; the camera and the methods need each object's track (at "
+                         "least 3 frames)")
+    if px_per_m is not None and object_size_m is not None:
+        raise ValueError("object_size_m: give either px_per_m or object_size_m, not both")
+    r_px = np.asarray(track.radius, dtype=np.float64)
+    if not np.isfinite(r_px).all():  # an object never seen apart from the others
+        r_px = np.where(np.isfinite(r_px), r_px, np.nanmedian(r_px))
+    rel = 0.0
+    if px_per_m is not None:
+        s = float(px_per_m)
+        if not (math.isfinite(s) and s > 0):
+            raise ValueError(f"px_per_m: expected a number > 0, got {px_per_m!r}")
+        src = f"px_per_m={s:g} given"
+        for j in range(k):
+            _check_size(2 * r_px[j] / s, "px_per_m", f"object {j + 1}'s {2 * r_px[j]:.3g} px at "
+                                                     f"{s:g} px/m")
+        half = tuple(float(r / s) for r in r_px)
+    elif object_size_m is not None:
+        d = float(object_size_m)
+        if not (math.isfinite(d) and d > 0):
+            raise ValueError(f"object_size_m: expected a number > 0, got {object_size_m!r}")
+        _check_size(d, "object_size_m", "as given")
+        diam = 2.0 * np.asarray(track.radii, dtype=np.float64)
+        d_med = float(np.nanmedian(diam))
+        s = d_med / d
+        n_read = int(np.isfinite(diam).sum())
+        spread = float(np.nanstd(diam)) / math.sqrt(max(n_read, 1))
+        rel = math.hypot(1.0 / d_med, spread / d_med)
+        src = f"object_size_m={d:g}: the objects' median {d_med:.3g} px across"
+        half = tuple(0.5 * d for _ in range(k))
+    else:
+        raise ValueError("px_per_m: the collision's scale is not known: give px_per_m or "
+                         "object_size_m")
+    # the track's line through the centres, and the picture turned level about its left end
+    cs, rs = pix[..., 0][seen], pix[..., 1][seen]
+    slope, icpt = np.polyfit(cs, rs, 1) if np.ptp(cs) > 0 else (0.0, float(np.median(rs)))
+    norm = math.hypot(1.0, slope)
+    c0 = float(np.min(cs))
+    r0 = float(slope * c0 + icpt)
+
+    def level(c, r):
+        dc, dr = c - c0, r - r0
+        return c0 + (dc + slope * dr) / norm, r0 + (dr - slope * dc) / norm
+
+    lc, lr = level(pix[..., 0], pix[..., 1])
+    lev = np.stack([lc, lr], axis=-1)
+    placement = {"tilt": f"read {math.degrees(math.atan(slope)):.3g} deg: the slope of the line "
+                         "through the centres, taken out"}
+    first, last = lev[:, 0, 0], lev[:, -1, 0]
+    reach = (float(np.nanmin(lev[:, :, 0] - r_px)), float(np.nanmax(lev[:, :, 0] + r_px)))
+    if track_ends is not None:
+        e1, e2 = (float(v) for v in track_ends)
+        if not (math.isfinite(e1) and math.isfinite(e2) and e1 < e2):
+            raise ValueError(f"track: expected two columns, left < right, got {track_ends!r}")
+        e1, e2 = (c0 + (e - c0) * norm for e in (e1, e2))  # their points on the line, levelled
+        tol = 0.5 * float(np.min(r_px)) + 1.0
+        lo1 = float(np.nanmin(first)) - r_px[0]
+        hi2 = float(np.nanmax(last)) + r_px[-1]
+        if e1 > lo1 + tol:
+            raise ValueError(f"track: the left end at column {track_ends[0]:g} is inside the "
+                             f"carts' path (cart 1's edge seen at column {lo1:.1f})")
+        if e2 < hi2 - tol:
+            raise ValueError(f"track: the right end at column {track_ends[1]:g} is inside the "
+                             f"carts' path (cart {k}'s edge seen at column {hi2:.1f})")
+        ends_px = (e1, e2)
+        placement["track"] = "given"
+    else:
+        speed = 0.3 * float(np.min(r_px))  # px a frame: slower turns are a stopped cart's jitter
+        t1 = _turn(first, 1.0, speed)
+        t2 = _turn(last, -1.0, speed)
+        ends_px = (t1 - r_px[0] if math.isfinite(t1) else reach[0] - ABSENT_END_M * s,
+                   t2 + r_px[-1] if math.isfinite(t2) else reach[1] + ABSENT_END_M * s)
+        placement["track"] = (
+            "estimated: "
+            + ("left end where cart 1 turned back" if math.isfinite(t1) else
+               f"left end absent (no cart turned there: placed {ABSENT_END_M:g} m out of reach)")
+            + ", "
+            + ("right end where the last cart turned back" if math.isfinite(t2) else
+               f"right end absent (placed {ABSENT_END_M:g} m out of reach)"))
+    length = (ends_px[1] - ends_px[0]) / s
+    if 2.0 * sum(half) > length:
+        opt = "object_size_m" if object_size_m is not None else "px_per_m"
+        raise ValueError(f"{opt}: objects of half-lengths {', '.join(f'{h:.3g}' for h in half)} m "
+                         f"cannot fit the {length:.3g} m track side by side with room to move")
+    # y = 0 on the track's surface: each centre its half-length above it
+    row_track = float(np.nanmedian(lev[..., 1] + r_px[None, :]))
+    cam = Camera(px_per_m=float(s), origin=(float(ends_px[0]), row_track),
+                 scale_rel_std=float(rel), rotate=int(rotate), source=src, placement=placement)
+    return TrackCamera(camera=cam, pixels=lev, ends_m=(0.0, float(length)), half_sizes_m=half,
+                       tilt_deg=float(math.degrees(math.atan(slope))))
+
+
 def widen_for_scale(system: str, params, mean, std, scale_rel_std: float) -> np.ndarray:
     """Standard deviations with the scale's uncertainty added.
 
@@ -1953,9 +2155,13 @@ def check_out_folder(out) -> Path:
 
 
 # -- a camera clip to an Observation --------------------------------------------------------------
-#: Systems :func:`camera_for` builds a camera for (the collision's two pucks and its track's
-#: ends are not followed yet: issue 38, parts 2-3).
-CAMERA_SYSTEMS = ("ball", "pendulum", "spring")
+#: Systems a camera is built for: one object followed in grey (:func:`find_object`,
+#: :func:`camera_for`), or several told apart by colour on a track (:data:`TRACK_OBJECTS`).
+CAMERA_SYSTEMS = ("ball", "pendulum", "spring", "collision")
+#: Systems whose objects slide on a straight track, followed by colour
+#: (:func:`sysid_bench.core.tracking.track_colours`, :func:`camera_for_track`): how many
+#: objects, and the names of the scene's fields for the track's ends and their half-lengths.
+TRACK_OBJECTS = {"collision": (2, "ends", "half_sizes")}
 #: ``identify`` options a clip's record may give (:func:`clip_options`): the values each takes
 #: and where it goes (``None``: checked, then not needed to observe the clip)
 _CLIP_OPTIONS = {
@@ -2135,6 +2341,8 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
             "followed from a camera's clip (issue 38, parts 2-3)")
     known = parse_known(sys_, opts.get("known", ()))
     prior = parse_prior(sys_, opts.get("prior", ()), known)
+    if sys_.name in TRACK_OBJECTS:
+        return _observe_track_clip(path, sys_, opts, known, prior, progress)
     if "track" in opts:
         raise ValueError(f"--track: means nothing for the {sys_.name} system (collision only)")
     clip = read_video(path, fps, progress=progress, start=opts.get("start"), end=opts.get("end"),
@@ -2157,4 +2365,52 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
                       **sys_.known_geometry())
     notes = [*clip.notes, f"the tracked object in metres ({cam.describe()})"]
     return CameraClip(observation=obs, camera=cam, lost=~np.isfinite(trk.pixels).all(axis=1),
+                      known=known, prior=prior, notes=notes, source_fps=float(clip.source_fps))
+
+
+def _observe_track_clip(path, sys_, opts: dict, known: dict, prior: dict,
+                        progress) -> CameraClip:
+    """:func:`observe_clip` for objects on a track told apart by colour (the collision): the
+    clip decoded in colour, the objects followed (:func:`~sysid_bench.core.tracking.
+    track_colours`), the camera and the scene (the track's ends, each object's half-length)
+    from :func:`camera_for_track`."""
+    from sysid_bench.core.estimator import Observation
+    from sysid_bench.core.tracking import track_colours
+
+    n_obj, ends_field, sizes_field = TRACK_OBJECTS[sys_.name]
+    for opt in ("floor_row", "walls", "pivot", "anchor"):
+        if opt in opts:
+            raise ValueError(f"--{opt.replace('_', '-')}: means nothing for the {sys_.name} "
+                             "system (give --track C1 C2)")
+    clip = read_video(path, progress=progress, start=opts.get("start"), end=opts.get("end"),
+                      capture_fps=opts.get("capture_fps"), rgb=True)
+    rotate = int(opts.get("rotate", 0))
+    frames = rotate_frames(clip.frames, rotate)
+    try:
+        trk = track_colours(frames, n_obj, progress=bool(progress))
+    except ValueError as exc:
+        raise VideoError(f"{path}: the {sys_.name}'s {n_obj} objects were not found: "
+                         f"{str(exc).partition(': ')[2]}") from None
+    n_seen = trk.found.sum(axis=0)
+    if (n_seen < 3).any():
+        raise VideoError(f"{path}: the {sys_.name}'s objects were found in "
+                         f"{', '.join(str(int(n)) for n in n_seen)} of {len(frames)} frames; the "
+                         "camera and the methods need each object's track (at least 3 frames)")
+    tc = camera_for_track(trk, frames.shape[1:3], px_per_m=opts.get("px_per_m"),
+                          object_size_m=opts.get("object_size_m"), track_ends=opts.get("track"),
+                          rotate=rotate)
+    try:
+        scene = sys_.scene(**{ends_field: tc.ends_m, sizes_field: tc.half_sizes_m})
+    except ValueError as exc:
+        opt = "object_size_m" if "object_size_m" in opts else "px_per_m"
+        raise ValueError(f"{opt}: {exc}") from None
+    pos = tc.camera.to_metres(tc.pixels)  # (T, K, 2)
+    obs = Observation(positions=pos, dt=1.0 / clip.fps, system=sys_.name, scene=scene,
+                      **sys_.known_geometry(scene))
+    notes = [*clip.notes,
+             f"scene: track ends {tc.ends_m[0]:.4g} to {tc.ends_m[1]:.4g} m, half-lengths "
+             + ", ".join(f"{h:.3g}" for h in tc.half_sizes_m) + " m",
+             f"the tracked objects in metres ({tc.camera.describe()}; track tilt "
+             f"{tc.tilt_deg:.3g} deg taken out)"]
+    return CameraClip(observation=obs, camera=tc.camera, lost=~trk.found.all(axis=1),
                       known=known, prior=prior, notes=notes, source_fps=float(clip.source_fps))

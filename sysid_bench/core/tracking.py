@@ -33,6 +33,16 @@ can match the wall's grey along a band across it), then their centroid is taken 
 weighted by the fraction of it the ball covers (1 inside; at the rim, the difference over the
 ball's own contrast there, a plane fitted to the inner pixels' differences). A lit top that
 barely differs from the wall then counts as much as the dark bottom.
+
+Objects of different colours
+----------------------------
+:func:`track_colours` follows two (or more) objects told apart by their colour, on a real
+camera's RGB frames (the collision's two carts or pucks): each pixel's chromaticity (its RGB
+over their sum, so shading keeps it) is matched to each object's; pixels that match in almost
+every frame are the scene (a poster of the same red) and never an object; each object is the
+matching blob nearest where it was predicted. Objects touching at a contact cannot swap: each
+keeps its own colour. A frame where an object's blob is missing or not its size (a hand over
+it) gives NaN for that object, never an invented position.
 """
 
 from __future__ import annotations
@@ -42,7 +52,8 @@ import numpy as np
 from sysid_bench.core._validate import as_float_array
 from sysid_bench.core.render import view_geometry
 
-__all__ = ["track", "track_batch", "ball_seen", "ball_centre", "noise_level"]
+__all__ = ["track", "track_batch", "ball_seen", "ball_centre", "noise_level", "ColourTrack",
+           "track_colours"]
 
 #: Frames processed at once (bounds scratch memory to a few arrays of this many pixels). Not
 #: smaller: a frame's centre can move in the last bit with its row in a chunk (``@`` is BLAS's
@@ -424,3 +435,290 @@ def track(frames, floor: float = 0.0, **options) -> np.ndarray:
     fr = _check_frames(frames, 3, "(T, H, W)")
     f = as_float_array(floor, "floor", ndim=0)
     return track_batch(fr[None], float(f), **options)[0]
+
+
+# -- objects of different colours (a real camera's RGB frames) -------------------------------------
+#: Chromaticity distance (RGB over its sum) within which a pixel counts as an object's colour.
+COLOUR_TOL = 0.1
+#: Darkest pixel (R + G + B, of 765) whose chromaticity is read (darker ones are all noise).
+COLOUR_MIN_SUM = 60.0
+#: A pixel matching an object's colour in more than this share of the frames is the scene.
+STATIC_SHARE = 0.8
+#: Accepted area of an object's blob, as a fraction of its median area over the clip.
+COLOUR_AREA_RANGE = (0.35, 2.5)
+
+
+class ColourTrack:
+    """Where each coloured object was seen in each frame (:func:`track_colours`).
+
+    Attributes
+    ----------
+    pixels : ndarray, shape (T, K, 2)
+        Sub-pixel centre ``(col, row)`` of object k, NaN where it was not seen.
+    radii : ndarray, shape (T, K)
+        Each object's radius from its blob's narrowest extent, px (NaN where not seen, or
+        where it touched another object and its size could not be read alone).
+    colours : ndarray, shape (K, 3)
+        Each object's chromaticity (RGB over their sum).
+    """
+
+    def __init__(self, pixels, radii, colours):
+        self.pixels = np.asarray(pixels, dtype=np.float64)
+        self.radii = np.asarray(radii, dtype=np.float64)
+        self.colours = np.asarray(colours, dtype=np.float64)
+
+    @property
+    def found(self) -> np.ndarray:
+        """(T, K) bool: object k seen in frame t."""
+        return np.isfinite(self.pixels).all(axis=-1)
+
+    @property
+    def radius(self) -> np.ndarray:
+        """(K,) median radius of each object, px (NaN if never seen)."""
+        with np.errstate(all="ignore"):
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                return np.nanmedian(self.radii, axis=0)
+
+
+def _chroma(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Chromaticity (H, W, 3) and brightness sum (H, W) of an RGB frame."""
+    f = img.astype(np.float32)
+    tot = f.sum(axis=-1)
+    return f / np.maximum(tot, 1.0)[..., None], tot
+
+
+def _matches(img: np.ndarray, colours: np.ndarray, tol: float) -> np.ndarray:
+    """Per object, a soft membership (K, H, W) in [0, 1]: 1 within half ``tol`` of its
+    chromaticity, falling to 0 at ``tol``; 0 on pixels too dark to read."""
+    ch, tot = _chroma(img)
+    d = np.sqrt(((ch[None] - colours[:, None, None, :].astype(np.float32)) ** 2).sum(axis=-1))
+    w = np.clip((tol - d) / (0.5 * tol), 0.0, 1.0)
+    w[:, tot < COLOUR_MIN_SUM] = 0.0
+    return w
+
+
+def _object_colours(frames: np.ndarray, k: int, bg: np.ndarray) -> np.ndarray:
+    """The ``k`` objects' chromaticities from the first frames where ``k`` blobs of similar
+    size and of a colour (not grey) stand out from the background, left to right."""
+    from scipy import ndimage
+
+    diff_thr = 60.0
+    for t in range(min(len(frames), 15)):
+        img = frames[t].astype(np.float32)
+        mask = np.abs(img - bg).sum(axis=-1) > diff_thr
+        mask = ndimage.binary_opening(mask)
+        lab, n = ndimage.label(mask)
+        if n < k:
+            continue
+        # only pixels of a colour count (a stopped object is in the median background: where
+        # it stood, the wall differs from the background too, in the wall's grey)
+        ch, tot = _chroma(img)
+        vivid = ((ch.max(axis=-1) - ch.min(axis=-1)) > 0.15) & (tot >= COLOUR_MIN_SUM)
+        idx = np.arange(1, n + 1)
+        area = ndimage.sum_labels(vivid, lab, idx)
+        order = np.argsort(area)[::-1][:k]
+        if area[order[-1]] < 6 or area[order[0]] > 4 * area[order[-1]]:
+            continue
+        cols, out = [], []
+        for j in order:
+            sel = (lab == j + 1) & vivid
+            cols.append(ndimage.center_of_mass(sel)[1])
+            out.append(np.median(ch[sel], axis=0))
+        out = np.array(out)[np.argsort(cols)]
+        gaps = [np.linalg.norm(out[i] - out[j]) for i in range(k) for j in range(i + 1, k)]
+        if min(gaps) >= COLOUR_TOL:
+            return out
+    raise ValueError(f"colours: found no frame among the first {min(len(frames), 15)} with "
+                     f"{k} objects of different colours standing out from the scene")
+
+
+def _size_from_scene(img: np.ndarray, bg: np.ndarray, centre, r_core: float) -> float:
+    """An object's radius (px) from the pixels around ``centre`` that differ from the scene
+    ``bg``, each weighted by the share of it the object covers (its difference over the
+    object's own at its core), in the connected piece holding the centre."""
+    from scipy import ndimage
+
+    h, w = img.shape[:2]
+    half = int(np.ceil(2.5 * r_core + 3))
+    c0, c1 = max(0, int(centre[0]) - half), min(w, int(centre[0]) + half + 1)
+    r0, r1 = max(0, int(centre[1]) - half), min(h, int(centre[1]) + half + 1)
+    if c1 - c0 < 3 or r1 - r0 < 3:
+        return float("nan")
+    d = np.abs(img[r0:r1, c0:c1].astype(np.float32) - bg[r0:r1, c0:c1]).sum(axis=-1)
+    rr, cc = np.mgrid[r0:r1, c0:c1].astype(np.float64) + 0.5
+    inner = np.hypot(cc - centre[0], rr - centre[1]) <= 0.5 * r_core
+    if not inner.any():
+        return float("nan")
+    peak = float(np.median(d[inner]))
+    if peak <= 30.0:
+        return float("nan")
+    wgt = np.where(d > 0.15 * peak, np.clip(d / peak, 0.0, 1.0), 0.0)
+    lab, _ = ndimage.label(wgt > 0)
+    own = lab[min(max(int(centre[1]) - r0, 0), r1 - r0 - 1),
+              min(max(int(centre[0]) - c0, 0), c1 - c0 - 1)]
+    if own == 0:
+        return float("nan")
+    wgt = np.where(lab == own, wgt, 0.0)
+    if (wgt[0].any() or wgt[-1].any() or wgt[:, 0].any() or wgt[:, -1].any()) and \
+            wgt.sum() > 4 * np.pi * r_core ** 2:
+        return float("nan")  # the piece runs out of the window: merged with something else
+    return _blob_radius(wgt, rr, cc)
+
+
+def _blob_radius(wgt: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> float:
+    """Radius (px) of a disc from the weighted pixels' smallest second moment (a disc of radius
+    r has variance r**2 / 4 along every axis; motion blur stretches only the other one)."""
+    sw = wgt.sum()
+    if sw <= 0:
+        return float("nan")
+    my, mx = (wgt * rows).sum() / sw, (wgt * cols).sum() / sw
+    cyy = (wgt * (rows - my) ** 2).sum() / sw
+    cxx = (wgt * (cols - mx) ** 2).sum() / sw
+    cxy = (wgt * (rows - my) * (cols - mx)).sum() / sw
+    lam = 0.5 * (cxx + cyy) - np.sqrt(0.25 * (cxx - cyy) ** 2 + cxy ** 2)
+    return float(2.0 * np.sqrt(lam)) if lam > 0 else float("nan")
+
+
+def track_colours(frames, n_objects: int = 2, colours=None, *, tol: float = COLOUR_TOL,
+                  max_side: int = 640, progress: bool = False) -> ColourTrack:
+    """Follow ``n_objects`` objects of different colours through a camera's RGB frames.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, H, W, 3), uint8
+        RGB frames (upright).
+    n_objects : int
+        Objects to follow (2 for the collision).
+    colours : array_like, shape (K, 3), optional
+        Each object's colour (RGB, any scale: only its chromaticity counts), in the order the
+        objects are reported. Default: read from the first frames where ``n_objects`` blobs
+        of similar size stand out from the median background, left to right.
+    tol : float
+        Chromaticity distance within which a pixel is an object's colour.
+    max_side : int
+        Larger frames are followed on a block-averaged copy (the larger side at most this,
+        px); centres and radii are given back in the source's pixels.
+    progress : bool
+        tqdm bar over the frames.
+
+    Returns
+    -------
+    ColourTrack
+
+    Raises
+    ------
+    ValueError
+        Frames that are not (T, H, W, 3) uint8, colours not (K, 3), or objects whose colours
+        cannot be read or told apart; the message names the argument.
+    """
+    from scipy import ndimage
+    from tqdm.auto import tqdm
+
+    fr = np.asarray(frames)
+    if fr.ndim != 4 or fr.shape[-1] != 3 or fr.dtype != np.uint8 or fr.shape[0] < 1:
+        raise ValueError(f"frames: expected RGB frames (T, H, W, 3) uint8, got {fr.dtype} "
+                         f"shape {fr.shape}")
+    if isinstance(n_objects, bool) or not isinstance(n_objects, (int, np.integer)) \
+            or n_objects < 1:
+        raise ValueError(f"n_objects: expected an int >= 1, got {n_objects!r}")
+    blk = max(1, int(np.ceil(max(fr.shape[1:3]) / int(max_side))))
+    if blk > 1:  # averaged over blk x blk blocks: continuous coordinates scale by blk exactly
+        hh, ww = (fr.shape[1] // blk) * blk, (fr.shape[2] // blk) * blk
+        small = np.empty((fr.shape[0], hh // blk, ww // blk, 3), np.uint8)
+        for i in range(0, fr.shape[0], 32):
+            tot = fr[i:i + 32, :hh, :ww].reshape(-1, hh // blk, blk, ww // blk, blk, 3).sum(
+                axis=(2, 4), dtype=np.uint32)
+            small[i:i + 32] = np.rint(tot / (blk * blk)).astype(np.uint8)
+        out = track_colours(small, n_objects, colours, tol=tol, max_side=max_side,
+                            progress=progress)
+        return ColourTrack(out.pixels * blk, out.radii * blk, out.colours)
+    t_n, h, w, _ = fr.shape
+    idx = np.unique(np.linspace(0, t_n - 1, min(t_n, 31)).astype(int))
+    bg = np.median(fr[idx], axis=0).astype(np.float32)
+    if colours is None:
+        col = _object_colours(fr, int(n_objects), bg)
+    else:
+        c = np.asarray(colours, dtype=np.float64)
+        if c.shape != (n_objects, 3) or not np.isfinite(c).all() or (c < 0).any() \
+                or (c.sum(axis=1) <= 0).any():
+            raise ValueError(f"colours: expected ({n_objects}, 3) non-negative RGB values, got "
+                             f"{colours!r}")
+        col = c / c.sum(axis=1, keepdims=True)
+    k = len(col)
+    # the scene: pixels of an object's colour in most frames (a poster of the same red)
+    count = np.zeros((k, h, w), dtype=np.float32)
+    for t in idx:
+        count += _matches(fr[t], col, tol) > 0.5
+    bg = bg.astype(np.float32)
+    static = count > STATIC_SHARE * len(idx)
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64) + 0.5
+    pix = np.full((t_n, k, 2), np.nan)
+    radii = np.full((t_n, k), np.nan)
+    areas = np.full((t_n, k), np.nan)
+    last: list[list] = [[] for _ in range(k)]  # (frame, centre) of each object's last sightings
+    for t in tqdm(range(t_n), desc="following the objects", unit="frame", disable=not progress,
+                  leave=False):
+        m = _matches(fr[t], col, tol)
+        m[static] = 0.0
+        for j in range(k):
+            lab, n = ndimage.label(m[j] > 0.5)
+            if n == 0:
+                continue
+            ids = np.arange(1, n + 1)
+            area = ndimage.sum_labels(m[j], lab, ids)
+            cen = np.array(ndimage.center_of_mass(m[j], lab, ids))[:, ::-1] + 0.5  # (col, row)
+            ok = area >= 3.0
+            seen_a = areas[:t, j][np.isfinite(areas[:t, j])][-20:]
+            if seen_a.size:
+                ref = float(np.median(seen_a))
+                ok &= (area >= 0.2 * ref) & (area <= 5.0 * ref)
+            if not ok.any():
+                continue
+            cand = np.flatnonzero(ok)
+            hist = last[j]
+            if hist and t - hist[-1][0] <= 5:
+                pred = hist[-1][1]
+                if len(hist) >= 2:
+                    (t1, p1), (t2, p2) = hist[-2], hist[-1]
+                    pred = p2 + (p2 - p1) * (t - t2) / max(1, t2 - t1)
+                r_ref = np.sqrt(np.median(seen_a) / np.pi) if seen_a.size else 3.0
+                dist = np.hypot(*(cen[cand] - pred).T)
+                near = dist <= max(6.0 * r_ref, 0.05 * min(h, w))
+                if not near.any():
+                    continue
+                b = cand[near][np.argmin(dist[near])]
+            else:
+                b = cand[np.argmax(area[cand])]
+            # the blob's soft pixels (in its bounding box): centroid, then its size from how
+            # far it differs from the scene around it (the colour's core misses the blurred rim)
+            sl = ndimage.find_objects(lab, max_label=b + 1)[b]
+            wgt = np.where(lab[sl] == b + 1, m[j][sl], 0.0)
+            rr, cc = rows[sl], cols[sl]
+            sw = wgt.sum()
+            c = np.array([(wgt * cc).sum() / sw, (wgt * rr).sum() / sw])
+            pix[t, j] = c
+            areas[t, j] = area[b]
+            radii[t, j] = _size_from_scene(fr[t], bg, c, np.sqrt(area[b] / np.pi))
+            last[j] = (hist + [(t, c)])[-2:]
+    # blobs not the object's size (a hand over it, a piece of it) are not seen
+    for j in range(k):
+        a = areas[:, j]
+        if np.isfinite(a).any():
+            med = float(np.nanmedian(a))
+            bad = np.isfinite(a) & ((a < COLOUR_AREA_RANGE[0] * med)
+                                    | (a > COLOUR_AREA_RANGE[1] * med))
+            pix[bad, j] = np.nan
+            radii[bad, j] = np.nan
+    # sizes read only where the objects stood apart (touching, blur merges their rims)
+    if k > 1:
+        for t in range(t_n):
+            for j in range(k):
+                others = [i for i in range(k) if i != j]
+                d = np.hypot(*(pix[t, others] - pix[t, j]).T)
+                r = np.nansum([radii[t, j]] + [radii[t, i] for i in others])
+                if np.isfinite(d).any() and np.nanmin(d) < 1.5 * r:
+                    radii[t, j] = np.nan
+    return ColourTrack(pixels=pix, radii=radii, colours=col)
