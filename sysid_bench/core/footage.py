@@ -623,6 +623,19 @@ class BallTrack:
     def n_found(self) -> int:
         return int(self.found.sum())
 
+    def first_seen(self) -> int:
+        """Index of the first frame the object was found in (0 when never found)."""
+        idx = np.flatnonzero(self.found)
+        return int(idx[0]) if idx.size else 0
+
+    def from_frame(self, k: int) -> BallTrack:
+        """This track without its first ``k`` frames (``k >= 0``)."""
+        k = int(k)
+        if not 0 <= k <= len(self.pixels):
+            raise ValueError(f"k: expected a frame index in [0, {len(self.pixels)}], got {k}")
+        return BallTrack(pixels=self.pixels[k:], radius=self.radius, found=self.found[k:],
+                         radii=None if self.radii is None else self.radii[k:])
+
 
 def _background(frames: np.ndarray, max_frames: int = 150) -> np.ndarray:
     """Per-pixel median over (up to ``max_frames`` evenly spread) frames: the static scene."""
