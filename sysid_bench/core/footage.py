@@ -603,10 +603,24 @@ class BallTrack:
         return int(self.found.sum())
 
 
+def _median_over_time(stack: np.ndarray) -> np.ndarray:
+    """``np.median(stack, axis=0)``, the same values, 3x faster on a (150, 360, 640) stack.
+
+    The samples of each pixel are made contiguous and sorted in place; the middle one (or the
+    mean of the two middle ones, by ``np.mean`` as ``np.median`` takes it) is the median.
+    ``np.median`` partitions along the first axis, a stride of a whole frame between samples.
+    """
+    n = stack.shape[0]
+    y = np.ascontiguousarray(stack.reshape(n, -1).T)
+    y.sort(axis=1)
+    mid = [n // 2] if n % 2 else [n // 2 - 1, n // 2]
+    return np.mean(y[:, mid], axis=1).reshape(stack.shape[1:])
+
+
 def _background(frames: np.ndarray, max_frames: int = 150) -> np.ndarray:
     """Per-pixel median over (up to ``max_frames`` evenly spread) frames: the static scene."""
     idx = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), max_frames)).astype(int))
-    return np.median(frames[idx], axis=0).astype(np.float32)
+    return _median_over_time(frames[idx]).astype(np.float32)
 
 
 def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
@@ -670,12 +684,23 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
     return BallTrack(pixels=pix, radius=radius, found=found, radii=radii)
 
 
-def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False):
+def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False, window=True, stats=None):
     """One tracking pass over ``fr`` against background ``bg``: centres (T, 2), radii (T,).
 
     ``reset_on_loss``: a track lost for more than ``max_gap`` frames forgets the sizes seen so
     far, so an object of another size followed for a while (a hand holding the ball) does not
-    gate the ball out for the rest of the clip (:func:`find_object`)."""
+    gate the ball out for the rest of the clip (:func:`find_object`).
+
+    ``window``: while the track holds (a detection within ``max_gap`` frames), a frame is
+    searched only in a window around the predicted position that holds the search gate, the
+    centring and the "is there a ball" test (:func:`_follow_window`); the answer is the whole
+    frame's, bit for bit, and the whole frame is searched when a blob crosses the window's
+    edge or the track is lost. ``stats`` (a dict) counts the frames searched each way.
+    """
+    if stats is None:
+        stats = {}
+    stats.setdefault("window", 0)
+    stats.setdefault("full", 0)
     from scipy import ndimage
     from tqdm.auto import tqdm
 
@@ -687,6 +712,18 @@ def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False):
     since = 0  # sizes are taken from frames since (reset_on_loss: the last re-acquisition)
     for t in tqdm(range(t_n), desc="finding the ball", unit="frame", disable=not progress,
                   leave=False):
+        if window and last and t - last[-1][0] <= max_gap:
+            got = _follow_window(fr[t], bg, thr, t, last, areas, radii[since:])
+            if got is not None:  # else the whole frame decides (a blob cut by the window)
+                stats["window"] += 1
+                if got is not False:
+                    centre, cov, area_k = got
+                    radii[t] = math.sqrt(cov / math.pi)
+                    pix[t] = (float(centre[0]), float(centre[1]))
+                    areas.append(area_k)
+                    last = (last + [(t, np.array(pix[t]))])[-2:]
+                continue
+        stats["full"] += 1
         signed = fr[t] - bg
         diff = np.abs(signed)
         mask = diff > thr
@@ -767,6 +804,104 @@ def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False):
         areas.append(float(area[k]))
         last = (last + [(t, np.array([c0, r0]))])[-2:]
     return pix, radii
+
+
+def _follow_window(frame, bg, thr, t, last, areas, radii_since):
+    """One frame of :func:`_follow` while the track holds, searched in a window only.
+
+    The window (a box around the position predicted from the last two detections) holds the
+    gate's circle, three re-centrings of :func:`~sysid_bench.core.tracking.ball_centre` and
+    the disc :func:`~sysid_bench.core.tracking.ball_seen` counts. Blobs are labelled in the
+    window; when none touches an edge of the window that is not the frame's, each is a whole
+    blob of the frame, with the frame's area and (summed in the same order, in the frame's
+    coordinates) centroid, and the answer is the one the whole frame gives.
+
+    Returns
+    -------
+    None
+        A blob crosses the window's edge (or the window is most of the frame): search the
+        whole frame.
+    False
+        Not seen in this frame.
+    (centre, coverage, area)
+        The ball's centre ``(col, row)``, its covered area (px) and its blob's area.
+    """
+    from scipy import ndimage
+
+    h, w = frame.shape
+    (t1, p1), (t2, p2) = (last[-2], last[-1]) if len(last) >= 2 else (last[-1], last[-1])
+    pred = p2 + (p2 - p1) * (t - t2) / max(1, t2 - t1) if len(last) >= 2 else p2.copy()
+    ref = float(np.median(areas[-20:]))
+    r_ref = math.sqrt(ref / math.pi)
+    gate = max(4.0 * r_ref + 2.0 * (t - t2) * r_ref, 0.1 * min(h, w))
+    found_r = radii_since[np.isfinite(radii_since)][-20:]
+    if not areas or not found_r.size or not np.isfinite(pred).all():
+        return None
+    r_exp = float(np.median(found_r))
+    # per axis: the gate, three re-centrings that each move at most r + 5 px, the last
+    # centring's window (r + 5) or the disc test's (2 r + 2)
+    reach = gate + 5.0 * r_exp + 24.0
+    r0, r1 = max(0, int(pred[1] - reach)), min(h, int(pred[1] + reach) + 2)
+    c0, c1 = max(0, int(pred[0] - reach)), min(w, int(pred[0] + reach) + 2)
+    if r0 >= r1 or c0 >= c1:
+        return False  # predicted far outside the frame: as the frame, no blob near it
+    if (r1 - r0) * (c1 - c0) > 0.5 * h * w:
+        return None
+    signed = frame[r0:r1, c0:c1] - bg[r0:r1, c0:c1]
+    diff = np.abs(signed)
+    mask = diff > thr
+    if not mask.any():
+        return False
+    lab, n = ndimage.label(mask)
+    edges = [lab[0, :] if r0 > 0 else (), lab[-1, :] if r1 < h else (),
+             lab[:, 0] if c0 > 0 else (), lab[:, -1] if c1 < w else ()]
+    if any(np.any(np.asarray(e) > 0) for e in edges):
+        return None
+    # scipy's center_of_mass, in the frame's coordinates: bincount sums each blob's pixels in
+    # the frame's raster order, as on the whole frame
+    flat = lab.ravel()
+    dd = diff.astype(np.float64)
+    area = np.bincount(flat, minlength=n + 1)[1:].astype(np.float64)
+    mass = np.bincount(flat, weights=diff.ravel(), minlength=n + 1)[1:]
+    rows = np.arange(r0, r1, dtype=np.float64)[:, None]
+    cols = np.arange(c0, c1, dtype=np.float64)[None, :]
+    cr = np.bincount(flat, weights=(dd * rows).ravel(), minlength=n + 1)[1:] / mass
+    cc = np.bincount(flat, weights=(dd * cols).ravel(), minlength=n + 1)[1:] / mass
+    cen = np.stack([cc, cr], axis=1) + 0.5  # (col, row)
+    ok = (area >= 0.2 * ref) & (area <= 5.0 * ref)
+    if not ok.any():
+        return False
+    cand = np.flatnonzero(ok)
+    dist = np.hypot(*(cen[cand] - pred).T)
+    near = dist <= gate
+    if not near.any():
+        return False
+    k = cand[near][np.argmin(dist[near])]
+
+    def held(c, m):  # the window holds everything within m px of c (or the frame's edge does)
+        return ((c[1] - m >= r0 or r0 == 0) and (c[1] + m + 1 <= r1 or r1 == h)
+                and (c[0] - m >= c0 or c0 == 0) and (c[0] + m + 1 <= c1 or c1 == w))
+
+    centre = cen[k]
+    for _ in range(3):
+        if not held(centre, r_exp + 6.0):
+            return None
+        new, cov = ball_centre(signed, thr, centre, r_exp, origin=(c0, r0))
+        if cov <= 0:
+            break
+        moved = float(np.hypot(*(new - centre)))
+        centre = new
+        if moved < 0.01:
+            break
+    if cov <= 0 or r_exp > min(h, w) / 4:
+        return False
+    if not held(centre, 2.0 * r_exp + 3.0):
+        return None
+    # the disc test in window coordinates: float32 centre minus whole pixels is exact
+    cw = np.asarray(centre, dtype=np.float32) - np.array([c0, r0], dtype=np.float32)
+    if not ball_seen(diff[None], cw[None], r_exp, thr)[0]:
+        return False
+    return np.asarray(centre, dtype=np.float64), cov, float(area[k])
 
 
 # -- a camera per video ---------------------------------------------------------------------------
@@ -994,16 +1129,34 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False) -> BallT
     if k == 1:
         trk = find_ball(fr, progress=progress, reset_on_loss=True)
         return _consistent(_minor_radii(fr, trk))
-    h, w = (fr.shape[1] // k) * k, (fr.shape[2] // k) * k
-    small = np.empty((fr.shape[0], h // k, w // k), dtype=np.float32)
-    for i in range(0, fr.shape[0], 64):  # in chunks, summed in integers (4x faster than mean)
-        blk = fr[i:i + 64, :h, :w]
-        tot = blk.reshape(len(blk), h // k, k, w // k, k).sum(axis=(2, 4), dtype=np.uint32)
-        small[i:i + 64] = tot.astype(np.float32) / float(k * k)
+    small = _block_means(fr, k)
     trk = find_ball(small, progress=progress, reset_on_loss=True)
     trk = BallTrack(pixels=trk.pixels * k, radius=trk.radius * k, found=trk.found,
                     radii=None if trk.radii is None else trk.radii * k)
     return _consistent(_minor_radii(fr, trk))
+
+
+def _block_means(fr: np.ndarray, k: int) -> np.ndarray:
+    """Means of ``k x k`` blocks of each frame (T, H, W) -> (T, H // k, W // k) float32.
+
+    Summed exactly in integers (rows of a block first, whole contiguous rows at a time, then
+    the columns), then divided once: the same float32 values as ``reshape(...).mean``, 10x
+    faster than summing the reshaped blocks over two strided axes (1.4 against 14 ms of CPU
+    a 1080p frame)."""
+    t_n = fr.shape[0]
+    h, w = (fr.shape[1] // k) * k, (fr.shape[2] // k) * k
+    small = np.empty((t_n, h // k, w // k), dtype=np.float32)
+    acc = np.uint16 if k * k * 255 < 2 ** 16 else np.uint32
+    for i in range(0, t_n, 16):  # in chunks: scratch memory of 16 frames
+        blk = fr[i:i + 16, :h, :w]
+        rows = blk[:, 0::k].astype(acc)
+        for a in range(1, k):
+            rows += blk[:, a::k]
+        tot = rows[:, :, 0::k].copy()
+        for b in range(1, k):
+            tot += rows[:, :, b::k]
+        small[i:i + 16] = tot.astype(np.float32) / float(k * k)
+    return small
 
 
 def _minor_radii(frames, trk: BallTrack) -> BallTrack:
@@ -1032,7 +1185,7 @@ def _minor_radii(frames, trk: BallTrack) -> BallTrack:
         if r1 <= r0 or c1 <= c0:
             continue
         # the background of this window only (a median of 31 whole 1080p frames took seconds)
-        bg = np.median(fr[idx, r0:r1, c0:c1], axis=0).astype(np.float32)
+        bg = _median_over_time(fr[idx, r0:r1, c0:c1]).astype(np.float32)
         d = np.abs(fr[t, r0:r1, c0:c1].astype(np.float32) - bg)
         yy, xx = np.mgrid[r0:r1, c0:c1] + 0.5
         inner = np.hypot(xx - c, yy - r) <= 0.5 * rad
