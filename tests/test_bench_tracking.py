@@ -89,6 +89,7 @@ def test_bench_decode_1080p(benchmark, clip_1080p):
           f"{info['pyav_gray_fps_cpu']:.1f} ({info['pyav_gray_fps_wall']:.1f} wall): "
           f"{info['cpu_ratio']:.2f}x less CPU")
     # decoding itself (libavcodec) is most of it; the grey conversion is what changed
+    # (measured 1.12x here, 1.25x on a 30 frames/s clip)
     assert info["cpu_ratio"] >= 1.0
 
 
@@ -110,4 +111,6 @@ def test_bench_track_1080p(benchmark, clip_1080p):
           f"({info['track_fps_wall']:.1f} frames/s wall), whole-frame search "
           f"{info['whole_frame_fps_cpu']:.1f} ({info['whole_frame_fps_wall']:.1f} wall): "
           f"{info['cpu_ratio']:.2f}x less CPU")
-    assert info["cpu_ratio"] >= 1.3
+    # measured 1.40x and 1.43x under load 15 (docs/video.md: find_object before these
+    # changes against now on a camera-like 1080p ball clip, 3.2x)
+    assert info["cpu_ratio"] >= 1.2
