@@ -44,6 +44,7 @@ import sys
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from sysid_bench.core._io import atomic_write
@@ -242,6 +243,7 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         show = (n_hint > _PROGRESS_FRAMES) if progress is None else bool(progress)
         frames, times, small = [], [], []
         want_rgb = bool(colour) and colour_file
+        lut = None  # the luma -> grey table (False: FFmpeg converts every frame)
         from tqdm.auto import tqdm
 
         with tqdm(total=n_hint or None, desc=f"reading {p.name}", unit="frame",
@@ -249,7 +251,16 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
                   leave=False) as bar:
             try:
                 for fr in container.decode(stream):
-                    frames.append(fr.to_ndarray(format="rgb24" if rgb else "gray"))
+                    if rgb:  # full colour frames (told apart by colour), kept as they are
+                        frames.append((fr.to_ndarray(format="rgb24"), False))
+                    else:
+                        key = (fr.format.name, fr.color_range, fr.colorspace)
+                        if lut is None:
+                            lut, lut_key = _luma_table(fr), key
+                        y = _luma(fr) if lut is not False and key == lut_key else None
+                        # a frame whose format is not the first's: FFmpeg's grey (flagged)
+                        frames.append((y, True) if y is not None
+                                      else (fr.to_ndarray(format="gray"), False))
                     if want_rgb:  # FFmpeg's area filter: the mean colour of each block
                         k = max(1, math.ceil(max(fr.width, fr.height) / COLOUR_SIDE))
                         small.append(fr.reformat(width=max(1, fr.width // k),
@@ -298,7 +309,6 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         small = [f for f, k in zip(small, keep) if k] if small else small
         t = t[keep] - t[first]
         notes.append(f"window {lo:g} to {min(hi, float(t[-1]) + lo):.4g} s: {len(frames)} frames")
-    raw = np.stack(frames)
     gaps = np.diff(t)
     mean_gap = float(t[-1] / (len(t) - 1)) if len(t) > 1 else 1.0 / rate
     # a browser's or phone's variable frame rate: an interval off the mean by more than 10%
@@ -311,7 +321,9 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         if own != rate:
             notes.append(f"the frames are {1e3 * mean_gap:.4g} ms apart, not the {rate:.4g} "
                          f"frames/s the container says: read at {own:.4g} frames/s")
-        return Clip(frames=np.ascontiguousarray(raw), times=t, source_fps=float(rate),
+        # only the frames kept become grey
+        return Clip(frames=_grey_frames(path, frames, np.arange(len(frames)), lut), times=t,
+                    source_fps=float(rate),
                     source_frames=len(frames), colour=colour_file, fps=float(own), notes=notes,
                     path=str(path), colour_frames=np.stack(small) if small else None)
     med = float(np.median(gaps)) if len(gaps) else mean_gap
@@ -329,7 +341,7 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         j = np.where(np.abs(t[j - 1] - ticks) <= np.abs(t[j] - ticks), j - 1, j)
         if len(t) == 1:
             j = np.zeros(1, dtype=int)
-        raw_kept, t_kept = raw[j], t[j]
+        t_kept = t[j]
         small = [small[i] for i in j] if small else small
         if vfr:
             off = float(np.max(np.abs(t_kept - ticks[:len(j)]))) if len(j) else 0.0
@@ -345,8 +357,10 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
                          + ("; the source is slower than the model, so frames repeat"
                             if rate < target else ""))
     else:
-        raw_kept, t_kept = raw, t
-    return Clip(frames=np.ascontiguousarray(raw_kept), times=t_kept, source_fps=float(rate),
+        j, t_kept = np.arange(len(frames)), t
+    # only the frames kept become grey (a 30 frames/s file resampled to 20 keeps 2 in 3)
+    raw_kept = _grey_frames(path, frames, j, lut)
+    return Clip(frames=raw_kept, times=t_kept, source_fps=float(rate),
                 source_frames=len(frames), colour=colour_file, fps=float(target), notes=notes,
                 path=str(path), colour_frames=np.stack(small) if small else None)
 
@@ -391,6 +405,89 @@ def thin_clip(clip: Clip, max_frames: int | None, method: str = "the method") ->
 def _av_reason(exc) -> str:
     s = str(getattr(exc, "strerror", None) or exc)
     return s.split(":")[0].strip() if ": '" in s else s.strip()
+
+
+#: 8-bit pixel formats whose first plane is the luma FFmpeg's "gray" is computed from, pixel by
+#: pixel (a table of 256 values: limited-range luma is stretched to 0-255, full range kept)
+_LUMA_FORMATS = frozenset({"yuv420p", "yuvj420p", "yuv422p", "yuvj422p", "yuv444p", "yuvj444p",
+                           "yuv440p", "yuvj440p", "yuv411p", "yuv410p", "nv12", "nv21", "gray"})
+
+
+def _luma(fr) -> np.ndarray | None:
+    """The luma plane of a decoded frame as a (H, W) uint8 copy; None for other formats."""
+    if fr.format.name not in _LUMA_FORMATS:
+        return None
+    pl = fr.planes[0]
+    if pl.width != fr.width or pl.height != fr.height:
+        return None
+    view = np.frombuffer(pl, dtype=np.uint8).reshape(pl.height, pl.line_size)
+    return view[:, : pl.width].copy()  # the decoder reuses its buffers
+
+
+def _luma_table(fr):
+    """FFmpeg's luma -> grey conversion for ``fr``'s format and range as a (256,) uint8 table,
+    or False where it is not one (or a frame of fewer than 256 pixels cannot show it).
+
+    FFmpeg's "gray" (BT.601 luma; limited-range 16-235 stretched to 0-255) depends on each
+    pixel's luma alone, so one table gives the same bytes as ``to_ndarray(format="gray")`` at a
+    fraction of the cost (swscale's conversion was 4.7 ms of CPU per 1080p frame, the table 1.4
+    ms, the plane's copy 0.3 ms). The table is read from FFmpeg itself: a frame of the same size,
+    format, range and colour space whose luma runs through all 256 values in every column is
+    converted, and the table is kept only when each value gave one grey level and the table
+    reproduces FFmpeg's grey of ``fr`` byte for byte.
+    """
+    try:
+        import av
+
+        y = _luma(fr)
+        if y is None:
+            return False
+        syn = av.VideoFrame(fr.width, fr.height, fr.format.name)
+        syn.color_range, syn.colorspace = fr.color_range, fr.colorspace
+        pl = syn.planes[0]
+        # the 256 levels in raster order (every level in a frame of 256 pixels or more)
+        ramp = np.zeros((pl.height, pl.line_size), dtype=np.uint8)
+        ramp[:, : pl.width] = np.resize(np.arange(256, dtype=np.uint8),
+                                        (pl.height, pl.width))
+        pl.update(ramp.tobytes())
+        for q in syn.planes[1:]:  # neutral chroma (grey does not read it)
+            q.update(np.full(q.buffer_size, 128, dtype=np.uint8).tobytes())
+        grey = syn.to_ndarray(format="gray")
+        if grey.size < 256:
+            return False
+        table = np.ascontiguousarray(grey.ravel()[:256])  # level v at raster position v
+        # one grey level per luma level wherever it stands, and FFmpeg's grey of this frame
+        if not np.array_equal(table[ramp[:, : pl.width]], grey):
+            return False
+        return table if np.array_equal(table[y], fr.to_ndarray(format="gray")) else False
+    except Exception:  # noqa: BLE001 - any surprise: FFmpeg converts every frame, as before
+        return False
+
+
+@numba.njit(cache=True, nogil=True)
+def _apply_table(src, table, out):  # pragma: no cover - compiled
+    for i in range(src.shape[0]):
+        for j in range(src.shape[1]):
+            out[i, j] = table[src[i, j]]
+
+
+def _grey_frames(path, frames, keep, table) -> np.ndarray:
+    """Frames ``keep`` of ``frames`` as one (T, H, W) uint8 grey array.
+
+    ``frames`` holds ``(pixels, is_luma)`` pairs: a luma plane goes through ``table``
+    (:func:`_luma_table`), a frame FFmpeg already made grey is copied."""
+    keep = np.asarray(keep, dtype=np.int64)
+    shapes = sorted({frames[int(i)][0].shape for i in keep})
+    if len(shapes) > 1:
+        raise _fail(path, f"frames change size within the video: {shapes}")
+    out = np.empty((len(keep), *shapes[0]), dtype=np.uint8)
+    for n, i in enumerate(keep):
+        px, is_luma = frames[int(i)]
+        if is_luma:
+            _apply_table(px, table, out[n])
+        else:
+            out[n] = px
+    return out
 
 
 def write_video(path, frames, fps: float = MODEL_FPS, *, codec: str = "libx264",
@@ -637,15 +734,29 @@ class BallTrack:
                          radii=None if self.radii is None else self.radii[k:])
 
 
+def _median_over_time(stack: np.ndarray) -> np.ndarray:
+    """``np.median(stack, axis=0)``, the same values, 3x faster on a (150, 360, 640) stack.
+
+    The samples of each pixel are made contiguous and sorted in place; the middle one (or the
+    mean of the two middle ones, by ``np.mean`` as ``np.median`` takes it) is the median.
+    ``np.median`` partitions along the first axis, a stride of a whole frame between samples.
+    """
+    n = stack.shape[0]
+    y = np.ascontiguousarray(stack.reshape(n, -1).T)
+    y.sort(axis=1)
+    mid = [n // 2] if n % 2 else [n // 2 - 1, n // 2]
+    return np.mean(y[:, mid], axis=1).reshape(stack.shape[1:])
+
+
 def _background(frames: np.ndarray, max_frames: int = 150) -> np.ndarray:
     """Per-pixel median over (up to ``max_frames`` evenly spread) frames: the static scene."""
     idx = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), max_frames)).astype(int))
-    return np.median(frames[idx], axis=0).astype(np.float32)
+    return _median_over_time(frames[idx]).astype(np.float32)
 
 
 def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
               max_gap: int = 5, progress: bool = False, reset_on_loss: bool = False,
-              round_power: float = 1.0) -> BallTrack:
+              round_power: float = 1.0, window: bool = True) -> BallTrack:
     """Follow the ball through ``frames`` by background subtraction.
 
     Parameters
@@ -669,6 +780,11 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
         How much a blob's roundness (its area over its bounding disc's) outweighs its size
         when the track is (re)acquired: the score is ``roundness**round_power * sqrt(area)``.
         Real footage uses 2, so that a thrown ball beats the larger arm that threw it.
+    window : bool
+        While the track holds, search each frame only in a window around the predicted
+        position (the same answer as the whole frame's, bit for bit, several times faster on
+        large frames; the whole frame when a blob crosses the window's edge or the track is
+        lost). False: every frame searched whole, as before.
 
     Returns
     -------
@@ -682,7 +798,8 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
     # the noise of the signed difference (robust: 1.4826 MAD), as tracking.track measures it
     sigma = float(noise_level((fr[:: max(1, t_n // 20)] - bg).ravel()))
     thr = max(float(min_contrast), noise_k * sigma)
-    pix, radii = _follow(fr, bg, thr, max_gap, progress, reset_on_loss, round_power)
+    pix, radii = _follow(fr, bg, thr, max_gap, progress, reset_on_loss, window,
+                         round_power=round_power)
     # A ball that sits or rolls slowly over the same pixels for more than half the clip is in
     # the median, and then invisible there. When the ball is consistently brighter (darker)
     # than the scene, a low (high) quantile over time is the scene wherever the ball covered a
@@ -703,18 +820,31 @@ def find_ball(frames, *, min_contrast: float = 20.0, noise_k: float = 5.0,
             q = np.percentile(fr[idx], 10 if sign.mean() > 0 else 90, axis=0).astype(np.float32)
             r = float(np.nanmedian(radii))
             if (np.abs(q - bg) > thr).sum() >= 0.05 * np.pi * r * r:
-                pix, radii = _follow(fr, q, thr, max_gap, progress, reset_on_loss, round_power)
+                pix, radii = _follow(fr, q, thr, max_gap, progress, reset_on_loss, window,
+                                     round_power=round_power)
     found = np.isfinite(pix).all(axis=1)
     radius = float(np.nanmedian(radii)) if found.any() else float("nan")
     return BallTrack(pixels=pix, radius=radius, found=found, radii=radii)
 
 
-def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False, round_power=1.0):
+def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False, window=True, stats=None,
+            round_power=1.0):
     """One tracking pass over ``fr`` against background ``bg``: centres (T, 2), radii (T,).
 
     ``reset_on_loss``: a track lost for more than ``max_gap`` frames forgets the sizes seen so
     far, so an object of another size followed for a while (a hand holding the ball) does not
-    gate the ball out for the rest of the clip (:func:`find_object`)."""
+    gate the ball out for the rest of the clip (:func:`find_object`).
+
+    ``window``: while the track holds (a detection within ``max_gap`` frames), a frame is
+    searched only in a window around the predicted position that holds the search gate, the
+    centring and the "is there a ball" test (:func:`_follow_window`); the answer is the whole
+    frame's, bit for bit, and the whole frame is searched when a blob crosses the window's
+    edge or the track is lost. ``stats`` (a dict) counts the frames searched each way.
+    """
+    if stats is None:
+        stats = {}
+    stats.setdefault("window", 0)
+    stats.setdefault("full", 0)
     from scipy import ndimage
     from tqdm.auto import tqdm
 
@@ -726,6 +856,18 @@ def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False, round_power=1.0
     since = 0  # sizes are taken from frames since (reset_on_loss: the last re-acquisition)
     for t in tqdm(range(t_n), desc="finding the ball", unit="frame", disable=not progress,
                   leave=False):
+        if window and last and t - last[-1][0] <= max_gap:
+            got = _follow_window(fr[t], bg, thr, t, last, areas, radii[since:])
+            if got is not None:  # else the whole frame decides (a blob cut by the window)
+                stats["window"] += 1
+                if got is not False:
+                    centre, cov, area_k = got
+                    radii[t] = math.sqrt(cov / math.pi)
+                    pix[t] = (float(centre[0]), float(centre[1]))
+                    areas.append(area_k)
+                    last = (last + [(t, np.array(pix[t]))])[-2:]
+                continue
+        stats["full"] += 1
         signed = fr[t] - bg
         diff = np.abs(signed)
         mask = diff > thr
@@ -807,6 +949,104 @@ def _follow(fr, bg, thr, max_gap, progress, reset_on_loss=False, round_power=1.0
         areas.append(float(area[k]))
         last = (last + [(t, np.array([c0, r0]))])[-2:]
     return pix, radii
+
+
+def _follow_window(frame, bg, thr, t, last, areas, radii_since):
+    """One frame of :func:`_follow` while the track holds, searched in a window only.
+
+    The window (a box around the position predicted from the last two detections) holds the
+    gate's circle, three re-centrings of :func:`~sysid_bench.core.tracking.ball_centre` and
+    the disc :func:`~sysid_bench.core.tracking.ball_seen` counts. Blobs are labelled in the
+    window; when none touches an edge of the window that is not the frame's, each is a whole
+    blob of the frame, with the frame's area and (summed in the same order, in the frame's
+    coordinates) centroid, and the answer is the one the whole frame gives.
+
+    Returns
+    -------
+    None
+        A blob crosses the window's edge (or the window is most of the frame): search the
+        whole frame.
+    False
+        Not seen in this frame.
+    (centre, coverage, area)
+        The ball's centre ``(col, row)``, its covered area (px) and its blob's area.
+    """
+    from scipy import ndimage
+
+    h, w = frame.shape
+    (t1, p1), (t2, p2) = (last[-2], last[-1]) if len(last) >= 2 else (last[-1], last[-1])
+    pred = p2 + (p2 - p1) * (t - t2) / max(1, t2 - t1) if len(last) >= 2 else p2.copy()
+    ref = float(np.median(areas[-20:]))
+    r_ref = math.sqrt(ref / math.pi)
+    gate = max(4.0 * r_ref + 2.0 * (t - t2) * r_ref, 0.1 * min(h, w))
+    found_r = radii_since[np.isfinite(radii_since)][-20:]
+    if not areas or not found_r.size or not np.isfinite(pred).all():
+        return None
+    r_exp = float(np.median(found_r))
+    # per axis: the gate, three re-centrings that each move at most r + 5 px, the last
+    # centring's window (r + 5) or the disc test's (2 r + 2)
+    reach = gate + 5.0 * r_exp + 24.0
+    r0, r1 = max(0, int(pred[1] - reach)), min(h, int(pred[1] + reach) + 2)
+    c0, c1 = max(0, int(pred[0] - reach)), min(w, int(pred[0] + reach) + 2)
+    if r0 >= r1 or c0 >= c1:
+        return False  # predicted far outside the frame: as the frame, no blob near it
+    if (r1 - r0) * (c1 - c0) > 0.5 * h * w:
+        return None
+    signed = frame[r0:r1, c0:c1] - bg[r0:r1, c0:c1]
+    diff = np.abs(signed)
+    mask = diff > thr
+    if not mask.any():
+        return False
+    lab, n = ndimage.label(mask)
+    edges = [lab[0, :] if r0 > 0 else (), lab[-1, :] if r1 < h else (),
+             lab[:, 0] if c0 > 0 else (), lab[:, -1] if c1 < w else ()]
+    if any(np.any(np.asarray(e) > 0) for e in edges):
+        return None
+    # scipy's center_of_mass, in the frame's coordinates: bincount sums each blob's pixels in
+    # the frame's raster order, as on the whole frame
+    flat = lab.ravel()
+    dd = diff.astype(np.float64)
+    area = np.bincount(flat, minlength=n + 1)[1:].astype(np.float64)
+    mass = np.bincount(flat, weights=diff.ravel(), minlength=n + 1)[1:]
+    rows = np.arange(r0, r1, dtype=np.float64)[:, None]
+    cols = np.arange(c0, c1, dtype=np.float64)[None, :]
+    cr = np.bincount(flat, weights=(dd * rows).ravel(), minlength=n + 1)[1:] / mass
+    cc = np.bincount(flat, weights=(dd * cols).ravel(), minlength=n + 1)[1:] / mass
+    cen = np.stack([cc, cr], axis=1) + 0.5  # (col, row)
+    ok = (area >= 0.2 * ref) & (area <= 5.0 * ref)
+    if not ok.any():
+        return False
+    cand = np.flatnonzero(ok)
+    dist = np.hypot(*(cen[cand] - pred).T)
+    near = dist <= gate
+    if not near.any():
+        return False
+    k = cand[near][np.argmin(dist[near])]
+
+    def held(c, m):  # the window holds everything within m px of c (or the frame's edge does)
+        return ((c[1] - m >= r0 or r0 == 0) and (c[1] + m + 1 <= r1 or r1 == h)
+                and (c[0] - m >= c0 or c0 == 0) and (c[0] + m + 1 <= c1 or c1 == w))
+
+    centre = cen[k]
+    for _ in range(3):
+        if not held(centre, r_exp + 6.0):
+            return None
+        new, cov = ball_centre(signed, thr, centre, r_exp, origin=(c0, r0))
+        if cov <= 0:
+            break
+        moved = float(np.hypot(*(new - centre)))
+        centre = new
+        if moved < 0.01:
+            break
+    if cov <= 0 or r_exp > min(h, w) / 4:
+        return False
+    if not held(centre, 2.0 * r_exp + 3.0):
+        return None
+    # the disc test in window coordinates: float32 centre minus whole pixels is exact
+    cw = np.asarray(centre, dtype=np.float32) - np.array([c0, r0], dtype=np.float32)
+    if not ball_seen(diff[None], cw[None], r_exp, thr)[0]:
+        return False
+    return np.asarray(centre, dtype=np.float64), cov, float(area[k])
 
 
 # -- a camera per video ---------------------------------------------------------------------------
@@ -1085,7 +1325,7 @@ def colour_difference(colour, max_frames: int = 150) -> np.ndarray:
 
 
 def find_object(frames, *, max_side: int = 640, progress: bool = False,
-                colour=None) -> BallTrack:
+                window: bool = True, colour=None) -> BallTrack:
     """:func:`find_ball` on large frames: followed on a block-averaged copy, in source pixels.
 
     A 1080p frame is averaged over 3 x 3 blocks (the larger side brought to at most
@@ -1099,6 +1339,9 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False,
     max_side : int
         Largest side the tracker works at, px.
     progress : bool
+    window : bool
+        Search a window around the predicted position while the track holds
+        (:func:`find_ball`); the same track as searching every frame whole.
     colour : ndarray, shape (T, h, w, 3), uint8, optional
         The same frames in colour (:attr:`Clip.colour_frames`): the object is followed in
         :func:`colour_difference` at that size (a real camera's object on a wall of its own
@@ -1133,18 +1376,36 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False,
         return _consistent(fine if _spread(fine.radii) < _spread(trk.radii) else trk)
     k = max(1, math.ceil(max(fr.shape[1:]) / int(max_side)))
     if k == 1:
-        trk = find_ball(fr, progress=progress, reset_on_loss=True)
+        trk = find_ball(fr, progress=progress, reset_on_loss=True, window=window)
         return _consistent(_minor_radii(fr, trk))
-    h, w = (fr.shape[1] // k) * k, (fr.shape[2] // k) * k
-    small = np.empty((fr.shape[0], h // k, w // k), dtype=np.float32)
-    for i in range(0, fr.shape[0], 64):  # in chunks, summed in integers (4x faster than mean)
-        blk = fr[i:i + 64, :h, :w]
-        tot = blk.reshape(len(blk), h // k, k, w // k, k).sum(axis=(2, 4), dtype=np.uint32)
-        small[i:i + 64] = tot.astype(np.float32) / float(k * k)
-    trk = find_ball(small, progress=progress, reset_on_loss=True)
+    small = _block_means(fr, k)
+    trk = find_ball(small, progress=progress, reset_on_loss=True, window=window)
     trk = BallTrack(pixels=trk.pixels * k, radius=trk.radius * k, found=trk.found,
                     radii=None if trk.radii is None else trk.radii * k)
     return _consistent(_minor_radii(fr, trk))
+
+
+def _block_means(fr: np.ndarray, k: int) -> np.ndarray:
+    """Means of ``k x k`` blocks of each frame (T, H, W) -> (T, H // k, W // k) float32.
+
+    Summed exactly in integers (rows of a block first, whole contiguous rows at a time, then
+    the columns), then divided once: the same float32 values as ``reshape(...).mean``, 10x
+    faster than summing the reshaped blocks over two strided axes (1.4 against 14 ms of CPU
+    a 1080p frame)."""
+    t_n = fr.shape[0]
+    h, w = (fr.shape[1] // k) * k, (fr.shape[2] // k) * k
+    small = np.empty((t_n, h // k, w // k), dtype=np.float32)
+    acc = np.uint16 if k * k * 255 < 2 ** 16 else np.uint32
+    for i in range(0, t_n, 16):  # in chunks: scratch memory of 16 frames
+        blk = fr[i:i + 16, :h, :w]
+        rows = blk[:, 0::k].astype(acc)
+        for a in range(1, k):
+            rows += blk[:, a::k]
+        tot = rows[:, :, 0::k].copy()
+        for b in range(1, k):
+            tot += rows[:, :, b::k]
+        small[i:i + 16] = tot.astype(np.float32) / float(k * k)
+    return small
 
 
 def _minor_radii(frames, trk: BallTrack) -> BallTrack:
@@ -1164,16 +1425,29 @@ def _minor_radii(frames, trk: BallTrack) -> BallTrack:
         return trk
     idx = np.unique(np.linspace(0, t_n - 1, min(t_n, 31)).astype(int))
     radii = np.array(trk.radii, dtype=np.float64, copy=True)
+    boxes = {}
     for t in found:
         c, r = trk.pixels[t]
-        rad = float(trk.radii[t])
-        half = int(math.ceil(2.0 * rad + 3))
+        half = int(math.ceil(2.0 * float(trk.radii[t]) + 3))
         c0, c1 = max(0, int(c) - half), min(w, int(c) + half + 1)
         r0, r1 = max(0, int(r) - half), min(h, int(r) + half + 1)
-        if r1 <= r0 or c1 <= c0:
-            continue
-        # the background of this window only (a median of 31 whole 1080p frames took seconds)
-        bg = np.median(fr[idx, r0:r1, c0:c1], axis=0).astype(np.float32)
+        if r1 > r0 and c1 > c0:
+            boxes[t] = (r0, r1, c0, c1)
+    # the background where the windows lie only (a median of 31 whole 1080p frames took
+    # seconds), once per 64 px tile: windows of consecutive frames overlap
+    tile = 64
+    need = np.zeros((-(-h // tile), -(-w // tile)), dtype=bool)
+    for r0, r1, c0, c1 in boxes.values():
+        need[r0 // tile:(r1 - 1) // tile + 1, c0 // tile:(c1 - 1) // tile + 1] = True
+    bg_all = np.zeros((h, w), dtype=np.float32)
+    sample = fr[idx]
+    for ti, tj in zip(*np.nonzero(need)):
+        rs, cs = slice(ti * tile, (ti + 1) * tile), slice(tj * tile, (tj + 1) * tile)
+        bg_all[rs, cs] = _median_over_time(sample[:, rs, cs]).astype(np.float32)
+    for t, (r0, r1, c0, c1) in boxes.items():
+        c, r = trk.pixels[t]
+        rad = float(trk.radii[t])
+        bg = bg_all[r0:r1, c0:c1]
         d = np.abs(fr[t, r0:r1, c0:c1].astype(np.float32) - bg)
         yy, xx = np.mgrid[r0:r1, c0:c1] + 0.5
         inner = np.hypot(xx - c, yy - r) <= 0.5 * rad

@@ -184,7 +184,8 @@ def _hull_fill(mask: np.ndarray) -> np.ndarray:
     return out
 
 
-def ball_centre(diff, threshold: float, guess, radius: float) -> tuple[np.ndarray, float]:
+def ball_centre(diff, threshold: float, guess, radius: float, *,
+                origin=(0, 0)) -> tuple[np.ndarray, float]:
     """Sub-pixel centre of a ball of any shading near ``guess``, and its coverage area.
 
     The ball's pixels are those within ``radius + 2`` px of ``guess`` whose ``|diff|`` exceeds
@@ -210,6 +211,10 @@ def ball_centre(diff, threshold: float, guess, radius: float) -> tuple[np.ndarra
         Rough centre ``(col, row)``, px.
     radius : float
         Expected radius, px (the region is searched within ``radius + 2`` px of ``guess``).
+    origin : (int, int)
+        ``(col, row)`` of ``diff[0, 0]`` in the frame when ``diff`` is a window of it:
+        ``guess`` and the centre are then the frame's coordinates, computed as on the whole
+        frame (the same bits) where the window holds the searched region.
 
     Returns
     -------
@@ -221,14 +226,16 @@ def ball_centre(diff, threshold: float, guess, radius: float) -> tuple[np.ndarra
     from scipy import ndimage
 
     d = np.asarray(diff, dtype=np.float64)
+    oc, orow = int(origin[0]), int(origin[1])
     h, w = d.shape
     gc, gr = float(guess[0]), float(guess[1])
     win = float(radius) + 2.0
-    a0, a1 = max(0, int(gr - win - 2)), min(h, int(gr + win) + 3)
-    b0, b1 = max(0, int(gc - win - 2)), min(w, int(gc + win) + 3)
+    # in the frame's coordinates, then the window's rows and columns
+    a0, a1 = max(orow, int(gr - win - 2)), min(orow + h, int(gr + win) + 3)
+    b0, b1 = max(oc, int(gc - win - 2)), min(oc + w, int(gc + win) + 3)
     if a0 >= a1 or b0 >= b1:
         return np.full(2, np.nan), 0.0
-    sub = d[a0:a1, b0:b1]
+    sub = d[a0 - orow:a1 - orow, b0 - oc:b1 - oc]
     jj = np.arange(b0, b1) + 0.5
     ii = np.arange(a0, a1) + 0.5
     near = ((jj[None, :] - gc) ** 2 + (ii[:, None] - gr) ** 2) <= win**2
