@@ -1145,8 +1145,12 @@ def _train_config(a: argparse.Namespace, mc: V2PConfig) -> TrainConfig:
     (``presets.Preset.train``), then the flags given (a JSON flag given as ``null`` clears the
     preset's)."""
     recipe = copy.deepcopy(dict(presets.get(a.preset).train))
+    own_steps = recipe.get("steps")
     recipe.update({k: v for k in asdict(TrainConfig()) if k not in _OWN_FLAGS
                    and (v := getattr(a, k)) is not None})
+    if a.steps is not None and a.points_steps is None and recipe.get("points_steps") and own_steps:
+        # --steps resizes the preset's points curriculum with it (its share of the run)
+        recipe["points_steps"] = recipe["points_steps"] * a.steps // own_steps
     recipe.update({k: getattr(a, k) for k in ("nuisance", "perturb") if hasattr(a, k)})
     if a.init is not None:
         recipe["init"] = a.init
