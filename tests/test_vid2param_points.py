@@ -105,3 +105,33 @@ def test_one_command_runs_the_points_then_the_frames(tmp_path):
     card = json.loads(out.with_suffix(".json").read_text())
     assert card["train"]["points_steps"] == 1 and card["train"]["step"] == 2
     assert card["config"]["diff_scales"] == [142.0, 5.3]
+
+
+def test_points_positions_off_leaves_the_positions_to_the_keypoint():
+    """``points_positions=False``: the parameters' NLL alone (``train`` holds the keypoint
+    gate, so the posterior's positions stay channel 0's centre)."""
+    net = _tiny()
+    net.read_points_only_()
+    size = net.config.frame_size
+    tc = TrainConfig(batch=3, n_frames=12, size=size, points_positions=False)
+    feed = _PointFeed(tc, net.config.targets, "spring")
+    assert feed.params_only.tolist() == [False, False, True, True, True, True]
+    p, tg = (torch.as_tensor(a) for a in feed.batch(0))
+    out = net.points_loss(p, tg, feed.params_only)
+    out["loss_nll"].backward()
+    full = net.points_loss(p, tg)["nll"]
+    assert full.item() != out["nll"].item()
+
+
+def test_a_points_run_without_positions_holds_the_gate_then_frees_it(tmp_path):
+    from methods.vid2param.train import train
+
+    mc = V2PConfig(**{**V2PConfig.preset("spring").to_dict(), **_TINY_NET})
+    tc = TrainConfig(steps=2, points_steps=1, points_positions=False, batch=2, n_frames=12,
+                     chunk=4, val_n=0, size=mc.frame_size, min_obs=4)
+    net, info = train(mc, tc, progress=False, log=lambda s: None)
+    assert info["step"] == 2 and net.keypoints.gate.requires_grad
+    assert net.keypoints.gate.item() != 0.0  # the frame step moved it
+    tc1 = TrainConfig(**{**tc.to_dict(), "steps": 1, "points_steps": 1, "size": mc.frame_size})
+    net1, _ = train(mc, tc1, progress=False, log=lambda s: None)
+    assert net1.keypoints.gate.item() == 0.0  # held through the points step

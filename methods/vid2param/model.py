@@ -535,7 +535,8 @@ class Vid2ParamNet(nn.Module):
         w[:, :self.encoder.n_out] = 0.0
         w[:, i:j + 1] = keep
 
-    def points_loss(self, points: torch.Tensor, targets: torch.Tensor) -> dict:
+    def points_loss(self, points: torch.Tensor, targets: torch.Tensor,
+                    supervised: torch.Tensor | None = None) -> dict:
         """The encoder's NLL of a batch of tracked points (no frames, no decoder, prior or KL):
         the points curriculum's loss (``TrainConfig.points_steps``).
 
@@ -545,6 +546,8 @@ class Vid2ParamNet(nn.Module):
             The tracked point as a keypoint would see it (with its noise), unit square.
         targets : Tensor, shape (B, T, K)
             Normalised targets (true positions, parameters).
+        supervised : Tensor of bool, shape (K,), optional
+            Targets whose NLL terms count (``forward``'s); default all.
 
         Returns
         -------
@@ -554,7 +557,9 @@ class Vid2ParamNet(nn.Module):
         """
         K = len(self.config.targets)
         _, (qmu, qstd), _ = self._observed_pass(self.point_features(points))
-        nll = gaussian_nll(qmu[..., :K], qstd[..., :K], targets).sum(-1)
+        keep = slice(None) if supervised is None else torch.as_tensor(
+            supervised, dtype=torch.bool, device=points.device)
+        nll = gaussian_nll(qmu[..., :K], qstd[..., :K], targets)[..., keep].sum(-1)
         loss = self.config.gamma * nll.mean()
         err = ((qmu[..., :K] - targets) ** 2).detach()
         zero = torch.zeros((), device=points.device)

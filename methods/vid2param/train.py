@@ -159,6 +159,11 @@ class TrainConfig:
     points_noise_px : float
         Standard deviation (pixels of the frame) of the points' keypoint noise; the keypoint
         centroid of the systems' rendered frames is off by 0.03 px RMS (pendulum, spring).
+    points_positions : bool
+        The points curriculum's NLL includes the positions (the keypoint's x, y, whose std
+        sinks to the 1e-3 floor and whose gradient then swamps the parameters' in the shared
+        weights); off: the parameters' NLL alone, as the probe (docs/vid2param-systems-probe.md),
+        and the positions stay channel 0's centroid (``KeypointPosition.gate`` at 0).
     """
 
     steps: int = 4000
@@ -192,6 +197,7 @@ class TrainConfig:
     variant_options: dict | None = field(default=None)
     points_steps: int = 0
     points_noise_px: float = 0.03
+    points_positions: bool = True
 
     def __post_init__(self) -> None:
         from sysid_bench.core.datasets import VARIANTS
@@ -475,7 +481,12 @@ class _PointFeed:
     """
 
     def __init__(self, tc: TrainConfig, targets: tuple[str, ...], system: str):
+        from methods.vid2param.model import position_names
+
         self.tc, self.names, self.sys = tc, targets, systems.get(system)
+        pos = position_names(self.sys.n_points)
+        #: (K,) bool: the parameter targets (``TrainConfig.points_positions`` off)
+        self.params_only = np.array([n not in pos for n in targets])
 
     def batch(self, step: int) -> tuple[np.ndarray, np.ndarray]:
         """Points (B, T, 2) in the view's unit square with keypoint noise, and targets
@@ -884,6 +895,10 @@ def train(
     prefetch = dataset is None and last // per > start // per
     feed = _Feed(tc, mc.targets, dataset, system=mc.system, prefetch=prefetch)
     point_feed = _PointFeed(tc, mc.targets, mc.system) if tc.points_steps > start else None
+    # with the positions unsupervised, the keypoint gate (the MLP's share of x, y) is held at
+    # its value: the parameters' NLL would otherwise move the fed-back positions off the points
+    hold_gate = point_feed is not None and not tc.points_positions
+    net.keypoints.gate.requires_grad_(not hold_gate)
     view = presets.space_of(mc.system) == presets.VIEW
     if view and tc.perturb:
         raise ValueError(f"perturb: the ball's physics deviations, expected None for the "
@@ -931,11 +946,14 @@ def train(
             save(step, WARMUP_STATE)
             log(f"warm-up ends at step {step}: state kept in {WARMUP_STATE}")
         prev_sched = sched
+        if hold_gate and step == tc.points_steps:
+            net.keypoints.gate.requires_grad_(True)
         if step < tc.points_steps:  # the points curriculum: no frames, the encoder's NLL
             pts_np, tg_np = point_feed.batch(step)
             lr_now = set_schedule_step(schedule, sched)
             outd = net.points_loss(torch.as_tensor(pts_np, device=dev),
-                                   torch.as_tensor(tg_np, device=dev))
+                                   torch.as_tensor(tg_np, device=dev),
+                                   None if tc.points_positions else point_feed.params_only)
             opt.zero_grad(set_to_none=True)
             outd["loss_nll"].backward()
         else:
@@ -1097,6 +1115,11 @@ def _parser() -> argparse.ArgumentParser:
         "methods/vid2param/README.md)")
     for name, val in asdict(tc).items():
         if name in _OWN_FLAGS:
+            continue
+        if isinstance(val, bool):  # --name / --no-name (a bool type would read "False" as True)
+            rec.add_argument("--" + name.replace("_", "-"), action=argparse.BooleanOptionalAction,
+                             default=None,
+                             help=f"{tc_help.get(name, name)} (default: {val}, or the preset's)")
             continue
         rec.add_argument("--" + name.replace("_", "-"), type=_arg_type(name, type(val)),
                          default=None,
