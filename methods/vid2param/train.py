@@ -1057,7 +1057,7 @@ _FLAG_RANGES = {
     "data_seed": (0, SEED_MAX, False), "val_seed": (0, SEED_MAX, False),
     "max_minutes": (0, None, True), "latent": (1, None, False), "hidden": (1, None, False),
     "feat": (1, None, False), "keypoints": (1, None, False), "pool": (1, None, False),
-    "channels": (1, None, False), "size": (4, None, False),
+    "channels": (1, None, False), "size": (4, None, False), "diff_scales": (0, None, True),
 }
 
 
@@ -1150,6 +1150,8 @@ def _parser() -> argparse.ArgumentParser:
                            help=mc_help.get(name))
     model.add_argument("--channels", type=_arg_type("channels", int), nargs="+", default=None,
                        help=mc_help.get("channels"))
+    model.add_argument("--diff-scales", type=_arg_type("diff_scales", float), nargs=2,
+                       default=None, metavar=("VEL", "ACC"), help=mc_help.get("diff_scales"))
     for name in ("kp_visibility", "roll_features", "physics_prior", "kp_learn"):
         model.add_argument("--" + name.replace("_", "-"), action=argparse.BooleanOptionalAction,
                            default=None, help=mc_help.get(name))
