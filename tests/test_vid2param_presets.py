@@ -54,10 +54,13 @@ def test_every_preset_is_one_frozen_record_looked_up_by_its_or_its_systems_name(
 def test_a_users_system_gets_a_derived_preset_and_its_network(decay):
     p = presets.get(decay)
     assert (p.name, p.system, p.space) == ("decay", "decay", presets.VIEW)
-    # a shipped system's recipe less its chunk sizes (TrainConfig's defaults), its stages
-    spring = presets.get("spring")
-    assert dict(p.train) == {k: v for k, v in spring.train.items() if "chunk" not in k}
-    assert p.stages == spring.stages
+    # the generic recipe of a shipped system (the collision's less its chunk sizes, which are
+    # TrainConfig's defaults; the one-point systems' presets add the points curriculum), its
+    # stages
+    coll = presets.get("collision")
+    assert dict(p.train) == {k: v for k, v in coll.train.items() if "chunk" not in k}
+    assert "points_steps" not in p.train and presets.get("spring").train["points_steps"] > 0
+    assert p.stages == coll.stages
     c = V2PConfig.preset(decay)
     s = systems.get(decay)
     assert c.system == "decay" and c.targets == system_targets(decay)

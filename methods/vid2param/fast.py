@@ -249,6 +249,7 @@ class FrameFilter:
             self.gates = np.zeros(4 * hid, F)
             self.tmp_h = np.zeros(hid, F)
             self.pos_idx = [int(i) for i in net.recurrence.pos_idx]
+            self.s_vel, self.s_acc = net.recurrence.diff_scales
             if self.roll:
                 r = net.rolling
                 self.roll_stat = net.recurrence.roll_stat
@@ -391,9 +392,10 @@ class FrameFilter:
         np.maximum(li[self.sl_feat], 0, out=li[self.sl_feat])
         n = self.n
         pos = (float(z[self.pos_idx[0]]), float(z[self.pos_idx[1]]))
-        vel = ((pos[0] - self.pos[0]) * 10.0, (pos[1] - self.pos[1]) * 10.0) if n >= 1 \
+        sv, sa = self.s_vel, self.s_acc
+        vel = ((pos[0] - self.pos[0]) * sv, (pos[1] - self.pos[1]) * sv) if n >= 1 \
             else (0.0, 0.0)
-        acc = ((vel[0] - self.vel[0]) * 40.0, (vel[1] - self.vel[1]) * 40.0) if n >= 2 \
+        acc = ((vel[0] - self.vel[0]) * sa, (vel[1] - self.vel[1]) * sa) if n >= 2 \
             else (0.0, 0.0)
         f = self.sl_feat.stop
         li[f:f + 4] = (min(max(vel[0], -5.0), 5.0), min(max(vel[1], -5.0), 5.0),

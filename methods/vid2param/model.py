@@ -121,6 +121,12 @@ class V2PConfig:
         The keypoint map learns (its weights read every keypoint channel): a system with more
         than one tracked point, whose channel 0 sees only the brightest. Off: the fixed map of
         the view geometry (as the ball's).
+    diff_scales : (float, float)
+        Scales of the recurrence's difference features: velocity ``s_v d1`` (clamped to +-5)
+        and acceleration ``s_a (vel_t - vel_{t-1})`` (clamped to +-10), d1 the first
+        difference of the fed-back normalised positions. The ball's (10, 40) make the systems'
+        velocity feature ~0.05; per-system scales bring both to a median of ~1
+        (docs/vid2param-systems-probe.md: it sped up or enabled lq, w2, mu, c there).
     """
 
     frame_size: tuple[int, int] = (28, 28)
@@ -143,9 +149,16 @@ class V2PConfig:
     physics_prior: bool = True
     system: str = "ball"
     kp_learn: bool = False
+    diff_scales: tuple[float, float] = (10.0, 40.0)
 
     def __post_init__(self) -> None:
         self.frame_size = tuple(int(v) for v in self.frame_size)
+        ds = tuple(self.diff_scales)
+        if len(ds) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) and v > 0
+                                   for v in ds):
+            raise ValueError(f"diff_scales: expected two finite floats > 0 (velocity, "
+                             f"acceleration), got {self.diff_scales!r}")
+        self.diff_scales = tuple(float(v) for v in ds)
         self.targets = tuple(self.targets)
         self.channels = tuple(int(c) for c in self.channels)
         from methods.vid2param import presets
@@ -208,6 +221,7 @@ class V2PConfig:
         d["frame_size"] = list(self.frame_size)
         d["targets"] = list(self.targets)
         d["channels"] = list(self.channels)
+        d["diff_scales"] = list(self.diff_scales)
         return d
 
     @classmethod
@@ -260,7 +274,7 @@ class V2PConfig:
 #: Fields added after checkpoints were written, with the value that reproduces those
 #: checkpoints (``V2PConfig.from_dict``).
 LEGACY_DEFAULTS = {"physics_prior": False, "roll_stat": "steps", "system": "ball",
-                   "kp_learn": False}
+                   "kp_learn": False, "diff_scales": (10.0, 40.0)}
 #: Options removed (no shipped model used another value), with the value the network now
 #: always has (``V2PConfig.from_dict``): a 1-layer LSTM, fed the mean of z (not a sample), with
 #: the position differences as inputs, read as ``[h, c]`` by the heads, a residual prior, and
@@ -462,6 +476,96 @@ class Vid2ParamNet(nn.Module):
         return {"loss": loss, "loss_nll": c.gamma * nll.mean(),
                 **{k: v.detach() for k, v in terms.items()}}
 
+    # -- the points curriculum (``TrainConfig.points_steps``) ---------------------------------------
+    def _point_columns(self) -> tuple[int, int]:
+        """Where keypoint channel 0's centre (column, row) sits in ``fx``: the only frame
+        features a network trained on points reads (:meth:`read_points_only_`).
+
+        Raises
+        ------
+        ValueError
+            The network's positions do not come from channel 0 alone through the view's fixed
+            map (the ball's box geometry, or a learned map for several points).
+        """
+        from methods.vid2param import presets
+
+        c = self.config
+        if presets.space_of(c.system) != presets.VIEW or c.kp_learn or c.kp_visibility:
+            raise ValueError(
+                f"points_steps: expected a system's network whose one tracked point is keypoint "
+                f"channel 0 through the view's fixed map (space 'view', kp_learn and "
+                f"kp_visibility off), got system {c.system!r}, kp_learn {c.kp_learn}, "
+                f"kp_visibility {c.kp_visibility}")
+        i = self.encoder.n_out - 3 * c.keypoints
+        return i, i + 1
+
+    def point_features(self, points: torch.Tensor) -> torch.Tensor:
+        """The frame features ``fx`` (B, T, feat + 3 K) that a frame showing its point at
+        ``points`` gives a network that reads only keypoint channel 0's centre.
+
+        Parameters
+        ----------
+        points : Tensor, shape (B, T, 2)
+            The tracked point in the view's unit square (the targets' ``x, y``).
+
+        Returns
+        -------
+        Tensor, shape (B, T, feat + 3 K)
+            Zeros except channel 0's centre: column ``x``, row ``1 - y`` (the view's fixed map,
+            ``parts.KeypointPosition``, inverted).
+        """
+        i, _ = self._point_columns()
+        fx = points.new_zeros(*points.shape[:2], self.encoder.n_out)
+        fx[..., i] = points[..., 0]
+        fx[..., i + 1] = 1.0 - points[..., 1]
+        return fx
+
+    @torch.no_grad()
+    def read_points_only_(self) -> None:
+        """Zero the posterior's weights on every frame feature but channel 0's centre.
+
+        A network trained on :meth:`point_features` then reads a rendered frame exactly as it
+        read the points (its other features meet zero weights), and the frame features start
+        to count only as those weights learn in the pixel phase: the switch from points to
+        pixels keeps what was learnt.
+        """
+        i, j = self._point_columns()
+        w = self.posterior.mlp[0].weight
+        keep = w[:, i:j + 1].clone()
+        w[:, :self.encoder.n_out] = 0.0
+        w[:, i:j + 1] = keep
+
+    def points_loss(self, points: torch.Tensor, targets: torch.Tensor,
+                    supervised: torch.Tensor | None = None) -> dict:
+        """The encoder's NLL of a batch of tracked points (no frames, no decoder, prior or KL):
+        the points curriculum's loss (``TrainConfig.points_steps``).
+
+        Parameters
+        ----------
+        points : Tensor, shape (B, T, 2)
+            The tracked point as a keypoint would see it (with its noise), unit square.
+        targets : Tensor, shape (B, T, K)
+            Normalised targets (true positions, parameters).
+        supervised : Tensor of bool, shape (K,), optional
+            Targets whose NLL terms count (``forward``'s); default all.
+
+        Returns
+        -------
+        dict
+            ``loss`` and ``loss_nll`` (the NLL weighted by ``gamma``), ``nll``; ``rec``,
+            ``kl``, ``nll_prior`` 0 (not computed); ``mse`` (B, K), ``mse_last`` (B, K).
+        """
+        K = len(self.config.targets)
+        _, (qmu, qstd), _ = self._observed_pass(self.point_features(points))
+        keep = slice(None) if supervised is None else torch.as_tensor(
+            supervised, dtype=torch.bool, device=points.device)
+        nll = gaussian_nll(qmu[..., :K], qstd[..., :K], targets)[..., keep].sum(-1)
+        loss = self.config.gamma * nll.mean()
+        err = ((qmu[..., :K] - targets) ** 2).detach()
+        zero = torch.zeros((), device=points.device)
+        return {"loss": loss, "loss_nll": loss, "nll": nll.mean().detach(), "rec": zero,
+                "kl": zero, "nll_prior": zero, "mse": err.mean(1), "mse_last": err[:, -1]}
+
     def _observed_pass(self, fx: torch.Tensor):
         """The recurrence over every observed frame from ``init_state``, for training.
 
@@ -515,6 +619,7 @@ class Vid2ParamNet(nn.Module):
         n_pos = len(idx)
         contiguous = idx == list(range(idx[0], idx[0] + n_pos))
         h, c = state.h, state.c
+        s_vel, s_acc = rec.diff_scales
         last_pos = last_vel = None
         hs, mus, stds = [], [], []
         for t in range(T):
@@ -535,8 +640,8 @@ class Vid2ParamNet(nn.Module):
             stds.append(std)
             # the recurrence fed the mean (``Recurrence.forward``)
             pos = mu[:, idx[0]:idx[0] + n_pos] if contiguous else mu[:, idx]
-            vel = (pos - last_pos) * 10.0 if t >= 1 else torch.zeros_like(pos)
-            acc = (vel - last_vel) * 40.0 if t >= 2 else torch.zeros_like(pos)
+            vel = (pos - last_pos) * s_vel if t >= 1 else torch.zeros_like(pos)
+            acc = (vel - last_vel) * s_acc if t >= 2 else torch.zeros_like(pos)
             if roll is not None:
                 n = torch.full((B, 1), float(min(t, 2)), device=fx.device)
                 roll = rec.roll_stat.update(pos.detach(), vel.detach(),

@@ -266,6 +266,8 @@ class Recurrence(nn.Module):
         self.phi_z = nn.Sequential(nn.Linear(c.latent, c.feat), nn.ReLU())
         self.pos_idx = [c.targets.index(name) for name in c.positions]  # 2K
         self.cell = nn.LSTMCell(c.feat + 2 * len(self.pos_idx), c.hidden)
+        # Python floats: the ball's 10.0 and 40.0 multiply exactly as the literals did
+        self.diff_scales = tuple(float(v) for v in c.diff_scales)
         self.n_read = 2 * c.hidden + (2 if self.roll_features else 0)  # R
 
     def init_state(self, batch: int, device=None) -> RecurrentState:
@@ -287,8 +289,9 @@ class Recurrence(nn.Module):
         """The state after feeding back ``z`` (B, Z)."""
         n, vel_prev = state.n_seen, state.last_vel
         pos = z[:, self.pos_idx]
-        vel = torch.where(n >= 1, (pos - state.last_pos) * 10.0, torch.zeros_like(pos))
-        acc = torch.where(n >= 2, (vel - vel_prev) * 40.0, torch.zeros_like(pos))
+        s_vel, s_acc = self.diff_scales
+        vel = torch.where(n >= 1, (pos - state.last_pos) * s_vel, torch.zeros_like(pos))
+        acc = torch.where(n >= 2, (vel - vel_prev) * s_acc, torch.zeros_like(pos))
         inp = torch.cat([self.phi_z(z), vel.clamp(-5, 5), acc.clamp(-10, 10)], dim=-1)
         h, c = self.cell(inp, (state.h, state.c))
         # a fixed function of the fed-back z: gradient stopped

@@ -84,6 +84,24 @@ _VIEW_TRAIN = {"steps": 1500, "batch": 64, "nll_only_steps": 900,
                "early_aux_grad_steps": 1500, "warmup": 50, "val_n": 100, "val_every": 250,
                "threads": 4}
 
+#: Per-system scales of the recurrence's velocity and acceleration features
+#: (``V2PConfig.diff_scales``): their median magnitude over the moving coordinates ~1 on
+#: train-split trajectories with 0.02 px keypoint noise (docs/vid2param-systems-probe.md,
+#: variant b). The ball's (10, 40) left the velocity at ~0.05.
+_DIFF_SCALES = {"pendulum": (197.0, 3.4), "spring": (142.0, 5.3), "collision": (259.0, 14.4)}
+
+#: The points curriculum of a one-point system (``TrainConfig.points_steps``, sized for 2 CPU
+#: cores): the recurrence and heads learn from the tracked point's noisy true positions, no frame
+#: and no convolution (a step of 32 x 200 ~0.7-1.1 s of one loaded core against ~7 s for 64 x 200
+#: frames), the encoder's NLL alone, lr 1e-3 decayed to 1e-4 over the run; 1000 steps of 32
+#: trajectories (32,000 seen, the probe's w2 drop came after 20,000-25,000). The model reads
+#: rendered frames through keypoint channel 0's centroid (0.03 px RMS off the truth), which its
+#: posterior alone reads (``Vid2ParamNet.read_points_only_``); its conv encoder, prior and
+#: decoder stay untrained (the latent forecast is not learnt).
+_POINTS_TRAIN = {"points_steps": 1000, "steps": 1000, "batch": 32, "nll_only_steps": 1000,
+                 "early_aux_grad_steps": 0, "warmup": 20, "lr_min": 1e-4, "val_every": 100,
+                 "ckpt_every": 120.0, "threads": 1}
+
 #: A system's stages: the generic one only (the others read the ball's track or physics).
 _VIEW_STAGES = (("std_scale", {"n": 300}),)
 
@@ -114,12 +132,20 @@ _RECORDS = (
     # the spring's wall and coil at 0.25, the collision's puck 2 at 130/255), so keypoint
     # channel 0's centroid is the bob, block or puck 1 from the first step.
     # pool 2: the conv path and decoder see 32x32 (64x64 made a 5.4 MB checkpoint)
-    Preset("pendulum", "pendulum", VIEW, net={**_VIEW_NET, "kp_threshold": 0.4, "pool": 2},
-           train={**_VIEW_TRAIN, "chunk": 1600, "chunk_epochs": 8}, stages=_VIEW_STAGES),
-    Preset("spring", "spring", VIEW, net={**_VIEW_NET, "kp_threshold": 0.4},
-           train={**_VIEW_TRAIN, "chunk": 2000, "chunk_epochs": 4}, stages=_VIEW_STAGES),
+    Preset("pendulum", "pendulum", VIEW, net={**_VIEW_NET, "kp_threshold": 0.4, "pool": 2,
+                                              "diff_scales": _DIFF_SCALES["pendulum"]},
+           # g came only after ~900 probe steps of 64 trajectories: twice the spring's length
+           # (not yet run to its end on this machine: methods/vid2param/README.md)
+           train={**_VIEW_TRAIN, "chunk": 1600, "chunk_epochs": 8, **_POINTS_TRAIN,
+                  "points_steps": 2000, "steps": 2000, "nll_only_steps": 2000},
+           stages=_VIEW_STAGES),
+    Preset("spring", "spring", VIEW, net={**_VIEW_NET, "kp_threshold": 0.4,
+                                          "diff_scales": _DIFF_SCALES["spring"]},
+           train={**_VIEW_TRAIN, "chunk": 2000, "chunk_epochs": 4, **_POINTS_TRAIN},
+           stages=_VIEW_STAGES),
     Preset("collision", "collision", VIEW,
-           net={**_VIEW_NET, "kp_threshold": 0.75, "kp_learn": True, "keypoints": 6},
+           net={**_VIEW_NET, "kp_threshold": 0.75, "kp_learn": True, "keypoints": 6,
+                "diff_scales": _DIFF_SCALES["collision"]},
            train={**_VIEW_TRAIN, "chunk": 2000, "chunk_epochs": 4}, stages=_VIEW_STAGES),
 )
 

@@ -245,6 +245,23 @@ class TrainConfig:
         test split.
     variant_options : dict, optional
         Options of ``variant`` (e.g. ``{"param": "e"}``).
+    points_steps : int
+        Curriculum (a system's network whose one point is keypoint channel 0): for the first
+        steps the network is fed no frames but the tracked point as its keypoint would see it
+        (``Vid2ParamNet.point_features``: true positions of fresh train-split trajectories
+        with Gaussian noise of ``points_noise_px`` pixels), and the loss is the encoder's NLL
+        alone; no convolution runs, so a step costs the recurrence only (~20x cheaper). The
+        posterior's weights on the other frame features start at zero
+        (``Vid2ParamNet.read_points_only_``), so the network reads rendered frames as it read
+        the points and the frame steps that follow start from what was learnt.
+    points_noise_px : float
+        Standard deviation (pixels of the frame) of the points' keypoint noise; the keypoint
+        centroid of the systems' rendered frames is off by 0.03 px RMS (pendulum, spring).
+    points_positions : bool
+        The points curriculum's NLL includes the positions (the keypoint's x, y, whose std
+        sinks to the 1e-3 floor and whose gradient then swamps the parameters' in the shared
+        weights); off: the parameters' NLL alone, as the probe (docs/vid2param-systems-probe.md),
+        and the positions stay channel 0's centroid (``KeypointPosition.gate`` at 0).
     """
 
     steps: Annotated[int, Range(1)] = 4000
@@ -276,6 +293,9 @@ class TrainConfig:
     init: str | None = None
     variant: str = "interleaved"
     variant_options: Annotated[dict | None, JSON] = field(default=None)
+    points_steps: Annotated[int, Range(0)] = 0
+    points_noise_px: Annotated[float, Range(0)] = 0.03
+    points_positions: bool = True
 
     def __post_init__(self) -> None:
         from sysid_bench.core.datasets import VARIANTS
@@ -285,6 +305,9 @@ class TrainConfig:
         if self.variant_options is not None and not isinstance(self.variant_options, dict):
             raise ValueError(f"variant_options: expected a dict, got {self.variant_options!r}")
         Range.check_fields(self)  # every field's range, from its annotation
+        if int(self.points_steps) > int(self.steps):
+            raise ValueError(f"points_steps: expected an int in [0, steps={self.steps}], got "
+                             f"{self.points_steps!r}")
         if self.perturb is not None:
             bad = set(self.perturb) - {"spin", "dwell", "p"}
             if bad or not isinstance(self.perturb, dict):
@@ -539,6 +562,61 @@ class _Feed:
         if divmod(step, self.per_chunk)[0] != self.k:
             self.batch(step)
         return self.supervised
+
+
+class _PointFeed:
+    """Batches of (points, targets) for the points curriculum (``TrainConfig.points_steps``):
+    ``batch`` fresh train-split trajectories per step, a pure function of (data_seed, step).
+
+    Simulating is ~0.03 s for 64 trajectories of 200 frames (no rendering), so every step
+    draws its own: no trajectory is seen twice.
+    """
+
+    def __init__(self, tc: TrainConfig, targets: tuple[str, ...], system: str):
+        from methods.vid2param.model import position_names
+
+        self.tc, self.names, self.sys = tc, targets, systems.get(system)
+        pos = position_names(self.sys.n_points)
+        #: (K,) bool: the parameter targets (``TrainConfig.points_positions`` off)
+        self.params_only = np.array([n not in pos for n in targets])
+
+    def batch(self, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """Points (B, T, 2) in the view's unit square with keypoint noise, and targets
+        (B, T, K), both float32."""
+        from methods.vid2param.data import normalise_points, system_targets_from_arrays
+
+        tc, s = self.tc, self.sys
+        rng = np.random.default_rng([tc.data_seed, int(step), 29])
+        theta, state0 = s.sample_cases(tc.batch, rng, "train")
+        states = s.simulate(theta, state0, n_frames=tc.n_frames, dt=0.05)
+        pts = s.observe(states, theta)
+        tg = system_targets_from_arrays(s, pts, theta, self.names)
+        h, w = tc.size
+        seen = normalise_points(pts[:, :, 0], s.extent)
+        seen = seen + rng.normal(size=seen.shape) * (tc.points_noise_px / np.array([w, h]))
+        return seen.astype(np.float32), tg
+
+
+def _frame_step(net, opt, schedule, feed, tc: TrainConfig, step: int, sched: int, dev):
+    """One step's forward and backward on a batch of frames (the optimiser steps after it):
+    returns the learning rate set and the loss terms."""
+    fr_np, tg_np = feed.batch(step)
+    rng = np.random.default_rng([tc.seed, step])
+    T = fr_np.shape[1]
+    n_obs = T if rng.random() < tc.p_full else int(rng.integers(tc.min_obs, T))
+    fr = torch.as_tensor(fr_np, device=dev)
+    blank = rng.random(len(fr_np)) < tc.p_blank
+    if blank.any():
+        fr = fr.clone()
+        fr[torch.as_tensor(blank, device=dev)] = 0
+    gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
+    lr_now = set_schedule_step(schedule, sched)
+    aux = tc.early_aux_grad if sched < tc.early_aux_grad_steps else None
+    outd = net(fr, torch.as_tensor(tg_np, device=dev), n_obs=n_obs, rec_frac=tc.rec_frac,
+               generator=gen, aux_grad=aux, supervised=feed.supervised_targets(step))
+    opt.zero_grad(set_to_none=True)
+    (outd["loss"] if sched >= tc.nll_only_steps else outd["loss_nll"]).backward()
+    return lr_now, outd
 
 
 @torch.no_grad()
@@ -903,6 +981,9 @@ def train(
         init_ck = init_record(tc.init)
         loaded, skipped = load_matching(net, checkpoint_path(tc.init))
         log(f"init from {tc.init}: {len(loaded)} tensors copied, fresh: {skipped}")
+    if tc.points_steps and ck is None:
+        # before the optimiser has seen a step: the network reads channel 0's centre only
+        net.read_points_only_()  # ValueError for a network whose point is not channel 0's
     schedule = lr_schedule(opt, tc)
     log(f"Vid2Param: {count_parameters(net)} parameters, device {dev}, threads "
         f"{torch.get_num_threads()}, steps {start}->{tc.steps}, batch {tc.batch}")
@@ -911,6 +992,11 @@ def train(
     per = feed_steps_per_chunk(tc)
     prefetch = dataset is None and last // per > start // per
     feed = _Feed(tc, mc.targets, dataset, system=mc.system, prefetch=prefetch)
+    point_feed = _PointFeed(tc, mc.targets, mc.system) if tc.points_steps > start else None
+    # with the positions unsupervised, the keypoint gate (the MLP's share of x, y) is held at
+    # its value: the parameters' NLL would otherwise move the fed-back positions off the points
+    hold_gate = point_feed is not None and not tc.points_positions
+    net.keypoints.gate.requires_grad_(not hold_gate)
     view = presets.space_of(mc.system) == presets.VIEW
     if view and tc.perturb:
         raise ValueError(f"perturb: the ball's physics deviations, expected None for the "
@@ -962,22 +1048,18 @@ def train(
             save(step, WARMUP_STATE)
             log(f"warm-up ends at step {step}: state kept in {WARMUP_STATE}")
         prev_sched = sched
-        fr_np, tg_np = feed.batch(step)
-        rng = np.random.default_rng([tc.seed, step])
-        T = fr_np.shape[1]
-        n_obs = T if rng.random() < tc.p_full else int(rng.integers(tc.min_obs, T))
-        fr = torch.as_tensor(fr_np, device=dev)
-        blank = rng.random(len(fr_np)) < tc.p_blank
-        if blank.any():
-            fr = fr.clone()
-            fr[torch.as_tensor(blank, device=dev)] = 0
-        gen = torch.Generator(device=dev).manual_seed(int(rng.integers(2**62)))
-        lr_now = set_schedule_step(schedule, sched)
-        aux = tc.early_aux_grad if sched < tc.early_aux_grad_steps else None
-        outd = net(fr, torch.as_tensor(tg_np, device=dev), n_obs=n_obs, rec_frac=tc.rec_frac,
-                   generator=gen, aux_grad=aux, supervised=feed.supervised_targets(step))
-        opt.zero_grad(set_to_none=True)
-        (outd["loss"] if sched >= tc.nll_only_steps else outd["loss_nll"]).backward()
+        if hold_gate and step == tc.points_steps:
+            net.keypoints.gate.requires_grad_(True)
+        if step < tc.points_steps:  # the points curriculum: no frames, the encoder's NLL
+            pts_np, tg_np = point_feed.batch(step)
+            lr_now = set_schedule_step(schedule, sched)
+            outd = net.points_loss(torch.as_tensor(pts_np, device=dev),
+                                   torch.as_tensor(tg_np, device=dev),
+                                   None if tc.points_positions else point_feed.params_only)
+            opt.zero_grad(set_to_none=True)
+            outd["loss_nll"].backward()
+        else:
+            lr_now, outd = _frame_step(net, opt, schedule, feed, tc, step, sched, dev)
         torch.nn.utils.clip_grad_norm_(net.parameters(), tc.clip)
         opt.step()
         cur = np.array([outd["loss"].item(), outd["rec"].item(), outd["kl"].item(),
@@ -1142,6 +1224,8 @@ class NetFlags:
         Supervised quantities in the first latent dimensions.
     roll_stat : str
         The rolling statistic: steps or fit.
+    diff_scales : tuple of float
+        Scales of the recurrence's velocity and acceleration features (VEL ACC).
     """
 
     latent: Annotated[int, Range(1)] = 16
@@ -1162,6 +1246,7 @@ class NetFlags:
     kp_learn: bool = False
     targets: tuple[str, ...] = ()
     roll_stat: str = "steps"
+    diff_scales: Annotated[tuple[float, ...], Range(0, lo_open=True)] = (10.0, 40.0)
 
     def __post_init__(self) -> None:
         Range.check_fields(self)
@@ -1353,8 +1438,13 @@ def _parse(argv=None) -> TrainCommand:
     with hook:
         got = tyro.cli(Command, args=argv, default=as_tyro, prog="sysid-bench train",
                        config=(tyro.conf.OmitArgPrefixes, tyro.conf.HelptextFromCommentsOff))
-    return TrainCommand(run=RunFlags(**dataclasses.asdict(got.run)),
-                        recipe=TrainConfig(**{f: getattr(got.recipe, f) for f in _fields(Recipe)}),
+    rec = {f: getattr(got.recipe, f) for f in _fields(Recipe)}
+    given = {a.split("=")[0] for a in argv}
+    if ("--steps" in given and "--points-steps" not in given and default.recipe.points_steps
+            and default.recipe.steps):
+        # --steps resizes the preset's points curriculum with it (its share of the run)
+        rec["points_steps"] = default.recipe.points_steps * rec["steps"] // default.recipe.steps
+    return TrainCommand(run=RunFlags(**dataclasses.asdict(got.run)), recipe=TrainConfig(**rec),
                         net=NetFlags(**dataclasses.asdict(got.net)))
 
 
