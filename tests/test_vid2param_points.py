@@ -19,7 +19,7 @@ _TINY_NET = {"hidden": 16, "feat": 16, "latent": 12, "channels": (4,), "keypoint
 #: the same as flags, with a tiny run (tests/test_vid2param_systems.py's)
 TINY = ["--hidden", "16", "--feat", "16", "--latent", "12", "--channels", "4", "--keypoints", "2",
         "--n-frames", "24", "--min-obs", "8", "--chunk", "8", "--val-n", "4", "--steps", "2",
-        "--batch", "4", "--threads", "1", "--no-progress", "--no-resume"]
+        "--batch", "4", "--threads", "1", "--no-progress", "--no-resume", "--nll-only-steps", "2"]
 
 
 def _tiny(system: str = "spring", **kw) -> Vid2ParamNet:

@@ -30,9 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import pickle
-import tempfile
 import time
 from functools import lru_cache
 from pathlib import Path
@@ -120,17 +118,10 @@ def _read(path: Path):
 
 
 def _write(path: Path, record) -> None:
-    """Atomically: a temporary file in the same folder, then ``os.replace``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".pkl")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            pickle.dump(record, f, protocol=pickle.HIGHEST_PROTOCOL)
-        os.replace(tmp, path)
-    except BaseException:
-        with _suppress():
-            os.unlink(tmp)
-        raise
+    """Atomically (:func:`sysid_bench.core._io.atomic_write`: a temporary file, then rename)."""
+    from sysid_bench.core._io import atomic_write
+
+    atomic_write(path, pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL))
 
 
 class _suppress:
