@@ -379,9 +379,55 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         if held and known:  # a held value is the user's, not measured through the scale
             cols = [PARAMS.index(k) for k in known]
             std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
+    notes.extend(bound_notes(mean, known, prior))
     res = IdentifyResult(mean, std, pos, fmean, fstd, info, check)
     res.info["estimated"] = estimated
     return res
+
+
+def bound_notes(mean, known: dict | None = None, prior: dict | None = None,
+                tol: float = 0.005) -> list[str]:
+    """Notes for the last estimate's parameters that sit on their search range's bound.
+
+    A fit that ends on a bound (``g`` at -12.81 on a clip whose scale or time base is wrong)
+    is not a measurement: the track asked for a value beyond the range, whatever its interval
+    says. Held (``known``) parameters are the user's and are not flagged.
+
+    Parameters
+    ----------
+    mean : ndarray, shape (T, 4)
+        Estimates of ``(e, g, d, r)`` frame by frame (NaN where none).
+    known : dict, optional
+        Held parameters.
+    prior : dict, optional
+        ``name -> (low, high)`` search ranges given by the user; the rest are ``PRIOR``'s.
+    tol : float
+        Within this fraction of the range's width of a bound counts as on it.
+
+    Returns
+    -------
+    list of str
+    """
+    m = np.asarray(mean, dtype=np.float64)
+    if m.ndim != 2 or m.shape[1] != len(PARAMS):
+        raise ValueError(f"mean: expected a (T, {len(PARAMS)}) array, got shape {m.shape}")
+    rows = np.flatnonzero(np.isfinite(m).all(axis=1))
+    if rows.size == 0:
+        return []
+    last = m[rows[-1]]
+    out = []
+    for i, name in enumerate(PARAMS):
+        if name in (known or {}):
+            continue
+        lo, hi = (prior or {}).get(name, PRIOR[name])
+        for b, side in ((lo, "lower"), (hi, "upper")):
+            if side == "lower" and name in ("d", "r"):
+                continue  # no drag, no spin: a physical answer at the range's edge, not a miss
+            if abs(last[i] - b) <= tol * (hi - lo):
+                out.append(f"{name} = {last[i]:.4g} sits on its range's {side} bound {b:g}: "
+                           "not measured by the clip (the track asks for a value beyond it; "
+                           "a wrong scale or time base can do this)")
+    return out
 
 
 # -- outputs --------------------------------------------------------------------------------------
