@@ -1623,6 +1623,11 @@ def swing_frequency(pix, pivot, dt: float) -> tuple[float, float, float]:
     return w0, w_std / w, a_med
 
 
+#: Systems whose object falls freely between contacts, so that a known g gives the scale
+#: (:func:`scale_from_fall`).
+FALL_SCALED = ("ball",)
+
+
 def scale_from_fall(pix, g: float, dt: float, radius_px: float) -> tuple[float, float]:
     """A camera's scale from a falling object's curvature and a known g: ``(px_per_m, rel_std)``.
 
@@ -1752,7 +1757,7 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
                f"frame (its inverse a line in time: a steady drift in depth)")
     elif system == "pendulum" and ("L" in known or "g" in known):
         s, src = None, "known L" if "L" in known else "known g"
-    elif system == "ball" and "g" in known:  # the fall's curvature in px/s^2 over g
+    elif system in FALL_SCALED and "g" in known:  # the fall's curvature in px/s^2 over g
         if dt is None:
             raise ValueError("dt: the scale from known g needs the clip's frame interval")
         s, rel = scale_from_fall(pix, float(known["g"]), float(dt), r_px)
