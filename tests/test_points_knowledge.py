@@ -94,10 +94,10 @@ def test_lsq_holds_a_known_parameter_and_keeps_inside_a_range():
 def test_bad_knowledge_is_refused(kw, match):
     with pytest.raises(ValueError, match=match):
         _lsq(**kw)
-    with pytest.raises(ValueError, match="known/prior"):
+    with pytest.raises(ValueError, match="known: g = 9.8 is outside what the ball"):
         import methods
 
-        methods.get("lsq", known={"g": 9.8})  # the ball's fit does not take it
+        methods.get("lsq", known={"g": 9.8})  # the ball's fit holds g, inside its physics only
 
 
 @pytest.mark.parametrize("name, budget", [

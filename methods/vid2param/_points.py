@@ -146,8 +146,8 @@ class PointsModel:
             samples = mean + std * rng.standard_normal((int(est.n_samples), len(mean)))
             if est.clip:
                 samples = np.clip(samples, lo, hi)
-        return Posterior(mean=mean, std=std, samples=samples, extras=extras,
-                         system=self._sys.name)
+        return Posterior(mean=mean, std=std, samples=samples,
+                         extras={"n_simulations": 0, **extras}, system=self._sys.name)
 
     def posteriors(self, frames) -> tuple[np.ndarray, np.ndarray, np.ndarray, object]:
         """Every frame's normalised parameter posterior (N, T, P) (network order) after the

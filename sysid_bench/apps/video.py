@@ -723,8 +723,9 @@ def _camera_options(args, system: str, known: dict) -> dict | None:
         opts["anchor"] = args.anchor
     if system == "collision":
         opts["track"] = None if args.track is None else tuple(args.track)
-    # the pendulum's scale from a known length (the arc's radius) or a known g (its period)
-    by_length = system == "pendulum" and ("L" in known or "g" in known)
+    # the pendulum's scale from a known length (the arc's radius); from a known g (its period)
+    # only on a clip that is not the renderer's view (identify_system_video decides)
+    by_length = system == "pendulum" and "L" in known
     if not any(v is not None for v in opts.values()) and not by_length:
         return None  # framed as the system's renderer draws it
     if not scale and not by_length:

@@ -64,6 +64,27 @@ def _position_method(system: str) -> str:
     return _first_method(system, frames=False)
 
 
+def _clip_shape(path, rotate: int) -> tuple[int, int] | None:
+    """``(H, W)`` of the clip's frames once turned upright, from its stream (None: unreadable;
+    :func:`~sysid_bench.core.footage.read_video` then says why)."""
+    try:
+        import av
+
+        with av.open(str(path)) as c:
+            st = c.streams.video[0]
+            h, w = int(st.height), int(st.width)
+    except Exception:  # noqa: BLE001 - any failure: read_video names it properly
+        return None
+    return (w, h) if int(rotate) in (90, 270) else (h, w)
+
+
+def _renderer_framed(sys_, shape) -> bool:
+    """Whether a frame of ``shape`` ``(H, W)`` can be the system's render (its aspect)."""
+    h, w = int(shape[0]), int(shape[1])
+    rh, rw = (int(v) for v in sys_.size)
+    return abs(w / h - rw / rh) <= 0.02 * (rw / rh)
+
+
 def _check_renderer_framing(sys_, shape, path) -> None:
     """Refuse, with the options that would read it, a clip that cannot be the system's render.
 
@@ -72,7 +93,7 @@ def _check_renderer_framing(sys_, shape, path) -> None:
     read as a render it would be followed nowhere ("seen in 0 frames")."""
     h, w = int(shape[0]), int(shape[1])
     rh, rw = (int(v) for v in sys_.size)
-    if abs(w / h - rw / rh) <= 0.02 * (rw / rh):
+    if _renderer_framed(sys_, shape):
         return
     how = "--px-per-m or --object-size-m"
     if "L" in sys_.params and "g" in sys_.params:  # a pendulum-like scale from L or g
@@ -123,6 +144,7 @@ def identify_system_video(path, system: str, *, method: str | None = None,
     from sysid_bench.core import systems
     from sysid_bench.core.estimator import Observation, frame_cap_of, frame_rate_of
     from sysid_bench.core.footage import (
+        PERIOD_SCALED,
         knowledge_record,
         observe_clip,
         read_video,
@@ -136,6 +158,11 @@ def identify_system_video(path, system: str, *, method: str | None = None,
         raise ValueError(f"method: {method} reads frames drawn as the {sys_.name}'s renderer "
                          "draws them; on a camera's clip give a position method (e.g. lsq)")
     cam = None
+    if camera is None and "g" in (known or {}) and sys_.name in PERIOD_SCALED:
+        shape = _clip_shape(path, rotate)
+        if shape is not None and not _renderer_framed(sys_, shape):
+            # a camera's clip with nothing but g known: its period gives the scale
+            camera = {"px_per_m": None, "object_size_m": None, "pivot": None}
     # the method first: its frame rate decides the clip's time base (None: the capture's own dt)
     name = method or (_default_method(sys_.name) if camera is None
                       else _position_method(sys_.name))

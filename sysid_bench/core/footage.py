@@ -1626,6 +1626,9 @@ def swing_frequency(pix, pivot, dt: float) -> tuple[float, float, float]:
 #: Systems whose object falls freely between contacts, so that a known g gives the scale
 #: (:func:`scale_from_fall`).
 FALL_SCALED = ("ball",)
+#: Systems whose object swings about a pivot, so that a known length (the arc's radius) or a
+#: known g (the swing's period, :func:`swing_frequency`) gives the scale.
+PERIOD_SCALED = ("pendulum",)
 
 
 def scale_from_fall(pix, g: float, dt: float, radius_px: float) -> tuple[float, float]:
@@ -1755,7 +1758,7 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
         per_frame, s, rel = _scale_from_size(track, d)
         src = (f"object_size_m={d:g}: the object's median {2 * r_px:.3g} px across, frame by "
                f"frame (its inverse a line in time: a steady drift in depth)")
-    elif system == "pendulum" and ("L" in known or "g" in known):
+    elif system in PERIOD_SCALED and ("L" in known or "g" in known):
         s, src = None, "known L" if "L" in known else "known g"
     elif system in FALL_SCALED and "g" in known:  # the fall's curvature in px/s^2 over g
         if dt is None:

@@ -86,8 +86,10 @@ def _system_case(name: str):
         state0 = system.sample_state0(1, rng, theta=theta)
     except TypeError:  # a system whose start does not depend on its parameters
         state0 = system.sample_state0(1, rng)
-    points = system.observe(system.simulate(theta, state0, n_frames=N_OBS_SYSTEM), theta)[0]
-    return points, state0[0]
+    states = system.simulate(theta, state0, n_frames=N_OBS_SYSTEM)
+    points = system.observe(states, theta)[0]
+    frames = system.render(states, theta)[0]  # its renderer's view: what a frame method reads
+    return points, state0[0], frames
 
 
 def contract_observation(kind: str = "both", system: str = "ball") -> Observation:
@@ -96,7 +98,7 @@ def contract_observation(kind: str = "both", system: str = "ball") -> Observatio
 
     On a registered ``system`` without a case of its own (:data:`_OWN_CASES`):
     :data:`N_OBS_SYSTEM` frames of one seeded test-split case, its tracked points with
-    (``"both"``) or without (``"positions"``) the initial state.
+    (``"both"``: with its rendered frames too) or without (``"positions"``) the initial state.
     """
     own = _OWN_CASES.get(system) if isinstance(system, str) else None
     if own is not None:
@@ -104,8 +106,10 @@ def contract_observation(kind: str = "both", system: str = "ball") -> Observatio
     if kind not in ("both", "positions"):
         raise ValueError(f"kind: expected 'both' or 'positions' on the {system} system, "
                          f"got {kind!r}")
-    points, s0 = _system_case(system)
-    return Observation(positions=points.copy(), state0=s0.copy() if kind == "both" else None,
+    points, s0, frames = _system_case(system)
+    if kind == "positions":
+        return Observation(positions=points.copy(), system=system)
+    return Observation(frames=frames.copy(), positions=points.copy(), state0=s0.copy(),
                        system=system)
 
 
