@@ -290,3 +290,19 @@ def test_the_benchmark_threads_option_reaches_the_n_a_sentence():
 
     with pytest.raises(NotImplementedError, match="no model is shipped"):
         methods.get("vid2param", system="pendulum", threads=1)
+
+
+def test_a_system_model_is_copied_and_pickled_as_the_harness_does():
+    """The benchmark copies a fitted estimator per case and sends it to worker processes."""
+    import copy
+    import pickle
+
+    import methods
+    from sysid_bench.core.testing import contract_observation
+
+    est = methods.get("vid2param", system="spring")
+    est.fit(None)
+    obs = contract_observation("both", "spring")
+    want = est.identify(obs).mean
+    for other in (copy.deepcopy(est), pickle.loads(pickle.dumps(est))):
+        np.testing.assert_array_equal(other.identify(obs).mean, want)

@@ -106,7 +106,14 @@ class PointsModel:
             raise ValueError(f"checkpoint: {str(path)!r} does not identify {missing}")
         # parameters in the system's order
         self._order = [list(c.params).index(p) for p in sys_.params]
-        self._torch = torch
+
+    @property
+    def _torch(self):
+        """torch, imported where used: a module held as an attribute cannot be deep-copied
+        (the harness copies a fitted estimator per case)."""
+        import torch
+
+        return torch
 
     @property
     def frame_size(self) -> tuple[int, int]:
