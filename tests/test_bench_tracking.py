@@ -71,6 +71,14 @@ def _plain_pyav(path):
         return np.stack([f.to_ndarray(format="gray") for f in c.decode(video=0)])
 
 
+def _rates(new: str, new_cpu: float, new_wall: float, old: str, old_cpu: float,
+           old_wall: float) -> dict:
+    """Frames per CPU-second and per wall-second of the new and the old way, and the CPU ratio."""
+    return {f"{new}_fps_cpu": N_FRAMES / new_cpu, f"{new}_fps_wall": N_FRAMES / new_wall,
+            f"{old}_fps_cpu": N_FRAMES / old_cpu, f"{old}_fps_wall": N_FRAMES / old_wall,
+            "cpu_ratio": old_cpu / new_cpu}
+
+
 @pytest.mark.benchmark(group="tracking-1080p")
 def test_bench_decode_1080p(benchmark, clip_1080p):
     clip = benchmark.pedantic(footage.read_video, args=(clip_1080p,), rounds=3, iterations=1,
@@ -80,9 +88,7 @@ def test_bench_decode_1080p(benchmark, clip_1080p):
     new_cpu, new_wall, _ = _cpu_and_wall(lambda: footage.read_video(clip_1080p), 3)
     old_cpu, old_wall, ref = _cpu_and_wall(lambda: _plain_pyav(clip_1080p), 3)
     assert np.array_equal(ref, clip.frames)  # the same grey bytes
-    info = {"read_video_fps_cpu": N_FRAMES / new_cpu, "read_video_fps_wall": N_FRAMES / new_wall,
-            "pyav_gray_fps_cpu": N_FRAMES / old_cpu, "pyav_gray_fps_wall": N_FRAMES / old_wall,
-            "cpu_ratio": old_cpu / new_cpu}
+    info = _rates("read_video", new_cpu, new_wall, "pyav_gray", old_cpu, old_wall)
     benchmark.extra_info.update(info)
     print(f"\n1080p decode: read_video {info['read_video_fps_cpu']:.1f} frames per CPU-second "
           f"({info['read_video_fps_wall']:.1f} frames/s wall), PyAV + to_ndarray('gray') "
@@ -103,9 +109,7 @@ def test_bench_track_1080p(benchmark, clip_1080p):
     assert np.array_equal(trk.pixels, ref.pixels, equal_nan=True)  # the same track
     assert np.array_equal(trk.radii, ref.radii, equal_nan=True)
     assert trk.n_found >= N_FRAMES - 10
-    info = {"track_fps_cpu": N_FRAMES / new_cpu, "track_fps_wall": N_FRAMES / new_wall,
-            "whole_frame_fps_cpu": N_FRAMES / old_cpu, "whole_frame_fps_wall": N_FRAMES / old_wall,
-            "cpu_ratio": old_cpu / new_cpu}
+    info = _rates("track", new_cpu, new_wall, "whole_frame", old_cpu, old_wall)
     benchmark.extra_info.update(info)
     print(f"\n1080p tracking: windowed {info['track_fps_cpu']:.1f} frames per CPU-second "
           f"({info['track_fps_wall']:.1f} frames/s wall), whole-frame search "

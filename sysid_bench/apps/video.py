@@ -224,10 +224,11 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     # a method that simulates at any step reads every frame at the capture's own dt; one built
     # for a frame rate (Vid2Param) gets the clip resampled to it, and the notes say so
     rate = frame_rate_of(est)
+    # a known g and no camera or box given: a camera's clip may take its scale from the fall
+    by_fall = (not camera and "g" in (known or {})
+               and not any(v is not None for v in (geometry or {}).values()))
     clip = read_video(path, rate, progress=progress, start=start, end=end,
-                      capture_fps=capture_fps,
-                      colour=bool(camera) or ("g" in (known or {}) and not any(
-                          v is not None for v in (geometry or {}).values())))
+                      capture_fps=capture_fps, colour=bool(camera) or by_fall)
     resampled = len(clip.frames) != clip.source_frames or abs(clip.fps - clip.source_fps) > 1e-9
     # a method whose cost grows with the observations takes at most its cap (NUTS: 400)
     clip = thin_clip(clip, frame_cap_of(est), method)
@@ -244,8 +245,7 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
                      "capture's own dt)")
     cam = None
     k0 = 0  # the window's frames left out before the ball is first seen (camera clips)
-    if (not camera and "g" in (known or {}) and abs(w / h - 1.0) > 0.02
-            and not any(v is not None for v in (geometry or {}).values())):
+    if by_fall and abs(w / h - 1.0) > 0.02:
         # not the renderer's square view: a camera's clip, its scale from the known g's fall
         camera = {"px_per_m": None, "object_size_m": None, "floor_row": None, "walls": None}
         notes.append(f"the clip is {w}x{h}, not the renderer's square view of the box: read as "
