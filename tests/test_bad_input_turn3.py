@@ -1,5 +1,5 @@
 """Bad input, turn 3 (issue 29): one test per class of defect in
-``/work/shared/findings/bad-input-turn3.md``; ``docs/reliability.md`` ("Bad input, turn 3") maps
+``shared/findings/bad-input-turn3.md``; ``docs/reliability.md`` ("Bad input, turn 3") maps
 each line of the findings to its class.
 
 Every refusal must be a ``ValueError`` (or, on the command line, one ``error`` line and a

@@ -1,6 +1,6 @@
 """Two pucks on a track between two walls, colliding: the ``collision`` system.
 
-Physics (``/work/shared/design.md``, section Systems): two pucks of radius ``R = 0.25`` m slide on
+Physics (the design, ``shared/design.md``, section Systems): two pucks of radius ``R = 0.25`` m slide on
 a track from ``x = 0`` to ``x = TRACK = 10`` m with a wall at each end, seen side on. State
 ``[x1, v1, x2, v2]`` (centres, ``x1 < x2``); the tracked points are ``(x1, R)`` and ``(x2, R)``
 (K = 2, in that order). Parameters ``theta = [lq, eb, mu, ew]``:
