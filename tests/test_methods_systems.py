@@ -45,7 +45,7 @@ EXPECTED = {
     "sindy": {"ball": "answers", "pendulum": "answers", "spring": "answers", "collision": "n/a"},
     # no network is shipped for the other systems (train one: ``sysid-bench train --system``;
     # ``checkpoint=F`` loads it)
-    "vid2param": {"ball": "answers", "pendulum": "no model", "spring": "answers",
+    "vid2param": {"ball": "answers", "pendulum": "answers", "spring": "answers",
                   "collision": "no model"},
     "vid2param-physics": {"ball": "answers", "pendulum": "n/a", "spring": "n/a",
                           "collision": "n/a"},

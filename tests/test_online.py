@@ -63,13 +63,13 @@ def test_online_cost_prefix_stride_interpolates(monkeypatch):
 def test_online_is_an_experiment_of_the_runner_on_every_system(tmp_path):
     """Section 7 runs through the runner and the store like the others (issue 37): rows per
     system, the stream's cells and its samples-drawn twin; n/a where the method has no model
-    (the pendulum: the spring has one since session 22)."""
+    (the collision: the spring and the pendulum have one since sessions 22 and 23)."""
     from sysid_bench.bench.online import Online
     from sysid_bench.bench.runner import run
     from sysid_bench.bench.store import Store
 
     out = run(scale="smoke", methods=["vid2param"], experiments=["online"],
-              systems=["ball", "pendulum"], run_dir=tmp_path, workers=0, progress=False)
+              systems=["ball", "collision"], run_dir=tmp_path, workers=0, progress=False)
     assert out["errors"] == 0 and out["ok"] == 2 and out["na"] == 2
     with Store(tmp_path / "results.sqlite") as s:
         df = s.results("online")

@@ -10,7 +10,8 @@ system a user registered included: ``sysid-bench train --system S``); where neit
 The network gives the normalised posterior of the system's parameters (prior units) and of its
 K points' positions (view units, ``extent``); the checkpoint's stages (``std_scale``) act on the
 parameters as on the ball's; the forecast is the network's own latent rollout (the learned
-prior, ``forecast="latent"``), decoded to metres. :class:`PointsStream` runs it one frame at a
+prior, ``forecast="latent"``), decoded to metres, where the checkpoint trained it, and otherwise
+the system's simulator run on the posterior's draws (``forecast="physics"``). :class:`PointsStream` runs it one frame at a
 time.
 """
 
@@ -209,11 +210,60 @@ class PointsModel:
             mean, sd = mean[:, 0], sd[:, 0]
         return Forecast(mean=mean, std=sd, extras={"n_simulations": 0, "forecast": "latent"})
 
-    def forecast(self, obs: Observation, horizon: int) -> Forecast:
-        """The network's latent rollout after the observed frames: points (H, 2) for one
-        tracked point, (H, K, 2) for K > 1, metres."""
+    @property
+    def latent_learnt(self) -> bool:
+        """Whether the checkpoint's latent forecast was trained: a run of the points curriculum
+        alone (``points_steps >= steps``) never trains the conv encoder, prior and decoder that
+        the latent rollout runs through."""
+        tr = self.info.get("train") or {}
+        return int(tr.get("points_steps") or 0) < int(tr.get("steps") or 0) or not tr
+
+    def forecast_kind(self, kind: str | None = None) -> str:
+        """``kind``, else the estimator's ``forecast``, else the latent rollout where the
+        checkpoint trained it and the simulator otherwise."""
+        kind = kind or getattr(self._est, "forecast_kind", None)
+        return kind or ("latent" if self.latent_learnt else "physics")
+
+    def forecast(self, obs: Observation, horizon: int, kind: str | None = None) -> Forecast:
+        """Points after the observed frames: (H, 2) for one tracked point, (H, K, 2) for K > 1,
+        metres. ``kind`` ``"latent"``: the network's latent rollout; ``"physics"``: the
+        system's simulator run on draws of the posterior from the state that, with the
+        posterior mean, best explains the observed track. None: the latent rollout where the
+        checkpoint trained it (:attr:`latent_learnt`), the simulator otherwise."""
+        if self.forecast_kind(kind) == "physics":
+            return self._physics_forecast(obs, horizon)
         _, _, _, state = self.posteriors(self._obs_frames(obs))
         return self._rollout(state, horizon)
+
+    def _physics_forecast(self, obs: Observation, horizon: int) -> Forecast:
+        from methods._points import Points, default_sigma, forecast_points, refine
+
+        horizon = int(horizon)
+        if not 1 <= horizon <= MAX_HORIZON:
+            raise ValueError(f"horizon: expected an int in [1, {MAX_HORIZON}], got {horizon}")
+        t0 = time.perf_counter()
+        post = self.identify(obs)
+        sys_, est = self._sys, self._est
+        lo, hi = sys_.prior_lo, sys_.prior_hi
+        mean = np.clip(post.mean, lo, hi)
+        # the state is fitted with the parameters held at the posterior mean (the track's own
+        # tracker, as every simulation method reads the frames)
+        prob = Points(sys_, default_sigma(sys_), known=dict(zip(sys_.params, mean))).problem(obs)
+        if prob.free:
+            u0 = np.r_[np.full(prob.P, 0.5), prob.u_state0]
+            u, _, _ = refine(prob, [u0], max_evals=200)
+        else:
+            u = np.full(prob.P, 0.5)
+        _, s0 = prob.split(u)
+        n = max(int(est.n_samples or 0), 32)
+        rng = np.random.default_rng([int(est.seed), 1, int(prob.track.n_frames)])
+        theta = np.clip(mean + post.std * rng.standard_normal((n, len(mean))), lo, hi)
+        theta[0] = mean
+        fc = forecast_points(prob.sim, sys_, theta, np.broadcast_to(s0, (n, prob.S)),
+                             prob.track.n_frames, prob.track.dt, horizon,
+                             {"forecast": "physics", "state_fit_rms_m": prob.rms(u)})
+        fc.extras["wall_s"] = time.perf_counter() - t0
+        return fc
 
     def stream(self) -> PointsStream:
         return PointsStream(self)
@@ -248,6 +298,8 @@ class PointsStream(Stream):
         self._carries = self._est._pipeline.start(1)
         self._n = 0
         self._pts = np.full((self._est._sys.n_points, 2), np.nan)
+        # a simulator forecast reads the frames seen so far (the track it fits the state to)
+        self._seen = [] if self._est.forecast_kind() == "physics" else None
 
     @property
     def n_frames(self) -> int:
@@ -275,6 +327,8 @@ class PointsStream(Stream):
         m, s = est._pipeline.step(self._carries, mu[:, est._pidx], sd[:, est._pidx], pts)
         self._n += 1
         self._pts = pts[0]
+        if self._seen is not None:
+            self._seen.append(fr.copy())
         return est._params(m[0], s[0], {"wall_s": time.perf_counter() - t0,
                                         "n_frames": self._n}, self._n)
 
@@ -283,6 +337,14 @@ class PointsStream(Stream):
         return self._pts[0].copy()
 
     def forecast(self, horizon: int, floor: float | None = None) -> Forecast:
+        if self._seen is not None:
+            if not self._seen:
+                raise ValueError("forecast: expected at least one pushed frame, got none")
+            obs = Observation(frames=np.stack(self._seen), system=self._est._sys.name)
+            fc = self._est._physics_forecast(obs, horizon)
+            if floor:
+                fc.mean[..., 1] += float(floor)
+            return fc
         dev = self._est._dev  # the rollout runs on the model's device
         state = (self._fast.torch_state(dev) if self._fast is not None
                  else self._state.map(lambda t: t.to(dev)))

@@ -319,9 +319,6 @@ class Vid2Param(Estimator):
         if self.forecast_kind is not None and self.forecast_kind not in FORECASTS:
             raise ValueError(
                 f"forecast: expected one of {sorted(FORECASTS)}, got {self.forecast_kind!r}")
-        if not self._on_ball() and self.forecast_mode != "latent":
-            raise ValueError(f"forecast: expected 'latent' (the network's rollout) on the "
-                             f"{self.system} system, got {self.forecast_mode!r}")
         # 0: Gaussian posteriors without samples (fast identification); otherwise two at least,
         # since a band from one sample claims a spread it cannot have
         n = check_positive_int(self.n_samples, "n_samples", minimum=0)
@@ -726,8 +723,8 @@ class Vid2Param(Estimator):
             mean, std (horizon, 2) and samples (n_samples, horizon, 2), metres. Another system:
             its points' mean and std, (horizon, 2) for one point, (horizon, K, 2) for K.
         """
-        if not self._on_ball():
-            return self._model().forecast(obs, horizon)
+        if not self._on_ball():  # None: the model's own choice (its latent rollout if trained)
+            return self._model().forecast(obs, horizon, self.forecast_kind)
         frames = self._frames_of(obs)
         horizon = check_positive_int(horizon, "horizon")
         self._check_particles()
