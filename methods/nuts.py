@@ -558,6 +558,13 @@ class NUTS(SimulationOnSystems):
     cost = 50
     #: the posterior calibration compares every other method with
     reference_posterior = True
+    #: its fit (``_fit``/``_fit_points``) is a pure function of its hyperparameters and the
+    #: observation: the search and the chains are seeded from ``seed`` per call (NumPy and a
+    #: JAX key), the compiled samplers it keeps per process are a cache of code, not of data,
+    #: and a fit in another process (JAX's persistent compilation cache or not) has the same
+    #: bytes (``tests/test_fitcache.py``); section 0 reads calibration's reference posteriors
+    #: (:mod:`sysid_bench.bench.fitcache`)
+    pure_fit = True
     # ~25 s per posterior (~100 under load): where it is the reference (calibration, systems)
     # and, for its coverage off our physics, 3 of the MuJoCo videos (issue 29)
     scale_cases = {

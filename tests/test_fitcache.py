@@ -95,11 +95,13 @@ def test_method_without_declaration_is_not_shared(tmp_path):
     assert not fitcache.share_fits(est, "prior", {}, tmp_path)
 
 
-@pytest.mark.parametrize("name", ["lsq", pytest.param("bo", marks=pytest.mark.slow), "emcee"])
+@pytest.mark.parametrize("name", ["lsq", pytest.param("bo", marks=pytest.mark.slow), "emcee",
+                                  pytest.param("nuts", marks=pytest.mark.slow)])
 def test_declared_pure_fit_is_pure(name):
     """The declaration's contract: a used estimator fits a prefix as a fresh one does."""
     opts = {"lsq": OPTS, "bo": {"n_calls": 6, "n_initial_points": 3, "n_surrogate": 64},
-            "emcee": methods.spec("emcee").contract_options}[name]
+            "emcee": methods.spec("emcee").contract_options,
+            "nuts": methods.spec("nuts").contract_options}[name]
     assert getattr(methods.get_class(name), "pure_fit", False)
     obs = _obs(n=30)
     used = methods.get(name, **opts)
@@ -118,3 +120,44 @@ def test_only_the_asked_lengths_are_stored(tmp_path):
     assert not (tmp_path / fitcache.FOLDER).exists()
     est.identify(obs.prefix(30))
     assert len(list((tmp_path / fitcache.FOLDER).glob("*.pkl"))) == 1
+
+
+_NUTS_DIGEST = """
+import hashlib, sys
+import numpy as np
+import methods
+from sysid_bench.bench.cases import bench_case
+obs = bench_case(sys.argv[1], 0, 2, 7, "privileged")[0].prefix(40)
+p = methods.get("nuts", system=sys.argv[1], **methods.spec("nuts").contract_options).identify(obs)
+print(hashlib.sha256(np.ascontiguousarray(p.samples).tobytes()).hexdigest())
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("system", ["ball", "pendulum"])
+def test_nuts_fit_is_the_same_in_another_process(tmp_path, system):
+    """NUTS declares ``pure_fit``: its fit in a fresh process (the workers', with JAX's
+    persistent compilation cache) has the bytes of this process's, and it is stored and read
+    back (section 0 reads calibration's reference posteriors)."""
+    import hashlib
+    import os
+    import subprocess
+    import sys
+
+    from sysid_bench.bench.cases import bench_case
+
+    env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "jax_cache")}
+    theirs = subprocess.run([sys.executable, "-c", _NUTS_DIGEST, system], env=env, check=True,
+                            capture_output=True, text=True, timeout=900).stdout.split()[-1]
+    obs = bench_case(system, 0, 2, 7, "privileged")[0].prefix(40)
+    opts = {**methods.spec("nuts").contract_options, "system": system}
+    est = methods.get("nuts", **opts)
+    assert fitcache.share_fits(est, "nuts", opts, tmp_path)
+    mine = est.identify(obs)
+    assert hashlib.sha256(np.ascontiguousarray(mine.samples).tobytes()).hexdigest() == theirs
+    h0 = fitcache.stats()["hits"]
+    est = methods.get("nuts", **opts)
+    fitcache.share_fits(est, "nuts", opts, tmp_path)
+    again = est.identify(obs)
+    assert fitcache.stats()["hits"] == h0 + 1
+    np.testing.assert_array_equal(again.samples, mine.samples)

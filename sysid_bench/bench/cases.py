@@ -29,7 +29,8 @@ import numpy as np
 from sysid_bench.core.estimator import Observation
 
 __all__ = ["INPUTS", "Scale", "SCALES", "get_scale", "test_set", "train_set", "observation",
-           "inputs_for", "unknown_name", "system_cases", "system_case", "N_FRAMES", "bench_case"]
+           "inputs_for", "unknown_name", "system_cases", "system_case", "N_FRAMES", "bench_case",
+           "extended_case"]
 
 INPUTS = ("video", "privileged")
 #: Bump when what a cell computes changes meaning (inputs, metrics): part of the grid config, so
@@ -371,12 +372,13 @@ N_FRAMES = 200
 
 
 @lru_cache(maxsize=16)
-def system_cases(system: str, n: int, seed: int):
+def system_cases(system: str, n: int, seed: int, stream: int = 0):
     """The first ``n`` test-split cases of ``system`` (cached per process, read-only).
 
     Parameters from the odd tenths of each prior range, initial states from the system's own
     ranges, one random stream per system fixed by ``seed`` and the system's name; noise of
-    ``system.noise_m`` on the tracked points.
+    ``system.noise_m`` on the tracked points. ``stream`` > 0: another, independent set of the
+    same distribution (:func:`extended_case`: cases beyond a set another experiment drew).
 
     Returns
     -------
@@ -390,7 +392,8 @@ def system_cases(system: str, n: int, seed: int):
 
     sys_ = systems.get(system)
     # one stream per system, fixed by the scale's seed and the system's name
-    rng = np.random.default_rng([seed, zlib.crc32(system.encode())])
+    key = [seed, zlib.crc32(system.encode())]
+    rng = np.random.default_rng(key + [int(stream)] if stream else key)
     theta = sys_.sample_theta(n, rng, "test")
     try:
         state0 = sys_.sample_state0(n, rng, theta=theta)
@@ -406,8 +409,9 @@ def system_cases(system: str, n: int, seed: int):
     return theta, states, points, noisy
 
 
-def system_case(system: str, i: int, n: int, seed: int, input_kind: str):
-    """Case ``i`` of :func:`system_cases` as an observation of ``input_kind``.
+def system_case(system: str, i: int, n: int, seed: int, input_kind: str, stream: int = 0):
+    """Case ``i`` of :func:`system_cases` (of its set ``stream``) as an observation of
+    ``input_kind``.
 
     ``"video"``: the system's own render (seeded by the case); ``"positions"``: the noisy
     tracked points, no initial state; ``"privileged"``: the true points and the true initial
@@ -425,10 +429,11 @@ def system_case(system: str, i: int, n: int, seed: int, input_kind: str):
     from sysid_bench.core import systems
 
     sys_ = systems.get(system)
-    theta, states, points, noisy = system_cases(system, n, seed)
+    theta, states, points, noisy = system_cases(system, n, seed, stream)
     known = {"system": sys_.name, **sys_.known_geometry()}
     if input_kind == "video":
-        frames = sys_.render(states[i : i + 1], theta[i : i + 1], seed=[seed, i])[0]
+        frames = sys_.render(states[i : i + 1], theta[i : i + 1],
+                             seed=[seed, i, stream] if stream else [seed, i])[0]
         obs = Observation(frames=frames, **known)
     elif input_kind == "positions":
         obs = Observation(positions=noisy[i], **known)
@@ -462,6 +467,41 @@ def bench_case(system: str, i: int, n: int, seed: int, input_kind: str,
         obs = observation(ds, i, input_kind)
         return obs, np.asarray(ds.theta[i, 0]), np.asarray(ds.states[i, :, None, :2])
     return system_case(sys_.name, i, n, seed, input_kind)
+
+
+def extended_case(system: str, i: int, n: int, n_shared: int, seed: int, input_kind: str,
+                  variant: str = "interleaved"):
+    """Case ``i`` of ``n`` test cases of ``system`` whose first ``n_shared`` are
+    :func:`bench_case`'s of a set of ``n_shared`` (the cases calibration, identification and
+    forecasting draw: the same bytes, so the fits of a method that declares ``pure_fit`` are
+    shared with them, :mod:`sysid_bench.bench.fitcache`), the others further test cases.
+
+    A system's set of ``n`` cases is not the first ``n_shared`` of a larger one (its random
+    stream draws every parameter, then every initial state), so the cases past ``n_shared``
+    come from an independent stream of the same test distribution (:func:`system_cases`,
+    ``stream=1``); a system that declares ``datasets`` (the ball), whose sets are prefixes of
+    larger ones, gives case ``i`` of its set of ``n``.
+
+    Returns
+    -------
+    obs : Observation
+    theta : ndarray, shape (P,)
+    points : ndarray, shape (T, K, 2)
+        The true tracked points.
+    """
+    from sysid_bench.core import systems
+
+    for name, v in (("i", i), ("n", n), ("n_shared", n_shared)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0:
+            raise ValueError(f"{name}: expected an int >= 0, got {v!r}")
+    if not i < n:
+        raise ValueError(f"i: expected a case in [0, {n}), got {i!r}")
+    if i < n_shared:
+        return bench_case(system, i, n_shared, seed, input_kind, variant)
+    sys_ = systems.get(system)
+    if sys_.datasets:
+        return bench_case(system, i, n, seed, input_kind, variant)
+    return system_case(sys_.name, i - n_shared, n - n_shared, seed, input_kind, stream=1)
 
 
 @lru_cache(maxsize=16)

@@ -1,16 +1,27 @@
 """Experiment 0: every method on every system, one protocol, one table across systems.
 
-Each registered system gets the same protocol: ``n_cases["systems"]`` test-split cases
-(parameters from the odd tenths of each prior range, initial states from the system's own
-ranges, seeded per system), 200 frames. Position methods see the K tracked points with
-``system.noise_m`` (1 cm) Gaussian noise and no initial state (the scene's geometry known: the
-ball's floor at 0, as every other system's fixed points are); frame methods see the system's own
-``render`` at its default size. Per case and observed-frame count (50, 100, 200) the rows are
+Each registered system gets the same protocol, the one of calibration (experiment 5):
+``n_cases["systems"]`` test-split cases, 200 frames of the system's own render (the ball's
+from the paper's test set), the scene's geometry known (the ball's floor, the pendulum's
+pivot); frame methods read the frames, position methods the harness's tracking of them (as in
+every other experiment's ``video`` input). The first ``n_cases["calibration"]`` cases are
+calibration's (and identification's and forecasting's) cases, byte for byte
+(:func:`~sysid_bench.bench.cases.extended_case`), so a method that declares ``pure_fit`` reads
+the fits those experiments computed (:mod:`sysid_bench.bench.fitcache`): the reference
+posterior (``nuts``) after 200 frames, bo, emcee and lsq after 50, 100 and 200 and their
+forecasts after 50 are not computed a second time; cases past those come from an independent
+stream of the same test split. Per case and observed-frame count (50, 100, 200) the rows are
 ``se_<p>`` / ``se`` (squared error normalised by the prior range, and their mean), ``cov90``
 (fraction of the parameters whose 90% interval holds the truth), ``check_ok`` (the posterior's
-model check passed), ``wall_s``, ``u_<p>`` (the posterior mean normalised by the prior, for the agreement with the
+model check passed), ``wall_s`` (the identification's seconds, a shared fit's where it was
+computed), ``u_<p>`` (the posterior mean normalised by the prior, for the agreement with the
 ``nuts`` reference) and the samplers' ``rhat_max`` / ``ess_min``; after 50 frames a 100-frame
 forecast adds ``fc_mse`` (position MSE normalised by the view's width).
+
+Until session 23 the section drew its own cases (10 per system from another stream) and gave
+position methods the true points with 1 cm Gaussian noise instead of the tracked video, so no
+fit was shared with calibration (its NUTS alone ~900 core-seconds of the default run); its
+figures are now those of tracked video, on other cases.
 
 A method that does not run on a system (no model shipped for it, no feature library) raises
 ``NotImplementedError`` with a sentence; the report lists it as ``n/a``.
@@ -23,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from sysid_bench.bench.calibration import reference_method
-from sysid_bench.bench.cases import system_case
+from sysid_bench.bench.cases import extended_case, system_case
 from sysid_bench.bench.experiment import (
     Cell,
     CellOutput,
@@ -34,13 +45,18 @@ from sysid_bench.bench.experiment import (
 )
 from sysid_bench.core.metrics import GUESS_MSE
 
-__all__ = ["Systems", "SYSTEM_LENGTHS", "FORECAST_AFTER", "FORECAST_HORIZON", "system_case"]
+__all__ = ["Systems", "SYSTEM_LENGTHS", "FORECAST_AFTER", "FORECAST_HORIZON", "INPUT",
+           "system_case"]
 
 #: Observed-frame counts of the identification rows.
 SYSTEM_LENGTHS = (50, 100, 200)
 #: The forecast: ``FORECAST_HORIZON`` frames after the first ``FORECAST_AFTER``.
 FORECAST_AFTER = 50
 FORECAST_HORIZON = 100
+#: every method's input: calibration's (the system's render; position methods track it)
+INPUT = "video"
+#: the experiment whose first cases section 0's are (the same observations: shared fits)
+SHARED_WITH = "calibration"
 
 
 def _gap_to_reference(df, system: str, method: str, n_frames: int, reference: str | None):
@@ -155,10 +171,11 @@ class Systems(Experiment):
     cross_system = True
     title = "0. Across systems"
     description = (
-        "Every method on every registered system with one protocol: held-out test-split cases "
-        "(odd tenths of each prior range), 200 frames; position methods see the tracked points "
-        "with 1 cm noise and no initial state (the scene's geometry known: the ball's floor, "
-        "the pendulum's pivot), frame methods the system's own render. Parameter "
+        "Every method on every registered system with one protocol, calibration's: held-out "
+        "test-split cases (the first ones calibration's, the ball's from the paper's test set), "
+        "200 frames of the system's own render, no initial state (the scene's geometry known: "
+        "the ball's floor, the pendulum's pivot); frame methods read the frames, position "
+        "methods the harness's tracking of them. Parameter "
         "MSE is normalised by each prior range (guessing the prior mean scores "
         f"{GUESS_MSE:.3f}; a parameter a method declares uninformed, its interval the prior's, "
         "is scored at the prior's centre, not at the point its search stopped at); coverage is "
@@ -174,21 +191,19 @@ class Systems(Experiment):
     )
 
     def cells(self, scale, methods, system="ball"):
-        import methods as registry
-
         out = []
         for m in methods:
-            inp = "video" if registry.spec(m).input_kind == "frames" else "positions"
             n = scale.cases(self.name, m, system)
-            out += [Cell(self.name, m, inp, "", i, system) for i in range(n)]
+            out += [Cell(self.name, m, INPUT, "", i, system) for i in range(n)]
         return out
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
         sc = ctx.scale
         system, i = cell.system, int(cell.case)
-        obs, truth, points = system_case(system, i, sc.n_for(self.name, system), sc.seed,
-                                         cell.input)
-        est = ctx.estimator(cell.method, system=system)
+        # calibration's cases (the same bytes), then further ones: its fits are read, not redone
+        obs, truth, points = extended_case(system, i, sc.n_for(self.name, system),
+                                           sc.n_for(SHARED_WITH, system), sc.seed, cell.input)
+        est = ctx.estimator(cell.method, system=system, share_fits=True)
         spec = est.spec()
         out = CellOutput()
         from sysid_bench.core import systems
@@ -198,10 +213,10 @@ class Systems(Experiment):
         # the expensive tier (samplers, BO) identifies after all 200 frames only at thinned scales
         lengths = SYSTEM_LENGTHS[-1:] if sc.thinned(cell.method) else SYSTEM_LENGTHS
         if spec.identifies:
-            import time
+            from sysid_bench.bench.fitcache import clock
 
             for n in lengths:
-                t0 = time.perf_counter()
+                t0 = clock()  # a fit another cell computed counts its own seconds
                 try:
                     post = est.identify(obs.prefix(n))
                 except NotImplementedError:
@@ -209,7 +224,7 @@ class Systems(Experiment):
                 except Exception as exc:  # one frame count failing is a result, not a crash
                     out.fail(n, exc, i)
                     continue
-                wall = time.perf_counter() - t0
+                wall = clock() - t0
                 u_post = _scored_point(post, sys_)
                 se = (u_post - u_true) ** 2
                 for p, v in zip(sys_.params, se):
