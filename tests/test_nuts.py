@@ -2,8 +2,9 @@
 
 Accuracy (normalised MSE over e, g, d; guessing the prior mean scores 0.083) on test-split cases
 of ``make_dataset("test", n=20, seed=5)``, clean positions, 200 frames, floor known, the initial
-state *unknown* (sampled by NUTS). Default run: the first 5 cases with short chains
-(100 warm-up + 100 samples), bound 1e-3; slow run: all 20 with the defaults, same bound.
+state *unknown* (sampled by NUTS). Default run: the first 3 cases with short chains
+(100 warm-up + 100 samples), bound 1e-3, every case inside its 90% interval; slow run: all 20
+with the defaults, same bound.
 Measured on the 2-core development machine: see the report of the session that wrote this.
 """
 
@@ -96,8 +97,10 @@ def _accuracy(ds, cases, **options):
 
 
 def test_accuracy_on_test_split_state_unknown(ds):
-    nmse, cover, posts = _accuracy(ds, range(5), **FAST)
-    print(f"\nnuts (5 cases, 100+100): nMSE(e,g,d) = {nmse:.2e}, 90% coverage {cover.round(2)}")
+    # 3 cases, was 5 (after the sampler's compilation, 31 s of CPU here, a case costs 7.6 s):
+    # 3 of 3 covered where 4 of 5 were asked; the 20-case run with the defaults is slow below
+    nmse, cover, posts = _accuracy(ds, range(3), **FAST)
+    print(f"\nnuts (3 cases, 100+100): nMSE(e,g,d) = {nmse:.2e}, 90% coverage {cover.round(2)}")
     assert nmse < BOUND < GUESS
     assert (cover[:3] >= 0.8).all()
     for p in posts:

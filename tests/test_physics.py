@@ -28,20 +28,29 @@ def random_cases():
     return theta, s0, floor, simulate(theta, s0, floor=floor)
 
 
-def test_matches_reference_while_flying_and_bouncing(random_cases):
+@pytest.fixture(scope="module")
+def references(random_cases):
+    """The reference solve of each random case, ``[(states (200, 4), t_roll)]``: the costly part
+    of the two tests below, computed once for both."""
+    theta, s0, floor, _ = random_cases
+    return [reference_trajectory(theta[i], s0[i], floor=floor[i], return_roll_time=True)
+            for i in range(N_REF)]
+
+
+def test_matches_reference_while_flying_and_bouncing(random_cases, references):
     """<= 1e-6 m from the event-driven DOP853 reference (rtol 1e-12) up to the rolling switch."""
     theta, s0, floor, sim = random_cases
     times = np.arange(200) * P.DT
     worst = 0.0
     for i in range(N_REF):
-        ref, t_roll = reference_trajectory(theta[i], s0[i], floor=floor[i], return_roll_time=True)
+        ref, t_roll = references[i]
         k = np.searchsorted(times, t_roll)  # frames strictly before rolling starts
         err = np.abs(sim[i, :k, :2] - ref[:k, :2]).max()
         worst = max(worst, err)
     assert worst <= 1e-6, f"max position error {worst:.3g} m"
 
 
-def test_rolling_phase_matches_reference(random_cases):
+def test_rolling_phase_matches_reference(random_cases, references):
     """After the switch to rolling both agree to the switch's own offset, and both stop.
 
     Near the switch the two integrators may decide the last hop differently when its rebound
@@ -53,7 +62,7 @@ def test_rolling_phase_matches_reference(random_cases):
     times = np.arange(200) * P.DT
     compared = 0
     for i in range(N_REF):
-        ref, t_roll = reference_trajectory(theta[i], s0[i], floor=floor[i], return_roll_time=True)
+        ref, t_roll = references[i]
         if not np.isfinite(t_roll):
             continue
         k = np.searchsorted(times, t_roll)

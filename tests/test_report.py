@@ -95,8 +95,14 @@ def test_perturbed_physics_rows_come_from_the_stored_cells(store_path):
 
 
 def test_report_cli_from_store_and_bad_names(store_path, tmp_path, capsys):
-    assert report_main(["--from-store", str(store_path.parent), "--out", str(tmp_path / "r")]) == 0
+    # one experiment, pages drawn in this process (--workers 0): the CLI's from-store path and
+    # its options, without drawing again every figure test_render_from_store draws
+    assert report_main(["--from-store", str(store_path.parent), "--out", str(tmp_path / "r"),
+                        "--experiments", "identification", "--workers", "0"]) == 0
     assert (tmp_path / "r" / "REPORT.md").is_file()
+    page = (tmp_path / "r" / "ball.md").read_text()
+    assert f"## {EXPERIMENTS['identification'].title}" in page
+    assert f"## {EXPERIMENTS['forecasting'].title}" not in page  # --experiments is honoured
     assert report_main(["--from-store", str(store_path), "--out", str(tmp_path / "r2"),
                         "--experiments", "calibratoin"]) == 2
     assert "Did you mean 'calibration'" in capsys.readouterr().err

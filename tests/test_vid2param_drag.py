@@ -103,7 +103,7 @@ def test_a_blend_record_is_checked():
 
 def test_the_fit_recovers_a_known_blend():
     rng = np.random.default_rng(0)
-    N, T = 400, 60
+    N, T = 200, 60  # 200 balls recover the blend as 400 did (scale 1.27 vs 1.3): half the fit's cost
     truth = rng.uniform(0, 1, N)
     span = HI - LO
     S1 = np.broadcast_to(np.linspace(0, 4e3, T), (N, T)).copy()
@@ -182,7 +182,7 @@ def test_fit_drag_writes_a_checkpoint_the_estimator_uses(tmp_path):
     if not SHIPPED_CHECKPOINTS["camera"].exists():
         pytest.skip("no shipped camera checkpoint")
     out = tmp_path / "c.pt"
-    opts = {"n_videos": 24, "n_val": 8, "seed": 3}
+    opts = {"n_videos": 12, "n_val": 4, "seed": 3}  # the stage's plumbing, not its accuracy
     fit_stages("camera", out, [("drag_evidence", opts)], log=lambda s: None)
     ck = load_checkpoint(out)
     assert [s["name"] for s in ck["stages"]] == ["drag_evidence"]
