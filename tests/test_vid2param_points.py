@@ -193,3 +193,8 @@ def test_kp_second_is_checked_and_off_for_older_checkpoints():
         V2PConfig(**{**V2PConfig.preset("spring").to_dict(), "kp_second": (0.3, 3.9)})
     with pytest.raises(ValueError, match="keypoints 1"):
         V2PConfig(**{**coll, "keypoints": 1})
+    # the NumPy stream path has no second fixed channel: it refuses (the torch path runs)
+    from methods.vid2param.fast import FrameFilter, Unsupported
+
+    with pytest.raises(Unsupported, match="kp_second: no NumPy path"):
+        FrameFilter(_tiny("collision"))
