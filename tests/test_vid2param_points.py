@@ -88,11 +88,15 @@ def test_points_curriculum_bad_input_names_it():
         TrainConfig(steps=2, points_steps=5)
     with pytest.raises(ValueError, match="points_noise_px: expected a float >= 0"):
         TrainConfig(points_noise_px=-1.0)
-    # the collision's second puck comes from a learned keypoint map: no points curriculum
-    with pytest.raises(ValueError, match="points_steps: expected a system's network whose one"):
-        _tiny("collision", keypoints=6).read_points_only_()
+    # a second point from a learned keypoint map (no kp_second): no points curriculum
+    with pytest.raises(ValueError, match="points_steps: expected a system's network whose K "
+                                         "tracked points are its K fixed keypoint channels"):
+        _tiny("collision", keypoints=6, kp_second=(), kp_learn=True).read_points_only_()
     with pytest.raises(ValueError, match="points_steps: expected a system's network"):
         Vid2ParamNet(V2PConfig()).point_features(torch.zeros(1, 2, 2))
+    with pytest.raises(ValueError, match=r"points: expected \(B, T, 4\) for the collision "
+                                         r"system's 2 points, got shape \(1, 2, 2\)"):
+        _tiny("collision").point_features(torch.zeros(1, 2, 2))
 
 
 def test_one_command_runs_the_points_then_the_frames(tmp_path):
@@ -135,3 +139,62 @@ def test_a_points_run_without_positions_holds_the_gate_then_frees_it(tmp_path):
     tc1 = TrainConfig(**{**tc.to_dict(), "steps": 1, "points_steps": 1, "size": mc.frame_size})
     net1, _ = train(mc, tc1, progress=False, log=lambda s: None)
     assert net1.keypoints.gate.item() == 0.0  # held through the points step
+
+
+def test_the_collision_reads_both_pucks_from_frames_as_it_read_the_points():
+    """Two points (``kp_second``): channel 0 is puck 1, channel 1 puck 2 (the frame outside
+    puck 1's disc); after ``read_points_only_`` the frames' features and ``point_features`` of
+    the two channels' centres give the same posterior, both centres are the pucks', and a
+    ``points_loss`` step on the feed's two points keeps every other frame weight at zero."""
+    net = _tiny("collision")
+    c = net.config
+    assert c.kp_second and c.fixed_channels == 2 and not c.kp_learn
+    net.read_points_only_()
+    ds = make_system_split("collision", "test", 3, 4, n_frames=40)
+    with torch.no_grad():
+        fx = net.encode_frames(torch.as_tensor(ds.frames))
+        i = net.encoder.n_out - 3 * c.keypoints
+        pts = torch.stack([fx[..., i], 1.0 - fx[..., i + 1], fx[..., i + 2], 1.0 - fx[..., i + 3]],
+                          -1)
+        _, (m_fr, s_fr), _ = net._observed_pass(fx)
+        _, (m_pt, s_pt), _ = net._observed_pass(net.point_features(pts))
+    torch.testing.assert_close(m_pt, m_fr, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(s_pt, s_fr, rtol=1e-5, atol=1e-6)
+    # both centres are their pucks' (x1 from channel 1, not channel 0's puck 1): well within a
+    # pixel of the truth in x, and the posterior's positions are these centres
+    truth = ds.targets(c.targets)[..., :4]
+    err_px = np.abs(pts.numpy() - truth) * np.array([128, 16, 128, 16])
+    assert err_px.max() < 0.3 and np.sqrt((err_px[..., 2] ** 2).mean()) < 0.05
+    assert np.abs(truth[..., 2] - truth[..., 0]).min() * 128 > 6.0  # the pucks never coincide
+    torch.testing.assert_close(m_fr[..., :4], pts, rtol=0, atol=1e-6)
+    opt = torch.optim.Adam(net.parameters(), 1e-2)
+    tc = TrainConfig(batch=4, n_frames=20, size=c.frame_size, steps=2, points_steps=1)
+    p, tg = _PointFeed(tc, c.targets, "collision").batch(0)
+    assert p.shape == (4, 20, 4) and tg.shape == (4, 20, len(c.targets))
+    # both points, 0.03 px of noise (pixels: 128 x 16 frames)
+    assert (np.abs(p - tg[..., :4]) * np.array([128, 16, 128, 16])).max() < 0.3
+    net.points_loss(torch.as_tensor(p), torch.as_tensor(tg))["loss_nll"].backward()
+    opt.step()
+    w = net.posterior.mlp[0].weight[:, :net.encoder.n_out]
+    assert (w[:, i:i + 4] != 0).all() and (w[:, :i] == 0).all() and (w[:, i + 4:] == 0).all()
+
+
+def test_kp_second_is_checked_and_off_for_older_checkpoints():
+    d = V2PConfig.preset("spring").to_dict()
+    assert d["kp_second"] == []
+    del d["kp_second"]  # a checkpoint written before the field
+    assert V2PConfig.from_dict(d).kp_second == ()
+    assert V2PConfig.preset("collision").kp_second == (0.3, 3.9)
+    coll = V2PConfig.preset("collision").to_dict()
+    for bad in [(0.3,), (1.0, 3.9), (0.3, 0.0), (0.3, float("nan")), "ab", None]:
+        with pytest.raises(ValueError, match=r"kp_second: expected \(\) or \(grey level"):
+            V2PConfig(**{**coll, "kp_second": bad})
+    with pytest.raises(ValueError, match="kp_second: expected a network of a two-point system"):
+        V2PConfig(**{**V2PConfig.preset("spring").to_dict(), "kp_second": (0.3, 3.9)})
+    with pytest.raises(ValueError, match="keypoints 1"):
+        V2PConfig(**{**coll, "keypoints": 1})
+    # the NumPy stream path has no second fixed channel: it refuses (the torch path runs)
+    from methods.vid2param.fast import FrameFilter, Unsupported
+
+    with pytest.raises(Unsupported, match="kp_second: no NumPy path"):
+        FrameFilter(_tiny("collision"))

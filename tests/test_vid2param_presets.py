@@ -54,12 +54,12 @@ def test_every_preset_is_one_frozen_record_looked_up_by_its_or_its_systems_name(
 def test_a_users_system_gets_a_derived_preset_and_its_network(decay):
     p = presets.get(decay)
     assert (p.name, p.system, p.space) == ("decay", "decay", presets.VIEW)
-    # the generic recipe of a shipped system (the collision's less its chunk sizes, which are
-    # TrainConfig's defaults; the one-point systems' presets add the points curriculum), its
-    # stages
+    # the generic recipe of a shipped system (the shipped systems' presets add their chunk
+    # sizes and the points curriculum, which needs fixed keypoint channels), its stages
     coll = presets.get("collision")
-    assert dict(p.train) == {k: v for k, v in coll.train.items() if "chunk" not in k}
-    assert "points_steps" not in p.train and presets.get("spring").train["points_steps"] > 0
+    assert dict(p.train) == dict(presets._VIEW_TRAIN)
+    assert "points_steps" not in p.train
+    assert all(presets.get(s).train["points_steps"] > 0 for s in ("spring", "pendulum", "collision"))
     assert p.stages == coll.stages
     c = V2PConfig.preset(decay)
     s = systems.get(decay)

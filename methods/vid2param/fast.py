@@ -187,6 +187,8 @@ class FrameFilter:
             self.convs = _conv_stack(enc.conv, 1, Hp, Wp, F)
             if not all(cv.relu for cv in self.convs):
                 raise Unsupported("conv: expected a ReLU after each layer")
+            if c.kp_second:  # channel 1 is fixed there, not the learned conv read below
+                raise Unsupported("kp_second: no NumPy path for the second point's channel")
             K = self.K = int(c.keypoints)
             # the learned keypoint channels read the same zero-padded frame as the first conv
             self.kp = (_conv_stack(enc.kp, 1, Hp, Wp, F, buf=self.convs[0].buf)[0]

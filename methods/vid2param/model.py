@@ -127,6 +127,13 @@ class V2PConfig:
         difference of the fed-back normalised positions. The ball's (10, 40) make the systems'
         velocity feature ~0.05; per-system scales bring both to a median of ~1
         (docs/vid2param-systems-probe.md: it sped up or enabled lq, w2, mu, c there).
+    kp_second : () or (float, float)
+        A fixed keypoint channel for a second tracked point (``parts.FrameEncoder``): keypoint
+        channel 1 is the frame less this grey level (fraction of 255) outside a disc of this
+        radius (pixels) around channel 0's centre, where the point channel 0 sees is drawn with
+        its anti-aliased rim; the view's fixed map reads point 1 from it. Empty: off (channels
+        1.. are learned). A two-point system's network then reads both points without a learned
+        map, so the points curriculum (``TrainConfig.points_steps``) qualifies for it.
     """
 
     frame_size: tuple[int, int] = (28, 28)
@@ -150,6 +157,7 @@ class V2PConfig:
     system: str = "ball"
     kp_learn: bool = False
     diff_scales: tuple[float, float] = (10.0, 40.0)
+    kp_second: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         self.frame_size = tuple(int(v) for v in self.frame_size)
@@ -190,10 +198,33 @@ class V2PConfig:
             raise ValueError("roll_features: needs 'r' among targets")
         if not 0.0 <= float(self.kp_threshold) < 1.0:
             raise ValueError(f"kp_threshold: expected a float in [0, 1), got {self.kp_threshold}")
+        self._check_kp_second()
         if self.latent < len(self.targets):
             raise ValueError(
                 f"latent: expected at least len(targets)={len(self.targets)}, got {self.latent}"
             )
+
+    def _check_kp_second(self) -> None:
+        ks = tuple(self.kp_second) if isinstance(self.kp_second, (tuple, list)) else None
+        if ks == ():
+            self.kp_second = ()
+            return
+        ok = (ks is not None and len(ks) == 2 and all(isinstance(v, (int, float)) and math.isfinite(v) for v in ks)
+              and 0.0 <= ks[0] < 1.0 and ks[1] > 0)
+        if not ok:
+            raise ValueError(f"kp_second: expected () or (grey level in [0, 1), exclusion radius "
+                             f"> 0 px), got {self.kp_second!r}")
+        if self.n_points != 2 or self.keypoints < 2:
+            raise ValueError(f"kp_second: expected a network of a two-point system with "
+                             f"keypoints >= 2, got system {self.system!r} ({self.n_points} "
+                             f"points), keypoints {self.keypoints}")
+        self.kp_second = tuple(float(v) for v in ks)
+
+    @property
+    def fixed_channels(self) -> int:
+        """Keypoint channels with a fixed (unlearned) heat map: channel 0, and channel 1 with
+        ``kp_second``."""
+        return 2 if self.kp_second else 1
 
     @property
     def n_points(self) -> int:
@@ -222,6 +253,7 @@ class V2PConfig:
         d["targets"] = list(self.targets)
         d["channels"] = list(self.channels)
         d["diff_scales"] = list(self.diff_scales)
+        d["kp_second"] = list(self.kp_second)
         return d
 
     @classmethod
@@ -274,7 +306,7 @@ class V2PConfig:
 #: Fields added after checkpoints were written, with the value that reproduces those
 #: checkpoints (``V2PConfig.from_dict``).
 LEGACY_DEFAULTS = {"physics_prior": False, "roll_stat": "steps", "system": "ball",
-                   "kp_learn": False, "diff_scales": (10.0, 40.0)}
+                   "kp_learn": False, "diff_scales": (10.0, 40.0), "kp_second": ()}
 #: Options removed (no shipped model used another value), with the value the network now
 #: always has (``V2PConfig.from_dict``): a 1-layer LSTM, fed the mean of z (not a sample), with
 #: the position differences as inputs, read as ``[h, c]`` by the heads, a residual prior, and
@@ -478,62 +510,70 @@ class Vid2ParamNet(nn.Module):
 
     # -- the points curriculum (``TrainConfig.points_steps``) ---------------------------------------
     def _point_columns(self) -> tuple[int, int]:
-        """Where keypoint channel 0's centre (column, row) sits in ``fx``: the only frame
-        features a network trained on points reads (:meth:`read_points_only_`).
+        """Where the fixed keypoint channels' centres (column, row; channel 0's, then channel
+        1's with ``kp_second``) sit in ``fx``: columns ``[i, i + 2 K)``, the only frame features
+        a network trained on points reads (:meth:`read_points_only_`). Returns ``(i, 2 K)``.
 
         Raises
         ------
         ValueError
-            The network's positions do not come from channel 0 alone through the view's fixed
-            map (the ball's box geometry, or a learned map for several points).
+            The network's K positions do not come from K fixed channels through the view's
+            fixed map (the ball's box geometry, a learned map, or a second point without
+            ``kp_second``).
         """
         from methods.vid2param import presets
 
         c = self.config
-        if presets.space_of(c.system) != presets.VIEW or c.kp_learn or c.kp_visibility:
+        if (presets.space_of(c.system) != presets.VIEW or c.kp_learn or c.kp_visibility
+                or c.fixed_channels != c.n_points):
             raise ValueError(
-                f"points_steps: expected a system's network whose one tracked point is keypoint "
-                f"channel 0 through the view's fixed map (space 'view', kp_learn and "
-                f"kp_visibility off), got system {c.system!r}, kp_learn {c.kp_learn}, "
-                f"kp_visibility {c.kp_visibility}")
-        i = self.encoder.n_out - 3 * c.keypoints
-        return i, i + 1
+                f"points_steps: expected a system's network whose K tracked points are its K "
+                f"fixed keypoint channels through the view's fixed map (space 'view', kp_learn "
+                f"and kp_visibility off, kp_second for a second point), got system "
+                f"{c.system!r}, kp_learn {c.kp_learn}, kp_visibility {c.kp_visibility}, "
+                f"{c.n_points} points and {c.fixed_channels} fixed channels")
+        return self.encoder.n_out - 3 * c.keypoints, 2 * c.n_points
 
     def point_features(self, points: torch.Tensor) -> torch.Tensor:
-        """The frame features ``fx`` (B, T, feat + 3 K) that a frame showing its point at
-        ``points`` gives a network that reads only keypoint channel 0's centre.
+        """The frame features ``fx`` (B, T, feat + 3 keypoints) that a frame showing its K
+        points at ``points`` gives a network that reads only its fixed keypoint channels'
+        centres.
 
         Parameters
         ----------
-        points : Tensor, shape (B, T, 2)
-            The tracked point in the view's unit square (the targets' ``x, y``).
+        points : Tensor, shape (B, T, 2 K)
+            The tracked points in the view's unit square, as the targets' positions
+            ``x, y, x1, y1, ...``.
 
         Returns
         -------
-        Tensor, shape (B, T, feat + 3 K)
-            Zeros except channel 0's centre: column ``x``, row ``1 - y`` (the view's fixed map,
-            ``parts.KeypointPosition``, inverted).
+        Tensor, shape (B, T, feat + 3 keypoints)
+            Zeros except the fixed channels' centres: channel k's column ``x_k``, row
+            ``1 - y_k`` (the view's fixed map, ``parts.KeypointPosition``, inverted).
         """
-        i, _ = self._point_columns()
+        i, n = self._point_columns()
+        if points.shape[-1] != n:
+            raise ValueError(f"points: expected (B, T, {n}) for the {self.config.system} "
+                             f"system's {n // 2} points, got shape {tuple(points.shape)}")
         fx = points.new_zeros(*points.shape[:2], self.encoder.n_out)
-        fx[..., i] = points[..., 0]
-        fx[..., i + 1] = 1.0 - points[..., 1]
+        fx[..., i:i + n:2] = points[..., 0::2]
+        fx[..., i + 1:i + n:2] = 1.0 - points[..., 1::2]
         return fx
 
     @torch.no_grad()
     def read_points_only_(self) -> None:
-        """Zero the posterior's weights on every frame feature but channel 0's centre.
+        """Zero the posterior's weights on every frame feature but the fixed channels' centres.
 
         A network trained on :meth:`point_features` then reads a rendered frame exactly as it
         read the points (its other features meet zero weights), and the frame features start
         to count only as those weights learn in the pixel phase: the switch from points to
         pixels keeps what was learnt.
         """
-        i, j = self._point_columns()
+        i, n = self._point_columns()
         w = self.posterior.mlp[0].weight
-        keep = w[:, i:j + 1].clone()
+        keep = w[:, i:i + n].clone()
         w[:, :self.encoder.n_out] = 0.0
-        w[:, i:j + 1] = keep
+        w[:, i:i + n] = keep
 
     def points_loss(self, points: torch.Tensor, targets: torch.Tensor,
                     supervised: torch.Tensor | None = None) -> dict:
@@ -542,8 +582,9 @@ class Vid2ParamNet(nn.Module):
 
         Parameters
         ----------
-        points : Tensor, shape (B, T, 2)
-            The tracked point as a keypoint would see it (with its noise), unit square.
+        points : Tensor, shape (B, T, 2 K)
+            The K tracked points as their keypoints would see them (with their noise), unit
+            square, ``x, y, x1, y1, ...``.
         targets : Tensor, shape (B, T, K)
             Normalised targets (true positions, parameters).
         supervised : Tensor of bool, shape (K,), optional

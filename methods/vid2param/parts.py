@@ -88,11 +88,13 @@ class FrameEncoder(nn.Module):
     """Frame features ``fx = [phi_x(conv(frame)), keypoint centres, keypoint log masses]``.
 
     Keypoints are spatial expectations (as in deep spatial autoencoders): K non-negative heat
-    maps -- channel 0 the full-resolution frame less ``kp_threshold``, channels 1.. learned 3x3
-    convolutions of the pooled frame -- each give their centre of mass (column, row, in [0, 1])
-    and log total mass. Channel 0 is the ball's intensity centroid: sub-pixel positions from
-    the first training step. The conv path and the learned channels see the frame average-pooled
-    by ``pool`` (convolutions over 5000-pixel frames made a CPU training step ~10 s).
+    maps -- channel 0 the full-resolution frame less ``kp_threshold``, with ``kp_second``
+    channel 1 the full-resolution frame less its grey level outside a disc around channel 0's
+    centre, the others learned 3x3 convolutions of the pooled frame -- each give their centre of
+    mass (column, row, in [0, 1]) and log total mass. Channel 0 is the ball's intensity
+    centroid: sub-pixel positions from the first training step. The conv path and the learned
+    channels see the frame average-pooled by ``pool`` (convolutions over 5000-pixel frames made
+    a CPU training step ~10 s).
     """
 
     def __init__(self, c):
@@ -108,7 +110,11 @@ class FrameEncoder(nn.Module):
         with torch.no_grad():
             n_conv = self.conv(torch.zeros(1, 1, Hp, Wp)).numel()
         self.phi_x = nn.Sequential(nn.Flatten(), nn.Linear(n_conv, c.feat), nn.ReLU())
-        self.kp = nn.Conv2d(1, c.keypoints - 1, 3, padding=1) if c.keypoints > 1 else None
+        #: channel 1's (grey level, exclusion radius in px), or None (``kp_second``)
+        self.second = tuple(c.kp_second) if c.kp_second else None
+        n_learned = c.keypoints - (2 if self.second else 1)
+        self.kp = nn.Conv2d(1, n_learned, 3, padding=1) if n_learned > 0 else None
+        self.frame_hw = (H, W)
         self.register_buffer("grid", _centre_grid(H, W), persistent=False)
         self.register_buffer("grid_pool", _centre_grid(Hp, Wp), persistent=False)
         self.n_out = c.feat + 3 * c.keypoints  # size of fx
@@ -130,6 +136,12 @@ class FrameEncoder(nn.Module):
         mass0 = heat0.sum(-1, keepdim=True)
         centre = (heat0 / mass0) @ self.grid.T  # (N, 1, 2)
         mass = mass0
+        if self.second is not None:
+            # both centres in float64: a float32 sum's order differs between a batch and one
+            # frame by ~1e-6, which this network's difference scales (the collision's 259 and
+            # 14.4) carry into its stream's posterior at 3e-4 of the batch's
+            centre = ((heat0.double() / mass0.double()) @ self.grid.double().T).float()
+            centre, mass = self._second_channel(full, centre, mass0)
         if self.kp is not None:
             if KEYPOINT_CHANNELS_LAST and (x.shape[0] > 1 or torch.is_grad_enabled()):
                 # a 1 -> K-1 channel conv runs ~5x faster on the CPU on a channels_last input
@@ -137,13 +149,33 @@ class FrameEncoder(nn.Module):
                 # training's forward + backward 87 -> 50 ms); the maps come out (N, Hp, Wp, K-1)
                 x = x.to(memory_format=torch.channels_last)
             maps = torch.relu(_apply_convs(self.kp, x)).permute(0, 2, 3, 1)
-            heat = maps.reshape(x.shape[0], -1, self.keypoints - 1) + 1e-6  # (N, Hp*Wp, K-1)
-            m = heat.sum(1)[..., None]  # (N, K-1, 1)
-            centre_k = torch.matmul(self.grid_pool, heat).transpose(1, 2) / m  # (N, K-1, 2)
+            heat = maps.reshape(x.shape[0], -1, self.kp.out_channels) + 1e-6  # (N, Hp*Wp, L)
+            m = heat.sum(1)[..., None]  # (N, L, 1)
+            centre_k = torch.matmul(self.grid_pool, heat).transpose(1, 2) / m  # (N, L, 2)
             centre = torch.cat([centre, centre_k], 1)  # (N, K, 2)
-            mass = torch.cat([mass0, m], 1)
+            mass = torch.cat([mass, m], 1)
         out = torch.cat([out, centre.flatten(1), torch.log(mass[..., 0])], -1)
         return out.reshape(*lead, -1)
+
+    def _second_channel(self, full: torch.Tensor, centre0: torch.Tensor, mass0: torch.Tensor):
+        """Channel 0's centre and mass with channel 1 (``kp_second``) appended: (N, 2, 2) and
+        (N, 2, 1), from the full-resolution frames ``full`` (N, 1, H, W) in [0, 1].
+
+        Channel 1 is ``relu(frame - level)`` outside ``radius`` pixels of channel 0's centre:
+        the point channel 0 sees is drawn over the second one, and its anti-aliased rim lies
+        within its radius + 0.71 px, so the mask takes out all of it and the second point's
+        disc is left whole (a centroid at its centre) except when the two come within about a
+        pixel of touching.
+        """
+        level, radius = self.second
+        H, W = self.frame_hw
+        heat = torch.relu(full - level).flatten(2)  # (N, 1, H W)
+        d = (self.grid[None] - centre0.transpose(1, 2)) * self.grid.new_tensor([[W], [H]])
+        far = (d * d).sum(1, keepdim=True) > radius * radius  # (N, 1, H W)
+        heat1 = (heat * far + 1e-6).double()
+        m1 = heat1.sum(-1, keepdim=True)
+        centre1 = ((heat1 / m1) @ self.grid.double().T).float()
+        return torch.cat([centre0, centre1], 1), torch.cat([mass0, m1.float()], 1)
 
 
 class KeypointPosition(nn.Module):
@@ -174,14 +206,17 @@ class KeypointPosition(nn.Module):
 
         if presets.space_of(c.system) == presets.VIEW:
             # positions normalised by the system's view extent, which the frame spans linearly
-            # (``systems._draw.View``): x = column fraction, y = 1 - row fraction; every point
-            # starts at channel 0's centre (with ``kp_learn`` the map then learns the others)
+            # (``systems._draw.View``): x = column fraction, y = 1 - row fraction; point k reads
+            # fixed channel k (``V2PConfig.fixed_channels``), any other point starts at channel
+            # 0's centre (with ``kp_learn`` the map then learns the others)
             with torch.no_grad():
                 self.map.weight.zero_()
                 self.map.bias.zero_()
-                self.map.weight[0::2, 0] = 1.0
-                self.map.weight[1::2, 1] = -1.0
-                self.map.bias[1::2] = 1.0
+                for k in range(len(positions) // 2):
+                    ch = k if k < c.fixed_channels else 0
+                    self.map.weight[2 * k, 2 * ch] = 1.0
+                    self.map.weight[2 * k + 1, 2 * ch + 1] = -1.0
+                    self.map.bias[2 * k + 1] = 1.0
             # visibility: half at a tenth of the frame's pixels lit (no ball geometry here)
             self.log_mref = math.log(0.1 * c.frame_size[0] * c.frame_size[1] *
                                      (1 - c.kp_threshold))

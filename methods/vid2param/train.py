@@ -246,8 +246,9 @@ class TrainConfig:
     variant_options : dict, optional
         Options of ``variant`` (e.g. ``{"param": "e"}``).
     points_steps : int
-        Curriculum (a system's network whose one point is keypoint channel 0): for the first
-        steps the network is fed no frames but the tracked point as its keypoint would see it
+        Curriculum (a system's network whose K points are its K fixed keypoint channels:
+        channel 0, and channel 1 with ``V2PConfig.kp_second``): for the first steps the network
+        is fed no frames but the tracked points as its keypoints would see them
         (``Vid2ParamNet.point_features``: true positions of fresh train-split trajectories
         with Gaussian noise of ``points_noise_px`` pixels), and the loss is the encoder's NLL
         alone; no convolution runs, so a step costs the recurrence only (~20x cheaper). The
@@ -581,8 +582,8 @@ class _PointFeed:
         self.params_only = np.array([n not in pos for n in targets])
 
     def batch(self, step: int) -> tuple[np.ndarray, np.ndarray]:
-        """Points (B, T, 2) in the view's unit square with keypoint noise, and targets
-        (B, T, K), both float32."""
+        """The system's P points (B, T, 2 P) in the view's unit square with keypoint noise
+        (``x, y, x1, y1, ...``), and targets (B, T, K), both float32."""
         from methods.vid2param.data import normalise_points, system_targets_from_arrays
 
         tc, s = self.tc, self.sys
@@ -592,9 +593,9 @@ class _PointFeed:
         pts = s.observe(states, theta)
         tg = system_targets_from_arrays(s, pts, theta, self.names)
         h, w = tc.size
-        seen = normalise_points(pts[:, :, 0], s.extent)
+        seen = normalise_points(pts, s.extent)  # (B, T, P, 2)
         seen = seen + rng.normal(size=seen.shape) * (tc.points_noise_px / np.array([w, h]))
-        return seen.astype(np.float32), tg
+        return seen.reshape(*seen.shape[:2], -1).astype(np.float32), tg
 
 
 def _frame_step(net, opt, schedule, feed, tc: TrainConfig, step: int, sched: int, dev):
