@@ -154,6 +154,20 @@ def test_observe_clip_takes_the_options_as_tokens_or_keywords(ran):
         footage.observe_clip(video, "spring", zoom=2)
 
 
+def test_a_cell_reads_the_clip_at_the_capture_dt_as_identify_does(ran):
+    # resampled to 20 frames/s by the nearest frame, a 30 frames/s clip has every other frame
+    # 1/60 s off its time: the ball's clip 0 of the default run was read 19% off in g (issue 38)
+    import json
+
+    d, _ = ran
+    truth = json.loads((cam_exp.clip_dir(d) / "spring_0.json").read_text())
+    video = cam_exp.clip_dir(d) / truth["file"]
+    obs, *_ = cam_exp.case_observation(video, "spring", truth["options"])
+    assert obs.dt == pytest.approx(1.0 / truth["fps"], rel=1e-9)  # what the cell above read
+    # read from the cell's cached track (one per way of reading the clip: fps, frame cap)
+    assert len(list(cam_exp.clip_dir(d).glob("spring_0.track-*.npz"))) == 1
+
+
 @pytest.mark.slow
 def test_the_collision_has_a_camera_its_scene_cached_with_the_track(tmp_path):
     # the two carts followed by colour, the track's ends and the carts' sizes as the scene;
