@@ -46,7 +46,7 @@ EXPECTED = {
     # no network is shipped for the other systems (train one: ``sysid-bench train --system``;
     # ``checkpoint=F`` loads it)
     "vid2param": {"ball": "answers", "pendulum": "answers", "spring": "answers",
-                  "collision": "no model"},
+                  "collision": "answers"},
     "vid2param-physics": {"ball": "answers", "pendulum": "n/a", "spring": "n/a",
                           "collision": "n/a"},
     "vid2param-changing": {"ball": "answers", "pendulum": "n/a", "spring": "n/a",
