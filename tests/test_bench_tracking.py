@@ -8,7 +8,11 @@ then, in the same process:
   grey table) against a plain PyAV loop converting each frame with ``to_ndarray("gray")``;
 - tracking: :func:`sysid_bench.core.footage.find_object` (the track followed in a window around
   its predicted position) against the same tracker searching every frame whole
-  (``window=False``), which gives the same track bit for bit.
+  (``window=False``), which gives the same track bit for bit;
+- the colour path (what ``sysid-bench identify`` follows a camera's object by): the clip decoded
+  with its colour copy, :func:`sysid_bench.core.footage.colour_difference` (one compiled pass,
+  split over the cores) against the numpy expression it replaced (the same bits), and
+  :func:`sysid_bench.core.footage.find_object` on the colour copy, decode included.
 
 Frames per second of each are printed and stored in ``extra_info``; only ratios measured in the
 same run are asserted (the machine is shared: absolute times say little).
@@ -118,3 +122,34 @@ def test_bench_track_1080p(benchmark, clip_1080p):
     # measured 1.40x and 1.43x under load 15 (docs/video.md: find_object before these
     # changes against now on a camera-like 1080p ball clip, 3.2x)
     assert info["cpu_ratio"] >= 1.2
+
+
+@pytest.mark.benchmark(group="tracking-1080p")
+def test_bench_colour_track_1080p(benchmark, clip_1080p):
+    from test_tracking_window import _colour_difference_numpy  # the expression replaced
+
+    clip = footage.read_video(clip_1080p, None, colour=True)
+    col = clip.colour_frames
+    assert col is not None and col.shape[0] == N_FRAMES
+
+    def whole():  # decode with the colour copy, then follow the object as identify does
+        c = footage.read_video(clip_1080p, None, colour=True)
+        return footage.find_object(c.frames, colour=c.colour_frames)
+
+    trk = benchmark.pedantic(whole, rounds=2, iterations=1, warmup_rounds=1)
+    assert trk.n_found >= N_FRAMES - 10
+    all_cpu, all_wall, _ = _cpu_and_wall(whole, 2)
+    new_cpu, new_wall, got = _cpu_and_wall(lambda: footage.colour_difference(col), 3)
+    old_cpu, old_wall, ref = _cpu_and_wall(lambda: _colour_difference_numpy(col), 3)
+    assert np.array_equal(got, ref)  # the same float32 bits
+    info = _rates("colour_difference", new_cpu, new_wall, "numpy", old_cpu, old_wall)
+    info.update(decode_and_track_fps_cpu=N_FRAMES / all_cpu,
+                decode_and_track_fps_wall=N_FRAMES / all_wall)
+    benchmark.extra_info.update(info)
+    print(f"\n1080p colour path: decode + colour copy + find_object "
+          f"{info['decode_and_track_fps_cpu']:.1f} frames per CPU-second "
+          f"({info['decode_and_track_fps_wall']:.1f} frames/s wall); colour_difference "
+          f"{info['colour_difference_fps_cpu']:.1f} frames per CPU-second, the numpy expression "
+          f"{info['numpy_fps_cpu']:.1f}: {info['cpu_ratio']:.2f}x less CPU")
+    # measured 2.7x (the per-pixel pass alone ~9x; the median over time, unchanged, is the rest)
+    assert info["cpu_ratio"] >= 1.5

@@ -160,3 +160,59 @@ def test_read_video_grey_is_ffmpegs(tmp_path):
     with av.open(str(path)) as c:
         table = footage._luma_table(next(iter(c.decode(video=0))))
     assert table is not False and table[16] == 0 and table[235] == 255  # limited range
+
+
+def _colour_difference_numpy(c, max_frames=150):
+    """colour_difference as it was written in numpy (before the compiled per-pixel pass)."""
+    t_n = c.shape[0]
+    idx = np.unique(np.linspace(0, t_n - 1, min(t_n, max_frames)).astype(int))
+    bg = np.median(c[idx], axis=0).astype(np.float32)
+    bg_y = bg.mean(axis=-1)
+    bg_c = bg - bg_y[..., None]
+    out = np.empty(c.shape[:3], dtype=np.float32)
+    for i in range(0, t_n, 32):
+        f = c[i:i + 32].astype(np.float32)
+        y = f.mean(axis=-1)
+        dc = (f - y[..., None]) - bg_c
+        out[i:i + 32] = np.sqrt((y - bg_y) ** 2
+                                + footage.CHROMA_WEIGHT * (dc * dc).sum(axis=-1))
+    sample = out[idx[:: max(1, len(idx) // 20)]]
+    sigma = float(footage.noise_level((sample - np.median(sample)).ravel()))
+    thr = max(20.0, 5.0 * sigma)
+    out[:, (out[idx] > thr).mean(axis=0) > footage.STATIC_SHARE] = 0.0
+    return out
+
+
+@pytest.mark.parametrize("n,dtype", [(40, np.uint8), (3, np.uint8), (17, np.float64)])
+def test_colour_difference_is_the_numpy_expression(n, dtype):
+    # the compiled pass (split over threads) gives numpy's float32 bits: the channels summed
+    # left to right, the same roundings; a moving blob so that some pixels are not static
+    rng = np.random.default_rng(n)
+    c = rng.integers(0, 256, (n, 23, 31, 3)).astype(dtype)
+    c[:, 5:9, :] = rng.integers(0, 256, (n, 1, 1, 3))
+    assert np.array_equal(footage.colour_difference(c), _colour_difference_numpy(c))
+
+
+@pytest.mark.parametrize("n", [150, 31, 2, 1])
+def test_background_samples_give_numpys_quantiles(n):
+    # find_ball's 10th/90th percentile over time from the background's sorted samples
+    x = np.random.default_rng(n).normal(100, 30, (n, 6, 8)).astype(np.float32)
+    idx = np.unique(np.linspace(0, n - 1, min(n, 150)).astype(int))
+    s = footage._background_samples(x)
+    for q in (10, 90):
+        ref = np.percentile(x[idx], q, axis=0).astype(np.float32)
+        assert np.array_equal(np.percentile(s, q, axis=1).reshape(6, 8).astype(np.float32), ref)
+    assert np.array_equal(footage._background(x), np.median(x[idx], axis=0).astype(np.float32))
+
+
+def test_over_frames_covers_every_frame_once(monkeypatch):
+    monkeypatch.setattr(footage, "_kernel_threads", lambda: 3)
+    seen = np.zeros(50, dtype=int)
+
+    def part(a, b):
+        seen[a:b] += 1
+
+    footage._over_frames(part, 50)
+    assert (seen == 1).all()
+    with pytest.raises(ZeroDivisionError):  # an error in a part reaches the caller
+        footage._over_frames(lambda a, b: 1 / 0, 50)
