@@ -283,11 +283,12 @@ def test_a_users_system_trains_by_the_one_command_and_its_file_answers(user_syst
     assert (post.std > 0).all()
 
 
-def test_the_benchmark_threads_option_reaches_the_n_a_sentence():
+def test_the_benchmark_threads_option_reaches_the_n_a_sentence(tmp_path, monkeypatch):
     """The benchmark passes ``threads`` to every method that declares it; on a system without a
     shipped model that must still be n/a (NotImplementedError), not an options error."""
     import methods
 
+    monkeypatch.setitem(SYSTEM_CHECKPOINTS, "collision", tmp_path / "no_model.pt")
     with pytest.raises(NotImplementedError, match="no model is shipped"):
         methods.get("vid2param", system="collision", threads=1)
 
