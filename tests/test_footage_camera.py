@@ -287,6 +287,44 @@ def test_swing_frequency_large_angle_and_damping():
         footage.swing_frequency(pix[:12], (300.0, 50.0), 0.05)
 
 
+def _half_seen_swing(n=120, dt=1 / 30, b=0.3):
+    """A decaying swing (L = 0.5 m, 400 px/m, pivot at column 40) whose bob leaves a frame
+    that starts at column 40 on the left half of every swing: NaN where it is out."""
+    from sysid_bench.core import systems
+
+    sys_ = systems.get("pendulum")
+    theta = np.array([[-9.81, 0.5, b, 0.0]])
+    xy = sys_.observe(sys_.simulate(theta, np.array([[0.6, 0.0]]), n, dt=dt), theta)[0][:, 0]
+    pix = np.stack([40 + 400 * xy[:, 0], -10 - 400 * xy[:, 1]], 1)
+    return np.where((pix[:, :1] > 52), pix, np.nan), pix
+
+
+def test_swing_frequency_of_a_bob_seen_on_one_side_only():
+    """Half of each swing out of the frame (nec.mp4): the seen arcs keep the period; fewer than
+    two turns seen is refused, never a period invented from the gaps."""
+    pix, _ = _half_seen_swing()
+    seen = np.isfinite(pix).all(axis=1)
+    assert 0.3 < seen.mean() < 0.6  # the bob is out for about half of the clip
+    w0, rel, _ = footage.swing_frequency(pix, (40.0, -10.0), 1 / 30)
+    assert abs(9.81 / w0 ** 2 - 0.5) < 0.03 * 0.5, 9.81 / w0 ** 2
+    with pytest.raises(ValueError, match="^known: .*fewer than two turns of one side"):
+        footage.swing_frequency(pix[:25], (40.0, -10.0), 1 / 30)
+
+
+def test_known_g_camera_of_a_swing_half_out_of_the_frame():
+    """A render whose bob leaves the frame on one side: followed where in view (lost frames
+    NaN, no invented position), the pivot from the seen arcs, the scale from the period."""
+    _, pix = _half_seen_swing(n=90)
+    col = pix[:, 0] - 40  # the frame starts at the pivot's column
+    frames = _disc_frames(pix - [40, 0], 6.0, (240, 180))
+    trk = find_object(frames)
+    assert not trk.found[col < -6].any()  # wholly out of the frame: not seen
+    assert trk.found[col > 8].mean() > 0.9
+    cam = camera_for("pendulum", trk, frames.shape[1:], known={"g": -9.81}, dt=1 / 30)
+    assert abs(cam.px_per_m - 400) < 0.05 * 400, cam.px_per_m
+    assert "period" in cam.source and abs(cam.origin[0]) < 8 and abs(cam.origin[1] + 10) < 15
+
+
 def test_colour_follows_a_hued_object_not_its_shadow_or_its_ghost():
     """A red bob on a beige wall of its own grey, a grey shadow beside it, resting for the
     last half of the clip (so the median scene holds it there)."""

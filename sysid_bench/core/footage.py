@@ -1697,6 +1697,19 @@ def swing_frequency(pix, pivot, dt: float) -> tuple[float, float, float]:
     nyq = math.pi / float(dt)
     freqs = np.linspace(2 * math.pi / span, nyq, 4000)
     w_pk = float(freqs[np.argmax(lombscargle(t, a0, freqs))])
+    # the turns seen give the period as well: where they disagree with the periodogram the
+    # swing was seen in part (the bob out of the frame, or lost, on one side: the seen side's
+    # arcs alone fit a sinusoid at twice the swing's frequency, their drifting mean one far
+    # below it), and the turns, which never need the unseen side, are kept
+    t_turn = _turn_period(np.flatnonzero(seen), ang) * float(dt)
+    if not math.isfinite(t_turn):
+        raise ValueError(f"known: g gives the scale through the swing's period; fewer than two "
+                         f"turns of one side of the swings were seen in {t.size} frames over "
+                         f"{span:.3g} s (the bob out of the frame or lost where it turns): give "
+                         "px_per_m, object_size_m or known L")
+    partial = abs(w_pk * t_turn / (2 * math.pi) - 1) > 0.25
+    if partial:
+        w_pk = 2 * math.pi / t_turn
     if span * w_pk / (2 * math.pi) < 1.5:
         raise ValueError(f"known: g gives the scale through the swing's period; {span:.3g} s of "
                          f"track hold {span * w_pk / (2 * math.pi):.2g} swings (at least 1.5 "
@@ -1707,18 +1720,64 @@ def swing_frequency(pix, pivot, dt: float) -> tuple[float, float, float]:
 
     amp0 = float(np.percentile(np.abs(a0), 95))
     ph0 = float(np.arctan2(-np.sum(a0 * np.sin(w_pk * t)), np.sum(a0 * np.cos(w_pk * t))))
-    try:
-        par, cov = curve_fit(model, t - t[0], ang, p0=(amp0, 0.05, w_pk, ph0, ang.mean()),
-                             bounds=([0, 0, 0.5 * w_pk, -np.inf, -np.pi],
-                                     [np.pi, 5.0, 1.5 * w_pk, np.inf, np.pi]), maxfev=20000)
-    except (RuntimeError, ValueError) as exc:
-        raise ValueError(f"known: the swing's period could not be fitted ({exc})") from None
+    bounds = ([0, 0, 0.5 * w_pk, -np.inf, -np.pi], [np.pi, 5.0, 1.5 * w_pk, np.inf, np.pi])
+    # a swing seen in part: the seen arcs fix the phase only together, so the fit starts from
+    # eight phases and keeps the closest (the whole swing's single start is kept as it was)
+    starts = [ph0] if not partial else list(np.linspace(-math.pi, math.pi, 8, endpoint=False))
+    best = None
+    for ph in starts:
+        try:
+            par, cov = curve_fit(model, t - t[0], ang, p0=(amp0, 0.05, w_pk, ph, ang.mean()),
+                                 bounds=bounds, maxfev=20000)
+        except (RuntimeError, ValueError) as exc:
+            err = exc
+            continue
+        cost = float(np.sum((model(t - t[0], *par) - ang) ** 2))
+        if best is None or cost < best[0]:
+            best = (cost, par, cov)
+    if best is None:
+        raise ValueError(f"known: the swing's period could not be fitted ({err})") from None
+    _, par, cov = best
     amp, lam, w = float(par[0]), float(par[1]), float(par[2])
     w_std = float(np.sqrt(max(cov[2, 2], 0.0))) if np.all(np.isfinite(cov)) else w
     a_med = float(amp * np.exp(-lam * 0.5 * (t[-1] - t[0])))
     w_d = math.sqrt(w * w + lam * lam)
     w0 = w_d * (1 + a_med ** 2 / 16 + 11 * a_med ** 4 / 3072)
     return w0, w_std / w, a_med
+
+
+def _turn_period(frames, ang, k: int = 3) -> float:
+    """The swing's period in frames from the turns seen on either side: NaN when no side shows
+    two.
+
+    A turn is a seen frame whose angle is the strict extreme of the seen frames within ``k``
+    of it, with a frame seen within ``k`` on either side (the edge of a gap, where the bob left
+    the frame, is not a turn); turns of one side closer than ``k`` frames are one. The period is the median interval between a side's
+    consecutive turns (a turn the tracker lost makes one interval twice as long).
+
+    Parameters
+    ----------
+    frames : ndarray, shape (N,), int
+        Indices of the seen frames, increasing.
+    ang : ndarray, shape (N,)
+        The bob's angle in those frames, rad.
+    k : int
+        Half-window, frames.
+    """
+    frames = np.asarray(frames)
+    ang = np.asarray(ang, dtype=np.float64)
+    gaps = []
+    for side in (1.0, -1.0):
+        turns = []
+        for i in range(1, len(frames) - 1):
+            near = np.abs(frames - frames[i]) <= k
+            if frames[i] - frames[i - 1] > k or frames[i + 1] - frames[i] > k:
+                continue  # no frame seen within k on one side: the edge of a gap
+            others = side * ang[near & (frames != frames[i])]
+            if side * ang[i] > others.max() and (not turns or frames[i] - turns[-1] > k):
+                turns.append(frames[i])
+        gaps += list(np.diff(turns))
+    return float(np.median(gaps)) if gaps else float("nan")
 
 
 #: Systems whose object falls freely between contacts, so that a known g gives the scale
