@@ -145,6 +145,71 @@ class FrameEncoder(nn.Module):
         out = torch.cat([out, centre.flatten(1), torch.log(mass[..., 0])], -1)
         return out.reshape(*lead, -1)
 
+    def train_features(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``forward``'s ``fx`` up to float order, and the pooled frames: a training step's path.
+
+        Arranged for a cheap training step on the CPU (docs/vid2param-training-speed.md,
+        "One conversion of the frames"); inference keeps ``forward``. The frames carry no
+        gradient, so their conversion runs without autograd in pieces of ~1 M pixels that stay
+        in cache: each frame is converted once (the pooled frames are also the decoder's
+        reconstruction target), pooled by summing ``pool x pool`` strided views (bitwise
+        ``avg_pool2d``'s numbers, at ~half its CPU time), and channel 0's centre and mass are
+        ``forward``'s arithmetic on each piece (bitwise). The convolutions run on channels_last
+        tensors (oneDNN's NHWC kernels: the 1 -> 8 layer's forward + backward ~3x faster on
+        32x32 frames), and the learned channels' centres and masses are one matrix product of
+        their NHWC maps (N, Hp Wp (K-1)) with ``kron([column, row, 1], I)`` (not N small
+        batched products); the 1e-6 that ``forward`` adds to each of their pixels is added to
+        the sums instead. Only those two differ from ``forward`` (float order).
+
+        Parameters
+        ----------
+        frames : Tensor, shape (..., H, W)
+            uint8, or float in [0, 255].
+
+        Returns
+        -------
+        fx : Tensor, shape (..., feat + 3 K)
+        pooled : Tensor, shape (..., Hp, Wp)
+            The frames in [0, 1] average-pooled by ``pool`` (the frames themselves if 1),
+            float32, bitwise ``pooled(frames / 255)``.
+        """
+        lead, (H, W) = frames.shape[:-2], frames.shape[-2:]
+        flat = frames.reshape(-1, 1, H, W)
+        n, p, t, dev = flat.shape[0], self.pool, self.kp_threshold, frames.device
+        Hp, Wp = H // p, W // p
+        x = torch.empty(n, 1, Hp, Wp, device=dev)
+        centre = torch.empty(n, 1, 2, device=dev)
+        mass = torch.empty(n, 1, device=dev)
+        chunk = max(1, 2**20 // (H * W))
+        with torch.no_grad():
+            for i in range(0, n, chunk):
+                full = flat[i:i + chunk].to(torch.float32).div_(255.0)
+                if p == 1:
+                    x[i:i + chunk] = full
+                else:  # the window's pixels in row order, then / p^2: as avg_pool2d sums
+                    acc = full[..., 0::p, 0::p].clone()
+                    for k in range(1, p * p):
+                        acc += full[..., k // p::p, k % p::p]
+                    torch.div(acc, p * p, out=x[i:i + chunk])
+                # channel 0 as ``forward`` computes it (full is not read again)
+                heat = (full.sub_(t).clamp_(min=0.0) if t else full).flatten(2).add_(1e-6)
+                m = heat.sum(-1, keepdim=True)
+                mass[i:i + chunk] = m[:, 0]
+                torch.matmul(heat.div_(m), self.grid.T, out=centre[i:i + chunk])
+        xc = x.to(memory_format=torch.channels_last)
+        out = self.phi_x(self.conv(xc))
+        if self.kp is not None:
+            k1 = self.keypoints - 1
+            gp = torch.cat([self.grid_pool, torch.ones(1, Hp * Wp, device=dev)]).T.contiguous()
+            # rows (pixel, channel) of the NHWC maps to columns (column/row/1, channel)
+            sums = torch.relu(self.kp(xc)).permute(0, 2, 3, 1).reshape(n, -1) @ torch.kron(
+                gp, torch.eye(k1, device=dev))
+            sums = sums.reshape(n, 3, k1) + 1e-6 * gp.sum(0)[:, None]
+            centre = torch.cat([centre, (sums[:, :2] / sums[:, 2:]).transpose(1, 2)], 1)
+            mass = torch.cat([mass, sums[:, 2]], 1)
+        fx = torch.cat([out, centre.flatten(1), torch.log(mass)], -1)
+        return fx.reshape(*lead, -1), x.reshape(*lead, Hp, Wp)
+
 
 class KeypointPosition(nn.Module):
     """The posterior's x, y means: keypoint channel 0's centre mapped to metres by the view
