@@ -239,6 +239,36 @@ def test_the_channels_last_keypoint_convolution_gives_the_nchw_numbers(preset, m
         torch.testing.assert_close(enc(frames[:1]), enc(frames)[:1], rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("preset", ["default", "camera", "pendulum", "collision", "one-keypoint"])
+def test_the_training_encoder_path_gives_forwards_features(preset):
+    """``FrameEncoder.train_features`` (``Vid2ParamNet.forward``'s path) is ``forward``
+    bitwise, gradients included, and its pooled frames (the reconstruction target) are
+    ``pooled(frames / 255)`` bitwise."""
+    import methods.vid2param.parts as parts
+    from methods.vid2param.model import V2PConfig
+
+    torch.manual_seed(0)
+    c = {"default": V2PConfig(), "one-keypoint": V2PConfig(keypoints=1, pool=2)}.get(
+        preset) or V2PConfig.preset(preset)
+    enc = parts.FrameEncoder(c)
+    frames = (torch.rand(2, 3, *c.frame_size) ** 8 * 255).to(torch.uint8)
+
+    def run(fn):
+        enc.zero_grad()
+        fx = fn(frames)
+        fx.square().sum().backward()
+        return fx.detach(), [p.grad.clone() for p in enc.parameters() if p.grad is not None]
+
+    (fx, grads), (fx_old, grads_old) = run(lambda f: enc.train_features(f)[0]), run(enc)
+    assert fx.shape == (2, 3, enc.n_out) and len(grads) == len(grads_old) > 0
+    assert torch.equal(fx, fx_old)
+    for g, g_old in zip(grads, grads_old, strict=True):
+        assert torch.equal(g, g_old)
+    pooled = enc.train_features(frames)[1]
+    want = enc.pooled(frames.reshape(-1, 1, *c.frame_size).to(torch.float32) / 255.0)
+    assert torch.equal(pooled, want.reshape(pooled.shape))
+
+
 def _write_fixture(names=("28x28", "camera")) -> None:
     """Record ``names``' outputs; the fixture's entries of other checkpoints are kept."""
     arrays = dict(np.load(FIXTURE)) if FIXTURE.exists() else {}

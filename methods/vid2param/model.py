@@ -455,7 +455,9 @@ class Vid2ParamNet(nn.Module):
         K = len(c.targets)
         n_obs = T if n_obs is None else int(n_obs)
         aux = c.aux_grad if aux_grad is None else float(aux_grad)
-        fx = self.encode_frames(frames[:, :n_obs])  # (B, n_obs, feat), all frames at once
+        # (B, n_obs, feat) and the pooled frames (B, n_obs, Hp, Wp), all frames at once; the
+        # training path of ``encode_frames`` (the same numbers up to float order)
+        fx, pooled = self.encoder.train_features(frames[:, :n_obs])
         # the observed frames in one fused recurrence (``_observed_pass``), then the forecast
         # frames (if any) step by step from its last state
         hs, post, state = self._observed_pass(fx)
@@ -486,10 +488,7 @@ class Vid2ParamNet(nn.Module):
         else:
             idx = torch.arange(n_obs, device=frames.device)
         logits = self.decode(qmu[:, idx] + qstd[:, idx] * eps[:, idx], Hobs[:, idx])
-        target = frames[:, idx].to(torch.float32) / 255.0
-        if c.pool > 1:
-            target = self.encoder.pooled(target.reshape(-1, 1, *target.shape[-2:])).reshape(
-                *target.shape[:2], *self.decoder.size)
+        target = pooled[:, idx]  # bitwise ``encoder.pooled(frames / 255)``
         rec = F.binary_cross_entropy_with_logits(logits, target, reduction="none").sum((-1, -2))  # (B, n_rec): summed over pixels as the authors did
         kl = gaussian_kl(qmu, qstd, pmu, pstd).sum(-1)
         keep = slice(None) if supervised is None else torch.as_tensor(

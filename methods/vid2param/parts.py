@@ -177,6 +177,73 @@ class FrameEncoder(nn.Module):
         centre1 = ((heat1 / m1) @ self.grid.double().T).float()
         return torch.cat([centre0, centre1], 1), torch.cat([mass0, m1.float()], 1)
 
+    def train_features(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``forward``'s ``fx`` (bitwise) and the pooled frames: a training step's path.
+
+        Arranged for a cheap training step on the CPU (docs/vid2param-training-speed.md,
+        "One conversion of the frames"); inference keeps ``forward``. The frames carry no
+        gradient, so their conversion runs without autograd in pieces of ~1 M pixels that stay
+        in cache (``forward`` writes and reads several full-resolution float copies of the whole
+        batch): each frame is converted once (the pooled frames are also the decoder's
+        reconstruction target), pooled by summing ``pool x pool`` strided views (bitwise
+        ``avg_pool2d``'s numbers, at ~half its CPU time), and channel 0's centre and mass are
+        ``forward``'s arithmetic on each piece. The layers with weights run as in ``forward``:
+        channels_last convolutions for the 1 -> 8 layer or an NHWC keypoint centroid
+        as one matrix product were faster but moved the camera's pinned training terms by
+        1.5-1.9e-5 (``tests/test_vid2param_parts.py`` pins them to 1e-5).
+
+        Parameters
+        ----------
+        frames : Tensor, shape (..., H, W)
+            uint8, or float in [0, 255].
+
+        Returns
+        -------
+        fx : Tensor, shape (..., feat + 3 K)
+        pooled : Tensor, shape (..., Hp, Wp)
+            The frames in [0, 1] average-pooled by ``pool`` (the frames themselves if 1),
+            float32, bitwise ``pooled(frames / 255)``.
+        """
+        lead, (H, W) = frames.shape[:-2], frames.shape[-2:]
+        if self.second is not None:  # the fixed second channel reads full frames: forward's path
+            full = frames.reshape(-1, 1, H, W).to(torch.float32) / 255.0
+            x = self.pooled(full) if self.pool > 1 else full
+            return self.forward(frames), x.reshape(*lead, *x.shape[-2:])
+        flat = frames.reshape(-1, 1, H, W)
+        n, p, t, dev = flat.shape[0], self.pool, self.kp_threshold, frames.device
+        Hp, Wp = H // p, W // p
+        x = torch.empty(n, 1, Hp, Wp, device=dev)
+        centre = torch.empty(n, 1, 2, device=dev)
+        mass = torch.empty(n, 1, device=dev)
+        chunk = max(1, 2**20 // (H * W))
+        with torch.no_grad():
+            for i in range(0, n, chunk):
+                full = flat[i:i + chunk].to(torch.float32).div_(255.0)
+                if p == 1:
+                    x[i:i + chunk] = full
+                else:  # the window's pixels in row order, then / p^2: as avg_pool2d sums
+                    acc = full[..., 0::p, 0::p].clone()
+                    for k in range(1, p * p):
+                        acc += full[..., k // p::p, k % p::p]
+                    torch.div(acc, p * p, out=x[i:i + chunk])
+                # channel 0 as ``forward`` computes it (full is not read again)
+                heat = (full.sub_(t).clamp_(min=0.0) if t else full).flatten(2).add_(1e-6)
+                m = heat.sum(-1, keepdim=True)
+                mass[i:i + chunk] = m[:, 0]
+                torch.matmul(heat.div_(m), self.grid.T, out=centre[i:i + chunk])
+        out = self.phi_x(self.conv(x))
+        if self.kp is not None:
+            # ``forward``'s arithmetic (its channels_last input for the K-1 channel conv)
+            xc = x.to(memory_format=torch.channels_last) if KEYPOINT_CHANNELS_LAST else x
+            heat = torch.relu(self.kp(xc)).permute(0, 2, 3, 1).reshape(
+                n, -1, self.keypoints - 1) + 1e-6  # (N, Hp Wp, K-1)
+            m = heat.sum(1)[..., None]  # (N, K-1, 1)
+            centre_k = torch.matmul(self.grid_pool, heat).transpose(1, 2) / m
+            centre = torch.cat([centre, centre_k], 1)
+            mass = torch.cat([mass, m[..., 0]], 1)
+        fx = torch.cat([out, centre.flatten(1), torch.log(mass)], -1)
+        return fx.reshape(*lead, -1), x.reshape(*lead, Hp, Wp)
+
 
 class KeypointPosition(nn.Module):
     """The posterior's x, y means: keypoint channel 0's centre mapped to metres by the view
