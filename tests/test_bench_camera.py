@@ -73,6 +73,22 @@ def test_na_cells_say_why(ran):
     assert v2p["status"] == "n/a" and "renderer" in v2p["error"]
 
 
+def test_a_clip_identify_refuses_is_n_a_with_its_reason(ran, monkeypatch):
+    """A clip that identify refuses with the shot's options (e.g. a swing too short for a
+    pivot) is no answer for any method: n/a with identify's sentence, not an error."""
+    import sysid_bench.bench.camera as camera
+
+    d, _ = ran
+
+    def refuse(*a, **k):
+        raise ValueError("pivot: the bob's track is not an arc about one pivot")
+
+    monkeypatch.setattr(camera, "case_observation", refuse)
+    out = execute(EXPERIMENTS["camera"].cells(SMOKE, ["lsq"], "spring")[0], SMOKE, str(d))
+    assert out["status"] == "n/a" and "identify refuses this clip" in out["error"]
+    assert "not an arc" in out["error"]
+
+
 def test_the_table_and_reading(ran):
     import pandas as pd
 

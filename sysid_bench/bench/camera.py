@@ -208,8 +208,12 @@ class Camera(Experiment):
         rate, cap = frame_rate_of(proto), frame_cap_of(proto)
         if cap is not None and int(truth["n_frames"]) <= cap:
             cap = None
-        obs, lost, rel, known, prior = case_observation(video, system, truth["options"],
-                                                        fps=rate, max_frames=cap)
+        try:
+            obs, lost, rel, known, prior = case_observation(video, system, truth["options"],
+                                                            fps=rate, max_frames=cap)
+        except ValueError as exc:  # identify refuses the clip with these options: no answer
+            raise NotImplementedError(f"identify refuses this clip ({video.name}, "
+                                      f"{' '.join(truth['options'])}): {exc}") from exc
         takes = {"known", "prior"} <= set(proto.get_params())
         est = ctx.estimator(cell.method, system=system, known=known, prior=prior) if takes \
             else proto
