@@ -235,14 +235,16 @@ class PointsModel:
         _, _, _, state = self.posteriors(self._obs_frames(obs))
         return self._rollout(state, horizon)
 
-    def _physics_forecast(self, obs: Observation, horizon: int) -> Forecast:
+    def _physics_forecast(self, obs: Observation, horizon: int,
+                          post: Posterior | None = None) -> Forecast:
         from methods._points import Points, default_sigma, forecast_points, refine
 
         horizon = int(horizon)
         if not 1 <= horizon <= MAX_HORIZON:
             raise ValueError(f"horizon: expected an int in [1, {MAX_HORIZON}], got {horizon}")
         t0 = time.perf_counter()
-        post = self.identify(obs)
+        if post is None:  # a stream passes the posterior it already has
+            post = self.identify(obs)
         sys_, est = self._sys, self._est
         lo, hi = sys_.prior_lo, sys_.prior_hi
         mean = np.clip(post.mean, lo, hi)
@@ -300,6 +302,7 @@ class PointsStream(Stream):
         self._pts = np.full((self._est._sys.n_points, 2), np.nan)
         # a simulator forecast reads the frames seen so far (the track it fits the state to)
         self._seen = [] if self._est.forecast_kind() == "physics" else None
+        self._post = None  # the latest push's posterior
 
     @property
     def n_frames(self) -> int:
@@ -329,8 +332,9 @@ class PointsStream(Stream):
         self._pts = pts[0]
         if self._seen is not None:
             self._seen.append(fr.copy())
-        return est._params(m[0], s[0], {"wall_s": time.perf_counter() - t0,
-                                        "n_frames": self._n}, self._n)
+        self._post = est._params(m[0], s[0], {"wall_s": time.perf_counter() - t0,
+                                              "n_frames": self._n}, self._n)
+        return self._post
 
     def position(self) -> np.ndarray:
         """The network's first tracked point (2,) m at the latest frame."""
@@ -341,7 +345,7 @@ class PointsStream(Stream):
             if not self._seen:
                 raise ValueError("forecast: expected at least one pushed frame, got none")
             obs = Observation(frames=np.stack(self._seen), system=self._est._sys.name)
-            fc = self._est._physics_forecast(obs, horizon)
+            fc = self._est._physics_forecast(obs, horizon, self._post)
             if floor:
                 fc.mean[..., 1] += float(floor)
             return fc
