@@ -198,3 +198,43 @@ def test_the_collision_has_a_camera_its_scene_cached_with_the_track(tmp_path):
     obs, *_ = cam_exp.case_observation(video, "collision", truth["options"])
     again, *_ = cam_exp.case_observation(video, "collision", truth["options"])  # cached
     assert again.scene == obs.scene and abs(obs.scene.ends[1] - 2.0) < 0.05
+
+
+def test_the_rounding_of_given_options_reaches_the_intervals(ran):
+    # the spring clip's options give the scale to three figures and the anchor to a pixel: a
+    # rest length read from that anchor is +- half a pixel off at most (issue 38: two of the
+    # spring's confident wrong answers were L0 intervals narrower than that rounding)
+    import json
+    import math
+
+    d, _ = ran
+    truth = json.loads((cam_exp.clip_dir(d) / "spring_0.json").read_text())
+    video = cam_exp.clip_dir(d) / truth["file"]
+    opts = footage.clip_options(truth["options"])
+    assert opts["anchor"].resolution == 1.0 and opts["px_per_m"].resolution > 0
+    cc = footage.observe_clip(video, "spring", truth["options"])
+    s = cc.camera.px_per_m
+    assert cc.camera.param_std == {"L0": pytest.approx(1.0 / math.sqrt(12.0) / s)}
+    assert cc.camera.scale_rel_std == pytest.approx(
+        opts["px_per_m"].resolution / math.sqrt(12.0) / s)
+    # the section's cached track carries the same
+    _, _, rel, param_std, _, _ = cam_exp.case_observation(video, "spring", truth["options"])
+    assert param_std == pytest.approx(cc.camera.param_std) and rel == cc.camera.scale_rel_std
+    std = footage.widen_for_placement(("w2", "k3", "c", "L0"), np.zeros(4), param_std)
+    assert std[3] == pytest.approx(param_std["L0"]) and not std[:3].any()
+    # numbers given as numbers (Python callers) carry no rounding
+    plain = footage.observe_clip(video, "spring", px_per_m=float(opts["px_per_m"]),
+                                 anchor=float(opts["anchor"]), known={}, prior=None)
+    assert plain.camera.param_std == {} and plain.camera.scale_rel_std == 0.0
+
+
+@pytest.mark.parametrize("text, res", [("306", 1.0), ("0.62", 0.01), ("1.53e+03", 10.0),
+                                       ("120.5", 0.1), ("-3", 1.0)])
+def test_given_numbers_know_their_last_digit(text, res):
+    g = footage.Given(text)
+    assert float(g) == float(text) and g.resolution == pytest.approx(res)
+    assert footage.Given(float(text)).resolution == 0.0
+    assert footage.rounding_std(g) == pytest.approx(res / 12 ** 0.5)
+    import pickle
+
+    assert pickle.loads(pickle.dumps(g)).resolution == g.resolution

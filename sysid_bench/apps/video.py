@@ -588,18 +588,18 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="degrees clockwise to turn a video stored sideways")
     c = p.add_argument_group(
         "camera (any not given is estimated from the clip where physics fixes it, or absent)")
-    c.add_argument("--px-per-m", type=float, default=None, help="scale, pixels per metre")
+    c.add_argument("--px-per-m", type=number, default=None, help="scale, pixels per metre")
     c.add_argument("--object-size-m", type=float, default=None,
                    help="the tracked object's true diameter (m): the scale frame by frame "
                         "(collision: the carts' length, both the same)")
-    c.add_argument("--floor-row", type=float, default=None, help="ball: row of the floor")
-    c.add_argument("--walls", type=float, nargs=2, default=None, metavar=("C1", "C2"),
+    c.add_argument("--floor-row", type=number, default=None, help="ball: row of the floor")
+    c.add_argument("--walls", type=number, nargs=2, default=None, metavar=("C1", "C2"),
                    help="ball: columns of the left and right walls")
-    c.add_argument("--pivot", type=float, nargs=2, default=None, metavar=("C", "R"),
+    c.add_argument("--pivot", type=number, nargs=2, default=None, metavar=("C", "R"),
                    help="pendulum: the pivot's column and row (default: from the bob's arc)")
-    c.add_argument("--anchor", type=float, default=None, metavar="C",
+    c.add_argument("--anchor", type=number, default=None, metavar="C",
                    help="spring: the anchor's column")
-    c.add_argument("--track", type=float, nargs=2, default=None, metavar=("C1", "C2"),
+    c.add_argument("--track", type=number, nargs=2, default=None, metavar=("C1", "C2"),
                    help="collision: columns of the track's left and right ends (default: "
                         "where the carts turn back, or out of reach)")
     g = p.add_argument_group("the renderer's box (ball; default: framed as the suite's renderer)")
@@ -854,6 +854,14 @@ def run(args) -> int:
           + ", ".join(f"{p} = {m:.4g} ± {s:.2g}" for p, m, s in zip(PARAMS, last, sd))
           + f"; geometry {res.info['geometry']['mapping']}; wrote {out}/")
     return 0
+
+
+def number(text: str):
+    """argparse's type of the scale and placement options: a float that keeps how it was
+    written (:class:`sysid_bench.core.footage.Given`), so its rounding reaches the intervals."""
+    from sysid_bench.core.footage import Given
+
+    return Given(text)
 
 
 def _takes_knowledge(method: str) -> bool:

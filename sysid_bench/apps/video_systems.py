@@ -150,6 +150,7 @@ def identify_system_video(path, system: str, *, method: str | None = None,
         read_video,
         rotate_frames,
         thin_clip,
+        widen_for_placement,
         widen_for_scale,
     )
 
@@ -218,9 +219,14 @@ def identify_system_video(path, system: str, *, method: str | None = None,
         std = widen_for_scale(sys_.name, sys_.params, mean, std, cam.scale_rel_std)
         notes.append(f"the scale's {100 * cam.scale_rel_std:.2g}% uncertainty is added to the "
                      "std of every parameter with a length in its unit")
-        if takes and known:  # a held value is the user's, not measured through the scale
-            cols = [sys_.params.index(k) for k in known]
-            std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
+    if cam is not None and cam.param_std:
+        std = widen_for_placement(sys_.params, std, cam.param_std)
+        notes.append("the rounding of the placement given is added to the std of "
+                     + ", ".join(f"{k} (± {v:.2g})" for k, v in cam.param_std.items()))
+    if cam is not None and takes and known and (cam.scale_rel_std > 0 or cam.param_std):
+        # a held value is the user's, not measured through the camera
+        cols = [sys_.params.index(k) for k in known]
+        std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
     notes += bound_notes(sys_, mean, check, known if takes else None, prior if takes else None)
     know = knowledge_record(known or {}, prior or {}, name, held=takes,
                             why=getattr(type(est), "knowledge_refused", ""))

@@ -111,6 +111,8 @@ def case_observation(video: Path, system: str, options, fps: float | None = None
     obs : Observation
     lost : ndarray, shape (T,), bool
     scale_rel_std : float
+    param_std : dict
+        The rounding of a given placement, per parameter (:attr:`footage.Camera.param_std`).
     known, prior : dict
     """
     from sysid_bench.core import footage, systems
@@ -128,12 +130,13 @@ def case_observation(video: Path, system: str, options, fps: float | None = None
         with np.load(cache) as z:
             pos, lost = z["positions"], z["lost"].astype(bool)
             dt, rel = float(z["dt"]), float(z["scale_rel_std"])
+            param_std = json.loads(str(z["param_std"])) if "param_std" in z.files else {}
             # the clip's own scene (the collision's track and carts), when it is not the default
             fields = json.loads(str(z["scene"])) if "scene" in z.files else None
         scene = None if fields is None else sys_.scene(**fields)
         obs = Observation(positions=pos, dt=dt, system=sys_.name, scene=scene,
                           **sys_.known_geometry(scene))
-        return obs, lost, rel, known, prior
+        return obs, lost, rel, param_std, known, prior
     # at the capture's own dt, as identify reads it: resampled to 20 frames/s by the nearest
     # frame, a 30 frames/s clip has every other frame 1/60 s off its time (5 cm at 3 m/s): the
     # ball's clip 0 was fitted 26 mm RMS off and read g 19% and d 80% off, confidently (emcee,
@@ -146,8 +149,10 @@ def case_observation(video: Path, system: str, options, fps: float | None = None
                                       for k, v in asdict(sc).items()}))}
     atomic_write(cache, lambda tmp: np.savez(
         tmp, positions=pos, lost=cc.lost, dt=np.float64(cc.observation.dt),
-        scale_rel_std=np.float64(cc.camera.scale_rel_std), **extra))
-    return cc.observation, cc.lost, float(cc.camera.scale_rel_std), cc.known, cc.prior
+        scale_rel_std=np.float64(cc.camera.scale_rel_std),
+        param_std=np.array(json.dumps(cc.camera.param_std)), **extra))
+    return (cc.observation, cc.lost, float(cc.camera.scale_rel_std), dict(cc.camera.param_std),
+            cc.known, cc.prior)
 
 
 class Camera(Experiment):
@@ -209,8 +214,8 @@ class Camera(Experiment):
         if cap is not None and int(truth["n_frames"]) <= cap:
             cap = None
         try:
-            obs, lost, rel, known, prior = case_observation(video, system, truth["options"],
-                                                            fps=rate, max_frames=cap)
+            obs, lost, rel, param_std, known, prior = case_observation(
+                video, system, truth["options"], fps=rate, max_frames=cap)
         except ValueError as exc:  # identify refuses the clip with these options: no answer
             raise NotImplementedError(f"identify refuses this clip ({video.name}, "
                                       f"{' '.join(truth['options'])}): {exc}") from exc
@@ -224,6 +229,8 @@ class Camera(Experiment):
         std = np.asarray(post.std, dtype=np.float64)
         if rel > 0:  # the scale's uncertainty, as identify adds it
             std = footage.widen_for_scale(system, sys_.params, mean, std, rel)
+        if param_std:  # the rounding of the placement given (the spring's anchor column)
+            std = footage.widen_for_placement(sys_.params, std, param_std)
         held = [p in known for p in sys_.params] if takes else [False] * len(mean)
         theta = np.array([truth["theta"][p] for p in sys_.params])
         se = (sys_.normalise(mean) - sys_.normalise(theta)) ** 2

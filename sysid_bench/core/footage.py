@@ -1235,6 +1235,10 @@ class Camera:
         Where the scale came from, in words.
     placement : dict
         What fixed the origin: each item given (``"given"``), estimated (how) or absent.
+    param_std : dict
+        Standard deviation a given number's rounding adds to a parameter, in the parameter's
+        unit (the spring's anchor column written to a pixel is +- 0.5 px: ``L0`` gains 0.29 px
+        over the scale); added in quadrature by :func:`widen_for_placement`.
     """
 
     px_per_m: float
@@ -1246,6 +1250,7 @@ class Camera:
     offset: tuple = (0.0, 0.0)
     source: str = ""
     placement: dict = field(default_factory=dict)
+    param_std: dict = field(default_factory=dict)
 
     def scales(self, n: int) -> np.ndarray:
         """px per metre of each of ``n`` frames, shape (n,)."""
@@ -1281,6 +1286,7 @@ class Camera:
                 "per_frame_px_per_m": None if self.per_frame is None
                 else [float(v) for v in self.per_frame],
                 "source": self.source, "placement": dict(self.placement),
+                "param_std": {k: float(v) for k, v in self.param_std.items()},
                 "mapping": self.describe()}
 
 
@@ -1909,6 +1915,7 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
     if px_per_m is not None:
         s, src = float(px_per_m), f"px_per_m={float(px_per_m):g} given"
         _check_size(2 * r_px / s, "px_per_m", f"its {2 * r_px:.3g} px at {s:g} px/m")
+        rel = rounding_std(px_per_m) / s  # a scale written to three figures is +- half a unit
     elif object_size_m is not None:
         d = float(object_size_m)
         _check_size(d, "object_size_m", "as given")
@@ -2092,9 +2099,16 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
         raise ValueError(f"system: a camera is built for ball, pendulum and spring clips, got "
                          f"{system!r}")
     place()
+    # a placement written to a pixel moves a length measured from it by up to half a pixel
+    param_std = {}
+    if system == "spring" and anchor is not None and rounding_std(anchor) > 0:
+        param_std["L0"] = rounding_std(anchor) / float(s)
+    if system == "pendulum" and pivot is not None and rounding_std(pivot[1]) > 0:
+        param_std["L"] = rounding_std(pivot[1]) / float(s)  # the row: L below the pivot
     return Camera(px_per_m=float(s), origin=(float(origin[0]), float(origin[1])),
                   scale_rel_std=float(rel), per_frame=per_frame, rotate=int(rotate),
-                  flip=flip, offset=offset, source=src, placement=placement)
+                  flip=flip, offset=offset, source=src, placement=placement,
+                  param_std=param_std)
 
 
 #: Where an end not given and not seen (no cart turned there) is placed: this far beyond the
@@ -2213,6 +2227,7 @@ def camera_for_track(track, size, *, px_per_m=None, object_size_m=None, track_en
         if not (math.isfinite(s) and s > 0):
             raise ValueError(f"px_per_m: expected a number > 0, got {px_per_m!r}")
         src = f"px_per_m={s:g} given"
+        rel = rounding_std(px_per_m) / s  # a scale written to three figures: +- half a unit
         for j in range(k):
             _check_size(2 * r_px[j] / s, "px_per_m", f"object {j + 1}'s {2 * r_px[j]:.3g} px at "
                                                      f"{s:g} px/m")
@@ -2314,6 +2329,24 @@ def widen_for_scale(system: str, params, mean, std, scale_rel_std: float) -> np.
     q = np.array([LENGTH_POWER.get(system, {}).get(p, 0) for p in params], dtype=np.float64)
     m = np.asarray(mean, dtype=np.float64)
     return np.hypot(np.asarray(std, dtype=np.float64), np.abs(q * m) * float(scale_rel_std))
+
+
+def widen_for_placement(params, std, param_std: dict) -> np.ndarray:
+    """Standard deviations with a given placement's rounding added in quadrature
+    (:attr:`Camera.param_std`).
+
+    Parameters
+    ----------
+    params : sequence of str, length P
+    std : ndarray, shape (..., P)
+    param_std : dict of str -> float
+
+    Returns
+    -------
+    ndarray, shape (..., P)
+    """
+    add = np.array([float(param_std.get(p, 0.0)) for p in params], dtype=np.float64)
+    return np.hypot(np.asarray(std, dtype=np.float64), add)
 
 
 #: a camera answer fails when its fit misses the track by more than this many times the
@@ -2492,6 +2525,46 @@ def _param_name(system, name: str, option: str) -> str:
         raise ValueError(f"{option}: {name!r} is no parameter of the {system.name} system; "
                          f"expected one of {', '.join(system.params)}{hint}")
     return name
+
+
+class Given(float):
+    """A number as the user wrote it: ``resolution`` is one unit of its last written digit
+    (``"306"``: 1, ``"0.62"``: 0.01, ``"1.53e+03"``: 10), so its rounding can be carried into
+    the answer (a value rounded to that unit is off by up to half of it: uniform, std
+    ``resolution / sqrt(12)``, :func:`rounding_std`).
+
+    Parameters
+    ----------
+    text : str
+        The number as written; ``float(text)`` must read it.
+    """
+
+    resolution: float
+
+    def __new__(cls, text):
+        if isinstance(text, Given):
+            return text
+        v = super().__new__(cls, text)
+        v.resolution = _written_resolution(str(text)) if isinstance(text, str) else 0.0
+        return v
+
+
+def _written_resolution(text: str) -> float:
+    """One unit of the last digit written in ``text`` (0 when it is not a plain decimal)."""
+    from decimal import Decimal, InvalidOperation
+
+    try:
+        d = Decimal(text.strip())
+    except InvalidOperation:
+        return 0.0
+    if not d.is_finite():
+        return 0.0
+    return float(Decimal(1).scaleb(d.as_tuple().exponent))
+
+
+def rounding_std(value) -> float:
+    """Standard deviation of a :class:`Given` number's rounding (0 for any other number)."""
+    return float(getattr(value, "resolution", 0.0)) / math.sqrt(12.0)
 
 
 def _number(text: str, option: str, what: str) -> float:
@@ -2710,6 +2783,9 @@ CAMERA_SYSTEMS = ("ball", "pendulum", "spring", "collision")
 TRACK_OBJECTS = {"collision": (2, "ends", "half_sizes")}
 #: ``identify`` options a clip's record may give (:func:`clip_options`): the values each takes
 #: and where it goes (``None``: checked, then not needed to observe the clip)
+#: options whose rounding reaches the answer (:class:`Given`): the scale and the placement
+_WRITTEN = ("px_per_m", "floor_row", "walls", "pivot", "anchor", "track")
+
 _CLIP_OPTIONS = {
     "--system": (1, None), "--method": (1, None), "--rotate": (1, "rotate"),
     "--fps": (1, "capture_fps"), "--start": (1, "start"), "--end": (1, "end"),
@@ -2803,6 +2879,8 @@ def clip_options(options) -> dict:
             out.setdefault(dest, []).append(vals[0])
         else:
             nums = [_number(v, flag, "a number") for v in vals]
+            if dest in _WRITTEN:  # the scale and placement keep how they were written
+                nums = [Given(v) for v in vals]
             out[dest] = nums[0] if n == 1 else tuple(nums)
     if "rotate" in out:
         r = out["rotate"]
