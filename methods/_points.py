@@ -427,6 +427,86 @@ def refine(prob: Problem, starts, max_evals: int):
     return u, cov * np.outer(d, d), info
 
 
+def residual_tau(res: np.ndarray, c: float = 5.0) -> float:
+    """Integrated autocorrelation time (frames) of fit residuals.
+
+    The normalised autocorrelation is averaged over the coordinates (each series with its
+    unseen frames left out, so a gap joins its two sides), then summed with Sokal's window
+    (the first lag ``M >= c * tau``). White residuals give ~1; a tracker's error that drifts
+    over ``n`` frames gives ~``n``.
+
+    Parameters
+    ----------
+    res : ndarray, shape (T, ...)
+        Residuals over time, NaN where unseen.
+    """
+    r = np.asarray(res, dtype=np.float64).reshape(len(res), -1)
+    acf, n_ser = None, 0
+    for j in range(r.shape[1]):
+        x = r[np.isfinite(r[:, j]), j]
+        if x.size < 8:
+            continue
+        x = x - x.mean()
+        v = float(x @ x)
+        if v <= 0:
+            continue
+        n = x.size
+        f = np.fft.rfft(x, 2 * n)
+        a = np.fft.irfft(f * np.conj(f))[:n] / v
+        L = min(len(acf), n) if acf is not None else n
+        acf = a[:L] if acf is None else acf[:L] + a[:L]
+        n_ser += 1
+    if acf is None:
+        return 1.0
+    acf = acf / n_ser
+    taus = 2.0 * np.cumsum(acf) - 1.0
+    m = np.arange(len(taus))
+    win = np.flatnonzero(m >= c * taus)
+    tau = float(taus[win[0]] if win.size else taus[-1])
+    return max(tau, 1.0)
+
+
+def noise_inflation(prob: Problem, theta: np.ndarray, state0: np.ndarray) -> tuple[float, dict]:
+    """How much a white-noise likelihood with ``prob.sigma`` understates the spread a track
+    supports: ``max(1, rms * sqrt(tau) / sigma)`` at ``theta``, ``state0``.
+
+    A sampler whose likelihood takes every coordinate as independent noise of ``sigma`` reads
+    ``n`` frames as ``n`` independent looks. A camera's track errs by more than ``sigma`` (rms)
+    and in runs of frames (its residuals' autocorrelation time ``tau``, :func:`residual_tau`):
+    the data hold about ``n / tau`` looks of noise ``rms``, so every posterior spread is
+    ``rms * sqrt(tau) / sigma`` times too narrow. A fit within ``sigma / sqrt(tau)`` (a
+    rendered track) is left as it is (factor 1).
+
+    Returns
+    -------
+    factor : float
+    info : dict
+        ``residual_rms_m``, ``residual_tau``, ``noise_inflation``.
+    """
+    n = prob.n_sim_frames
+    pts = prob.sim.points(np.asarray(theta, dtype=np.float64)[None],
+                          np.ascontiguousarray(np.asarray(state0, dtype=np.float64)[None]), n,
+                          prob.track.dt)[0]
+    res = np.where(prob.mask[..., None], pts - prob.obs, np.nan)
+    ok = np.isfinite(res)
+    if not ok.any():
+        return 1.0, {}
+    rms = float(np.sqrt(np.mean(res[ok] ** 2)))
+    tau = residual_tau(res)
+    k = max(1.0, rms * np.sqrt(tau) / prob.sigma)
+    return float(k), {"residual_rms_m": rms, "residual_tau": tau, "noise_inflation": float(k)}
+
+
+def inflate(prob: Problem, samples: np.ndarray, std: np.ndarray, k: float):
+    """Samples (N, P) spread ``k`` times wider about their mean (inside the prior's box) and
+    ``std`` (P,) times ``k``, at most the prior's uniform std."""
+    if k <= 1.0:
+        return samples, std
+    mean = samples.mean(axis=0)
+    out = np.clip(mean + k * (samples - mean), prob.plo, prob.plo + prob.pspan)
+    return out, np.minimum(k * np.asarray(std, dtype=np.float64), prob.pspan / np.sqrt(12.0))
+
+
 def draw_inside(mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` draws of N(mean, cov) inside the unit cube (redrawn; clipped after 50 tries)."""
     out = np.empty((n, mean.size))

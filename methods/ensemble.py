@@ -49,7 +49,16 @@ import warnings
 
 import numpy as np
 
-from methods._points import Points, PointsFit, SimulationOnSystems, draw_inside, refine, search
+from methods._points import (
+    Points,
+    PointsFit,
+    SimulationOnSystems,
+    draw_inside,
+    inflate,
+    noise_inflation,
+    refine,
+    search,
+)
 from methods._simulation import Fit, Stopwatch, box_of, make_rng, one_blas_thread
 from methods._tracks import clip_state
 from sysid_bench.core import physics
@@ -442,12 +451,17 @@ class Emcee(SimulationOnSystems):
         if not converged:
             std = np.maximum(std, lap)
         check = prob.check(theta.mean(axis=0), np.asarray(s0).mean(axis=0))
+        # white-noise likelihood: widened where the track errs by more, in runs of frames
+        mean = theta.mean(axis=0)
+        k, noise = noise_inflation(prob, mean, np.asarray(s0).mean(axis=0))
+        theta, std = inflate(prob, theta, std, k)
         extras = {
             "n_simulations": prob.sim.n_simulations, "wall_s": clock(), "acceptance": acc,
+            **noise,
             "tau": tau[: prob.P].tolist(), "ess": float(nw * kept / tau_max)
             if np.isfinite(tau_max) else 0.0, "converged": converged,
             "laplace_std": lap.tolist(), "n_dim": D, "sigma": prob.sigma, **info, **opt,
             **prob.track.describe(),
         }
-        post = part.posterior(prob, theta.mean(axis=0), std, theta, extras, check)
+        post = part.posterior(prob, mean, std, theta, extras, check)
         return PointsFit(post, theta, np.asarray(s0), None, prob, clock)

@@ -148,6 +148,8 @@ from methods._points import (
     PointsFit,
     SimulationOnSystems,
     _system,
+    inflate,
+    noise_inflation,
     refine,
     search,
     sq_error,
@@ -1088,8 +1090,12 @@ def _fit_on_points(est, obs: Observation, part: Points) -> PointsFit:
         "warning": "; ".join(problems), "map_rms_m": rms, "sigma": prob.sigma,
         "state0_sampled": free, **info, **opt, **lap, **prob.track.describe(),
     }
-    post = part.posterior(prob, flat.mean(0), flat.std(0, ddof=1), flat, extras, check)
-    return PointsFit(post, flat, s0_flat, None, prob, sw)
+    # white-noise likelihood: widened where the track errs by more, in runs of frames
+    k, noise = noise_inflation(prob, flat.mean(0), s0_flat.mean(0))
+    flat_w, std = inflate(prob, flat, flat.std(0, ddof=1), k)
+    extras.update(noise)
+    post = part.posterior(prob, flat.mean(0), std, flat_w, extras, check)
+    return PointsFit(post, flat_w, s0_flat, None, prob, sw)
 
 
 def _pts_unit(prob, theta, state0):
