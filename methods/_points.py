@@ -428,13 +428,9 @@ def refine(prob: Problem, starts, max_evals: int):
 
 
 def residual_tau(res: np.ndarray, c: float = 5.0) -> float:
-    """Integrated autocorrelation time (frames) of fit residuals about their mean.
+    """Integrated autocorrelation time (frames) of fit residuals.
 
-    Unlike :func:`methods._simulation.residual_tau` (about zero: a constant offset counts as
-    one run as long as the track, which there sizes a misfit), this measures how many frames
-    the noise itself stays alike: a steady offset (a pivot placed a pixel off) is one look at
-    the geometry, not a reason to read every frame as one look. The normalised
-    autocorrelation is averaged over the coordinates (each series with its
+    The normalised autocorrelation is averaged over the coordinates (each series with its
     unseen frames left out, so a gap joins its two sides), then summed with Sokal's window
     (the first lag ``M >= c * tau``). White residuals give ~1; a tracker's error that drifts
     over ``n`` frames gives ~``n``.
