@@ -360,9 +360,14 @@ class Systems(Experiment):
             for ax, col in zip(axes, (f"param_mse@{last}", "forecast_mse@50")):
                 ys = [g[col].get(s, np.nan) if s in g.index else np.nan for s in systems_]
                 ax.bar(xs, ys, width=width, label=m, color=method_color(m))
-        for ax, lab in zip(axes, (f"parameter MSE after {last} frames", "forecast MSE (100 after 50)")):
+        for ax, col, lab in zip(axes, (f"param_mse@{last}", "forecast_mse@50"),
+                                (f"parameter MSE after {last} frames", "forecast MSE (100 after 50)")):
             ax.set_xticks(np.arange(len(systems_)), systems_)
-            ax.set_yscale("log")
+            vals = t[col].to_numpy(dtype=float)
+            if np.any(np.isfinite(vals) & (vals > 0)):
+                ax.set_yscale("log")
+            else:  # e.g. a method that does not forecast: nothing to draw on a log axis
+                ax.text(0.5, 0.5, "no method answered", transform=ax.transAxes, ha="center")
             ax.set_ylabel(lab)
         axes[0].axhline(GUESS_MSE, color="k", ls=":", lw=1)
         axes[1].legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1.0))
