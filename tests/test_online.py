@@ -80,5 +80,7 @@ def test_online_is_an_experiment_of_the_runner_on_every_system(tmp_path, monkeyp
     assert set(ok.system) == {"ball"} and set(ok.condition) == {"", "samples"}
     assert (ok[ok.metric == "posteriors"].value == 60).all()  # a posterior after each frame
     t = Online().tables(ok)["online_cost"]
-    assert list(t.method) == ["vid2param", "vid2param+samples"]
-    assert t["x stream"].iloc[0] == 1.0
+    # rows are ordered by their measured totals: the stream and its samples-drawn twin are
+    # within timing noise of each other, so the test reads them by name
+    assert sorted(t.method) == ["vid2param", "vid2param+samples"]
+    assert t.set_index("method").loc["vid2param", "x stream"] == 1.0
