@@ -227,7 +227,10 @@ def identify_system_video(path, system: str, *, method: str | None = None,
         # a held value is the user's, not measured through the camera
         cols = [sys_.params.index(k) for k in known]
         std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
-    notes += bound_notes(sys_, mean, check, known if takes else None, prior if takes else None)
+    from sysid_bench.apps.video import bound_notes
+
+    notes += bound_notes(mean, known if takes else None, prior if takes else None, 0.01,
+                         system=sys_, check=check)
     know = knowledge_record(known or {}, prior or {}, name, held=takes,
                             why=getattr(type(est), "knowledge_refused", ""))
     if know["note"]:
@@ -248,47 +251,6 @@ def identify_system_video(path, system: str, *, method: str | None = None,
             "scene": _scene_record(obs.scene),
             "window_s": [start, end], "capture_fps": capture_fps, "knowledge": know}
     return {"mean": mean, "std": std, "check": check, "points": points, "info": info}
-
-
-def bound_notes(sys_, mean: np.ndarray, check: np.ndarray, known: dict | None,
-                prior: dict | None) -> list[str]:
-    """Where the last estimate's fit fails with a parameter on its range's bound, a sentence
-    saying the truth may lie outside the range and which ``--prior`` widens it.
-
-    A short pendulum (a 0.26 m string, the prior's L is 0.5 to 2 m) is fitted as well as the
-    range allows: the answer sits on the bound and the model check fails. That is the
-    commonest way a real clip falls outside a system's prior, and the user can fix it.
-
-    Parameters
-    ----------
-    sys_ : System
-    mean : ndarray, shape (T, P)
-        Estimates, NaN rows between them.
-    check : ndarray, shape (T, 3)
-        (ok, RMS m, noise m) per estimate, NaN rows between them.
-    known, prior : dict, optional
-        The user's held values and ranges (held parameters are not judged).
-    """
-    rows = np.flatnonzero(np.isfinite(mean).all(axis=1))
-    if not rows.size or not np.isfinite(check[rows[-1], 0]) or check[rows[-1], 0] > 0.5:
-        return []
-    last = mean[rows[-1]]
-    out = []
-    for i, name in enumerate(sys_.params):
-        if name in (known or {}):
-            continue
-        lo, hi = (prior or {}).get(name, (float(sys_.prior_lo[i]), float(sys_.prior_hi[i])))
-        elo, ehi = sys_.envelope[name]
-        tol = 0.01 * (hi - lo)
-        side = "lower" if last[i] <= lo + tol and lo > elo else (
-            "upper" if last[i] >= hi - tol and hi < ehi else None)
-        if side is None:
-            continue
-        wider = f"{elo:g}:{hi:g}" if side == "lower" else f"{lo:g}:{ehi:g}"
-        out.append(f"{name} = {last[i]:.4g} sits on the {side} bound of its range ({lo:g} to "
-                   f"{hi:g}) and the fit fails: the truth may lie outside the range; widen it "
-                   f"with --prior {name}={wider} (the physics allows {elo:g} to {ehi:g})")
-    return out
 
 
 def _scene_record(scene) -> dict | None:
