@@ -1,7 +1,8 @@
 """What each section's case count buys: cases per system and the 95% CI of its headline figure.
 
 For each experiment and system, the cases per (method, input) and, over those groups, the
-median half-width of the 95% t-interval of the headline metric's mean relative to the mean
+median half-width of the 95% CI the report shows for the headline metric's mean
+(:func:`sysid_bench.bench.experiment.ci_summary`: bootstrap over cases), relative to the mean
 (or in absolute units for a share), from a report's ``results.parquet``. Run::
 
     python scripts/case_counts.py reports/results.parquet
@@ -13,7 +14,8 @@ import sys
 
 import numpy as np
 import pandas as pd
-from scipy import stats
+
+from sysid_bench.bench.experiment import ci_summary
 
 #: experiment -> (metric, "rel" for a relative half-width, "abs" for a share's)
 HEADLINE = {
@@ -22,13 +24,6 @@ HEADLINE = {
     "online": ("per_frame_s", "rel"), "systems": ("se", "rel"), "foreign": ("se", "rel"),
     "camera": ("se", "rel"), "sensitivity": ("se", "rel"), "interception": ("success", "abs"),
 }
-
-
-def half_width(v: np.ndarray) -> float:
-    v = v[np.isfinite(v)]
-    if v.size < 2:
-        return float("nan")
-    return float(stats.t.ppf(0.975, v.size - 1) * v.std(ddof=1) / np.sqrt(v.size))
 
 
 def main(path: str) -> pd.DataFrame:
@@ -45,24 +40,26 @@ def main(path: str) -> pd.DataFrame:
             continue
         # one value per case: the mean over parameters / frame counts of that case
         per = m.groupby(["method", "input", "condition", "case"]).value.mean().reset_index()
-        hw, dec, cases = [], [], []
-        for _, h in per.groupby(["method", "input", "condition"]):
-            v = h.value.to_numpy(dtype=float)
-            cases.append(len(v))
-            w = half_width(v)
-            if kind == "rel":
-                mu = float(np.mean(v))
-                w = w / abs(mu) if mu else float("nan")
-                pos = v[v > 0]  # errors spanning decades: the geometric mean's interval
-                dec.append(half_width(np.log10(pos)) if pos.size == v.size else np.nan)
-            hw.append(w)
+        by = ["method", "input", "condition"]
+        ci = ci_summary(per, by)
+        cases = ci.n.to_numpy()
+        hw = ((ci.hi - ci.lo) / 2).to_numpy(dtype=float)
+        if kind == "rel":
+            hw = hw / np.abs(ci["mean"].to_numpy(dtype=float))
+            # errors spanning decades: the interval of the mean of log10 (groups all > 0)
+            pos = per.groupby(by).value.transform(lambda v: (v > 0).all())
+            logs = per[pos.astype(bool)].assign(value=lambda d: np.log10(d.value))
+            lci = ci_summary(logs, by) if len(logs) else None
+            dec = [] if lci is None else ((lci.hi - lci.lo) / 2).to_numpy(dtype=float)
+        else:
+            dec = []
         recs.append({"experiment": exp, "system": system, "metric": metric,
                      "cases": int(np.median(cases)),
                      "median CI half-width": (f"{100 * np.nanmedian(hw):.0f}% of the mean"
                                               if kind == "rel" else
                                               f"±{np.nanmedian(hw):.2f} (share)"),
                      "geometric mean's": (f"±{np.nanmedian(dec):.2f} decades"
-                                          if kind == "rel" and np.isfinite(dec).any() else "-")})
+                                          if len(dec) and np.isfinite(dec).any() else "-")})
     return pd.DataFrame(recs)
 
 
