@@ -227,8 +227,6 @@ def identify_system_video(path, system: str, *, method: str | None = None,
         # a held value is the user's, not measured through the camera
         cols = [sys_.params.index(k) for k in known]
         std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
-    from sysid_bench.apps.video import bound_notes
-
     notes += bound_notes(mean, known if takes else None, prior if takes else None, 0.01,
                          system=sys_, check=check)
     know = knowledge_record(known or {}, prior or {}, name, held=takes,
@@ -251,6 +249,73 @@ def identify_system_video(path, system: str, *, method: str | None = None,
             "scene": _scene_record(obs.scene),
             "window_s": [start, end], "capture_fps": capture_fps, "knowledge": know}
     return {"mean": mean, "std": std, "check": check, "points": points, "info": info}
+
+
+def bound_notes(mean, known: dict | None = None, prior: dict | None = None,
+                tol: float = 0.005, *, system=None, check=None) -> list[str]:
+    """Notes for the last estimate's parameters that sit on their search range's bound.
+
+    A fit that ends on a bound (``g`` at -12.81 on a clip whose scale or time base is wrong,
+    a 0.26 m pendulum against the prior's 0.5 m) is not a measurement: the track asked for a
+    value beyond the range, whatever its interval says. Held (``known``) parameters are the
+    user's and are not flagged. Where the physics allows a wider range, the note names the
+    ``--prior`` that asks for it.
+
+    Parameters
+    ----------
+    mean : ndarray, shape (T, P)
+        Estimates frame by frame (NaN where none), the system's parameter order.
+    known : dict, optional
+        Held parameters.
+    prior : dict, optional
+        ``name -> (low, high)`` search ranges given by the user; the rest are the system's.
+    tol : float
+        Within this fraction of the range's width of a bound counts as on it.
+    system : System, optional
+        Default the ball.
+    check : ndarray, shape (T, 3), optional
+        (ok, RMS m, noise m) per estimate: given, a bound is flagged only where the last
+        estimate's fit fails and a wider range is possible (the other systems' rule).
+
+    Returns
+    -------
+    list of str
+    """
+    from sysid_bench.core import systems
+
+    sys_ = systems.get("ball") if system is None else system
+    m = np.asarray(mean, dtype=np.float64)
+    if m.ndim != 2 or m.shape[1] != sys_.n_params:
+        raise ValueError(f"mean: expected a (T, {sys_.n_params}) array, got shape {m.shape}")
+    rows = np.flatnonzero(np.isfinite(m).all(axis=1))
+    if rows.size == 0:
+        return []
+    if check is not None and not (np.isfinite(check[rows[-1], 0]) and check[rows[-1], 0] < 0.5):
+        return []
+    last = m[rows[-1]]
+    out = []
+    for i, name in enumerate(sys_.params):
+        if name in (known or {}):
+            continue
+        lo, hi = (prior or {}).get(name, (float(sys_.prior_lo[i]), float(sys_.prior_hi[i])))
+        elo, ehi = sys_.envelope[name]
+        for b, side in ((lo, "lower"), (hi, "upper")):
+            if side == "lower" and name in ("d", "r"):
+                continue  # no drag, no spin: a physical answer at the range's edge, not a miss
+            if abs(last[i] - b) > tol * (hi - lo):
+                continue
+            wider = (f"{elo:g}:{hi:g}" if b > elo else None) if side == "lower" else (
+                f"{lo:g}:{ehi:g}" if b < ehi else None)
+            if check is not None and wider is None:
+                continue  # the physics' own limit: nothing beyond it to ask for
+            note = (f"{name} = {last[i]:.4g} sits on its range's {side} bound {b:g}: "
+                    "not measured by the clip (the track asks for a value beyond it; "
+                    "a wrong scale or time base can do this)")
+            if wider is not None:
+                note += (f"; widen it with --prior {name}={wider} (the physics allows "
+                         f"{elo:g} to {ehi:g})")
+            out.append(note)
+    return out
 
 
 def _scene_record(scene) -> dict | None:
