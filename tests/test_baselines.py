@@ -184,6 +184,33 @@ def test_bo_runs_20_evaluations(ds):
     assert (post.std > 0).all()
 
 
+def test_bo_quick_kernel_introspection_changes_nothing(ds, monkeypatch):
+    """The bo fit's cached Kernel.hyperparameters gives the same kernels' lists and the same
+    posterior bytes as sklearn's own, and sklearn's is back afterwards."""
+    import contextlib
+
+    from sklearn.gaussian_process.kernels import Kernel
+    from skopt.learning.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+
+    from methods import bo
+
+    kernel = ConstantKernel(1.0) * Matern(length_scale=np.ones(4), nu=2.5) + WhiteKernel()
+    original = Kernel.__dict__["hyperparameters"]
+    want = (kernel.hyperparameters, kernel.k1.k2.hyperparameters, kernel.k2.hyperparameters)
+    with bo._quick_kernel_introspection():
+        assert Kernel.__dict__["hyperparameters"] is not original
+        got = (kernel.hyperparameters, kernel.k1.k2.hyperparameters, kernel.k2.hyperparameters)
+        np.testing.assert_array_equal(kernel.theta, np.log(np.ones(6)))
+    assert Kernel.__dict__["hyperparameters"] is original
+    assert got == want
+    obs = _obs(ds, 1, n=40)
+    fast = BayesOpt(n_calls=6, n_initial_points=3, n_surrogate=256).identify(obs)
+    monkeypatch.setattr(bo, "_quick_kernel_introspection", contextlib.nullcontext)
+    plain = BayesOpt(n_calls=6, n_initial_points=3, n_surrogate=256).identify(obs)
+    for a, b in ((fast.mean, plain.mean), (fast.std, plain.std), (fast.samples, plain.samples)):
+        assert a.tobytes() == b.tobytes()
+
+
 @pytest.mark.slow
 def test_emcee_accuracy(ds):
     assert _nmse_egd(Emcee(), ds) < 0.002
