@@ -327,10 +327,18 @@ class Problem:
         """RMS point residual (m) of one u (D,)."""
         return float(np.sqrt(self.sse(u[None])[0] / max(self.n_coords, 1)))
 
-    def check(self, theta: np.ndarray, state0: np.ndarray, note: str = "") -> Check:
-        """:class:`Check` of the trajectory of theta (P,) from state0 (S,) (all frames)."""
+    def point_residuals(self, theta: np.ndarray, state0: np.ndarray) -> np.ndarray:
+        """Residuals (T, K, 2), metres, of the trajectory of theta (P,) from state0 (S,) over
+        every frame of the track; NaN where unseen."""
         pts = self.sim.points(theta[None], state0[None], self.track.n_frames, self.track.dt)[0]
-        res = np.where(self.track.mask[..., None], pts - self.track.positions, np.nan)
+        return np.where(self.track.mask[..., None], pts - self.track.positions, np.nan)
+
+    def check(self, theta: np.ndarray, state0: np.ndarray, note: str = "",
+              res: np.ndarray | None = None) -> Check:
+        """:class:`Check` of the trajectory of theta (P,) from state0 (S,) (all frames);
+        ``res``: its :meth:`point_residuals` when already simulated."""
+        if res is None:
+            res = self.point_residuals(theta, state0)
         return Check.from_residuals(res, self.sigma, note=note)
 
 
@@ -466,7 +474,9 @@ def residual_tau(res: np.ndarray, c: float = 5.0) -> float:
     return max(tau, 1.0)
 
 
-def noise_inflation(prob: Problem, theta: np.ndarray, state0: np.ndarray) -> tuple[float, dict]:
+def noise_inflation(prob: Problem, theta: np.ndarray | None = None,
+                    state0: np.ndarray | None = None,
+                    res: np.ndarray | None = None) -> tuple[float, dict]:
     """How much a white-noise likelihood with ``prob.sigma`` understates the spread a track
     supports: ``max(1, rms * sqrt(tau) / sigma)`` at ``theta``, ``state0``.
 
@@ -477,17 +487,24 @@ def noise_inflation(prob: Problem, theta: np.ndarray, state0: np.ndarray) -> tup
     ``rms * sqrt(tau) / sigma`` times too narrow. A fit within ``sigma / sqrt(tau)`` (a
     rendered track) is left as it is (factor 1).
 
+    Parameters
+    ----------
+    prob : Problem
+    theta, state0 : ndarray, shapes (P,), (S,)
+        Where to measure; not needed when ``res`` is given.
+    res : ndarray, shape (T, K, 2), optional
+        ``prob.point_residuals(theta, state0)`` when the caller has them (its model check
+        simulated that trajectory already).
+
     Returns
     -------
     factor : float
     info : dict
         ``residual_rms_m``, ``residual_tau``, ``noise_inflation``.
     """
-    n = prob.n_sim_frames
-    pts = prob.sim.points(np.asarray(theta, dtype=np.float64)[None],
-                          np.ascontiguousarray(np.asarray(state0, dtype=np.float64)[None]), n,
-                          prob.track.dt)[0]
-    res = np.where(prob.mask[..., None], pts - prob.obs, np.nan)
+    if res is None:
+        res = prob.point_residuals(np.asarray(theta, dtype=np.float64),
+                                   np.ascontiguousarray(np.asarray(state0, dtype=np.float64)))
     ok = np.isfinite(res)
     if not ok.any():
         return 1.0, {}

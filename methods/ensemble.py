@@ -450,10 +450,11 @@ class Emcee(SimulationOnSystems):
         lap = np.sqrt(np.diag(cov)[: prob.P]) * prob.pspan
         if not converged:
             std = np.maximum(std, lap)
-        check = prob.check(theta.mean(axis=0), np.asarray(s0).mean(axis=0))
-        # white-noise likelihood: widened where the track errs by more, in runs of frames
         mean = theta.mean(axis=0)
-        k, noise = noise_inflation(prob, mean, np.asarray(s0).mean(axis=0))
+        res = prob.point_residuals(mean, np.asarray(s0).mean(axis=0))
+        check = prob.check(mean, None, res=res)
+        # white-noise likelihood: widened where the track errs by more, in runs of frames
+        k, noise = noise_inflation(prob, res=res)
         theta, std = inflate(prob, theta, std, k)
         extras = {
             "n_simulations": prob.sim.n_simulations, "wall_s": clock(), "acceptance": acc,

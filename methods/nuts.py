@@ -1073,7 +1073,8 @@ def _fit_on_points(est, obs: Observation, part: Points) -> PointsFit:
     if n_div / div.size >= 0.02:
         problems.append(f"{n_div} divergent transitions ({100 * n_div / div.size:.1f}%)")
     th_map, s0_map = (np.asarray(a) for a in _pts_physical(jnp.asarray(x_map), data, free, P))
-    check = prob.check(flat.mean(0), s0_flat.mean(0))
+    res = prob.point_residuals(flat.mean(0), s0_flat.mean(0))
+    check = prob.check(flat.mean(0), None, res=res)
     map_pts = prob.points(_pts_unit(prob, th_map, s0_map))
     rms = float(np.sqrt(sq_error(map_pts, prob.obs, prob.mask)[0] / max(prob.n_coords, 1)))
     if rms > 3.0 * prob.sigma:
@@ -1091,7 +1092,7 @@ def _fit_on_points(est, obs: Observation, part: Points) -> PointsFit:
         "state0_sampled": free, **info, **opt, **lap, **prob.track.describe(),
     }
     # white-noise likelihood: widened where the track errs by more, in runs of frames
-    k, noise = noise_inflation(prob, flat.mean(0), s0_flat.mean(0))
+    k, noise = noise_inflation(prob, res=res)
     flat_w, std = inflate(prob, flat, flat.std(0, ddof=1), k)
     extras.update(noise)
     post = part.posterior(prob, flat.mean(0), std, flat_w, extras, check)
