@@ -157,6 +157,22 @@ def test_misfit_is_reported_not_raised():
     assert np.isfinite(post.mean).all() and (post.std >= 0).all()
 
 
+def test_a_stuck_chain_stops_after_its_probe_and_says_so():
+    """A ball lying still on the floor: e, g and d are flat directions, the step size collapses
+    and every tree hits the depth cap. The chain stops after PROBE_ITERATIONS (not ~10x a
+    normal fit's leapfrog steps for draws that do not mix) and the answer says what it is."""
+    pos = np.tile([4.0, 0.0], (60, 1))
+    post = N.NUTS(**FAST, frame_bucket=200).identify(Observation(positions=pos, floor=0.0))
+    ex = post.extras
+    assert ex["stopped_stuck"] is True and ex["converged"] is False
+    assert "Laplace approximation" in ex["warning"]
+    assert ex["mean_tree_size"] >= N.STUCK_TREE * (2 ** 6 - 1) and ex["step_size"] < N.STUCK_STEP
+    assert post.samples.shape == (FAST["num_samples"], 4) and np.isfinite(post.samples).all()
+    # a still ball informs neither e, g nor d: their intervals stay near the prior's
+    lo, hi = post.interval(0.9)
+    assert np.all((hi - lo)[:3] > 0.5 * 0.9 * (PRIOR_HI - PRIOR_LO)[:3])
+
+
 # ------------------------------------------------------------------------------------------
 # bad input and packaging
 @pytest.mark.parametrize(
