@@ -193,8 +193,25 @@ def test_kp_second_is_checked_and_off_for_older_checkpoints():
         V2PConfig(**{**V2PConfig.preset("spring").to_dict(), "kp_second": (0.3, 3.9)})
     with pytest.raises(ValueError, match="keypoints 1"):
         V2PConfig(**{**coll, "keypoints": 1})
-    # the NumPy stream path has no second fixed channel: it refuses (the torch path runs)
-    from methods.vid2param.fast import FrameFilter, Unsupported
 
-    with pytest.raises(Unsupported, match="kp_second: no NumPy path"):
-        FrameFilter(_tiny("collision"))
+
+def test_the_numpy_stream_reads_both_pucks_as_the_network_does():
+    """The NumPy single-frame path (the stream's on a CPU) with the collision's fixed second
+    keypoint channel and two points in the recurrence: the torch filter's posteriors."""
+    from methods.vid2param.data import make_system_split
+    from methods.vid2param.fast import FrameFilter, fast_support
+
+    net = _tiny("collision").eval()
+    assert fast_support(net) is None
+    frames = np.asarray(make_system_split("collision", "test", 1, 2024, 40,
+                                          net.config.frame_size).frames[0])
+    with torch.inference_mode():
+        mu, sd, state = net.filter(torch.as_tensor(frames[None]))
+    want = torch.cat([mu[0], sd[0]], -1).numpy()
+    ff = FrameFilter(net, np.float64)
+    got = np.array([np.concatenate(ff.step(f)) for f in frames])
+    np.testing.assert_allclose(got[:3], want[:3], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(got, want, atol=1e-4)
+    np.testing.assert_allclose(ff.torch_state().last_pos.numpy(), state.last_pos.numpy(),
+                               atol=1e-5)
+    assert state.last_pos.shape == (1, 4)  # both pucks' x, y

@@ -187,9 +187,11 @@ class FrameFilter:
             self.convs = _conv_stack(enc.conv, 1, Hp, Wp, F)
             if not all(cv.relu for cv in self.convs):
                 raise Unsupported("conv: expected a ReLU after each layer")
-            if c.kp_second:  # channel 1 is fixed there, not the learned conv read below
-                raise Unsupported("kp_second: no NumPy path for the second point's channel")
             K = self.K = int(c.keypoints)
+            # kp_second: channel 1 is fixed (the frame above a grey level outside a disc about
+            # channel 0's centre), the learned channels follow it
+            self.second = tuple(float(v) for v in c.kp_second) if c.kp_second else None
+            self.n_fixed = 2 if self.second else 1
             # the learned keypoint channels read the same zero-padded frame as the first conv
             self.kp = (_conv_stack(enc.kp, 1, Hp, Wp, F, buf=self.convs[0].buf)[0]
                        if enc.kp is not None else None)
@@ -197,6 +199,10 @@ class FrameFilter:
                 raise Unsupported("kp: expected a bare Conv2d")
             # (H W, 2) and (Hp Wp, 2) pixel centres; channel 0's in float64 (see encode)
             self.grid64 = enc.grid.detach().cpu().double().numpy().T.copy()
+            if self.second:
+                # channel 1's disc test in the network's float32 arithmetic
+                self.grid32 = enc.grid.detach().cpu().numpy().astype(np.float32)
+                self.px = np.array([[W], [H]], np.float32)
             self.grid_pool = _np(enc.grid_pool, F).T.copy()
             wx, bx = _mlp(enc.phi_x, ("F", "L", "R"), F)[0]
             self.phi_x = np.ascontiguousarray(np.concatenate([wx, bx[:, None]], 1))
@@ -205,7 +211,9 @@ class FrameFilter:
             self.conv_out[-1] = 1
             self.kp_pos = _linear(net.keypoints.map, F)
             self.kp_gate = float(net.keypoints.gate.item())
-            self.ix, self.iy = c.targets.index("x"), c.targets.index("y")
+            # the tracked points' x, y in the latent (the keypoint map writes them; the
+            # recurrence differences them): one point on the ball, K on a system's network
+            self.xy_idx = [c.targets.index(name) for name in c.positions]
             self.vis = bool(net.keypoints.use_visibility)
             self.log_mref = float(net.keypoints.log_mref)
             Z, hid, feat = int(c.latent), int(c.hidden), int(c.feat)
@@ -239,18 +247,22 @@ class FrameFilter:
             # binary) so that one tanh gives all four gates: sigmoid(x) = (1 + tanh(x / 2)) / 2.
             wl = np.concatenate([_np(cell.weight_ih, F), _np(cell.weight_hh, F),
                                  (_np(cell.bias_ih, F) + _np(cell.bias_hh, F))[:, None]], 1)
-            if wl.shape[1] != feat + 4 + hid + 1:
-                raise Unsupported(f"cells: expected {feat + 4} inputs, got {wl.shape[1] - hid - 1}")
+            n_xy = len(self.xy_idx)
+            if wl.shape[1] != feat + 2 * n_xy + hid + 1:
+                raise Unsupported(f"cells: expected {feat + 2 * n_xy} inputs, got "
+                                  f"{wl.shape[1] - hid - 1}")
             wl[:2 * hid] *= F(0.5)
             wl[3 * hid:] *= F(0.5)
             self.lstm = np.ascontiguousarray(wl)
             self.lstm_in = np.zeros(wl.shape[1], F)
             self.lstm_in[-1] = 1
             self.sl_feat = slice(0, feat)
-            self.sl_lh = slice(feat + 4, feat + 4 + hid)
+            self.sl_lh = slice(feat + 2 * n_xy, feat + 2 * n_xy + hid)
             self.gates = np.zeros(4 * hid, F)
             self.tmp_h = np.zeros(hid, F)
             self.pos_idx = [int(i) for i in net.recurrence.pos_idx]
+            if self.roll and len(self.pos_idx) != 2:
+                raise Unsupported("roll_features: the NumPy path rolls one point only")
             self.s_vel, self.s_acc = net.recurrence.diff_scales
             if self.roll:
                 r = net.rolling
@@ -275,8 +287,8 @@ class FrameFilter:
         self.enc_in[self.sl_c] = 0
         # The few scalars of the state are Python floats (float64): numpy scalar arithmetic
         # costs ~10x more per operation, and float64 rounds less than torch's float32 does.
-        self.pos = (0.0, 0.0)
-        self.vel = (0.0, 0.0)
+        self.pos = (0.0,) * len(self.pos_idx)
+        self.vel = self.pos
         self.n = 0.0
         # the rolling statistic's columns (parts.StepDecelerations or parts.RunFits)
         self.stats = (0.0,) * self.roll_stat.n_cols if self.roll else ()
@@ -338,22 +350,39 @@ class FrameFilter:
         # The centres are sums over thousands of pixels: float64 here, as float32 dot products
         # put ~1e-5 into the fed-back position, which the second-difference feature multiplies
         # by 400 (measured on the camera model: 5x torch's own deviation from a float64 run).
-        K, t = self.K, self.c.kp_threshold
+        K, t, n0 = self.K, self.c.kp_threshold, self.n_fixed
         heat0 = (np.maximum(full - F(t), 0) if t else full).reshape(-1) + F(1e-6)
         m0 = heat0.sum()
         kp = ei[self.sl_kp]
         kp[:2] = heat0 @ self.grid64 / np.float64(m0)
         kp[2 * K] = np.log(m0)
+        if self.second:
+            self._second_channel(full, kp)
         if self.kp is not None:
-            heat = self.kp()  # (K - 1, Hp Wp); the frame is already in the first conv's buffer
+            heat = self.kp()  # (K - n0, Hp Wp); the frame is already in the first conv's buffer
             np.maximum(heat, 0, out=heat)
             heat += F(1e-6)
             m = heat.sum(1)
             # these centres feed the head's MLP only (kp_pos reads channel 0): float32 will do
             heat /= m[:, None]
-            kp[2:2 * K] = (heat @ self.grid_pool).reshape(-1)
-            kp[2 * K + 1:] = np.log(m)
+            kp[2 * n0:2 * K] = (heat @ self.grid_pool).reshape(-1)
+            kp[2 * K + n0:] = np.log(m)
         return ei[self.sl_fx]
+
+    def _second_channel(self, full: np.ndarray, kp: np.ndarray) -> None:
+        """``FrameEncoder._second_channel`` for one frame: channel 1's centre into ``kp[2:4]``
+        and its log mass into ``kp[2 K + 1]``, from the frame ``full`` (H, W) in [0, 1] and
+        channel 0's centre in ``kp[:2]`` (as the network: the disc test in float32 pixels,
+        the centroid in float64)."""
+        level, radius = self.second
+        f32 = np.float32
+        d = (self.grid32 - kp[:2].astype(f32)[:, None]) * self.px
+        far = (d * d).sum(0) > f32(radius * radius)
+        heat = np.maximum(full.reshape(-1).astype(f32) - f32(level), f32(0))
+        heat = (heat * far + f32(1e-6)).astype(np.float64)
+        m1 = heat.sum()
+        kp[2:4] = (heat / m1) @ self.grid64
+        kp[2 * self.K + 1] = np.log(f32(m1))
 
     def enc_step(self) -> tuple[np.ndarray, np.ndarray]:
         """Encoder head on the buffer (frame features and state) -> mu, std, each (Z,)."""
@@ -368,16 +397,16 @@ class FrameFilter:
         std += F(_parts._MIN_STD)
         # the scalar blends in Python floats (see reset)
         K = self.K
-        kx, ky = (self.kp_pos[0] @ ei[self.sl_kp] + self.kp_pos[1]).tolist()
-        ix, iy, g = self.ix, self.iy, self.kp_gate
-        mx, my = float(mu[ix]), float(mu[iy])
+        kxy = (self.kp_pos[0] @ ei[self.sl_kp] + self.kp_pos[1]).tolist()
+        g = self.kp_gate
         if self.vis:
             v = 1.0 / (1.0 + math.exp(-4.0 * (float(ei[self.sl_kp][2 * K]) - self.log_mref)))
-            mu[ix] = v * (kx + g * mx) + (1.0 - v) * mx
-            mu[iy] = v * (ky + g * my) + (1.0 - v) * my
+            for i, k in zip(self.xy_idx, kxy):
+                m = float(mu[i])
+                mu[i] = v * (k + g * m) + (1.0 - v) * m
         else:
-            mu[ix] = mx * g + kx
-            mu[iy] = my * g + ky
+            for i, k in zip(self.xy_idx, kxy):
+                mu[i] = float(mu[i]) * g + k
         if self.roll:
             f0, c = (x / _parts.ROLL_GAIN for x in ei[self.i_roll:self.i_roll + 2].tolist())
             v = 10.0 * c / (10.0 * c + self.roll_half * (1.0 - c))
@@ -393,15 +422,13 @@ class FrameFilter:
         np.matmul(self.phi_z, self.z_in, out=li[self.sl_feat])
         np.maximum(li[self.sl_feat], 0, out=li[self.sl_feat])
         n = self.n
-        pos = (float(z[self.pos_idx[0]]), float(z[self.pos_idx[1]]))
+        pos = tuple(float(z[i]) for i in self.pos_idx)
         sv, sa = self.s_vel, self.s_acc
-        vel = ((pos[0] - self.pos[0]) * sv, (pos[1] - self.pos[1]) * sv) if n >= 1 \
-            else (0.0, 0.0)
-        acc = ((vel[0] - self.vel[0]) * sa, (vel[1] - self.vel[1]) * sa) if n >= 2 \
-            else (0.0, 0.0)
-        f = self.sl_feat.stop
-        li[f:f + 4] = (min(max(vel[0], -5.0), 5.0), min(max(vel[1], -5.0), 5.0),
-                       min(max(acc[0], -10.0), 10.0), min(max(acc[1], -10.0), 10.0))
+        vel = tuple((p - q) * sv for p, q in zip(pos, self.pos)) if n >= 1 else (0.0,) * len(pos)
+        acc = tuple((p - q) * sa for p, q in zip(vel, self.vel)) if n >= 2 else (0.0,) * len(pos)
+        f, m = self.sl_feat.stop, len(pos)
+        li[f:f + m] = [min(max(v, -5.0), 5.0) for v in vel]
+        li[f + m:f + 2 * m] = [min(max(a, -10.0), 10.0) for a in acc]
         li[self.sl_lh] = ei[self.sl_h]
         g = self.gates
         np.matmul(self.lstm, li, out=g)
@@ -571,19 +598,22 @@ class LazyPosterior(Posterior):
 
     Parameters
     ----------
-    mean, std : ndarray, shape (4,)
+    mean, std : ndarray, shape (P,)
     extras : dict
-    loc : ndarray, shape (4,)
+    loc : ndarray, shape (P,)
         Centre of the samples (the mean before clipping).
     seed : sequence of int
         Key of the samples' stream.
     n_samples : int
     bounds : (ndarray, ndarray), optional
         Clip the samples to ``[lo, hi]``.
+    system : str
+        Whose parameters (``Posterior.system``).
     """
 
-    def __init__(self, mean, std, extras, *, loc, seed, n_samples: int, bounds=None):
-        super().__init__(mean=mean, std=std, samples=None, extras=extras)
+    def __init__(self, mean, std, extras, *, loc, seed, n_samples: int, bounds=None,
+                 system: str = "ball"):
+        super().__init__(mean=mean, std=std, samples=None, extras=extras, system=system)
         self._draw = (np.asarray(loc, np.float64), tuple(int(s) for s in seed), int(n_samples),
                       bounds)
 
