@@ -88,6 +88,15 @@ def test_pendulum_camera_from_known_length_and_bad_pivot():
     xy = cam.to_metres(pix)
     np.testing.assert_allclose(np.hypot(*xy.T), 0.62, rtol=1e-3)
     assert np.all(xy[:, 1] < 0)  # the bob hangs below its pivot, y up
+    # a length as the user writes it carries its rounding into the scale: "0.62" is 0.62 +-
+    # 0.005 (uniform: std 0.01 / sqrt 12), "0.6200" four hundred times less
+    coarse = camera_for("pendulum", trk, (360, 400),
+                        known=parse_known("pendulum", ["L=0.62"]))
+    fine = camera_for("pendulum", trk, (360, 400),
+                      known=parse_known("pendulum", ["L=0.6200"]))
+    assert coarse.px_per_m == fine.px_per_m == cam.px_per_m
+    assert cam.scale_rel_std < 1e-3 and fine.scale_rel_std < 1e-3
+    assert coarse.scale_rel_std == pytest.approx(0.01 / np.sqrt(12) / 0.62, rel=0.05)
     with pytest.raises(ValueError, match="^pivot: .*not the centre"):
         camera_for("pendulum", trk, (360, 400), px_per_m=500.0, pivot=(200.0, 250.0))
     with pytest.raises(ValueError, match="^px_per_m: .*across"):  # a bob 16 m wide

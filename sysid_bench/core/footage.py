@@ -1928,6 +1928,7 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
         if dt is None:
             raise ValueError("dt: the scale from known g needs the clip's frame interval")
         s, rel = scale_from_fall(pix, float(known["g"]), float(dt), r_px)
+        rel = math.hypot(rel, rounding_std(known["g"]) / abs(float(known["g"])))
         src = (f"known g={float(known['g']):g}: the ball's fall, {s * abs(float(known['g'])):.4g} "
                "px/s^2 between bounces")
         _check_size(2 * r_px / s, "known", f"its {2 * r_px:.3g} px at {s:.4g} px/m")
@@ -2056,7 +2057,8 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
             if not math.isfinite(L) or L <= 0:
                 raise ValueError(f"known: expected L > 0 m, got {known['L']!r}")
             s = r_arc / L
-            rel = r_std / r_arc
+            # the arc's fit and L as written (0.74: +- 0.005), which every length carries
+            rel = math.hypot(r_std / r_arc, rounding_std(known["L"]) / L)
             src = f"known L={L:g}: the arc's radius {r_arc:.1f} px"
         elif s is None:  # known g: the swing's period gives L = |g| / omega0**2
             g = float(known["g"])
@@ -2067,7 +2069,7 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
             w0, w_rel, amp = swing_frequency(pix, (pc, pr), float(dt))
             L = abs(g) / w0 ** 2
             s = r_arc / L
-            rel = math.hypot(r_std / r_arc, 2.0 * w_rel)
+            rel = math.hypot(r_std / r_arc, 2.0 * w_rel, rounding_std(known["g"]) / abs(g))
             src = (f"known g={g:g}: the swing's period {2 * math.pi / w0:.4g} s (amplitude "
                    f"{math.degrees(amp):.3g} deg) gives L = {L:.4g} m, the arc's radius "
                    f"{r_arc:.1f} px")
@@ -2589,7 +2591,9 @@ def parse_known(system, items) -> dict[str, float]:
 
     Returns
     -------
-    dict of str -> float
+    dict of str -> Given
+        Floats that keep their written resolution (``L=0.74``: 0.01): a scale taken from a
+        known value carries its rounding (:func:`rounding_std`).
 
     Raises
     ------
@@ -2614,7 +2618,7 @@ def parse_known(system, items) -> dict[str, float]:
                              f"physics allows ({lo:g} to {hi:g})")
         if name in out:
             raise ValueError(f"known: {name} given twice")
-        out[name] = v
+        out[name] = Given(val.strip())  # its written resolution: the rounding a scale carries
     return out
 
 
