@@ -36,6 +36,7 @@ from __future__ import annotations
 import dataclasses
 from functools import lru_cache
 
+import numba
 import numpy as np
 
 from methods._simulation import (
@@ -139,7 +140,7 @@ class _Fits:
         th, s0 = self.unpack(U, rows)
         fl = np.repeat(self.floor[rows], K)
         pos = self.sim.positions(th.reshape(R * K, 4), s0.reshape(R * K, 4), self.m, self.dt, fl)
-        np.add.at(self.counts, self.idx[rows], K)
+        self.counts[self.idx[rows]] += K  # the rows' videos are distinct
         return (pos.reshape(R, K, -1) - self.obs[rows, None]) * self.w[rows, None]
 
     def jac(self, x: np.ndarray, r: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -183,9 +184,8 @@ class _Fits:
         eye = np.eye(self.D)
         while active.any():
             a = np.flatnonzero(active)
-            Ja, ra, xa = J[a], r[a], x[a]
-            A = np.einsum("irk,irl->ikl", Ja, Ja)
-            g = np.einsum("irk,ir->ik", Ja, ra)
+            xa = x[a]
+            A, g = _normal_equations(J, r, a)
             held = (((xa <= self.lb[a]) & (g > 0)) | ((xa >= self.ub[a]) & (g < 0)))
             keep = ~held
             A = A * keep[:, :, None] * keep[:, None, :] + held[:, :, None] * eye
@@ -214,6 +214,35 @@ class _Fits:
                 J[more] = self.jac(x[more], r[more], more)
                 sims[more] += self.D
         return x
+
+
+@numba.njit(cache=True, nogil=True)
+def _normal_equations(J: np.ndarray, r: np.ndarray, rows: np.ndarray):
+    """``J^T J`` and ``J^T r`` of the videos ``rows`` (R,): (R, D, D) and (R, D).
+
+    ``J`` (N, K, D) and ``r`` (N, K) as :meth:`_Fits.solve` keeps them. Bitwise
+    ``np.einsum("irk,irl->ikl", J[rows], J[rows])`` and ``np.einsum("irk,ir->ik", ...)``: einsum
+    adds the products one residual after another from zero, and so does this loop (each
+    product rounded, no fused multiply-add: numba's default); ``J^T J`` is symmetric, so only
+    its upper half is summed. It was ~20 % of the fits' time as einsum (one pass per output
+    over the gathered ``J[rows]``), most of it not the arithmetic.
+    """
+    n, K, D = rows.shape[0], J.shape[1], J.shape[2]
+    A = np.zeros((n, D, D))
+    g = np.zeros((n, D))
+    for j in range(n):
+        i = rows[j]
+        for q in range(K):
+            rq = r[i, q]
+            for k in range(D):
+                jk = J[i, q, k]
+                g[j, k] += jk * rq
+                for m in range(k, D):
+                    A[j, k, m] += jk * J[i, q, m]
+        for k in range(D):
+            for m in range(k):
+                A[j, k, m] = A[j, m, k]
+    return A, g
 
 
 def _solve(M: np.ndarray, g: np.ndarray) -> np.ndarray:
