@@ -20,6 +20,32 @@ import time
 import numpy as np
 
 
+def time_batch(est, videos, call=None):
+    """Warm ``est`` up, then time its ``identify_batch`` on ``videos`` (N, T, H, W) without and
+    with the checks (``tests/test_bench_vid2param_checks.py`` times it so too).
+
+    The warm-up loads the checkpoint and numba's kernels and runs a video no trajectory explains,
+    so a failed check's lazy imports (scipy.stats in ``Check.bound``: ~half of the checks' time
+    on 200 videos, py-spy) are not timed as if they were per-video work. ``call(fn, videos)``
+    runs the checked batch (a benchmark's ``pedantic``); default a plain call.
+
+    Returns
+    -------
+    posts, t_net, checked, t_all
+        The unchecked posteriors and their seconds, the checked ones and theirs.
+    """
+    call = call or (lambda fn, v: fn(v))
+    jumps = videos[1:2, np.arange(videos.shape[1]) % 2 * 60]
+    est.identify_batch(np.concatenate([videos[:3], jumps]))
+    t0 = time.perf_counter()
+    posts = est.identify_batch(videos, check=False)
+    t_net = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    checked = call(est.identify_batch, videos)
+    t_all = time.perf_counter() - t0
+    return posts, t_net, checked, t_all
+
+
 def main(n: int, seed: int) -> dict:
     import torch
 
@@ -30,16 +56,7 @@ def main(n: int, seed: int) -> dict:
 
     torch.set_num_threads(1)
     videos = np.asarray(make_dataset("test", n, seed).frames)
-    est = Vid2Param(device="cpu")
-    # warm-up: the checkpoint, numba's kernels, a failing check's lazy imports
-    jumps = videos[1:2, np.arange(videos.shape[1]) % 2 * 60]
-    est.identify_batch(np.concatenate([videos[:3], jumps]))
-    t0 = time.perf_counter()
-    posts = est.identify_batch(videos, check=False)
-    t_net = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    est.identify_batch(videos)
-    t_all = time.perf_counter() - t0
+    posts, t_net, _, t_all = time_batch(Vid2Param(device="cpu"), videos)
     fresh = [copy.deepcopy(p) for p in posts]
     t0 = time.perf_counter()
     check_batch(fresh, videos, DEFAULT_SIGMA)

@@ -18,6 +18,7 @@ import time
 import numpy as np
 import pytest
 import torch
+from scripts_loader import load_script
 
 from methods._check_batch import check_batch
 from methods._simulation import check_prefixes
@@ -41,17 +42,11 @@ def test_bench_identify_batch_with_checks(benchmark):
     try:
         videos = np.asarray(make_dataset("test", 200, 2024).frames)
         est = Vid2Param(device="cpu")
-        # load the checkpoint and warm the imports: a video no trajectory explains too, so a
-        # failed check's lazy imports (scipy.stats in Check.bound: ~half of the checks' time on
-        # 200 videos, py-spy) are not timed as if they were per-video work
-        jumps = videos[1:2, np.arange(videos.shape[1]) % 2 * 60]
-        est.identify_batch(np.concatenate([videos[:3], jumps]))
-        t0 = time.perf_counter()
-        posts = est.identify_batch(videos, check=False)
-        t_net = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        checked = benchmark.pedantic(est.identify_batch, args=(videos,), rounds=1, iterations=1)
-        t_all = time.perf_counter() - t0
+        # warmed up (checkpoint, kernels, a failed check's lazy imports), then timed without
+        # and with the checks, as scripts/measure_identify_batch.py measures them
+        posts, t_net, checked, t_all = load_script("measure_identify_batch").time_batch(
+            est, videos,
+            lambda fn, v: benchmark.pedantic(fn, args=(v,), rounds=1, iterations=1))
         assert all(p.check is not None for p in checked)
         # the checks alone, batched and per video, on the same videos and posteriors
         sub, vs = posts[:N_SEQUENTIAL], videos[:N_SEQUENTIAL]
