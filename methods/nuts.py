@@ -370,7 +370,7 @@ def _compiled(n_frames, dt, free_state, num_warmup, num_samples, dense_mass, tar
             body, carry, jnp.arange(num_warmup + num_samples))
         return zs[num_warmup:], steps, div[num_warmup:], state.adapt_state.step_size, stuck
 
-    n_head = min(PROBE_ITERATIONS, num_warmup)
+    n_head = _probe_length(num_warmup)
     cap = 2 ** max_tree_depth - 1
     return jax.jit(jax.value_and_grad(pe)), chain
 
@@ -382,6 +382,11 @@ def _compiled(n_frames, dt, free_state, num_warmup, num_samples, dense_mass, tar
 PROBE_ITERATIONS = 50
 STUCK_TREE = 0.75
 STUCK_STEP = 0.1
+
+
+def _probe_length(num_warmup: int) -> int:
+    """Iterations a chain runs before it is judged stuck (:data:`PROBE_ITERATIONS`)."""
+    return min(PROBE_ITERATIONS, num_warmup)
 
 
 def _bucket(n, size):
@@ -756,7 +761,7 @@ class NUTS(SimulationOnSystems):
         keys = jax.random.split(jax.random.PRNGKey(int(self.seed)), nc)
         zs, steps, divs, step_sizes = [], [], [], []
         stuck = None
-        n_head = min(PROBE_ITERATIONS, int(self.num_warmup))
+        n_head = _probe_length(int(self.num_warmup))
         for c in range(nc):
             z0 = np.zeros(D) if c == 0 else 0.5 * rng.standard_normal(D)  # ~half a posterior sd
             zc, st, dv, ss, halted = chain(keys[c], jnp.asarray(z0), data)
@@ -774,14 +779,14 @@ class NUTS(SimulationOnSystems):
             # the Laplace approximation's draws, said to be no more than that (converged False)
             n = int(self.num_samples) * nc
             z = rng.standard_normal((1, n, D))
-            steps, div = np.full((1, 1), stuck[0]), np.zeros((1, n), bool)
-            step_sizes = [stuck[1]]
-            steps_run = steps
+            div = np.zeros((1, n), bool)
+            mean_tree, step_size = stuck
         else:
             z = np.stack(zs)  # (chains, S, D)
             steps, div = np.stack(steps), np.stack(divs)
             sim.n_simulations += int(steps.sum()) + nc  # leapfrog steps + NumPyro's initial potential
-            steps_run = steps[:, int(self.num_warmup) :]
+            mean_tree = float(steps[:, int(self.num_warmup) :].mean())
+            step_size = float(np.mean(step_sizes))
 
         x = x_map + z @ chol.T
         fl_arg = base[2] if free_floor else floor  # the floor's prior interval, or the floor
@@ -826,8 +831,8 @@ class NUTS(SimulationOnSystems):
             "rhat": dict(zip(physics.PARAMS, rhat.tolist())),
             "ess": dict(zip(physics.PARAMS, ess.tolist())),
             "divergences": n_div,
-            "mean_tree_size": float(steps_run.mean()),
-            "step_size": float(np.mean(step_sizes)),
+            "mean_tree_size": mean_tree,
+            "step_size": step_size,
             "converged": not problems,
             "stopped_stuck": stuck is not None,
             "warning": "; ".join(problems),
