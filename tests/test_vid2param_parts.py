@@ -117,6 +117,12 @@ def _outputs(name: str) -> dict[str, np.ndarray]:
 #: torch computes the float32 network with other kernels (torch 2.11 on an Intel Xeon: up to
 #: 1.4e-4 apart), so there the test checks the same outputs to 1e-3
 _PIN_TOL = 1e-5 if torch.__version__.split("+")[0] == "2.13.0" else 1e-3
+#: the training pass's terms are sums over every frame and parameter, computed by the training
+#: path's own kernels (``FrameEncoder.train_features``: channels_last convolutions, one product
+#: for the keypoint centres), which order their float32 sums otherwise than ``forward``; the
+#: camera's squared gradient size (~1.8e9, a few large NLL gradients) moves by 1.9e-5 of itself
+#: with them. Inference, which users' answers come from, stays at ``_PIN_TOL``.
+_TRAIN_TOL = max(_PIN_TOL, 1e-4)
 
 
 @pytest.mark.parametrize("name", [pytest.param("28x28", marks=needs["28x28"]),
@@ -133,7 +139,8 @@ def test_shipped_checkpoints_give_the_pinned_outputs(name):
             # the network's own std, pinned, is a lower bound
             assert np.all(got[k] >= want[f"{name}/{k}"] * (1 - 1e-5)), f"{name}: {k} narrowed"
             continue
-        np.testing.assert_allclose(got[k], want[f"{name}/{k}"], rtol=_PIN_TOL, atol=_PIN_TOL,
+        tol = _TRAIN_TOL if k.startswith("train_") else _PIN_TOL
+        np.testing.assert_allclose(got[k], want[f"{name}/{k}"], rtol=tol, atol=tol,
                                    err_msg=f"{name}: {k}")
 
 
@@ -241,9 +248,10 @@ def test_the_channels_last_keypoint_convolution_gives_the_nchw_numbers(preset, m
 
 @pytest.mark.parametrize("preset", ["default", "camera", "pendulum", "collision", "one-keypoint"])
 def test_the_training_encoder_path_gives_forwards_features(preset):
-    """``FrameEncoder.train_features`` (``Vid2ParamNet.forward``'s path) is ``forward``
-    bitwise, gradients included, and its pooled frames (the reconstruction target) are
-    ``pooled(frames / 255)`` bitwise."""
+    """``FrameEncoder.train_features`` (``Vid2ParamNet.forward``'s path) is ``forward`` up to
+    float order, gradients included (its convolutions run channels_last, the learned keypoints'
+    centres are one product); channel 0's centre and mass and the pooled frames (the
+    reconstruction target) bitwise."""
     import methods.vid2param.parts as parts
     from methods.vid2param.model import V2PConfig
 
@@ -261,9 +269,12 @@ def test_the_training_encoder_path_gives_forwards_features(preset):
 
     (fx, grads), (fx_old, grads_old) = run(lambda f: enc.train_features(f)[0]), run(enc)
     assert fx.shape == (2, 3, enc.n_out) and len(grads) == len(grads_old) > 0
-    assert torch.equal(fx, fx_old)
+    torch.testing.assert_close(fx, fx_old, rtol=1e-5, atol=1e-6)
     for g, g_old in zip(grads, grads_old, strict=True):
-        assert torch.equal(g, g_old)
+        torch.testing.assert_close(g, g_old, rtol=1e-4, atol=1e-5)
+    i, k = enc.n_out - 3 * c.keypoints, c.keypoints
+    assert torch.equal(fx[..., i:i + 2], fx_old[..., i:i + 2])  # channel 0's centre
+    assert torch.equal(fx[..., -k], fx_old[..., -k])  # and log mass
     pooled = enc.train_features(frames)[1]
     want = enc.pooled(frames.reshape(-1, 1, *c.frame_size).to(torch.float32) / 255.0)
     assert torch.equal(pooled, want.reshape(pooled.shape))

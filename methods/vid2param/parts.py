@@ -178,7 +178,7 @@ class FrameEncoder(nn.Module):
         return torch.cat([centre0, centre1], 1), torch.cat([mass0, m1.float()], 1)
 
     def train_features(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``forward``'s ``fx`` (bitwise) and the pooled frames: a training step's path.
+        """``forward``'s ``fx`` (up to float order) and the pooled frames: a training step's path.
 
         Arranged for a cheap training step on the CPU (docs/vid2param-training-speed.md,
         "One conversion of the frames"); inference keeps ``forward``. The frames carry no
@@ -187,10 +187,10 @@ class FrameEncoder(nn.Module):
         batch): each frame is converted once (the pooled frames are also the decoder's
         reconstruction target), pooled by summing ``pool x pool`` strided views (bitwise
         ``avg_pool2d``'s numbers, at ~half its CPU time), and channel 0's centre and mass are
-        ``forward``'s arithmetic on each piece. The layers with weights run as in ``forward``:
-        channels_last convolutions for the 1 -> 8 layer or an NHWC keypoint centroid
-        as one matrix product were faster but moved the camera's pinned training terms by
-        1.5-1.9e-5 (``tests/test_vid2param_parts.py`` pins them to 1e-5).
+        ``forward``'s arithmetic on each piece (bitwise). The convolutions run on channels_last
+        tensors and the learned channels' centres and masses are one matrix product of their
+        NHWC maps: only those differ from ``forward`` (float order; a 64 x 200 pendulum step
+        3.7 -> 3.0 s on 2 idle cores, docs/vid2param-training-speed.md).
 
         Parameters
         ----------
@@ -231,16 +231,21 @@ class FrameEncoder(nn.Module):
                 m = heat.sum(-1, keepdim=True)
                 mass[i:i + chunk] = m[:, 0]
                 torch.matmul(heat.div_(m), self.grid.T, out=centre[i:i + chunk])
-        out = self.phi_x(self.conv(x))
+        # NHWC: oneDNN's direct kernels for these few-channel layers (the 1 -> 8 convolution's
+        # forward + backward ~3x faster than NCHW on 32x32 frames)
+        xc = x.to(memory_format=torch.channels_last)
+        out = self.phi_x(self.conv(xc))
         if self.kp is not None:
-            # ``forward``'s arithmetic (its channels_last input for the K-1 channel conv)
-            xc = x.to(memory_format=torch.channels_last) if KEYPOINT_CHANNELS_LAST else x
-            heat = torch.relu(self.kp(xc)).permute(0, 2, 3, 1).reshape(
-                n, -1, self.keypoints - 1) + 1e-6  # (N, Hp Wp, K-1)
-            m = heat.sum(1)[..., None]  # (N, K-1, 1)
-            centre_k = torch.matmul(self.grid_pool, heat).transpose(1, 2) / m
-            centre = torch.cat([centre, centre_k], 1)
-            mass = torch.cat([mass, m[..., 0]], 1)
+            k1 = self.keypoints - 1
+            gp = torch.cat([self.grid_pool, torch.ones(1, Hp * Wp, device=dev)]).T.contiguous()
+            # the K-1 maps' column, row and mass sums as one product: rows (pixel, channel) of
+            # the NHWC maps against columns (column/row/1, channel), not N small batched ones;
+            # ``forward``'s 1e-6 per pixel is added to the sums
+            sums = torch.relu(self.kp(xc)).permute(0, 2, 3, 1).reshape(n, -1) @ torch.kron(
+                gp, torch.eye(k1, device=dev))
+            sums = sums.reshape(n, 3, k1) + 1e-6 * gp.sum(0)[:, None]
+            centre = torch.cat([centre, (sums[:, :2] / sums[:, 2:]).transpose(1, 2)], 1)
+            mass = torch.cat([mass, sums[:, 2]], 1)
         fx = torch.cat([out, centre.flatten(1), torch.log(mass)], -1)
         return fx.reshape(*lead, -1), x.reshape(*lead, Hp, Wp)
 
