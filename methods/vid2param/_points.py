@@ -107,6 +107,14 @@ class PointsModel:
             raise ValueError(f"checkpoint: {str(path)!r} does not identify {missing}")
         # parameters in the system's order
         self._order = [list(c.params).index(p) for p in sys_.params]
+        # the prior's bounds and the view's extent as arrays, once (a stream reads them every
+        # push); read-only, as they are shared by every posterior
+        self._lo, self._hi = sys_.prior_lo, sys_.prior_hi
+        self._width = self._hi - self._lo
+        x0, x1, y0, y1 = sys_.extent
+        self._ext_scale, self._ext_shift = np.array([x1 - x0, y1 - y0]), np.array([x0, y0])
+        for a in (self._lo, self._hi, self._width, self._ext_scale, self._ext_shift):
+            a.setflags(write=False)
 
     @property
     def _torch(self):
@@ -124,8 +132,10 @@ class PointsModel:
     # -- units ----------------------------------------------------------------------------------
     def _points(self, mu_pos: np.ndarray) -> np.ndarray:
         """Normalised positions (..., 2K) to metres (..., K, 2)."""
-        x0, x1, y0, y1 = self._sys.extent
         p = mu_pos.reshape(*mu_pos.shape[:-1], -1, 2)
+        if p.dtype == np.float64:  # x0 + (x1 - x0) x, y0 + (y1 - y0) y: the same two operations
+            return p * self._ext_scale + self._ext_shift
+        x0, x1, y0, y1 = self._sys.extent
         xs = x0 + (x1 - x0) * p[..., 0]
         out = np.empty(p.shape, xs.dtype)  # np.stack's numbers, at a third of its cost
         out[..., 0] = xs
@@ -151,10 +161,11 @@ class PointsModel:
         stream's push): its samples drawn when first read, the same bytes
         (:class:`methods.vid2param.fast.LazyPosterior`)."""
         est = self._est
-        lo, hi = self._sys.prior_lo, self._sys.prior_hi
+        lo, hi, w = self._lo, self._hi, self._width
         m, s = m[self._order], s[self._order]
-        mean = lo + (hi - lo) * (np.clip(m, 0.0, 1.0) if est.clip else m)
-        std = (hi - lo) * s
+        # np.clip's numbers (NaN kept), without its Python wrapper's cost
+        mean = lo + w * (np.minimum(np.maximum(m, 0.0), 1.0) if est.clip else m)
+        std = w * s
         if lazy and est.n_samples:
             from methods.vid2param.fast import LazyPosterior
 

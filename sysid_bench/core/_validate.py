@@ -37,17 +37,21 @@ def as_float_array(
     allow_nan : bool
         NaN marks missing values where True; inf is never allowed.
     """
-    try:
-        arr = np.asarray(value)
-    except Exception as exc:  # ragged lists and the like
-        raise ValueError(f"{name}: expected a numeric array, got {type(value).__name__} ({exc})") from exc
-    if arr.dtype == object or not np.issubdtype(arr.dtype, np.number):
-        # bool arrays too: True/False read as 1/0 metres or parameters is a mask passed where
-        # values belong, never a measurement
-        raise ValueError(f"{name}: expected a real numeric array, got dtype {arr.dtype}")
-    if np.iscomplexobj(arr):
-        raise ValueError(f"{name}: expected a real array, got complex dtype {arr.dtype}")
-    arr = arr.astype(np.float64, copy=False)
+    if type(value) is np.ndarray and value.dtype == np.float64:
+        arr = value  # already what the checks of the dtype below make (a stream's every push)
+    else:
+        try:
+            arr = np.asarray(value)
+        except Exception as exc:  # ragged lists and the like
+            raise ValueError(f"{name}: expected a numeric array, got {type(value).__name__} "
+                             f"({exc})") from exc
+        if arr.dtype == object or not np.issubdtype(arr.dtype, np.number):
+            # bool arrays too: True/False read as 1/0 metres or parameters is a mask passed
+            # where values belong, never a measurement
+            raise ValueError(f"{name}: expected a real numeric array, got dtype {arr.dtype}")
+        if np.iscomplexobj(arr):
+            raise ValueError(f"{name}: expected a real array, got complex dtype {arr.dtype}")
+        arr = arr.astype(np.float64, copy=False)
     if ndim is not None:
         dims = (ndim,) if isinstance(ndim, int) else tuple(ndim)
         if arr.ndim not in dims:

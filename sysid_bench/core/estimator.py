@@ -500,7 +500,7 @@ def _as_std(std) -> np.ndarray:
         arr = np.asarray(std, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"std: expected non-negative numbers, got {std!r} ({exc})") from None
-    if np.isnan(arr).any() or (arr < 0).any():
+    if not (arr >= 0).all():  # NaN and negatives (one pass: NaN >= 0 is False)
         raise ValueError(f"std: expected non-negative values (inf for none), got {arr}")
     return arr
 
