@@ -26,10 +26,11 @@ runs the ball's machinery (:mod:`methods._simulation`, :mod:`methods._tracks`), 
 it composes the generic likelihood on the system's tracked points (:mod:`methods._points`; nuts
 samples through the system's JAX twin) or, for sindy, the system's feature
 library (:mod:`methods._sindy_libraries`), or, for vid2param, the system's network
-(:mod:`methods.vid2param._points`). lsq, bo, emcee, nuts, dmd, prior and vid2param declare
-``"any"`` (a system a user registers included; nuts answers n/a where the system has no JAX
-twin, vid2param where no model is shipped or given: ``checkpoint=F``); sindy the ball, the
-pendulum and the spring; vid2param-physics and vid2param-changing the ball. A system a method
+(:mod:`methods.vid2param._points`; vid2param-physics fits the system's physics to that network's
+track). lsq, bo, emcee, nuts, dmd, prior, vid2param and vid2param-physics declare ``"any"`` (a
+system a user registers included; nuts answers n/a where the system has no JAX twin, the two
+vid2params where no model is shipped or given: ``checkpoint=F``); sindy the ball, the pendulum
+and the spring; vid2param-changing the ball. A system a method
 does not declare raises :class:`NotAvailable`, and so does a method whose ``check_available()``
 finds it cannot run there (:func:`get` calls it).
 """

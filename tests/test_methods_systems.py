@@ -47,8 +47,9 @@ EXPECTED = {
     # ``checkpoint=F`` loads it)
     "vid2param": {"ball": "answers", "pendulum": "answers", "spring": "answers",
                   "collision": "answers"},
-    "vid2param-physics": {"ball": "answers", "pendulum": "n/a", "spring": "n/a",
-                          "collision": "n/a"},
+    # the system's physics fitted to its network's track: wherever vid2param has a network
+    "vid2param-physics": {"ball": "answers", "pendulum": "answers", "spring": "answers",
+                          "collision": "answers"},
     "vid2param-changing": {"ball": "answers", "pendulum": "n/a", "spring": "n/a",
                            "collision": "n/a"},
 }
@@ -120,7 +121,7 @@ def test_vid2param_says_na_on_another_system():
             with pytest.raises(ValueError, match=f"n/a on the {name} system: no model is shipped"):
                 methods.get("vid2param", system=name)
         with pytest.raises(NotImplementedError):  # what the benchmarks record as n/a
-            methods.get("vid2param-physics", system=name)
+            methods.get("vid2param-changing", system=name)
 
 
 def test_one_class_per_method_on_every_system():

@@ -38,6 +38,20 @@ def train_command(system: str) -> str:
             f"--export methods/vid2param/checkpoints/v2p_{system}.pt")
 
 
+def physics_calibration_path(checkpoint) -> Path:
+    """Where ``vid2param-physics``' std factors for ``checkpoint`` are kept: beside it,
+    ``<stem>_physics.json``."""
+    p = Path(checkpoint)
+    return p.with_name(p.stem + "_physics.json")
+
+
+#: ``vid2param-physics``'s fit on a system's network track (:meth:`PointsModel.physics_prefixes`):
+#: the cross-entropy search's simulations and rounds, the distinct starts it hands to least
+#: squares besides the network's own answer, and evaluations per least-squares run (lsq's
+#: defaults but for two starts fewer: the network's answer is usually the best of them)
+PHYSICS_FIT = (2000, 4, 3, 100)
+
+
 class PointsModel:
     """A system's Vid2Param network and stages, loaded for a :class:`Vid2Param` (``est``).
 
@@ -293,6 +307,148 @@ class PointsModel:
 
     def stream(self) -> PointsStream:
         return PointsStream(self)
+
+    # -- vid2param-physics: the system's physics fitted to the network's track ---------------
+    def physics_scale(self) -> tuple[np.ndarray, str]:
+        """``vid2param-physics``' std factors (P,) in the system's order and where they come
+        from: the calibration file beside the checkpoint (:func:`physics_calibration_path`,
+        written by ``scripts/calibrate_v2p_physics.py``) when it was made for this
+        checkpoint's bytes; ones otherwise (a model nobody calibrated: the answer says so)."""
+        cached = getattr(self, "_physics_scale", None)
+        if cached is not None:
+            return cached
+        import hashlib
+        import json
+
+        P = len(self._sys.params)
+        cal = physics_calibration_path(self.path)
+        out = (np.ones(P), "none: no calibration for this checkpoint")
+        if cal.is_file():
+            try:
+                rec = json.loads(cal.read_text())
+                sha = hashlib.sha256(Path(self.path).read_bytes()).hexdigest()
+                if rec.get("checkpoint_sha256") == sha:
+                    f = np.array([float(rec["std_scale"][q]) for q in self._sys.params])
+                    if np.isfinite(f).all() and (f >= 1.0).all():
+                        out = (f, cal.name)
+                else:
+                    out = (np.ones(P), f"none: {cal.name} was made for another checkpoint")
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                raise ValueError(f"{cal}: expected vid2param-physics' calibration (JSON with "
+                                 f"checkpoint_sha256 and std_scale), could not read it: "
+                                 f"{exc}") from None
+        self._physics_scale = out
+        return out
+
+    def physics_prefixes(self, obs: Observation, lengths) -> list[Posterior]:
+        """``vid2param-physics`` on this system: after each of ``lengths`` frames, the system's
+        physics fitted to the network's own track of the first n frames (one network pass).
+
+        The network reads its K points in every frame and its posterior over the parameters;
+        the fit (:mod:`methods._points`: lsq's cross-entropy search, then least squares from
+        the network's answer and the search's best distinct points) finds the parameters and
+        initial state of one simulated trajectory through that track. Spread: its Laplace
+        approximation, widened for a track that errs by more than the noise or in runs of
+        frames (:func:`methods._points.noise_inflation`: the network's misreadings are not
+        white). The model check judges the fitted trajectory against the frames' own track
+        (``System.track``, as every simulation method reads the frames: the network's track
+        follows whatever the network reads), over the same n frames; a failed check widens
+        the intervals to the prior. Where the frames' tracker sees the points in fewer than 3
+        of them, the check reads the network's track and says so.
+        """
+        import dataclasses
+
+        from methods._points import (
+            Points,
+            PointsSimulator,
+            Problem,
+            default_sigma,
+            draw_inside,
+            noise_inflation,
+            prepare_points,
+            refine,
+            search,
+        )
+
+        est, sys_ = self._est, self._sys
+        fr = self._obs_frames(obs)
+        T = fr.shape[1]
+        lengths = [int(n) for n in np.atleast_1d(lengths)]
+        if not lengths or min(lengths) < 1 or max(lengths) > T:
+            raise ValueError(f"lengths: expected frame counts in [1, {T}], got {lengths}")
+        t0 = time.perf_counter()
+        m, s, pts, _ = self.posteriors(fr)
+        wall = time.perf_counter() - t0
+        sigma = default_sigma(sys_)
+        part = Points(sys_, sigma, min_frames=3, seed=est.seed)
+        try:  # the frames' own track, for the model check
+            seen = prepare_points(Observation(frames=fr[0], dt=obs.dt, scene=obs.scene,
+                                              system=sys_.name), sys_, 1)
+        except ValueError:  # not seen in any frame
+            seen = None
+        n_search, rounds, n_starts, max_evals = PHYSICS_FIT
+        out = []
+        for n in lengths:
+            t1 = time.perf_counter()
+            net = self._params(m[0, n - 1], s[0, n - 1], {}, n)
+            track = Observation(positions=pts[0, :n], dt=obs.dt, scene=obs.scene,
+                                system=sys_.name)
+            prob = part.problem(track)
+            rng = np.random.default_rng([int(est.seed), 17, n])
+            starts, info = search(prob, rng, n_search, rounds, n_starts)
+            u_net = np.clip((net.mean - prob.plo) / prob.pspan, 0.0, 1.0)
+            if prob.free:
+                u_net = np.r_[u_net, prob.u_state0]
+            u, cov, opt = refine(prob, [u_net, *starts], max_evals)
+            theta, s0 = prob.split(u)
+            # a parameter the track does not inform (its Laplace variance at the uniform
+            # prior's cap: at 50 frames the collision's carts may not have met a wall yet) is
+            # wherever the optimiser left it, an end of the range as often as not: its answer
+            # is the prior's, centre and spread, not that point
+            flat = np.diag(cov)[:prob.P] >= (1.0 / 12.0) * (1.0 - 1e-9)
+            res = prob.point_residuals(theta, s0)
+            k, spread = noise_inflation(prob, res=res)
+            cov = cov * k**2
+            std = np.minimum(np.sqrt(np.diag(cov)[:prob.P]), np.sqrt(1.0 / 12.0)) * prob.pspan
+            # n_samples 0: no samples in the answer (50 drawn for a widened one's shape)
+            draws = draw_inside(u, cov, int(est.n_samples or 0) or 50, rng)
+            th_d, _ = prob.split(draws)
+            # the calibration's factors (90% intervals holding 90% of train videos' truths):
+            # the network's track errs by a bias no noise model holds (the pendulum's bob
+            # centroid ~2 mm towards the pivot: L ~2 of its Laplace stds short)
+            fac, fac_source = self.physics_scale()
+            std = np.minimum(std * fac, prob.pspan / np.sqrt(12.0))
+            th_d = np.clip(theta + fac * (th_d - theta), prob.plo, prob.plo + prob.pspan)
+            mean = theta.copy()
+            if flat.any():
+                mean[flat] = prob.plo[flat] + 0.5 * prob.pspan[flat]
+                th_d[:, flat] = prob.plo[flat] + prob.pspan[flat] * rng.random(
+                    (len(th_d), int(flat.sum())))
+                std[flat] = prob.pspan[flat] / np.sqrt(12.0)
+            sims = prob.sim.n_simulations
+            ok = seen is not None and int(seen.mask[:n].any(axis=1).sum()) >= 3
+            if ok:
+                own = dataclasses.replace(seen, positions=seen.positions[:n],
+                                          mask=seen.mask[:n])
+                cprob = Problem(own, sigma, PointsSimulator(sys_))
+                check = cprob.check(theta, s0)
+                sims += cprob.sim.n_simulations
+            else:
+                check = prob.check(theta, s0, "checked against the network's own track: the "
+                                   "frames' tracker sees the points in fewer than 3 frames",
+                                   res=res)
+            extras = {"wall_s": wall * n / T + time.perf_counter() - t1, "n_frames": n,
+                      "n_simulations": sims, "network_mean": net.mean.tolist(),
+                      "network_std": net.std.tolist(), "track_rms_m": prob.rms(u),
+                      "state0": s0.tolist(), "fit_theta": theta.tolist(),
+                      "uninformed": [q for q, f in zip(sys_.params, flat) if f],
+                      "physics_calibration": fac_source,
+                      **spread, **info, **opt}
+            post = part.posterior(prob, mean, std, th_d, extras, check)
+            if not est.n_samples:
+                post.samples = None
+            out.append(post)
+        return out
 
 
 class PointsStream(Stream):

@@ -901,6 +901,14 @@ class Vid2ParamPhysics(Vid2Param):
     prior (Laplace posterior, widened for the track's correlated misreadings). It is not
     online: each prefix is fitted afresh (``streams`` is False; the online-cost table shows
     what that costs), and ``extras["n_simulations"]`` counts the trajectories it simulated.
+
+    On another system with a Vid2Param network (``system=``; n/a where ``vid2param`` is): that
+    system's physics fitted to the network's track of its K points, from the network's answer
+    and the best points of a cross-entropy search, with the Laplace spread widened for a track
+    that errs in runs of frames and by the calibration's std factors
+    (:meth:`methods.vid2param._points.PointsModel.physics_prefixes`); a parameter the track does
+    not inform answers the prior; the model check reads the frames' own track. Forecasts
+    simulate draws of that posterior (``forecast="latent"``: the network's rollout).
     """
 
     name = "vid2param-physics"
@@ -910,8 +918,10 @@ class Vid2ParamPhysics(Vid2Param):
         "its physics stage fits the track with the network's joint posterior over all four "
         "parameters as its prior, inferred without the held value or range; holding one would "
         "need that posterior conditioned on it and the fit's held coordinates fixed (not done)")
-    #: the ball's physics fitted to the ball's network (no other system has either)
-    systems = ("ball",)
+    #: the ball's physics fitted to the ball's network; on another system, that system's
+    #: physics fitted to its network's track (:meth:`~methods.vid2param._points.PointsModel.physics_prefixes`),
+    #: n/a where it has no network, as ``vid2param``
+    systems = "any"
     default_forecast = "physics"
     streams = False
     online = False  # its stream re-fits every prefix
@@ -931,6 +941,8 @@ class Vid2ParamPhysics(Vid2Param):
         ``extras["wall_s"]`` of each is the network's pass up to that prefix (pro rata) plus
         that prefix's fit.
         """
+        if not self._on_ball():
+            return self._model().physics_prefixes(obs, lengths)
         from methods.vid2param.rollout import fit_track, simulations
 
         frames = self._frames_of(obs)
@@ -956,10 +968,26 @@ class Vid2ParamPhysics(Vid2Param):
             out.append(self._fitted_posterior(fit, extras, self._rng(1000 + n)))
         return check_prefixes(out, obs, lengths, DEFAULT_SIGMA, self.check_window)
 
+    def identify(self, obs: Observation) -> Posterior:
+        if not self._on_ball():
+            return self.identify_prefixes(obs, [obs.n_frames if isinstance(obs, Observation)
+                                                else 1])[0]
+        return super().identify(obs)
+
     def identify_batch(self, frames) -> list[Posterior]:
         """``identify`` of each of many videos (N, T, H, W): one fit per video."""
         fr = _check_frames_array(frames, self.frame_size, "frames", 4)
-        return [self.identify(Observation(frames=f)) for f in fr]
+        system = None if self._on_ball() else self.system
+        return [self.identify(Observation(frames=f) if system is None
+                              else Observation(frames=f, system=system)) for f in fr]
+
+    def forecast(self, obs: Observation, horizon: int) -> Forecast:
+        """As ``Vid2Param.forecast``; another system: its simulator run on draws of the fitted
+        posterior (``forecast="latent"``: the network's latent rollout, as ``vid2param``)."""
+        if not self._on_ball() and self.forecast_mode == "physics":
+            model = self._model()
+            return model._physics_forecast(obs, horizon, post=self.identify(obs))
+        return super().forecast(obs, horizon)
 
     def normalised_prefixes(self, frames, lengths) -> tuple[np.ndarray, np.ndarray]:
         """``Vid2Param.normalised_prefixes`` of the fitted posteriors (one fit per video and
