@@ -35,6 +35,10 @@ from methods.vid2param.parts import (
 from methods.vid2param.prior import PhysicsPrior
 from sysid_bench.core.physics import BOX_WIDTH, DT
 
+#: Train a system's recurrence with the written-out backward pass (``_recurrence``); False:
+#: autograd through the per-frame loop (the tests' reference).
+WRITTEN_BACKWARD = True
+
 __all__ = ["V2PConfig", "Vid2ParamNet", "RecurrentState", "TARGETS",
            "LEGACY_DEFAULTS", "REMOVED", "position_names", "system_targets"]
 
@@ -660,6 +664,18 @@ class Vid2ParamNet(nn.Module):
         contiguous = idx == list(range(idx[0], idx[0] + n_pos))
         h, c = state.h, state.c
         s_vel, s_acc = rec.diff_scales
+        if (WRITTEN_BACKWARD and roll is None and not kpt.use_visibility
+                and self.rolling is None and contiguous and torch.is_grad_enabled()):
+            # a system's network in training: the written-out backward pass (same numbers
+            # forward, the gradients up to float order; ``_recurrence``)
+            from methods.vid2param._recurrence import ObservedRecurrence
+
+            reads, mu_t, std_t, h, c, last_pos, last_vel = ObservedRecurrence.apply(
+                pre, (1 - m + kpt.gate * m), kp, w_read, w2t, b2, wz, bz, w_cell, b_cell,
+                (idx[0], n_pos, s_vel, s_acc, _MIN_STD))
+            n_seen = torch.full((B, 1), float(min(T, 2)), device=fx.device)
+            state = RecurrentState(h, c, last_pos, last_vel, n_seen, None)
+            return list(reads.unbind(0)), (mu_t.transpose(0, 1), std_t.transpose(0, 1)), state
         last_pos = last_vel = None
         hs, mus, stds = [], [], []
         for t in range(T):
