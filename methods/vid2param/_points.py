@@ -215,15 +215,21 @@ class PointsModel:
         return self._params(m[0, -1], s[0, -1], {"wall_s": time.perf_counter() - t0,
                                                  "n_frames": m.shape[1]}, m.shape[1])
 
-    def identify_prefixes(self, obs: Observation, lengths) -> list[Posterior]:
+    def _prefix_pass(self, obs: Observation, lengths):
+        """One network pass over ``obs`` for the prefixes ``lengths`` (checked): the frames
+        (1, T, H, W), the lengths, :meth:`posteriors`' outputs and the pass's seconds."""
         fr = self._obs_frames(obs)
         T = fr.shape[1]
         lengths = [int(n) for n in np.atleast_1d(lengths)]
         if not lengths or min(lengths) < 1 or max(lengths) > T:
             raise ValueError(f"lengths: expected frame counts in [1, {T}], got {lengths}")
         t0 = time.perf_counter()
-        m, s, _, _ = self.posteriors(fr)
-        wall = time.perf_counter() - t0
+        out = self.posteriors(fr)
+        return fr, lengths, out, time.perf_counter() - t0
+
+    def identify_prefixes(self, obs: Observation, lengths) -> list[Posterior]:
+        fr, lengths, (m, s, _, _), wall = self._prefix_pass(obs, lengths)
+        T = fr.shape[1]
         return [self._params(m[0, n - 1], s[0, n - 1], {"wall_s": wall * n / T, "n_frames": n},
                              n) for n in lengths]
 
@@ -371,14 +377,8 @@ class PointsModel:
         )
 
         est, sys_ = self._est, self._sys
-        fr = self._obs_frames(obs)
+        fr, lengths, (m, s, pts, _), wall = self._prefix_pass(obs, lengths)
         T = fr.shape[1]
-        lengths = [int(n) for n in np.atleast_1d(lengths)]
-        if not lengths or min(lengths) < 1 or max(lengths) > T:
-            raise ValueError(f"lengths: expected frame counts in [1, {T}], got {lengths}")
-        t0 = time.perf_counter()
-        m, s, pts, _ = self.posteriors(fr)
-        wall = time.perf_counter() - t0
         sigma = default_sigma(sys_)
         part = Points(sys_, sigma, min_frames=3, seed=est.seed)
         try:  # the frames' own track, for the model check
