@@ -32,6 +32,7 @@ prior.
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 import warnings
 
@@ -48,6 +49,7 @@ from sysid_bench.core.simulator import CountingSimulator, check_sigma, mean_sq_e
 __all__ = ["BayesOpt"]
 
 _INTROSPECTION = {"lock": threading.Lock(), "depth": 0, "saved": None, "names": {}}
+_QUICK: dict = {}  # the quick GP class, made on first use
 
 
 def _hyperparameter_names(kernel) -> list[str]:
@@ -91,6 +93,231 @@ def _quick_kernel_introspection():
             st["depth"] -= 1
             if st["depth"] == 0:
                 Kernel.hyperparameters = st["saved"]
+
+
+# ---------------------------------------------------------------------------------------------
+# The GP surrogate with less Python per call. skopt's default for a box of continuous
+# dimensions is ``ConstantKernel * Matern(nu=2.5) + WhiteKernel`` (normalised y, 2 restarts):
+# a bo fit makes ~1200 log-likelihood calls and ~700 acquisition predictions on <= 20 points,
+# each ~1.4 ms of mostly composite-kernel plumbing (the theta setter's get_params/set_params,
+# Sum/Product/Constant/White calls, check_array). The classes below evaluate that one kernel
+# directly with the very operations, operands and order sklearn 1.9 / skopt 0.10 use, so every
+# bit is the library's (tests/test_bo_quick_gp.py checks it); any other kernel, shape or
+# option goes through the library's own code.
+
+def _quick_parts(kernel, n_features: int):
+    """(constant, matern, white) of ``C * Matern(nu=2.5, one length per dimension) + White``
+    with every hyperparameter free, exactly these skopt classes; None for any other kernel."""
+    from skopt.learning.gaussian_process.kernels import (
+        ConstantKernel,
+        Matern,
+        Product,
+        Sum,
+        WhiteKernel,
+    )
+
+    if type(kernel) is not Sum or type(kernel.k1) is not Product or type(kernel.k2) is not WhiteKernel:
+        return None
+    const, matern, white = kernel.k1.k1, kernel.k1.k2, kernel.k2
+    if type(const) is not ConstantKernel or type(matern) is not Matern or matern.nu != 2.5:
+        return None
+    if not matern.anisotropic or np.ndim(matern.length_scale) != 1 or len(matern.length_scale) != n_features:
+        return None
+    if (const.hyperparameter_constant_value.fixed or matern.hyperparameter_length_scale.fixed
+            or white.hyperparameter_noise_level.fixed):
+        return None
+    return const, matern, white
+
+
+def _matern52(X, Y, length_scale):
+    """sklearn's ``Matern(nu=2.5).__call__`` without gradient: (n_X, n_Y), Y None: (n_X, n_X)."""
+    from scipy.spatial.distance import cdist, pdist, squareform
+
+    if Y is None:
+        K = pdist(X / length_scale, metric="euclidean") * math.sqrt(5)
+        K = squareform((1.0 + K + K**2 / 3.0) * np.exp(-K))
+        np.fill_diagonal(K, 1)
+        return K
+    K = cdist(X / length_scale, Y / length_scale, metric="euclidean") * math.sqrt(5)
+    return (1.0 + K + K**2 / 3.0) * np.exp(-K)
+
+
+class _QuickKernel:
+    """Stands in for ``gpr.kernel_`` inside one ``log_marginal_likelihood(theta,
+    clone_kernel=False)``: its ``theta`` setter writes the real kernel's values as sklearn's
+    nested setters do (``np.exp`` of each slice), and calling it gives ``K`` (and the gradient
+    with respect to log theta, (n, n, P + 2)) as ``Sum(Product(C, Matern), White)`` does."""
+
+    def __init__(self, parts):
+        self.const, self.matern, self.white = parts
+        self.d = len(self.matern.length_scale)
+
+    @property
+    def theta(self):
+        raise AttributeError("_QuickKernel.theta is write-only")  # the likelihood only sets it
+
+    @theta.setter
+    def theta(self, theta):
+        d = self.d
+        if len(theta) != d + 2:
+            raise ValueError(f"theta: expected {d + 2} entries, got {len(theta)}")
+        self.const.constant_value = np.exp(theta[0])
+        self.matern.length_scale = np.exp(theta[1:1 + d])
+        self.white.noise_level = np.exp(theta[1 + d])
+
+    def __call__(self, X, Y=None, eval_gradient=False):
+        if Y is not None:
+            raise ValueError("_QuickKernel: the likelihood evaluates k(X, X) only")
+        c, noise = self.const.constant_value, self.white.noise_level
+        X = np.atleast_2d(X)
+        length_scale = np.squeeze(self.matern.length_scale).astype(float)
+        n = X.shape[0]
+        M = _matern52(X, None, length_scale)
+        K1 = np.full((n, n), c, dtype=np.array(c).dtype)
+        KP = K1 * M
+        W = noise * np.eye(n)
+        if not eval_gradient:
+            return KP + W
+        D = (X[:, np.newaxis, :] - X[np.newaxis, :, :]) ** 2 / (length_scale**2)
+        tmp = np.sqrt(5 * D.sum(-1))[..., np.newaxis]
+        M_gradient = 5.0 / 3.0 * D * (tmp + 1) * np.exp(-tmp)
+        K1_gradient = np.full((n, n, 1), c, dtype=np.array(c).dtype)
+        KP_gradient = np.dstack((K1_gradient * M[:, :, np.newaxis], M_gradient * K1[:, :, np.newaxis]))
+        return KP + W, np.dstack((KP_gradient, (noise * np.eye(n))[:, :, np.newaxis]))
+
+
+def _quick_gpr_class():
+    """skopt's ``GaussianProcessRegressor`` with the fast likelihood and prediction (made on
+    first use: skopt is imported only when bo runs)."""
+    cls = _QUICK.get("gpr")
+    if cls is not None:
+        return cls
+    from sklearn.utils import check_array
+    from skopt.learning import GaussianProcessRegressor
+
+    class QuickGPR(GaussianProcessRegressor):
+        """The same estimator and arithmetic as skopt's; the default kernel evaluated directly."""
+
+        def _quick(self):
+            # the parts of kernel_ (a new object at each fit), found once per kernel_
+            # (skopt's fit swaps in a zero-noise WhiteKernel by set_params: the key holds the parts)
+            kernel = self.kernel_
+            k1 = getattr(kernel, "k1", None)
+            key = (kernel, k1, getattr(kernel, "k2", None), getattr(k1, "k1", None), getattr(k1, "k2", None))
+            cached = self.__dict__.get("_quick_cache")
+            if cached is None or any(a is not b for a, b in zip(cached[0], key)):
+                parts = _quick_parts(kernel, self.X_train_.shape[1]) if self.X_train_.ndim == 2 else None
+                cached = (key, parts)
+                self.__dict__["_quick_cache"] = cached
+            return cached[1]
+
+        def log_marginal_likelihood(self, theta=None, eval_gradient=False, clone_kernel=True):
+            parts = None if theta is None or clone_kernel else self._quick()
+            if parts is None:
+                return super().log_marginal_likelihood(theta, eval_gradient, clone_kernel)
+            kernel = self.kernel_
+            self.kernel_ = _QuickKernel(parts)
+            try:  # sklearn's own likelihood arithmetic around the direct kernel
+                return super().log_marginal_likelihood(theta, eval_gradient, clone_kernel=False)
+            finally:
+                self.kernel_ = kernel
+
+        def predict(self, X, return_std=False, return_cov=False, return_mean_grad=False,
+                    return_std_grad=False):
+            parts = None
+            if hasattr(self, "X_train_") and not return_cov:
+                parts = self._quick()
+            if parts is None or parts[2].noise_level != 0.0 or (return_std_grad and not return_std):
+                return super().predict(X, return_std, return_cov, return_mean_grad, return_std_grad)
+            if not (type(X) is np.ndarray and X.dtype == np.float64 and X.ndim == 2 and X.size
+                    and np.isfinite(X).all()):
+                X = check_array(X)  # what skopt does; a finite float64 matrix passes unchanged
+            if X.shape[0] != 1 and (return_mean_grad or return_std_grad):
+                raise ValueError("Not implemented for n_samples > 1")
+            const, matern, _ = parts
+            c = const.constant_value
+            X_train = self.X_train_
+            nx, nt = X.shape[0], X_train.shape[0]
+            # kernel_(X, X_train): Product(C, Matern) + White (zeros off the training set)
+            M = _matern52(np.atleast_2d(X), X_train, np.squeeze(matern.length_scale).astype(float))
+            K1 = np.full((nx, nt), c, dtype=np.array(c).dtype)
+            K_trans = K1 * M + np.zeros((nx, nt))
+            y_mean = K_trans.dot(self.alpha_)
+            y_mean = self.y_train_std_ * y_mean + self.y_train_mean_
+            if return_std:
+                K_inv = self.K_inv_
+                # kernel_.diag(X): C.diag * Matern.diag + White.diag (noise 0)
+                y_var = np.full(nx, c, dtype=np.array(c).dtype) * np.ones(nx) + 0.0 * np.ones(nx)
+                y_var -= np.einsum("ki,kj,ij->k", K_trans, K_trans, K_inv)
+                y_var_negative = y_var < 0
+                if np.any(y_var_negative):
+                    warnings.warn("Predicted variances smaller than 0. Setting those variances to 0.", stacklevel=2)
+                    y_var[y_var_negative] = 0.0
+                y_var = y_var * self.y_train_std_**2
+                y_std = np.sqrt(y_var)
+            if not return_mean_grad:
+                return (y_mean, y_std) if return_std else y_mean
+            # kernel_.gradient_x(X[0], X_train): Product's rule (C's gradient 0) + White's 0
+            zeros = np.zeros_like(X_train)
+            grad = (np.expand_dims(K1[0], axis=1) * _matern52_gradient_x(X[0], X_train, matern)
+                    + np.expand_dims(M[0], axis=1) * zeros) + zeros
+            grad_mean = np.dot(grad.T, self.alpha_)
+            grad_mean = grad_mean * self.y_train_std_
+            if return_std_grad:
+                grad_std = np.zeros(X.shape[1])
+                if not np.allclose(y_std, grad_std):
+                    grad_std = -np.dot(K_trans, np.dot(K_inv, grad))[0] / y_std
+                    grad_std = grad_std * self.y_train_std_**2
+                return y_mean, y_std, grad_mean, grad_std
+            return (y_mean, y_std, grad_mean) if return_std else (y_mean, grad_mean)
+
+    _QUICK["gpr"] = QuickGPR
+    return QuickGPR
+
+
+def _matern52_gradient_x(x, X_train, matern):
+    """skopt's ``Matern(nu=2.5).gradient_x``: d k(x, X_train) / dx, (n_train, n_features)."""
+    x = np.asarray(x).reshape((-1,))
+    length_scale = np.asarray(matern.length_scale)
+    diff = x - X_train
+    diff /= length_scale
+    dist_sq = np.sum(diff**2, axis=1)
+    dist = np.sqrt(dist_sq)
+    sqrt_5_dist = math.sqrt(5) * dist
+    f2 = (5.0 / 3.0) * dist_sq
+    f2 += sqrt_5_dist
+    f2 += 1
+    f = np.expand_dims(f2, axis=1)
+    nzd_mask = dist != 0.0
+    nzd = dist[nzd_mask]
+    dist[nzd_mask] = np.reciprocal(nzd, nzd)
+    dist *= math.sqrt(5)
+    dist = np.expand_dims(dist, axis=1)
+    diff /= length_scale  # skopt divides twice (kept: the same bits)
+    f1_grad = dist * diff
+    f2_grad = (10.0 / 3.0) * diff
+    f_grad = f1_grad + f2_grad
+    sqrt_5_dist *= -1
+    g = np.exp(sqrt_5_dist, sqrt_5_dist)
+    g = np.expand_dims(g, axis=1)
+    g_grad = -g * f1_grad
+    return f * g_grad + g * f_grad
+
+
+def _gp_minimize(func, n_dims: int, *, random_state: int, **options):
+    """``skopt.gp_minimize(func, [(0, 1)] * n_dims, random_state=..., **options)`` with the
+    quick GP: the default estimator built as gp_minimize builds it (its first draw from the
+    same RandomState), its class swapped, and that RandomState handed on, so the search and
+    every figure are the library's."""
+    from skopt import gp_minimize
+    from skopt.utils import cook_estimator, normalize_dimensions
+
+    dims = [(0.0, 1.0)] * n_dims
+    rng = np.random.RandomState(random_state)
+    est = cook_estimator("GP", space=normalize_dimensions(dims),
+                         random_state=rng.randint(0, np.iinfo(np.int32).max), noise="gaussian")
+    est = _quick_gpr_class()(**est.get_params(deep=False))
+    return gp_minimize(func, dims, base_estimator=est, random_state=rng, **options)
 
 
 _MSE_FLOOR = 1e-12  # m^2; keeps log finite on an exact fit
@@ -213,8 +440,6 @@ class BayesOpt(SimulationOnSystems):
         (estimated) start; an unknown initial state is drawn from its estimate's Gaussian
         standard error (:meth:`_forecast_state0`).
         """
-        from skopt import gp_minimize
-
         clock = Stopwatch()
         n_calls = check_positive_int(self.n_calls, "n_calls")
         n_init = check_positive_int(self.n_initial_points, "n_initial_points")
@@ -257,8 +482,8 @@ class BayesOpt(SimulationOnSystems):
             with warnings.catch_warnings(), one_blas_thread(), _quick_kernel_introspection():
                 # skopt warns when it re-proposes a point already evaluated; that is not a failure
                 warnings.simplefilter("ignore", UserWarning)
-                res = gp_minimize(
-                    objective, [(0.0, 1.0)] * nf, n_calls=n_calls, n_initial_points=n_init,
+                res = _gp_minimize(
+                    objective, nf, n_calls=n_calls, n_initial_points=n_init,
                     acq_func=self.acq_func, random_state=int(rng.integers(2**31)),
                     initial_point_generator=self.initial_point_generator,
                 )
@@ -314,8 +539,6 @@ class BayesOpt(SimulationOnSystems):
 
     def _fit_points(self, obs: Observation, part: Points) -> PointsFit:
         """Another system: the GP search with the start held at its estimate (see the module)."""
-        from skopt import gp_minimize
-
         clock = Stopwatch()
         track = prepare_points(obs, part.system, part.min_frames)
         fixed = Observation(positions=track.positions, dt=track.dt, state0=track.state0,
@@ -333,7 +556,7 @@ class BayesOpt(SimulationOnSystems):
         try:
             with warnings.catch_warnings(), one_blas_thread(), _quick_kernel_introspection():
                 warnings.simplefilter("ignore", UserWarning)  # re-proposed points
-                res = gp_minimize(objective, [(0.0, 1.0)] * P, n_calls=int(self.n_calls),
+                res = _gp_minimize(objective, P, n_calls=int(self.n_calls),
                                   n_initial_points=int(self.n_initial_points),
                                   acq_func=self.acq_func, random_state=int(rng.integers(2**31)),
                                   initial_point_generator=self.initial_point_generator)
