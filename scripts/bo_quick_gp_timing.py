@@ -1,0 +1,51 @@
+"""CPU per bo fit with the quick GP (``methods.bo._gp_minimize``) against skopt's own GP, interleaved.
+
+Each round fits one case with the library path (``gp_minimize`` with its default estimator, the
+code before the quick GP) and then with the quick path, in one process, checks the two
+posteriors' hashes are equal and prints the CPU seconds of each::
+
+    PYTHONPATH=$PWD nice -n 10 python scripts/bo_quick_gp_timing.py [n_rounds]
+"""
+
+from __future__ import annotations
+
+import statistics
+import sys
+import time
+
+import methods.bo as bo
+from scripts.bo_posterior_hashes import _digest, cases
+
+
+def _library_gp_minimize(func, n_dims, *, random_state, **options):
+    from skopt import gp_minimize
+
+    return gp_minimize(func, [(0.0, 1.0)] * n_dims, random_state=random_state, **options)
+
+
+def main(n_rounds: int = 5) -> None:
+    quick = bo._gp_minimize
+    picked = [c for c in cases(("ball", "pendulum")) if c[0] in ("ball0", "ball1", "ball2",
+                                                                 "pendulum0", "pendulum1", "pendulum2")]
+    times = {}
+    for r in range(n_rounds):
+        label, est, obs = picked[r % 3] if r % 2 == 0 else picked[3 + r % 3]
+        out = {}
+        for name, fn in (("library", _library_gp_minimize), ("quick", quick)):
+            bo._gp_minimize = fn
+            t0 = time.process_time()
+            post = est.identify(obs)
+            out[name] = (time.process_time() - t0, _digest(post))
+        bo._gp_minimize = quick
+        assert out["library"][1] == out["quick"][1], (label, out)
+        system = label.rstrip("0123456789")
+        times.setdefault(system, []).append((out["library"][0], out["quick"][0]))
+        print(f"{label:10s} library {out['library'][0]:5.2f} s  quick {out['quick'][0]:5.2f} s  "
+              f"ratio {out['library'][0] / out['quick'][0]:4.2f}  bytes equal", flush=True)
+    for system, tt in times.items():
+        lib, qk = (statistics.median(x) for x in zip(*tt))
+        print(f"{system}: median CPU per fit library {lib:.2f} s, quick {qk:.2f} s, ratio {lib / qk:.2f}")
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 5)
