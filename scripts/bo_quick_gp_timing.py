@@ -1,7 +1,7 @@
-"""CPU per bo fit with the quick GP (``methods.bo._gp_minimize``) against skopt's own GP, interleaved.
+"""CPU per bo fit with the quick GP against skopt's own code, interleaved.
 
-Each round fits one case with the library path (``gp_minimize`` with its default estimator, the
-code before the quick GP) and then with the quick path, in one process, checks the two
+Each round fits one case with the library path (``gp_minimize`` with its default estimator and
+without ``_quick_skopt_helpers``: the code before them) and then with the quick path, in one process, checks the two
 posteriors' hashes are equal and prints the CPU seconds of each::
 
     PYTHONPATH=$PWD nice -n 10 python scripts/bo_quick_gp_timing.py [n_rounds]
@@ -9,6 +9,7 @@ posteriors' hashes are equal and prints the CPU seconds of each::
 
 from __future__ import annotations
 
+import contextlib
 import statistics
 import sys
 import time
@@ -24,19 +25,20 @@ def _library_gp_minimize(func, n_dims, *, random_state, **options):
 
 
 def main(n_rounds: int = 5) -> None:
-    quick = bo._gp_minimize
+    quick, helpers = bo._gp_minimize, bo._quick_skopt_helpers
     picked = [c for c in cases(("ball", "pendulum")) if c[0] in ("ball0", "ball1", "ball2",
                                                                  "pendulum0", "pendulum1", "pendulum2")]
     times = {}
     for r in range(n_rounds):
         label, est, obs = picked[r % 3] if r % 2 == 0 else picked[3 + r % 3]
         out = {}
-        for name, fn in (("library", _library_gp_minimize), ("quick", quick)):
-            bo._gp_minimize = fn
+        for name, fn, ctx in (("library", _library_gp_minimize, contextlib.nullcontext),
+                              ("quick", quick, helpers)):
+            bo._gp_minimize, bo._quick_skopt_helpers = fn, ctx
             t0 = time.process_time()
             post = est.identify(obs)
             out[name] = (time.process_time() - t0, _digest(post))
-        bo._gp_minimize = quick
+        bo._gp_minimize, bo._quick_skopt_helpers = quick, helpers
         assert out["library"][1] == out["quick"][1], (label, out)
         system = label.rstrip("0123456789")
         times.setdefault(system, []).append((out["library"][0], out["quick"][0]))

@@ -70,3 +70,27 @@ def test_posterior_bytes_equal_to_library_search(monkeypatch):
         assert getattr(lib, field).tobytes() == getattr(quick, field).tobytes()
     assert {k: v for k, v in lib.extras.items() if k != "wall_s"} == \
         {k: v for k, v in quick.extras.items() if k != "wall_s"}
+
+
+def test_skopt_helpers_give_the_library_values():
+    import skopt.acquisition as acquisition
+    import skopt.space.space as space
+    from scipy.stats import norm
+
+    sp = space.Space([(0.0, 1.0), (-2.0, 3.0), (1e-3, 10.0, "log-uniform")])
+    lib_rows, lib_t = None, None
+    for quick in (False, True):
+        rng = np.random.RandomState(4)
+        with bo._quick_skopt_helpers() if quick else np.errstate():
+            rows = sp.rvs(n_samples=300, random_state=rng)
+            t = sp.transform(rows)
+            assert (acquisition.norm is not norm) == quick
+        if quick:
+            assert rows == lib_rows and [type(v) for v in rows[0]] == [type(v) for v in lib_rows[0]]
+            assert t.tobytes() == lib_t.tobytes()
+        lib_rows, lib_t = rows, t
+    assert acquisition.norm is norm and space._transpose_list_array is not bo._transpose_rows
+    x = np.concatenate([np.random.default_rng(1).normal(0, 10, 500), [0.0, -0.0, 40.0, -40.0, np.inf, -np.inf]])
+    q = bo._QuickNorm(norm)
+    assert q.cdf(x).tobytes() == norm.cdf(x).tobytes() and q.pdf(x).tobytes() == norm.pdf(x).tobytes()
+    assert q.logcdf(1.0) == norm.logcdf(1.0)
