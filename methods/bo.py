@@ -187,17 +187,19 @@ class _QuickKernel:
         length_scale = np.squeeze(self.matern.length_scale).astype(float)
         n = X.shape[0]
         M = _matern52(X, None, length_scale)
-        K1 = np.full((n, n), c, dtype=np.array(c).dtype)
-        KP = K1 * M
+        KP = M * c  # np.full((n, n), c) * M of sklearn's Product: the same products
         W = noise * np.eye(n)
         if not eval_gradient:
             return KP + W
         D = (X[:, np.newaxis, :] - X[np.newaxis, :, :]) ** 2 / (length_scale**2)
         tmp = np.sqrt(5 * D.sum(-1))[..., np.newaxis]
         M_gradient = 5.0 / 3.0 * D * (tmp + 1) * np.exp(-tmp)
-        K1_gradient = np.full((n, n, 1), c, dtype=np.array(c).dtype)
-        KP_gradient = np.dstack((K1_gradient * M[:, :, np.newaxis], M_gradient * K1[:, :, np.newaxis]))
-        return KP + W, np.dstack((KP_gradient, (noise * np.eye(n))[:, :, np.newaxis]))
+        # the dstack of [C's gradient * M, M's gradient * C, White's gradient], filled in place
+        G = np.empty((n, n, self.d + 2))
+        G[:, :, 0] = KP
+        np.multiply(M_gradient, c, out=G[:, :, 1:self.d + 1])
+        G[:, :, self.d + 1] = W
+        return KP + W, G
 
 
 def _quick_gpr_class():
@@ -254,14 +256,13 @@ def _quick_gpr_class():
             nx, nt = X.shape[0], X_train.shape[0]
             # kernel_(X, X_train): Product(C, Matern) + White (zeros off the training set)
             M = _matern52(np.atleast_2d(X), X_train, np.squeeze(matern.length_scale).astype(float))
-            K1 = np.full((nx, nt), c, dtype=np.array(c).dtype)
-            K_trans = K1 * M + np.zeros((nx, nt))
+            K_trans = M * c + np.zeros((nx, nt))  # Product's np.full(c) * M: the same products
             y_mean = K_trans.dot(self.alpha_)
             y_mean = self.y_train_std_ * y_mean + self.y_train_mean_
             if return_std:
                 K_inv = self.K_inv_
                 # kernel_.diag(X): C.diag * Matern.diag + White.diag (noise 0)
-                y_var = np.full(nx, c, dtype=np.array(c).dtype) * np.ones(nx) + 0.0 * np.ones(nx)
+                y_var = np.full(nx, c, dtype=np.array(c).dtype) * 1.0 + 0.0
                 y_var -= np.einsum("ki,kj,ij->k", K_trans, K_trans, K_inv)
                 y_var_negative = y_var < 0
                 if np.any(y_var_negative):
@@ -273,8 +274,7 @@ def _quick_gpr_class():
                 return (y_mean, y_std) if return_std else y_mean
             # kernel_.gradient_x(X[0], X_train): Product's rule (C's gradient 0) + White's 0
             zeros = np.zeros_like(X_train)
-            grad = (np.expand_dims(K1[0], axis=1) * _matern52_gradient_x(X[0], X_train, matern)
-                    + np.expand_dims(M[0], axis=1) * zeros) + zeros
+            grad = (_matern52_gradient_x(X[0], X_train, matern) * c + M[0][:, np.newaxis] * zeros) + zeros
             grad_mean = np.dot(grad.T, self.alpha_)
             grad_mean = grad_mean * self.y_train_std_
             if return_std_grad:
