@@ -400,24 +400,78 @@ class _QuickNorm:
         return np.exp(-x**2 / 2.0) / self._C
 
 
+def _lapack(name: str):
+    """scipy's float64 LAPACK routine ``name`` (what ``get_lapack_funcs`` picks for float64)."""
+    fn = _QUICK.get(name)
+    if fn is None:
+        from scipy.linalg import get_lapack_funcs
+
+        fn = _QUICK[name] = get_lapack_funcs((name,), (np.zeros((1, 1)),))[0]
+    return fn
+
+
+def _plain_matrix(a) -> bool:
+    return type(a) is np.ndarray and a.dtype == np.float64 and a.ndim == 2 and a.size > 0
+
+
+def _quick_cholesky(saved):
+    """``scipy.linalg.cholesky`` of a non-empty square float64 matrix without finiteness check:
+    the same ``potrf`` call (lower, overwrite_a, clean=True) and errors, without the batch and
+    array-API wrappers (a third of a small factorisation's time); anything else is scipy's."""
+    from numpy.linalg import LinAlgError
+
+    def cholesky(a, lower=False, overwrite_a=False, check_finite=True):
+        if check_finite or not _plain_matrix(a) or a.shape[0] != a.shape[1]:
+            return saved(a, lower=lower, overwrite_a=overwrite_a, check_finite=check_finite)
+        c, info = _lapack("potrf")(a, lower=lower, overwrite_a=overwrite_a, clean=True)
+        if info > 0:
+            raise LinAlgError(f"{info}-th leading minor of the array is not positive definite")
+        if info < 0:
+            raise ValueError(f'LAPACK reported an illegal value in {-info}-th argument on entry to "POTRF".')
+        return c
+
+    return cholesky
+
+
+def _quick_cho_solve(saved):
+    """``scipy.linalg.cho_solve`` for float64 arrays without finiteness check: the same
+    ``potrs`` call (lower, overwrite_b); anything else is scipy's."""
+
+    def cho_solve(c_and_lower, b, overwrite_b=False, check_finite=True):
+        c, lower = c_and_lower
+        if (check_finite or not _plain_matrix(c) or c.shape[0] != c.shape[1] or type(b) is not np.ndarray
+                or b.dtype != np.float64 or b.ndim not in (1, 2) or b.size == 0 or b.shape[0] != c.shape[1]):
+            return saved(c_and_lower, b, overwrite_b=overwrite_b, check_finite=check_finite)
+        x, info = _lapack("potrs")(c, b, lower=lower, overwrite_b=overwrite_b)
+        if info != 0:
+            raise ValueError(f"illegal value in {-info}th argument of internal potrs")
+        return x
+
+    return cho_solve
+
+
 @contextlib.contextmanager
 def _quick_skopt_helpers():
-    """skopt's point packing and its acquisition's normal cdf/pdf with less Python, for this
-    block: ``Space.transform`` of a list of points (10000 random points per iteration: 12% of
-    a ball fit's profile), the rows of ``Space.rvs`` (7%) and EI's ``norm.cdf``/``norm.pdf``
-    (6%). Each replacement returns the library's values bit for bit (tests/test_bo_quick_gp.py);
+    """skopt's point packing, its acquisition's normal cdf/pdf and the GP likelihood's
+    Cholesky calls with less Python, for this block: ``Space.transform`` of a list of points
+    (10000 random points per iteration: 12% of a ball fit's profile), the rows of
+    ``Space.rvs`` (7%), EI's ``norm.cdf``/``norm.pdf`` (6%) and sklearn's ``cholesky`` and
+    ``cho_solve`` (scipy's batch wrappers: ~10% of a pendulum fit after the quick GP). Each replacement returns the library's values bit for bit (tests/test_bo_quick_gp.py);
     the originals are restored when the last block in the process ends."""
     import skopt.acquisition as acquisition
     import skopt.space.space as space
+    from sklearn.gaussian_process import _gpr
 
     st = _HELPERS
     with st["lock"]:
         if st["depth"] == 0:
             st["saved"] = (space._transpose_list_array, space.Space.__dict__["transform"],
-                           acquisition.norm)
+                           acquisition.norm, _gpr.cholesky, _gpr.cho_solve)
             space._transpose_list_array = _transpose_rows
             space.Space.transform = _space_transform(st["saved"][1])
             acquisition.norm = _QuickNorm(st["saved"][2])
+            _gpr.cholesky = _quick_cholesky(st["saved"][3])
+            _gpr.cho_solve = _quick_cho_solve(st["saved"][4])
         st["depth"] += 1
     try:
         yield
@@ -425,7 +479,8 @@ def _quick_skopt_helpers():
         with st["lock"]:
             st["depth"] -= 1
             if st["depth"] == 0:
-                space._transpose_list_array, space.Space.transform, acquisition.norm = st["saved"]
+                (space._transpose_list_array, space.Space.transform, acquisition.norm,
+                 _gpr.cholesky, _gpr.cho_solve) = st["saved"]
 
 
 _MSE_FLOOR = 1e-12  # m^2; keeps log finite on an exact fit

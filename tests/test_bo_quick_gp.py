@@ -94,3 +94,21 @@ def test_skopt_helpers_give_the_library_values():
     q = bo._QuickNorm(norm)
     assert q.cdf(x).tobytes() == norm.cdf(x).tobytes() and q.pdf(x).tobytes() == norm.pdf(x).tobytes()
     assert q.logcdf(1.0) == norm.logcdf(1.0)
+
+
+def test_quick_cholesky_and_cho_solve_bits_equal():
+    from numpy.linalg import LinAlgError
+    from scipy.linalg import cho_solve, cholesky
+
+    rng = np.random.default_rng(2)
+    A = rng.normal(size=(15, 15))
+    K = A @ A.T + 1e-3 * np.eye(15)
+    chol, solve = bo._quick_cholesky(cholesky), bo._quick_cho_solve(cho_solve)
+    for lower in (True, False):
+        L = cholesky(K, lower=lower, check_finite=False)
+        assert chol(K, lower=lower, check_finite=False).tobytes() == L.tobytes()
+        for b in (rng.normal(size=(15, 1)), rng.normal(size=15), np.eye(15)):
+            assert solve((L, lower), b, check_finite=False).tobytes() == \
+                cho_solve((L, lower), b, check_finite=False).tobytes()
+    with pytest.raises(LinAlgError, match="not positive definite"):
+        chol(-K, lower=True, check_finite=False)
