@@ -27,6 +27,12 @@ On any other registered system (``system=``; the generic points likelihood of
 parameters in [0, 1], the initial state held at its estimate, spread from the GP surrogate over
 prior draws with tempered likelihood weights; a failed model check widens the intervals to the
 prior.
+
+Speed, not arithmetic: the search runs skopt's default GP as ``QuickGPR`` (its kernel,
+likelihood gradient and predictions evaluated directly) inside ``_quick_kernel_introspection``
+and ``_quick_skopt_helpers`` (skopt's and sklearn's Python plumbing replaced by the same
+operations); each returns the library's bits (``tests/test_bo_quick_gp.py``,
+``scripts/bo_posterior_hashes.py``), about half a fit's CPU less (docs/measurements.md).
 """
 
 from __future__ import annotations
