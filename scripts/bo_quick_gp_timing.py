@@ -1,8 +1,9 @@
 """CPU per bo fit with the quick GP against skopt's own code, interleaved.
 
-Each round fits one case with the library path (``gp_minimize`` with its default estimator and
-without ``_quick_skopt_helpers``: the code before them) and then with the quick path, in one process, checks the two
-posteriors' hashes are equal and prints the CPU seconds of each::
+After one untimed warm-up fit per system, each round fits one case with the library path
+(``gp_minimize`` with its default estimator and without ``_quick_skopt_helpers``: the code
+before them) and with the quick path (which goes first alternates every two rounds), in one
+process, checks the two posteriors' hashes are equal and prints the CPU seconds of each::
 
     PYTHONPATH=$PWD nice -n 10 python scripts/bo_quick_gp_timing.py [n_rounds]
 """
@@ -28,12 +29,14 @@ def main(n_rounds: int = 5) -> None:
     quick, helpers = bo._gp_minimize, bo._quick_skopt_helpers
     picked = [c for c in cases(("ball", "pendulum")) if c[0] in ("ball0", "ball1", "ball2",
                                                                  "pendulum0", "pendulum1", "pendulum2")]
+    for _, est, obs in (picked[0], picked[3]):  # warm-up (compilation, caches), not timed
+        est.identify(obs)
     times = {}
     for r in range(n_rounds):
         label, est, obs = picked[r % 3] if r % 2 == 0 else picked[3 + r % 3]
         out = {}
-        for name, fn, ctx in (("library", _library_gp_minimize, contextlib.nullcontext),
-                              ("quick", quick, helpers)):
+        order = [("library", _library_gp_minimize, contextlib.nullcontext), ("quick", quick, helpers)]
+        for name, fn, ctx in order if r % 4 < 2 else order[::-1]:  # which runs first alternates
             bo._gp_minimize, bo._quick_skopt_helpers = fn, ctx
             t0 = time.process_time()
             post = est.identify(obs)
