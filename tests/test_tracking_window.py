@@ -193,6 +193,21 @@ def test_colour_difference_is_the_numpy_expression(n, dtype):
     assert np.array_equal(footage.colour_difference(c), _colour_difference_numpy(c))
 
 
+@pytest.mark.parametrize("n", [1, 2, 7, 150, 151])
+def test_counted_median_is_numpys(n):
+    # colour_difference's median over time of uint8 frames by counting: np.median's float64
+    # values (the middle two averaged for an even count), extremes 0 and 255 included, over
+    # more than one 32-column block of counts
+    rng = np.random.default_rng(n)
+    c = rng.integers(0, 256, (n, 5, 70, 3), dtype=np.uint8)
+    c[:, 0] = rng.integers(118, 123, (n, 70, 3))  # a few values per pixel, as a still scene
+    c[:, 1, :3] = rng.choice(np.array([0, 255], dtype=np.uint8), (n, 3, 3))
+    idx = np.unique(np.linspace(0, n - 1, min(n, 150)).astype(int))
+    out = np.full(c.shape[1:], np.nan)
+    footage._counted_median(c, idx.astype(np.int64), 0, 5, out)
+    assert np.array_equal(out, np.median(c[idx], axis=0))
+
+
 @pytest.mark.parametrize("n", [150, 31, 2, 1])
 def test_background_samples_give_numpys_quantiles(n):
     # find_ball's 10th/90th percentile over time from the background's sorted samples
