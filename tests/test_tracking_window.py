@@ -135,10 +135,13 @@ def test_block_means_equal_the_reshaped_mean(shape, k):
     assert np.array_equal(_block_means(fr, k), ref)
 
 
-@pytest.mark.parametrize("n,dtype", [(150, np.float32), (31, np.uint8), (30, np.uint8),
-                                     (2, np.float32), (1, np.uint8)])
-def test_median_over_time_is_numpys(n, dtype):
-    x = np.random.default_rng(n).integers(0, 256, (n, 7, 9)).astype(dtype)
+@pytest.mark.parametrize("n,dtype,shape", [(150, np.float32, (7, 9)), (31, np.uint8, (7, 9)),
+                                           (30, np.uint8, (7, 9)), (2, np.float32, (7, 9)),
+                                           (1, np.uint8, (7, 9)), (30, np.float32, (70, 130)),
+                                           (17, np.uint8, (65, 131))])
+def test_median_over_time_is_numpys(n, dtype, shape):
+    # the larger stacks are transposed by the compiled blocked copy (ragged last blocks)
+    x = np.random.default_rng(n).integers(0, 256, (n, *shape)).astype(dtype)
     if dtype == np.float32:
         x = x / np.float32(9.0)
     got, ref = _median_over_time(x), np.median(x, axis=0)
