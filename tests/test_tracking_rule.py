@@ -241,3 +241,24 @@ def test_region_masks_are_scipys():
         got = region_masks(m, tracking.RIM)
         for a, b in zip(got, _scipy_region(m)):
             assert np.array_equal(a, b), t
+
+
+def test_keep_large_pieces_is_scipys_label():
+    # ball_centre's specks filter: scipy's 4-connected pieces and their sizes, as it was
+    from scipy import ndimage
+
+    from sysid_bench.core._ball_region import keep_large_pieces
+
+    rng = np.random.default_rng(11)
+    for t in range(300):
+        h, w = (int(v) for v in rng.integers(1, 40, 2))
+        m = rng.random((h, w)) < rng.uniform(0.05, 0.7)
+        min_size = float(rng.choice([2.0, 0.1 * np.pi * rng.uniform(1, 12) ** 2]))
+        ref = m
+        lab, n = ndimage.label(m)
+        if n > 1:
+            keep = np.bincount(lab.ravel(), minlength=n + 1) >= min_size
+            keep[0] = False
+            if keep.any():
+                ref = keep[lab]
+        assert np.array_equal(keep_large_pieces(m, min_size), ref), t

@@ -129,3 +129,48 @@ def region_masks(stand, rim_px):  # pragma: no cover - compiled
     ring = core & ~_erode(core, 3)
     return region, inner, rim, ring
 
+
+
+@numba.njit(cache=True, nogil=True)
+def keep_large_pieces(stand, min_size):  # pragma: no cover - compiled
+    """``stand`` with only its 4-connected pieces of ``min_size`` pixels or more when it has
+    more than one piece and one of them is that large; otherwise ``stand`` itself (a copy).
+
+    ``ndimage.label``'s pieces (the cross), each found by a flood fill from its first pixel in
+    row-major order, their sizes compared as ``np.bincount`` of the labels was."""
+    h, w = stand.shape
+    lab = np.zeros((h, w), dtype=np.int64)
+    size = np.zeros(h * w + 1, dtype=np.int64)
+    stack = np.empty(h * w, dtype=np.int64)
+    n = 0
+    for i0 in range(h):
+        for j0 in range(w):
+            if not stand[i0, j0] or lab[i0, j0]:
+                continue
+            n += 1
+            lab[i0, j0] = n
+            top = 0
+            stack[0] = i0 * w + j0
+            top = 1
+            while top:
+                top -= 1
+                i, j = divmod(stack[top], w)
+                size[n] += 1
+                for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                    a, b = i + di, j + dj
+                    if 0 <= a < h and 0 <= b < w and stand[a, b] and not lab[a, b]:
+                        lab[a, b] = n
+                        stack[top] = a * w + b
+                        top += 1
+    out = stand.copy()
+    if n <= 1:
+        return out
+    any_kept = False
+    for k in range(1, n + 1):
+        if size[k] >= min_size:
+            any_kept = True
+    if any_kept:
+        for i in range(h):
+            for j in range(w):
+                out[i, j] = lab[i, j] > 0 and size[lab[i, j]] >= min_size
+    return out
