@@ -189,3 +189,76 @@ def test_uint8_shortcuts_equal_the_plain_formula():
         noise = np.float32(1.4826) * np.sort(np.abs(contrast.reshape(40, -1)), axis=1)[:, k]
         want = np.maximum(np.float32(thr), np.float32(tr.NOISE_K) * noise)
         assert tr._stand_out(contrast, thr, k).tobytes() == want.tobytes()
+
+
+def _scipy_region(stand):
+    """ball_centre's masks as scipy made them before the compiled kernels (qhull's hull of the
+    edge pixels with a 1e-9 tolerance, the cross's erosions and dilations)."""
+    from scipy import ndimage
+    from scipy.spatial import ConvexHull, QhullError
+
+    region = stand
+    pts = np.argwhere(stand & ~ndimage.binary_erosion(stand)).astype(np.float64)
+    try:
+        hull = ConvexHull(pts) if len(pts) >= 3 else None
+    except QhullError:  # all on a line: nothing to fill
+        hull = None
+    if hull is not None:
+        (r0, c0), (r1, c1) = pts.min(axis=0).astype(int), pts.max(axis=0).astype(int)
+        rr, cc = np.mgrid[r0:r1 + 1, c0:c1 + 1]
+        grid = np.stack([rr.ravel(), cc.ravel()], axis=1).astype(np.float64)
+        inside = (grid @ hull.equations[:, :2].T + hull.equations[:, 2] <= 1e-9).all(axis=1)
+        region = stand.copy()
+        region[r0:r1 + 1, c0:c1 + 1] |= inside.reshape(rr.shape)
+    core = ndimage.binary_erosion(region)
+    inner = ndimage.binary_erosion(region, iterations=tracking.RIM)
+    rim = ndimage.binary_dilation(region, iterations=tracking.RIM) & ~inner
+    ring = core & ~ndimage.binary_erosion(core, iterations=3)
+    return region, inner, rim, ring
+
+
+def test_region_masks_are_scipys():
+    # the compiled hull fill (integer monotone chain) and erosions give scipy's bits: random
+    # pixels, discs cut by a band (the shading's gap), discs off the crop's edge, a few points
+    # and lines (qhull's flat case: no fill)
+    from sysid_bench.core._ball_region import region_masks
+
+    rng = np.random.default_rng(7)
+    for t in range(400):
+        h, w = (int(v) for v in rng.integers(1, 40, 2))
+        yy, xx = np.mgrid[:h, :w]
+        if t % 3 == 0:
+            m = rng.random((h, w)) < rng.random()
+        elif t % 3 == 1:
+            cy, cx, r = rng.uniform(-5, h + 5), rng.uniform(-5, w + 5), rng.uniform(0.5, 18)
+            m = ((yy - cy) ** 2 + (xx - cx) ** 2 <= r * r) & (
+                np.abs(yy - cy - rng.uniform(-r, r)) >= rng.uniform(0, 3))
+        else:
+            m = np.zeros((h, w), bool)
+            k = int(rng.integers(0, 6))
+            m[rng.integers(0, h, k), rng.integers(0, w, k)] = True
+            m[int(rng.integers(0, h)), int(rng.integers(0, w)):] = t % 2 == 0
+        got = region_masks(m, tracking.RIM)
+        for a, b in zip(got, _scipy_region(m)):
+            assert np.array_equal(a, b), t
+
+
+def test_keep_large_pieces_is_scipys_label():
+    # ball_centre's specks filter: scipy's 4-connected pieces and their sizes, as it was
+    from scipy import ndimage
+
+    from sysid_bench.core._ball_region import keep_large_pieces
+
+    rng = np.random.default_rng(11)
+    for t in range(300):
+        h, w = (int(v) for v in rng.integers(1, 40, 2))
+        m = rng.random((h, w)) < rng.uniform(0.05, 0.7)
+        min_size = float(rng.choice([2.0, 0.1 * np.pi * rng.uniform(1, 12) ** 2]))
+        ref = m
+        lab, n = ndimage.label(m)
+        if n > 1:
+            keep = np.bincount(lab.ravel(), minlength=n + 1) >= min_size
+            keep[0] = False
+            if keep.any():
+                ref = keep[lab]
+        assert np.array_equal(keep_large_pieces(m, min_size), ref), t

@@ -135,10 +135,13 @@ def test_block_means_equal_the_reshaped_mean(shape, k):
     assert np.array_equal(_block_means(fr, k), ref)
 
 
-@pytest.mark.parametrize("n,dtype", [(150, np.float32), (31, np.uint8), (30, np.uint8),
-                                     (2, np.float32), (1, np.uint8)])
-def test_median_over_time_is_numpys(n, dtype):
-    x = np.random.default_rng(n).integers(0, 256, (n, 7, 9)).astype(dtype)
+@pytest.mark.parametrize("n,dtype,shape", [(150, np.float32, (7, 9)), (31, np.uint8, (7, 9)),
+                                           (30, np.uint8, (7, 9)), (2, np.float32, (7, 9)),
+                                           (1, np.uint8, (7, 9)), (30, np.float32, (70, 130)),
+                                           (17, np.uint8, (65, 131))])
+def test_median_over_time_is_numpys(n, dtype, shape):
+    # the larger stacks are transposed by the compiled blocked copy (ragged last blocks)
+    x = np.random.default_rng(n).integers(0, 256, (n, *shape)).astype(dtype)
     if dtype == np.float32:
         x = x / np.float32(9.0)
     got, ref = _median_over_time(x), np.median(x, axis=0)
@@ -191,6 +194,21 @@ def test_colour_difference_is_the_numpy_expression(n, dtype):
     c = rng.integers(0, 256, (n, 23, 31, 3)).astype(dtype)
     c[:, 5:9, :] = rng.integers(0, 256, (n, 1, 1, 3))
     assert np.array_equal(footage.colour_difference(c), _colour_difference_numpy(c))
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 150, 151])
+def test_counted_median_is_numpys(n):
+    # colour_difference's median over time of uint8 frames by counting: np.median's float64
+    # values (the middle two averaged for an even count), extremes 0 and 255 included, over
+    # more than one 32-column block of counts
+    rng = np.random.default_rng(n)
+    c = rng.integers(0, 256, (n, 5, 70, 3), dtype=np.uint8)
+    c[:, 0] = rng.integers(118, 123, (n, 70, 3))  # a few values per pixel, as a still scene
+    c[:, 1, :3] = rng.choice(np.array([0, 255], dtype=np.uint8), (n, 3, 3))
+    idx = np.unique(np.linspace(0, n - 1, min(n, 150)).astype(int))
+    out = np.full(c.shape[1:], np.nan)
+    footage._counted_median(c, idx.astype(np.int64), 0, 5, out)
+    assert np.array_equal(out, np.median(c[idx], axis=0))
 
 
 @pytest.mark.parametrize("n", [150, 31, 2, 1])
