@@ -75,6 +75,24 @@ def _hyperparameters(self):
 
 
 @contextlib.contextmanager
+def _patched(st: dict, install, restore):
+    """Library attributes replaced while any block using ``st`` runs, in any thread:
+    ``install()`` (returning what it replaced) on the first entry, ``restore(saved)`` when the
+    last block ends. ``st``: ``{"lock", "depth", "saved"}``, one per set of replacements."""
+    with st["lock"]:
+        if st["depth"] == 0:
+            st["saved"] = install()
+        st["depth"] += 1
+    try:
+        yield
+    finally:
+        with st["lock"]:
+            st["depth"] -= 1
+            if st["depth"] == 0:
+                restore(st["saved"])
+
+
+@contextlib.contextmanager
 def _quick_kernel_introspection():
     """sklearn's ``Kernel.hyperparameters`` without its ``dir()`` per call, for this block.
 
@@ -86,19 +104,16 @@ def _quick_kernel_introspection():
     """
     from sklearn.gaussian_process.kernels import Kernel
 
-    st = _INTROSPECTION
-    with st["lock"]:
-        if st["depth"] == 0:
-            st["saved"] = Kernel.__dict__["hyperparameters"]
-            Kernel.hyperparameters = property(_hyperparameters, doc=st["saved"].__doc__)
-        st["depth"] += 1
-    try:
+    def install():
+        saved = Kernel.__dict__["hyperparameters"]
+        Kernel.hyperparameters = property(_hyperparameters, doc=saved.__doc__)
+        return saved
+
+    def restore(saved):
+        Kernel.hyperparameters = saved
+
+    with _patched(_INTROSPECTION, install, restore):
         yield
-    finally:
-        with st["lock"]:
-            st["depth"] -= 1
-            if st["depth"] == 0:
-                Kernel.hyperparameters = st["saved"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -468,25 +483,22 @@ def _quick_skopt_helpers():
     import skopt.space.space as space
     from sklearn.gaussian_process import _gpr
 
-    st = _HELPERS
-    with st["lock"]:
-        if st["depth"] == 0:
-            st["saved"] = (space._transpose_list_array, space.Space.__dict__["transform"],
-                           acquisition.norm, _gpr.cholesky, _gpr.cho_solve)
-            space._transpose_list_array = _transpose_rows
-            space.Space.transform = _space_transform(st["saved"][1])
-            acquisition.norm = _QuickNorm(st["saved"][2])
-            _gpr.cholesky = _quick_cholesky(st["saved"][3])
-            _gpr.cho_solve = _quick_cho_solve(st["saved"][4])
-        st["depth"] += 1
-    try:
+    def install():
+        saved = (space._transpose_list_array, space.Space.__dict__["transform"],
+                 acquisition.norm, _gpr.cholesky, _gpr.cho_solve)
+        space._transpose_list_array = _transpose_rows
+        space.Space.transform = _space_transform(saved[1])
+        acquisition.norm = _QuickNorm(saved[2])
+        _gpr.cholesky = _quick_cholesky(saved[3])
+        _gpr.cho_solve = _quick_cho_solve(saved[4])
+        return saved
+
+    def restore(saved):
+        (space._transpose_list_array, space.Space.transform, acquisition.norm,
+         _gpr.cholesky, _gpr.cho_solve) = saved
+
+    with _patched(_HELPERS, install, restore):
         yield
-    finally:
-        with st["lock"]:
-            st["depth"] -= 1
-            if st["depth"] == 0:
-                (space._transpose_list_array, space.Space.transform, acquisition.norm,
-                 _gpr.cholesky, _gpr.cho_solve) = st["saved"]
 
 
 _MSE_FLOOR = 1e-12  # m^2; keeps log finite on an exact fit
