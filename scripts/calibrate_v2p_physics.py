@@ -31,8 +31,8 @@ Z90 = 1.6448536269514722
 
 
 def _run(system: str, split: str, n: int, seed: int, with_network: bool):
-    """Means, stds (N, L, P) of vid2param-physics (uncalibrated when calibrating) and of the
-    network, and the truths (N, P)."""
+    """Means, stds (N, L, P) of vid2param-physics (calibrated only when evaluating, i.e. with
+    ``with_network``) and of the network, and the truths (N, P)."""
     from tqdm import tqdm
 
     import methods
@@ -45,7 +45,7 @@ def _run(system: str, split: str, n: int, seed: int, with_network: bool):
     mean, std, nmean, nstd = [], [], [], []
     for i in tqdm(range(n), desc=f"{system} {split}", file=sys.stderr):
         obs = Observation(frames=np.asarray(ds.frames[i]), system=system)
-        ps = model.physics_prefixes(obs, LENGTHS)
+        ps = model.physics_prefixes(obs, LENGTHS, calibrated=with_network)
         mean.append([p.mean for p in ps])
         std.append([p.std for p in ps])
         if with_network:
@@ -71,16 +71,8 @@ def main(argv=None) -> None:
     names, span = list(sys_.params), sys_.prior_hi - sys_.prior_lo
     t0 = time.perf_counter()
     split, seed = ("test", TEST_SEED) if a.evaluate else ("train", CAL_SEED)
-    if not a.evaluate:  # the factors are fitted on the uncalibrated spread
-        from methods.vid2param import _points
-
-        real = _points.PointsModel.physics_scale
-        _points.PointsModel.physics_scale = lambda self: (np.ones(len(names)), "calibrating")
-    try:
-        mean, std, nmean, nstd, theta, model = _run(a.system, split, a.n, seed, a.evaluate)
-    finally:
-        if not a.evaluate:
-            _points.PointsModel.physics_scale = real
+    # the factors are fitted on the uncalibrated spread
+    mean, std, nmean, nstd, theta, model = _run(a.system, split, a.n, seed, a.evaluate)
     z = np.abs(mean - theta[:, None]) / np.maximum(std, 1e-300)
 
     def coverage(zz, f=1.0):

@@ -346,7 +346,8 @@ class PointsModel:
         self._physics_scale = out
         return out
 
-    def physics_prefixes(self, obs: Observation, lengths) -> list[Posterior]:
+    def physics_prefixes(self, obs: Observation, lengths,
+                         calibrated: bool = True) -> list[Posterior]:
         """``vid2param-physics`` on this system: after each of ``lengths`` frames, the system's
         physics fitted to the network's own track of the first n frames (one network pass).
 
@@ -360,7 +361,8 @@ class PointsModel:
         (``System.track``, as every simulation method reads the frames: the network's track
         follows whatever the network reads), over the same n frames; a failed check widens
         the intervals to the prior. Where the frames' tracker sees the points in fewer than 3
-        of them, the check reads the network's track and says so.
+        of them, the check reads the network's track and says so. ``calibrated=False``: the
+        spread without the calibration's factors (what the calibration itself fits).
         """
         import dataclasses
 
@@ -416,7 +418,8 @@ class PointsModel:
             # the calibration's factors (90% intervals holding 90% of train videos' truths):
             # the network's track errs by a bias no noise model holds (the pendulum's bob
             # centroid ~2 mm towards the pivot: L ~2 of its Laplace stds short)
-            fac, fac_source = self.physics_scale()
+            fac, fac_source = (self.physics_scale() if calibrated
+                               else (np.ones(prob.P), "none: calibrated=False"))
             std = np.minimum(std * fac, prob.pspan / np.sqrt(12.0))
             th_d = np.clip(theta + fac * (th_d - theta), prob.plo, prob.plo + prob.pspan)
             mean = theta.copy()
