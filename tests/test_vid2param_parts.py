@@ -333,3 +333,28 @@ def test_the_fused_training_pass_gives_the_per_frame_posterior(preset):
                 if b is not None:
                     torch.testing.assert_close(a, b, rtol=1e-4 * tol, atol=1e-5 * tol,
                                                msg=f.name)
+
+
+@pytest.mark.parametrize("preset", ["pendulum", "collision", "camera", "28x28"])
+def test_the_training_decoder_gives_the_inference_decoders_numbers(preset):
+    """The decoder of a training step (NHWC, its one-channel layer as a convolution per output
+    phase) computes the transposed convolutions' sums in another order: equal in float64, on
+    frame sizes the layers crop (camera 25 x 50), and its weights get the same gradients."""
+    from methods.vid2param.model import V2PConfig, Vid2ParamNet
+    from methods.vid2param.parts import _phase_deconv
+
+    torch.manual_seed(0)
+    dec = Vid2ParamNet(V2PConfig.preset(preset)).double().decoder
+    x = torch.randn(7, dec.fc[0].in_features, dtype=torch.float64)
+    fz, h = x[:, :128], x[:, 128:]
+    with torch.no_grad():
+        plain = dec(fz, h)  # inference: the layers themselves
+    trained = dec(fz, h)
+    assert trained.shape == plain.shape == (7, *dec.size)
+    assert torch.allclose(trained, plain, rtol=0, atol=1e-12)
+    last = [m for m in dec.deconv if isinstance(m, torch.nn.ConvTranspose2d)][-1]
+    u = torch.randn(3, last.in_channels, 5, 6, dtype=torch.float64)
+    g1 = torch.autograd.grad((_phase_deconv(last, u) ** 2).sum(), [last.weight, last.bias])
+    g2 = torch.autograd.grad((last(u) ** 2).sum(), [last.weight, last.bias])
+    for a, b in zip(g1, g2):
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-12)
