@@ -30,3 +30,15 @@ def ball_case():
     states = simulate(theta, s0)
     frames = render(states)[0]
     return {"theta": theta[0], "state0": s0[0], "states": states[0], "frames": frames}
+
+
+@pytest.fixture
+def one_thread():
+    """torch on one thread for the test, restored after (two torch threads on a loaded 2-core
+    machine ran small batched passes 10-20x slower)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

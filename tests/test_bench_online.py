@@ -15,7 +15,6 @@ import time
 
 import numpy as np
 import pytest
-import torch
 
 from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param
 from sysid_bench.bench.online import online_cost, online_cost_markdown
@@ -30,14 +29,6 @@ ONLINE_RATIO_MIN = 80.0
 ONLINE_RATIO_SAMPLES_MIN = 60.0
 PUSH_SPEEDUP = 0.8 / 0.5  # the torch path's idle-machine median over the 0.5 ms target
 #: (measured 3.5-5.7x, CPU time of interleaved blocks: more than a 2x margin)
-
-
-@pytest.fixture
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.mark.slow

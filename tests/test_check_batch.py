@@ -6,7 +6,6 @@ import copy
 
 import numpy as np
 import pytest
-import torch
 
 from methods._check_batch import check_batch
 from methods._simulation import check_prefixes
@@ -24,15 +23,6 @@ def _videos() -> np.ndarray:
     jumps = v[1:2, np.arange(v.shape[1]) % 2 * 60]
     blank = np.zeros_like(v[:1])  # nothing to track: the per-video path says why
     return np.concatenate([v, jumps, blank])
-
-
-@pytest.fixture
-def one_thread():
-    # two torch threads on a loaded 2-core machine ran the 5-video pass 10-20x slower
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @needs_model

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 import methods.vid2param.estimator as v2p_estimator
 from methods.vid2param import SHIPPED_CHECKPOINT, Vid2Param
@@ -28,14 +27,6 @@ def _assert_same(a, b) -> None:
         for name in ("mean", "std", "samples"):
             np.testing.assert_allclose(getattr(q, name), getattr(p, name), rtol=1e-5, atol=1e-7)
         assert sorted(p.extras) == sorted(q.extras)
-
-
-@pytest.fixture
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def test_pipelined_batch_gives_the_bytes_of_one_pass(one_thread, monkeypatch):
