@@ -69,6 +69,8 @@ __all__ = [
     "OBJECT_SIZE_RANGE_M",
     "LENGTH_POWER",
     "rotate_frames",
+    "turned_chroma",
+    "chroma_spacing",
     "fit_circle",
     "find_object",
     "Camera",
@@ -129,6 +131,10 @@ class Clip:
         The same frames in RGB, area-averaged so that the larger side is at most
         :data:`COLOUR_SIDE` (what :func:`find_object` follows a real object by); None unless
         :func:`read_video` was asked for them and the file stores colour.
+    chroma_px : (float, float)
+        Source pixels ``(across, down)`` between the file's colour samples: ``(2, 2)`` for the
+        4:2:0 of H.264, HEVC and VP9 as phones write them, ``(1, 1)`` for full colour or grey.
+        The colour is as blurred as its samples are coarse (:func:`find_object`).
     """
 
     frames: np.ndarray
@@ -140,6 +146,27 @@ class Clip:
     notes: list = field(default_factory=list)
     path: str = ""
     colour_frames: np.ndarray | None = None
+    chroma_px: tuple = (1.0, 1.0)
+
+
+def chroma_spacing(pix_fmt) -> tuple[float, float]:
+    """Source pixels ``(across, down)`` between a pixel format's colour samples.
+
+    ``"yuv420p"`` (H.264's usual) -> ``(2.0, 2.0)``, ``"yuv422p"`` -> ``(2.0, 1.0)``; a
+    format without subsampled colour (RGB, 4:4:4, grey) or one FFmpeg does not name ->
+    ``(1.0, 1.0)``.
+    """
+    import av
+
+    try:
+        comps = av.VideoFormat(str(pix_fmt), 64, 64).components
+    except (ValueError, TypeError):  # a name FFmpeg does not know
+        return 1.0, 1.0
+    if len(comps) < 3:
+        return 1.0, 1.0
+    w = min(int(c.width) for c in comps[1:3]) or 64
+    h = min(int(c.height) for c in comps[1:3]) or 64
+    return 64.0 / w, 64.0 / h
 
 
 #: Larger side (px) of :attr:`Clip.colour_frames`: the tracker's working size on real footage.
@@ -242,6 +269,7 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         # one tick of the container's clock: timestamps are rounded to it (1 ms in mkv/webm)
         tick = float(stream.time_base) if stream.time_base else 0.0
         colour_file = not str(stream.codec_context.pix_fmt or "").startswith("gray")
+        chroma = chroma_spacing(stream.codec_context.pix_fmt) if colour_file else (1.0, 1.0)
         n_hint = int(stream.frames or 0)
         show = (n_hint > _PROGRESS_FRAMES) if progress is None else bool(progress)
         frames, times, small = [], [], []
@@ -332,7 +360,8 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         return Clip(frames=_grey_frames(path, frames, np.arange(len(frames)), lut), times=t,
                     source_fps=float(rate),
                     source_frames=len(frames), colour=colour_file, fps=float(own), notes=notes,
-                    path=str(path), colour_frames=np.stack(small) if small else None)
+                    path=str(path), colour_frames=np.stack(small) if small else None,
+                    chroma_px=chroma)
     med = float(np.median(gaps)) if len(gaps) else mean_gap
     if fps is None:
         # the grid: the median interval (blind to dropped frames' long gaps), refined as the
@@ -369,7 +398,8 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
     raw_kept = _grey_frames(path, frames, j, lut)
     return Clip(frames=raw_kept, times=t_kept, source_fps=float(rate),
                 source_frames=len(frames), colour=colour_file, fps=float(target), notes=notes,
-                path=str(path), colour_frames=np.stack(small) if small else None)
+                path=str(path), colour_frames=np.stack(small) if small else None,
+                chroma_px=chroma)
 
 
 def thin_clip(clip: Clip, max_frames: int | None, method: str = "the method") -> Clip:
@@ -1169,6 +1199,12 @@ def rotate_frames(frames, rotate: int) -> np.ndarray:
     return np.ascontiguousarray(np.rot90(fr, k=-(rotate // 90), axes=(1, 2)))
 
 
+def turned_chroma(chroma_px, rotate: int) -> tuple[float, float]:
+    """:attr:`Clip.chroma_px` of frames turned ``rotate`` degrees (90 and 270 swap the axes)."""
+    a, b = (float(v) for v in chroma_px)
+    return (b, a) if int(rotate) % 180 == 90 else (a, b)
+
+
 def fit_circle(points) -> tuple[np.ndarray, float, float, float]:
     """The circle through tracked points: a pendulum's pivot and radius from its bob's arc.
 
@@ -1495,7 +1531,7 @@ def colour_difference(colour, max_frames: int = 150) -> np.ndarray:
 
 
 def find_object(frames, *, max_side: int = 640, progress: bool = False,
-                window: bool = True, colour=None) -> BallTrack:
+                window: bool = True, colour=None, chroma_px=(1.0, 1.0)) -> BallTrack:
     """:func:`find_ball` on large frames: followed on a block-averaged copy, in source pixels.
 
     A 1080p frame is averaged over 3 x 3 blocks (the larger side brought to at most
@@ -1516,6 +1552,9 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False,
         The same frames in colour (:attr:`Clip.colour_frames`): the object is followed in
         :func:`colour_difference` at that size (a real camera's object on a wall of its own
         grey, its shadow, the ghost where it rested); sizes are still measured on ``frames``.
+    chroma_px : (float, float)
+        Source pixels ``(across, down)`` between the file's colour samples, as the frames are
+        turned (:attr:`Clip.chroma_px`): the blur the colour's sizes are measured through.
 
     Returns
     -------
@@ -1533,9 +1572,15 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False,
             raise ValueError(f"colour: expected a ({fr.shape[0]}, h, w, 3) array, got shape "
                              f"{col.shape}")
         diff = colour_difference(col)
-        trk = _minor_radii(diff, find_ball(diff, progress=progress, reset_on_loss=True,
-                                           round_power=2.0))
         sx, sy = fr.shape[2] / col.shape[2], fr.shape[1] / col.shape[1]
+        cx, cy = (float(v) for v in chroma_px)
+        if not (cx >= 1.0 and cy >= 1.0):
+            raise ValueError(f"chroma_px: expected source pixels >= 1, got {chroma_px!r}")
+        # a colour pixel is sx source pixels wide and its colour a chroma_px wide sample:
+        # whichever is coarser is the box each colour pixel averages over
+        trk = _minor_radii(diff, find_ball(diff, progress=progress, reset_on_loss=True,
+                                           round_power=2.0),
+                           blur_var=(max(1.0, cx / sx) ** 2 / 12.0, max(1.0, cy / sy) ** 2 / 12.0))
         # continuous coordinates scale by the block size; the radius by the mean of the two
         s = 0.5 * (sx + sy)
         trk = BallTrack(pixels=trk.pixels * np.array([sx, sy]), radius=trk.radius * s,
@@ -1578,7 +1623,12 @@ def _block_means(fr: np.ndarray, k: int) -> np.ndarray:
     return small
 
 
-def _minor_radii(frames, trk: BallTrack) -> BallTrack:
+#: Variance (px**2) a pixel's own area adds along each axis: its value is the mean over a
+#: 1 px box, a uniform distribution of variance 1 / 12.
+PIXEL_VAR = 1.0 / 12.0
+
+
+def _minor_radii(frames, trk: BallTrack, blur_var=(PIXEL_VAR, PIXEL_VAR)) -> BallTrack:
     """Each frame's radius from the object's narrowest extent, at the source's resolution.
 
     Motion blur stretches a moving ball along its path (a 21 px ball at 3 m/s and 1/30 s
@@ -1587,9 +1637,17 @@ def _minor_radii(frames, trk: BallTrack) -> BallTrack:
     ``2 sqrt(smallest eigenvalue)`` of the covariance of the pixels covered, each weighted by
     the fraction covered (its difference from the background over the object's own, the
     faint texture below a tenth of it left out).
+
+    A blur adds its own variance to that of the disc's coverage along every axis (a
+    convolution's variances add): ``blur_var``, ``(across, down)`` in px**2, is taken out of
+    the smallest eigenvalue along its axis before the square root. A pixel's area is 1 / 12;
+    colour decoded from H.264's 4:2:0 (one colour sample per 2 x 2 pixels) is a 2 px box,
+    4 / 12, which read the 7 cm ball's diameter 3-4% large at 10 px across
+    (``docs/camera-footage.md``, session 27).
     """
     fr = np.asarray(frames)
     t_n, h, w = fr.shape
+    bx, by = (float(v) for v in blur_var)
     found = np.flatnonzero(trk.found)
     if found.size == 0:
         return trk
@@ -1642,6 +1700,11 @@ def _minor_radii(frames, trk: BallTrack) -> BallTrack:
         cyy = (wgt * (yy - my) ** 2).sum() / sw
         cxy = (wgt * (xx - mx) * (yy - my)).sum() / sw
         lam = 0.5 * (cxx + cyy) - math.sqrt(0.25 * (cxx - cyy) ** 2 + cxy ** 2)
+        # the blur's variance along the narrow axis (the smaller eigenvalue's vector)
+        ax, ay = (lam - cyy, cxy) if abs(cxy) > 1e-12 else ((1.0, 0.0) if cxx <= cyy
+                                                             else (0.0, 1.0))
+        nrm = ax * ax + ay * ay
+        lam -= (ax * ax * bx + ay * ay * by) / nrm if nrm > 0 else 0.5 * (bx + by)
         if lam > 0:
             radii[t] = 2.0 * math.sqrt(lam)
     return BallTrack(pixels=trk.pixels, radius=float(np.nanmedian(radii)), found=trk.found,
@@ -3042,7 +3105,8 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
     rotate = int(opts.get("rotate", 0))
     frames = rotate_frames(clip.frames, rotate)
     trk = find_object(frames, progress=bool(progress), colour=None if clip.colour_frames is None
-                      else rotate_frames(clip.colour_frames, rotate))
+                      else rotate_frames(clip.colour_frames, rotate),
+                      chroma_px=turned_chroma(clip.chroma_px, rotate))
     if trk.n_found < 3:
         raise VideoError(f"{path}: the {sys_.name}'s object was found in {trk.n_found} of "
                          f"{len(frames)} frames; the camera and the methods need a track (at "
