@@ -1343,7 +1343,36 @@ class Camera:
                 "mapping": self.describe()}
 
 
-def _scale_from_size(track: BallTrack, object_size_m: float) -> tuple[np.ndarray, float, float]:
+def _fit_inverse_size(inv, t_all, seen):
+    """A robust line through ``inv[seen]`` against ``t_all[seen]``: ``(coef, keep)``.
+
+    Repeated medians (Siegel: up to half the frames may be off) start the line; then least
+    squares on the frames within 3 MADs of it."""
+    from scipy.stats import siegelslopes
+
+    sl = siegelslopes(inv[seen], t_all[seen])
+    coef, keep = np.array([sl.slope, sl.intercept]), seen
+    for _ in range(3):
+        res = inv[seen] - np.polyval(coef, t_all[seen])
+        rk = res[np.isin(seen, keep)]
+        mid = float(np.median(rk))
+        mad = 1.4826 * float(np.median(np.abs(rk - mid)))
+        new = seen[np.abs(res - mid) <= 3.0 * max(mad, 1e-12)]
+        if len(new) < 6:
+            break
+        keep = new
+        coef = np.polyfit(t_all[keep], inv[keep], 1)
+    return coef, keep
+
+
+#: Ball diameters above the lowest point of its track from which :func:`_scale_from_size` reads
+#: the ball's size: nearer the floor the 7 cm ball read 3-7% small (the floor behind it, of
+#: its own colour, and the blur across a bounce: docs/camera-footage.md, session 27).
+FLOOR_CLEAR_DIAMETERS = 3.0
+
+
+def _scale_from_size(track: BallTrack, object_size_m: float,
+                     centre_row: float | None = None) -> tuple[np.ndarray, float, float]:
     """Per-frame px per metre from the object's apparent diameter, its median and relative std.
 
     A pinhole camera shows an object of diameter ``D`` at depth ``z`` ``f D / z`` px across, and
@@ -1356,6 +1385,13 @@ def _scale_from_size(track: BallTrack, object_size_m: float) -> tuple[np.ndarray
     error on the median diameter (the size's own bias, which averaging over frames does not
     remove) combined with the fitted level's standard error (the scatter about the line over
     the frames kept).
+
+    ``centre_row`` (a ball over a floor: the picture's centre row, about which a pinhole
+    scales): the line is fitted again on the frames where the ball is at least
+    :data:`FLOOR_CLEAR_DIAMETERS` of its diameters above the lowest point of its track (heights
+    read at the first line's scale), where there are at least 6 spanning a third of the
+    track's frames; near the floor the ball reads small, and a clip whose later part is
+    mostly small bounces and rolling would read a drift in depth that is not there.
     """
     radii = np.asarray(track.radii if track.radii is not None else
                        np.where(track.found, track.radius, np.nan), dtype=np.float64)
@@ -1367,23 +1403,17 @@ def _scale_from_size(track: BallTrack, object_size_m: float) -> tuple[np.ndarray
     coef = np.array([0.0, 1.0 / d_med])
     spread = 0.0
     if len(seen) >= 6:
-        from scipy.stats import siegelslopes
-
         inv = 1.0 / diam
-        # repeated medians (Siegel: up to half the frames may be off) start the line; then
-        # least squares on the frames within 3 MADs of it
-        sl = siegelslopes(inv[seen], t_all[seen])
-        coef = np.array([sl.slope, sl.intercept])
-        for _ in range(3):
-            res = inv[seen] - np.polyval(coef, t_all[seen])
-            rk = res[np.isin(seen, keep)]
-            mid = float(np.median(rk))
-            mad = 1.4826 * float(np.median(np.abs(rk - mid)))
-            new = seen[np.abs(res - mid) <= 3.0 * max(mad, 1e-12)]
-            if len(new) < 6:
-                break
-            keep = new
-            coef = np.polyfit(t_all[keep], inv[keep], 1)
+        coef, keep = _fit_inverse_size(inv, t_all, seen)
+        rows = np.asarray(track.pixels, dtype=np.float64)[:, 1]
+        if centre_row is not None and np.all(np.polyval(coef, t_all[seen]) > 0):
+            height = (float(centre_row) - rows) * np.polyval(coef, t_all) * float(object_size_m)
+            clear = seen[np.isfinite(height[seen])
+                         & (height[seen] - np.nanmin(height[seen])
+                            >= FLOOR_CLEAR_DIAMETERS * float(object_size_m))]
+            if len(clear) >= 6 and t_all[clear[-1]] - t_all[clear[0]] >= (
+                    t_all[seen[-1]] - t_all[seen[0]]) / 3:
+                coef, keep = _fit_inverse_size(inv, t_all, clear)
         res = inv[keep] - np.polyval(coef, t_all[keep])
         level = float(np.polyval(coef, np.median(t_all[keep])))
         spread = float(np.std(res)) / level / math.sqrt(max(len(keep) - 2, 1))
@@ -1735,44 +1765,57 @@ def _consistent(trk: BallTrack, tol: float = 0.5) -> BallTrack:
                      found=ok, radii=radii)
 
 
-def _floor_from_bounces(pix, radii) -> tuple[float, int]:
+def _floor_from_bounces(pix, radii, min_height: float | None = None) -> tuple[float, int]:
     """The floor's row from where the ball's bounces turn: ``(row, n_bounces)``.
 
-    Around each turn of the track (a lowest point) a parabola is fitted to the frames before
-    and one to the frames after; they meet at the contact, between frames (at 20 frames/s a
-    ball at 4 m/s is 20 cm above the floor in the frame nearest its bounce). The floor is the
-    median contact's row plus the ball's radius; NaN when no turn has three frames either side.
+    The track is cut at its turns (its lowest points) into arcs. Each arc is fitted as a
+    parabola on its frames in the upper half of its height only, and two arcs' parabolas meet
+    at the contact between them, between frames (at 20 frames/s a ball at 4 m/s is 20 cm above
+    the floor in the frame nearest its bounce). The frames near the floor are left out because
+    there the centre is read worst: the ball is over the floor (of its own colour, wood), and
+    blurred across the contact; on the camera section's clips it read 1-4 px high within two
+    diameters of the floor at 640x360, which moved the floor and with it |g| by 3-12%
+    (``docs/camera-footage.md``, session 27). The floor is the median contact's row plus the
+    ball's radius, over the bounces between arcs at least ``min_height`` tall (default: three
+    of the ball's median diameters; all bounces when none is); NaN when no arc has three
+    frames in its upper half.
     """
     seen = np.flatnonzero(np.isfinite(pix).all(axis=1))
     t_all, row = seen.astype(np.float64), pix[seen, 1]
     rad = np.where(np.isfinite(radii[seen]), radii[seen], np.nanmedian(radii))
+    turns = [j for j in range(1, len(seen) - 1)
+             if row[j] >= row[j - 1] and row[j] >= row[j + 1] and row[j] > min(row[j - 1],
+                                                                                row[j + 1])]
+    if min_height is None:
+        med = float(np.nanmedian(rad)) if np.isfinite(rad).any() else 0.0
+        min_height = 6.0 * med if math.isfinite(med) else 0.0
+    ends = [0, *turns, len(seen) - 1]
+
+    def arc(a, b):  # the parabola through the arc's upper half, and the arc's height
+        r = row[a:b + 1]
+        height = max(r[0], r[-1]) - r.min()  # rows run down: the apex is the smallest row
+        keep = np.arange(a, b + 1)[r <= r.min() + 0.5 * height]
+        if len(keep) < 3 or t_all[b] - t_all[a] > 2 * (b - a) + 1:  # a gap in the track
+            return None
+        return np.polyfit(t_all[keep], row[keep], 2), height
+
     contacts = []
-    for j in range(1, len(seen) - 1):
-        if not (row[j] >= row[j - 1] and row[j] >= row[j + 1] and row[j] > min(row[j - 1],
-                                                                                row[j + 1])):
+    for i, j in enumerate(turns):
+        before, after = arc(ends[i], j), arc(j, ends[i + 2])
+        if before is None or after is None:
             continue
-        best = None
-        for split in (j + 1, j):  # the turn frame before the contact, or after it
-            lft = np.arange(max(0, split - 4), split)
-            rgt = np.arange(split, min(len(seen), split + 4))
-            if len(lft) < 3 or len(rgt) < 3 or t_all[rgt[0]] - t_all[lft[-1]] > 3:
-                continue
-            p1 = np.polyfit(t_all[lft], row[lft], 2, full=True)
-            p2 = np.polyfit(t_all[rgt], row[rgt], 2, full=True)
-            roots = np.roots(p1[0] - p2[0])
-            roots = roots[np.isreal(roots)].real
-            roots = roots[(roots >= t_all[lft[-1]] - 1e-9) & (roots <= t_all[rgt[0]] + 1e-9)]
-            if roots.size == 0:
-                continue
-            res = float(np.sum(p1[1]) + np.sum(p2[1])) if len(p1[1]) and len(p2[1]) else 0.0
-            c = float(np.polyval(p1[0], roots[0]))
-            if best is None or res < best[0]:
-                best = (res, c + float(rad[j]))
-        if best is not None:
-            contacts.append(best[1])
+        roots = np.roots(before[0] - after[0])
+        roots = roots[np.isreal(roots)].real
+        roots = roots[(roots >= t_all[j - 1] - 1e-9) & (roots <= t_all[j + 1] + 1e-9)]
+        if roots.size == 0:
+            continue
+        c = float(np.polyval(before[0], roots[0]))
+        contacts.append((min(before[1], after[1]), c + float(rad[j])))
     if not contacts:
         return float("nan"), 0
-    return float(np.median(contacts)), len(contacts)
+    tall = [c for h, c in contacts if h >= min_height]
+    use = tall or [c for _, c in contacts]
+    return float(np.median(use)), len(use)
 
 
 def _check_size(diam_m: float, option: str, how: str) -> None:
@@ -2045,7 +2088,10 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
     elif object_size_m is not None:
         d = float(object_size_m)
         _check_size(d, "object_size_m", "as given")
-        per_frame, s, rel = _scale_from_size(track, d)
+        # a ball's size read clear of the floor (not when the floor is given: a clip framed
+        # as the renderer's, not a camera's)
+        per_frame, s, rel = _scale_from_size(
+            track, d, centre_row=h / 2 if system == "ball" and floor_row is None else None)
         src = (f"object_size_m={d:g}: the object's median {2 * r_px:.3g} px across, frame by "
                f"frame (its inverse a line in time: a steady drift in depth)")
     elif system in PERIOD_SCALED and ("L" in known or "g" in known):
@@ -2079,7 +2125,7 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
             m_x = (pix[:, 0] - w / 2) / sc
             m_y = (h / 2 - pix[:, 1]) / sc
             down = np.column_stack([m_x, -m_y])
-            y_c, n_b = _floor_from_bounces(down, np.zeros(len(pix)))
+            y_c, n_b = _floor_from_bounces(down, np.zeros(len(pix)), min_height=6.0 * rad_m)
             low = float(np.nanmax(-m_y[seen]))
             if math.isfinite(y_c) and y_c >= low - 1.0 / s:
                 placement["floor_row"] = (f"estimated: the ball's centre {-y_c:.4g} m from the "
