@@ -1772,9 +1772,8 @@ def _floor_from_bounces(pix, radii, min_height: float | None = None) -> tuple[fl
     parabola on its frames in the upper half of its height only, and two arcs' parabolas meet
     at the contact between them, between frames (at 20 frames/s a ball at 4 m/s is 20 cm above
     the floor in the frame nearest its bounce). The frames near the floor are left out because
-    there the centre is read worst: the ball is over the floor (of its own colour, wood), and
-    blurred across the contact; on the camera section's clips it read 1-4 px high within two
-    diameters of the floor at 640x360, which moved the floor and with it |g| by 3-12%
+    there the centre is read worst: the ball is over the floor (of nearly its own colour), and
+    blurred across the contact, so its lower part may not be seen and its centre reads high
     (``docs/camera-footage.md``, session 27). The floor is the median contact's row plus the
     ball's radius, over the bounces between arcs at least ``min_height`` tall (default: three
     of the ball's median diameters; all bounces when none is); NaN when no arc has three
