@@ -52,8 +52,8 @@ from sysid_bench.core.footage import (  # the core half (files, geometry, the tr
     parse_prior,
     read_video,
     rotate_frames,
-    turned_chroma,
     thin_clip,
+    turned_chroma,
     widen_for_scale,
     write_video,
 )

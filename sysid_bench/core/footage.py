@@ -2087,10 +2087,9 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
     elif object_size_m is not None:
         d = float(object_size_m)
         _check_size(d, "object_size_m", "as given")
-        # a ball's size read clear of the floor (not when the floor is given: a clip framed
-        # as the renderer's, not a camera's)
-        per_frame, s, rel = _scale_from_size(
-            track, d, centre_row=h / 2 if system == "ball" and floor_row is None else None)
+        # a ball's size read clear of the floor it bounces on (a pendulum's bob has none)
+        per_frame, s, rel = _scale_from_size(track, d,
+                                             centre_row=h / 2 if system == "ball" else None)
         src = (f"object_size_m={d:g}: the object's median {2 * r_px:.3g} px across, frame by "
                f"frame (its inverse a line in time: a steady drift in depth)")
     elif system in PERIOD_SCALED and ("L" in known or "g" in known):
