@@ -53,6 +53,7 @@ from sysid_bench.core.footage import (  # the core half (files, geometry, the tr
     read_video,
     rotate_frames,
     thin_clip,
+    turned_chroma,
     widen_for_scale,
     write_video,
 )
@@ -253,7 +254,8 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
                      "a camera's, its scale from the ball's fall and the known g")
     if camera:
         trk = find_object(frames, progress=show, colour=None if clip.colour_frames is None
-                          else rotate_frames(clip.colour_frames, int(rotate)))
+                          else rotate_frames(clip.colour_frames, int(rotate)),
+                          chroma_px=turned_chroma(clip.chroma_px, int(rotate)))
         if trk.n_found < 3:
             raise VideoError(f"{path}: the ball was found in {trk.n_found} of {t_n} frames; "
                              "the camera and the methods need a track (at least 3 frames)")

@@ -69,6 +69,8 @@ __all__ = [
     "OBJECT_SIZE_RANGE_M",
     "LENGTH_POWER",
     "rotate_frames",
+    "turned_chroma",
+    "chroma_spacing",
     "fit_circle",
     "find_object",
     "Camera",
@@ -129,6 +131,10 @@ class Clip:
         The same frames in RGB, area-averaged so that the larger side is at most
         :data:`COLOUR_SIDE` (what :func:`find_object` follows a real object by); None unless
         :func:`read_video` was asked for them and the file stores colour.
+    chroma_px : (float, float)
+        Source pixels ``(across, down)`` between the file's colour samples: ``(2, 2)`` for the
+        4:2:0 of H.264, HEVC and VP9 as phones write them, ``(1, 1)`` for full colour or grey.
+        The colour is as blurred as its samples are coarse (:func:`find_object`).
     """
 
     frames: np.ndarray
@@ -140,6 +146,27 @@ class Clip:
     notes: list = field(default_factory=list)
     path: str = ""
     colour_frames: np.ndarray | None = None
+    chroma_px: tuple = (1.0, 1.0)
+
+
+def chroma_spacing(pix_fmt) -> tuple[float, float]:
+    """Source pixels ``(across, down)`` between a pixel format's colour samples.
+
+    ``"yuv420p"`` (H.264's usual) -> ``(2.0, 2.0)``, ``"yuv422p"`` -> ``(2.0, 1.0)``; a
+    format without subsampled colour (RGB, 4:4:4, grey) or one FFmpeg does not name ->
+    ``(1.0, 1.0)``.
+    """
+    import av
+
+    try:
+        comps = av.VideoFormat(str(pix_fmt), 64, 64).components
+    except (ValueError, TypeError):  # a name FFmpeg does not know
+        return 1.0, 1.0
+    if len(comps) < 3:
+        return 1.0, 1.0
+    w = min(int(c.width) for c in comps[1:3]) or 64
+    h = min(int(c.height) for c in comps[1:3]) or 64
+    return 64.0 / w, 64.0 / h
 
 
 #: Larger side (px) of :attr:`Clip.colour_frames`: the tracker's working size on real footage.
@@ -242,6 +269,7 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         # one tick of the container's clock: timestamps are rounded to it (1 ms in mkv/webm)
         tick = float(stream.time_base) if stream.time_base else 0.0
         colour_file = not str(stream.codec_context.pix_fmt or "").startswith("gray")
+        chroma = chroma_spacing(stream.codec_context.pix_fmt) if colour_file else (1.0, 1.0)
         n_hint = int(stream.frames or 0)
         show = (n_hint > _PROGRESS_FRAMES) if progress is None else bool(progress)
         frames, times, small = [], [], []
@@ -332,7 +360,8 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         return Clip(frames=_grey_frames(path, frames, np.arange(len(frames)), lut), times=t,
                     source_fps=float(rate),
                     source_frames=len(frames), colour=colour_file, fps=float(own), notes=notes,
-                    path=str(path), colour_frames=np.stack(small) if small else None)
+                    path=str(path), colour_frames=np.stack(small) if small else None,
+                    chroma_px=chroma)
     med = float(np.median(gaps)) if len(gaps) else mean_gap
     if fps is None:
         # the grid: the median interval (blind to dropped frames' long gaps), refined as the
@@ -369,7 +398,8 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
     raw_kept = _grey_frames(path, frames, j, lut)
     return Clip(frames=raw_kept, times=t_kept, source_fps=float(rate),
                 source_frames=len(frames), colour=colour_file, fps=float(target), notes=notes,
-                path=str(path), colour_frames=np.stack(small) if small else None)
+                path=str(path), colour_frames=np.stack(small) if small else None,
+                chroma_px=chroma)
 
 
 def thin_clip(clip: Clip, max_frames: int | None, method: str = "the method") -> Clip:
@@ -1169,6 +1199,12 @@ def rotate_frames(frames, rotate: int) -> np.ndarray:
     return np.ascontiguousarray(np.rot90(fr, k=-(rotate // 90), axes=(1, 2)))
 
 
+def turned_chroma(chroma_px, rotate: int) -> tuple[float, float]:
+    """:attr:`Clip.chroma_px` of frames turned ``rotate`` degrees (90 and 270 swap the axes)."""
+    a, b = (float(v) for v in chroma_px)
+    return (b, a) if int(rotate) % 180 == 90 else (a, b)
+
+
 def fit_circle(points) -> tuple[np.ndarray, float, float, float]:
     """The circle through tracked points: a pendulum's pivot and radius from its bob's arc.
 
@@ -1307,7 +1343,36 @@ class Camera:
                 "mapping": self.describe()}
 
 
-def _scale_from_size(track: BallTrack, object_size_m: float) -> tuple[np.ndarray, float, float]:
+def _fit_inverse_size(inv, t_all, seen):
+    """A robust line through ``inv[seen]`` against ``t_all[seen]``: ``(coef, keep)``.
+
+    Repeated medians (Siegel: up to half the frames may be off) start the line; then least
+    squares on the frames within 3 MADs of it."""
+    from scipy.stats import siegelslopes
+
+    sl = siegelslopes(inv[seen], t_all[seen])
+    coef, keep = np.array([sl.slope, sl.intercept]), seen
+    for _ in range(3):
+        res = inv[seen] - np.polyval(coef, t_all[seen])
+        rk = res[np.isin(seen, keep)]
+        mid = float(np.median(rk))
+        mad = 1.4826 * float(np.median(np.abs(rk - mid)))
+        new = seen[np.abs(res - mid) <= 3.0 * max(mad, 1e-12)]
+        if len(new) < 6:
+            break
+        keep = new
+        coef = np.polyfit(t_all[keep], inv[keep], 1)
+    return coef, keep
+
+
+#: Ball diameters above the lowest point of its track from which :func:`_scale_from_size` reads
+#: the ball's size: nearer the floor the 7 cm ball read 3-7% small (the floor behind it, of
+#: its own colour, and the blur across a bounce: docs/camera-footage.md, session 27).
+FLOOR_CLEAR_DIAMETERS = 3.0
+
+
+def _scale_from_size(track: BallTrack, object_size_m: float,
+                     centre_row: float | None = None) -> tuple[np.ndarray, float, float]:
     """Per-frame px per metre from the object's apparent diameter, its median and relative std.
 
     A pinhole camera shows an object of diameter ``D`` at depth ``z`` ``f D / z`` px across, and
@@ -1320,6 +1385,13 @@ def _scale_from_size(track: BallTrack, object_size_m: float) -> tuple[np.ndarray
     error on the median diameter (the size's own bias, which averaging over frames does not
     remove) combined with the fitted level's standard error (the scatter about the line over
     the frames kept).
+
+    ``centre_row`` (a ball over a floor: the picture's centre row, about which a pinhole
+    scales): the line is fitted again on the frames where the ball is at least
+    :data:`FLOOR_CLEAR_DIAMETERS` of its diameters above the lowest point of its track (heights
+    read at the first line's scale), where there are at least 6 spanning a third of the
+    track's frames; near the floor the ball reads small, and a clip whose later part is
+    mostly small bounces and rolling would read a drift in depth that is not there.
     """
     radii = np.asarray(track.radii if track.radii is not None else
                        np.where(track.found, track.radius, np.nan), dtype=np.float64)
@@ -1331,23 +1403,17 @@ def _scale_from_size(track: BallTrack, object_size_m: float) -> tuple[np.ndarray
     coef = np.array([0.0, 1.0 / d_med])
     spread = 0.0
     if len(seen) >= 6:
-        from scipy.stats import siegelslopes
-
         inv = 1.0 / diam
-        # repeated medians (Siegel: up to half the frames may be off) start the line; then
-        # least squares on the frames within 3 MADs of it
-        sl = siegelslopes(inv[seen], t_all[seen])
-        coef = np.array([sl.slope, sl.intercept])
-        for _ in range(3):
-            res = inv[seen] - np.polyval(coef, t_all[seen])
-            rk = res[np.isin(seen, keep)]
-            mid = float(np.median(rk))
-            mad = 1.4826 * float(np.median(np.abs(rk - mid)))
-            new = seen[np.abs(res - mid) <= 3.0 * max(mad, 1e-12)]
-            if len(new) < 6:
-                break
-            keep = new
-            coef = np.polyfit(t_all[keep], inv[keep], 1)
+        coef, keep = _fit_inverse_size(inv, t_all, seen)
+        rows = np.asarray(track.pixels, dtype=np.float64)[:, 1]
+        if centre_row is not None and np.all(np.polyval(coef, t_all[seen]) > 0):
+            height = (float(centre_row) - rows) * np.polyval(coef, t_all) * float(object_size_m)
+            clear = seen[np.isfinite(height[seen])
+                         & (height[seen] - np.nanmin(height[seen])
+                            >= FLOOR_CLEAR_DIAMETERS * float(object_size_m))]
+            if len(clear) >= 6 and t_all[clear[-1]] - t_all[clear[0]] >= (
+                    t_all[seen[-1]] - t_all[seen[0]]) / 3:
+                coef, keep = _fit_inverse_size(inv, t_all, clear)
         res = inv[keep] - np.polyval(coef, t_all[keep])
         level = float(np.polyval(coef, np.median(t_all[keep])))
         spread = float(np.std(res)) / level / math.sqrt(max(len(keep) - 2, 1))
@@ -1495,7 +1561,7 @@ def colour_difference(colour, max_frames: int = 150) -> np.ndarray:
 
 
 def find_object(frames, *, max_side: int = 640, progress: bool = False,
-                window: bool = True, colour=None) -> BallTrack:
+                window: bool = True, colour=None, chroma_px=(1.0, 1.0)) -> BallTrack:
     """:func:`find_ball` on large frames: followed on a block-averaged copy, in source pixels.
 
     A 1080p frame is averaged over 3 x 3 blocks (the larger side brought to at most
@@ -1516,6 +1582,9 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False,
         The same frames in colour (:attr:`Clip.colour_frames`): the object is followed in
         :func:`colour_difference` at that size (a real camera's object on a wall of its own
         grey, its shadow, the ghost where it rested); sizes are still measured on ``frames``.
+    chroma_px : (float, float)
+        Source pixels ``(across, down)`` between the file's colour samples, as the frames are
+        turned (:attr:`Clip.chroma_px`): the blur the colour's sizes are measured through.
 
     Returns
     -------
@@ -1533,9 +1602,15 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False,
             raise ValueError(f"colour: expected a ({fr.shape[0]}, h, w, 3) array, got shape "
                              f"{col.shape}")
         diff = colour_difference(col)
-        trk = _minor_radii(diff, find_ball(diff, progress=progress, reset_on_loss=True,
-                                           round_power=2.0))
         sx, sy = fr.shape[2] / col.shape[2], fr.shape[1] / col.shape[1]
+        cx, cy = (float(v) for v in chroma_px)
+        if not (cx >= 1.0 and cy >= 1.0):
+            raise ValueError(f"chroma_px: expected source pixels >= 1, got {chroma_px!r}")
+        # a colour pixel is sx source pixels wide and its colour a chroma_px wide sample:
+        # whichever is coarser is the box each colour pixel averages over
+        trk = _minor_radii(diff, find_ball(diff, progress=progress, reset_on_loss=True,
+                                           round_power=2.0),
+                           blur_var=(max(1.0, cx / sx) ** 2 / 12.0, max(1.0, cy / sy) ** 2 / 12.0))
         # continuous coordinates scale by the block size; the radius by the mean of the two
         s = 0.5 * (sx + sy)
         trk = BallTrack(pixels=trk.pixels * np.array([sx, sy]), radius=trk.radius * s,
@@ -1578,7 +1653,12 @@ def _block_means(fr: np.ndarray, k: int) -> np.ndarray:
     return small
 
 
-def _minor_radii(frames, trk: BallTrack) -> BallTrack:
+#: Variance (px**2) a pixel's own area adds along each axis: its value is the mean over a
+#: 1 px box, a uniform distribution of variance 1 / 12.
+PIXEL_VAR = 1.0 / 12.0
+
+
+def _minor_radii(frames, trk: BallTrack, blur_var=(PIXEL_VAR, PIXEL_VAR)) -> BallTrack:
     """Each frame's radius from the object's narrowest extent, at the source's resolution.
 
     Motion blur stretches a moving ball along its path (a 21 px ball at 3 m/s and 1/30 s
@@ -1587,9 +1667,17 @@ def _minor_radii(frames, trk: BallTrack) -> BallTrack:
     ``2 sqrt(smallest eigenvalue)`` of the covariance of the pixels covered, each weighted by
     the fraction covered (its difference from the background over the object's own, the
     faint texture below a tenth of it left out).
+
+    A blur adds its own variance to that of the disc's coverage along every axis (a
+    convolution's variances add): ``blur_var``, ``(across, down)`` in px**2, is taken out of
+    the smallest eigenvalue along its axis before the square root. A pixel's area is 1 / 12;
+    colour decoded from H.264's 4:2:0 (one colour sample per 2 x 2 pixels) is a 2 px box,
+    4 / 12, which read the 7 cm ball's diameter 3-4% large at 10 px across
+    (``docs/camera-footage.md``, session 27).
     """
     fr = np.asarray(frames)
     t_n, h, w = fr.shape
+    bx, by = (float(v) for v in blur_var)
     found = np.flatnonzero(trk.found)
     if found.size == 0:
         return trk
@@ -1642,6 +1730,11 @@ def _minor_radii(frames, trk: BallTrack) -> BallTrack:
         cyy = (wgt * (yy - my) ** 2).sum() / sw
         cxy = (wgt * (xx - mx) * (yy - my)).sum() / sw
         lam = 0.5 * (cxx + cyy) - math.sqrt(0.25 * (cxx - cyy) ** 2 + cxy ** 2)
+        # the blur's variance along the narrow axis (the smaller eigenvalue's vector)
+        ax, ay = (lam - cyy, cxy) if abs(cxy) > 1e-12 else ((1.0, 0.0) if cxx <= cyy
+                                                             else (0.0, 1.0))
+        nrm = ax * ax + ay * ay
+        lam -= (ax * ax * bx + ay * ay * by) / nrm if nrm > 0 else 0.5 * (bx + by)
         if lam > 0:
             radii[t] = 2.0 * math.sqrt(lam)
     return BallTrack(pixels=trk.pixels, radius=float(np.nanmedian(radii)), found=trk.found,
@@ -1672,44 +1765,56 @@ def _consistent(trk: BallTrack, tol: float = 0.5) -> BallTrack:
                      found=ok, radii=radii)
 
 
-def _floor_from_bounces(pix, radii) -> tuple[float, int]:
+def _floor_from_bounces(pix, radii, min_height: float | None = None) -> tuple[float, int]:
     """The floor's row from where the ball's bounces turn: ``(row, n_bounces)``.
 
-    Around each turn of the track (a lowest point) a parabola is fitted to the frames before
-    and one to the frames after; they meet at the contact, between frames (at 20 frames/s a
-    ball at 4 m/s is 20 cm above the floor in the frame nearest its bounce). The floor is the
-    median contact's row plus the ball's radius; NaN when no turn has three frames either side.
+    The track is cut at its turns (its lowest points) into arcs. Each arc is fitted as a
+    parabola on its frames in the upper half of its height only, and two arcs' parabolas meet
+    at the contact between them, between frames (at 20 frames/s a ball at 4 m/s is 20 cm above
+    the floor in the frame nearest its bounce). The frames near the floor are left out because
+    there the centre is read worst: the ball is over the floor (of nearly its own colour), and
+    blurred across the contact, so its lower part may not be seen and its centre reads high
+    (``docs/camera-footage.md``, session 27). The floor is the median contact's row plus the
+    ball's radius, over the bounces between arcs at least ``min_height`` tall (default: three
+    of the ball's median diameters; all bounces when none is); NaN when no arc has three
+    frames in its upper half.
     """
     seen = np.flatnonzero(np.isfinite(pix).all(axis=1))
     t_all, row = seen.astype(np.float64), pix[seen, 1]
     rad = np.where(np.isfinite(radii[seen]), radii[seen], np.nanmedian(radii))
+    turns = [j for j in range(1, len(seen) - 1)
+             if row[j] >= row[j - 1] and row[j] >= row[j + 1] and row[j] > min(row[j - 1],
+                                                                                row[j + 1])]
+    if min_height is None:
+        med = float(np.nanmedian(rad)) if np.isfinite(rad).any() else 0.0
+        min_height = 6.0 * med if math.isfinite(med) else 0.0
+    ends = [0, *turns, len(seen) - 1]
+
+    def arc(a, b):  # the parabola through the arc's upper half, and the arc's height
+        r = row[a:b + 1]
+        height = max(r[0], r[-1]) - r.min()  # rows run down: the apex is the smallest row
+        keep = np.arange(a, b + 1)[r <= r.min() + 0.5 * height]
+        if len(keep) < 3 or t_all[b] - t_all[a] > 2 * (b - a) + 1:  # a gap in the track
+            return None
+        return np.polyfit(t_all[keep], row[keep], 2), height
+
     contacts = []
-    for j in range(1, len(seen) - 1):
-        if not (row[j] >= row[j - 1] and row[j] >= row[j + 1] and row[j] > min(row[j - 1],
-                                                                                row[j + 1])):
+    for i, j in enumerate(turns):
+        before, after = arc(ends[i], j), arc(j, ends[i + 2])
+        if before is None or after is None:
             continue
-        best = None
-        for split in (j + 1, j):  # the turn frame before the contact, or after it
-            lft = np.arange(max(0, split - 4), split)
-            rgt = np.arange(split, min(len(seen), split + 4))
-            if len(lft) < 3 or len(rgt) < 3 or t_all[rgt[0]] - t_all[lft[-1]] > 3:
-                continue
-            p1 = np.polyfit(t_all[lft], row[lft], 2, full=True)
-            p2 = np.polyfit(t_all[rgt], row[rgt], 2, full=True)
-            roots = np.roots(p1[0] - p2[0])
-            roots = roots[np.isreal(roots)].real
-            roots = roots[(roots >= t_all[lft[-1]] - 1e-9) & (roots <= t_all[rgt[0]] + 1e-9)]
-            if roots.size == 0:
-                continue
-            res = float(np.sum(p1[1]) + np.sum(p2[1])) if len(p1[1]) and len(p2[1]) else 0.0
-            c = float(np.polyval(p1[0], roots[0]))
-            if best is None or res < best[0]:
-                best = (res, c + float(rad[j]))
-        if best is not None:
-            contacts.append(best[1])
+        roots = np.roots(before[0] - after[0])
+        roots = roots[np.isreal(roots)].real
+        roots = roots[(roots >= t_all[j - 1] - 1e-9) & (roots <= t_all[j + 1] + 1e-9)]
+        if roots.size == 0:
+            continue
+        c = float(np.polyval(before[0], roots[0]))
+        contacts.append((min(before[1], after[1]), c + float(rad[j])))
     if not contacts:
         return float("nan"), 0
-    return float(np.median(contacts)), len(contacts)
+    tall = [c for h, c in contacts if h >= min_height]
+    use = tall or [c for _, c in contacts]
+    return float(np.median(use)), len(use)
 
 
 def _check_size(diam_m: float, option: str, how: str) -> None:
@@ -1982,7 +2087,9 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
     elif object_size_m is not None:
         d = float(object_size_m)
         _check_size(d, "object_size_m", "as given")
-        per_frame, s, rel = _scale_from_size(track, d)
+        # a ball's size read clear of the floor it bounces on (a pendulum's bob has none)
+        per_frame, s, rel = _scale_from_size(track, d,
+                                             centre_row=h / 2 if system == "ball" else None)
         src = (f"object_size_m={d:g}: the object's median {2 * r_px:.3g} px across, frame by "
                f"frame (its inverse a line in time: a steady drift in depth)")
     elif system in PERIOD_SCALED and ("L" in known or "g" in known):
@@ -2016,7 +2123,7 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
             m_x = (pix[:, 0] - w / 2) / sc
             m_y = (h / 2 - pix[:, 1]) / sc
             down = np.column_stack([m_x, -m_y])
-            y_c, n_b = _floor_from_bounces(down, np.zeros(len(pix)))
+            y_c, n_b = _floor_from_bounces(down, np.zeros(len(pix)), min_height=6.0 * rad_m)
             low = float(np.nanmax(-m_y[seen]))
             if math.isfinite(y_c) and y_c >= low - 1.0 / s:
                 placement["floor_row"] = (f"estimated: the ball's centre {-y_c:.4g} m from the "
@@ -3042,7 +3149,8 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
     rotate = int(opts.get("rotate", 0))
     frames = rotate_frames(clip.frames, rotate)
     trk = find_object(frames, progress=bool(progress), colour=None if clip.colour_frames is None
-                      else rotate_frames(clip.colour_frames, rotate))
+                      else rotate_frames(clip.colour_frames, rotate),
+                      chroma_px=turned_chroma(clip.chroma_px, rotate))
     if trk.n_found < 3:
         raise VideoError(f"{path}: the {sys_.name}'s object was found in {trk.n_found} of "
                          f"{len(frames)} frames; the camera and the methods need a track (at "
