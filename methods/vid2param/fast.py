@@ -620,6 +620,49 @@ class LazyPosterior(Posterior):
         self._draw = (np.asarray(loc, np.float64), tuple(int(s) for s in seed), int(n_samples),
                       bounds)
 
+    @classmethod
+    def from_floats(cls, mean: list, std: list, extras: dict, *, seed, n_samples: int,
+                    bounds=None, system: str, mean_bounds=None) -> LazyPosterior:
+        """``cls(np.array(mean), np.array(std), extras, loc=<the mean array>, ...)``, the same
+        object, from Python floats, with :class:`Posterior`'s checks made on the floats.
+
+        Why: a stream builds one posterior a frame, and ``Posterior.__post_init__`` (a system
+        look-up, the envelope's bounds computed again, array checks) cost about as much as the
+        arithmetic of the posterior head. Where every check passes on the floats the object is
+        assembled without running them again; where one fails (or ``mean_bounds`` is None) the
+        ordinary constructor runs and raises its own error.
+
+        Parameters
+        ----------
+        mean, std : list of float, length P
+            Physical units, the system's order.
+        extras : dict
+        seed, n_samples, bounds, system
+            As the constructor's (``loc`` is the mean).
+        mean_bounds : list of (float, float), optional
+            Per parameter, the range ``system``'s ``check_posterior_mean`` accepts
+            (``System._mean_bounds()``); the caller's promise that the system checks nothing
+            else. None: always the ordinary constructor.
+        """
+        ok = (mean_bounds is not None and len(mean) == len(std) == len(mean_bounds)
+              and type(system) is str and type(extras) is dict)
+        if ok:
+            for m, s, (a, b) in zip(mean, std, mean_bounds):
+                # finite, inside the envelope's margin; std >= 0 (NaN fails both)
+                if not (a <= m <= b and math.isfinite(m) and s >= 0):
+                    ok = False
+                    break
+        m_arr, s_arr = np.array(mean, np.float64), np.array(std, np.float64)
+        if not ok:
+            return cls(m_arr, s_arr, extras, loc=m_arr, seed=seed, n_samples=n_samples,
+                       bounds=bounds, system=system)
+        post = cls.__new__(cls)
+        # what the constructor leaves in __dict__ (dataclass fields, then the samples' draw)
+        post.__dict__.update(mean=m_arr, std=s_arr, _draw=(m_arr, tuple(int(v) for v in seed),
+                                                            int(n_samples), bounds),
+                             _samples=None, extras=extras, check=None, system=system)
+        return post
+
     @property
     def samples(self):
         draw = self.__dict__.get("_draw")
