@@ -102,6 +102,11 @@ def test_push_head_gives_the_array_paths_bytes(system, clip):
     est.n_samples = 0
     post = fast.push(frames[0])
     assert post.samples is None and post.extras["n_frames"] == len(frames) + 1
+    # the torch modules after a reset (as the benchmark's reference stream): the head is
+    # not used without the NumPy filter
+    slow = est.stream()
+    slow._fast, slow._state = None, model._net.init_state(1)
+    assert slow._head is not None and slow.push(frames[0]).extras["n_frames"] == 1
     # a reset builds the head again from the same stages
     factors = fast._head.factors
     fast.reset()

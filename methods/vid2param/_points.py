@@ -574,7 +574,7 @@ class PointsStream(Stream):
         t0 = time.perf_counter()
         net = self._net
         head = self._head
-        if head is not None and est._est.n_samples:
+        if head is not None and self._fast is not None and est._est.n_samples:
             # the NumPy filter, then the head on Python floats (the array path's numbers)
             mu, sd = self._fast.step(fr)
             mu, sd = mu.tolist(), sd.tolist()
