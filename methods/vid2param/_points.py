@@ -483,6 +483,10 @@ class _StreamHead:
         self.mean_bounds = ([tuple(map(float, b)) for b in sys_._mean_bounds()]
                             if type(sys_).check_posterior_mean is System.check_posterior_mean
                             else None)
+        self.plan = list(zip(self.latent, self.factors, self.lo, self.w))
+        from methods.vid2param.fast import LazyPosterior
+
+        self.lazy = LazyPosterior
 
     @classmethod
     def of(cls, model: PointsModel) -> _StreamHead | None:
@@ -504,26 +508,28 @@ class _StreamHead:
         return np.array([[mu[ix[i]] * sx + x0, mu[ix[i + 1]] * sy + y0]
                          for i in range(0, len(ix), 2)])
 
-    def posterior(self, mu: list[float], sd: list[float], extras: dict, key: int, est):
+    def posterior(self, mu: list[float], sd: list[float], wall_s: float, n: int, est):
         """``PointsModel._params(..., lazy=True)`` of the latent ``mu``, ``sd`` (floats) after
-        the stages, for an estimator ``est`` that draws samples (``n_samples`` 0: the array
-        path answers with none)."""
-        from methods.vid2param.fast import LazyPosterior
-
+        the stages, after ``n`` frames (the samples' key), for an estimator ``est`` that draws
+        samples (``n_samples`` 0: the array path answers with none)."""
         clip = est.clip
         mean, std = [], []
-        for i, fs, lo, w in zip(self.latent, self.factors, self.lo, self.w):
+        for i, fs, lo, w in self.plan:
             m, s = mu[i], sd[i]
             for f in fs:  # StdScale.step: sd * factors
                 s = s * f
             if clip:  # np.minimum(np.maximum(m, 0), 1): NaN stays NaN (and is refused)
-                m = min(max(m, 0.0), 1.0)
+                if m < 0.0:
+                    m = 0.0
+                elif m > 1.0:
+                    m = 1.0
             mean.append(lo + w * m)
             std.append(w * s)
-        return LazyPosterior.from_floats(
-            mean, std, {"n_simulations": 0, **extras}, seed=(int(est.seed), int(key)),
-            n_samples=int(est.n_samples), bounds=self.bounds if clip else None,
-            system=self.system, mean_bounds=self.mean_bounds)
+        return self.lazy.from_floats(
+            mean, std, {"n_simulations": 0, "wall_s": wall_s, "n_frames": n},
+            seed=(int(est.seed), n), n_samples=int(est.n_samples),
+            bounds=self.bounds if clip else None, system=self.system,
+            mean_bounds=self.mean_bounds)
 
 
 class PointsStream(Stream):
@@ -582,8 +588,7 @@ class PointsStream(Stream):
             self._pts = head.points(mu)
             if self._seen is not None:
                 self._seen.append(fr.copy())
-            self._post = head.posterior(mu, sd, {"wall_s": time.perf_counter() - t0,
-                                                 "n_frames": self._n}, self._n, est._est)
+            self._post = head.posterior(mu, sd, time.perf_counter() - t0, self._n, est._est)
             return self._post
         if self._fast is not None:
             mu, sd = self._fast.step(fr)

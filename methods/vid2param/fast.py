@@ -504,7 +504,7 @@ class FrameFilter:
         # The centres are sums over thousands of pixels: float64 here, as float32 dot products
         # put ~1e-5 into the fed-back position, which the second-difference feature multiplies
         # by 400 (measured on the camera model: 5x torch's own deviation from a float64 run).
-        m0 = heat0.sum()
+        m0 = np.add.reduce(heat0)  # heat0.sum() without its Python wrappers
         kp = self.kp_view
         np.divide(heat0 @ self.grid64, np.float64(m0), out=self.kp_c0)
         kp[2 * K] = np.log(m0)
@@ -517,7 +517,7 @@ class FrameFilter:
             else:
                 np.maximum(heat, zero, out=heat)
                 heat += F(1e-6)
-            m = np.sum(heat, 1, out=self.kp_m)
+            m = np.add.reduce(heat, 1, out=self.kp_m)  # heat.sum(1)
             # these centres feed the head's MLP only (kp_pos reads channel 0): float32 will do
             heat /= self.kp_m_col
             np.matmul(heat, self.grid_pool, out=self.kp_xy)
@@ -535,7 +535,7 @@ class FrameFilter:
             heat = self.heat1
             _second_heat(full, self.grid32, self.px[0, 0], self.px[1, 0], kp[0], kp[1],
                          f32(radius * radius), f32(level), f32(1e-6), heat)
-            m1 = heat.sum()
+            m1 = np.add.reduce(heat)
             np.divide(heat, m1, out=heat)
             kp[2:4] = heat @ self.grid64
         else:
@@ -817,7 +817,7 @@ class LazyPosterior(Posterior):
                        bounds=bounds, system=system)
         post = cls.__new__(cls)
         # what the constructor leaves in __dict__ (dataclass fields, then the samples' draw)
-        post.__dict__.update(mean=m_arr, std=s_arr, _draw=(m_arr, tuple(int(v) for v in seed),
+        post.__dict__.update(mean=m_arr, std=s_arr, _draw=(m_arr, tuple(map(int, seed)),
                                                             int(n_samples), bounds),
                              _samples=None, extras=extras, check=None, system=system)
         return post
