@@ -585,7 +585,7 @@ class PointsStream(Stream):
             mu, sd = self._fast.step(fr)
             mu, sd = mu.tolist(), sd.tolist()
             self._n += 1
-            self._pts = head.points(mu)
+            self._pts, self._mu = None, (head, mu)  # points made when position() reads them
             if self._seen is not None:
                 self._seen.append(fr.copy())
             self._post = head.posterior(mu, sd, time.perf_counter() - t0, self._n, est._est)
@@ -612,6 +612,9 @@ class PointsStream(Stream):
 
     def position(self) -> np.ndarray:
         """The network's first tracked point (2,) m at the latest frame."""
+        if self._pts is None:
+            head, mu = self._mu
+            self._pts = head.points(mu)
         return self._pts[0].copy()
 
     def forecast(self, horizon: int, floor: float | None = None) -> Forecast:

@@ -49,6 +49,9 @@ __all__ = ["FrameFilter", "LazyPosterior", "Unsupported", "fast_support", "frame
 # calls (their order and implementations are numpy's and BLAS's). Why: a push is ~55 numpy
 # calls on a few thousand numbers each, and the call, not the arithmetic, is the cost.
 _njit = numba.njit(cache=True, nogil=True)
+#: Frame dtypes the fused first pass takes (native byte order); other frames (float16, a
+#: big-endian array, a list) take the numpy calls, whose casts numba does not all have.
+_FUSED_FRAME_DTYPES = frozenset(np.dtype(t) for t in (np.uint8, np.float32, np.float64))
 
 
 @_njit
@@ -477,7 +480,8 @@ class FrameFilter:
         K, t, n0 = self.K, self.c.kp_threshold, self.n_fixed
         heat0, h2 = self.heat0, self.heat0_2d
         full = self.full
-        if self.fuse_frame:  # the scaling, pooling and channel 0's heat
+        if (self.fuse_frame and type(frame) is np.ndarray
+                and frame.dtype in _FUSED_FRAME_DTYPES):  # scaling, pooling, channel 0's heat
             _frame_heat(frame, full, self.x_in, h2, self.pool, bool(t), F(t), F(1e-6),
                         F(255.0), F(4))
         else:
