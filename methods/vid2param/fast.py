@@ -57,8 +57,9 @@ _FUSED_FRAME_DTYPES = frozenset(np.dtype(t) for t in (np.uint8, np.float32, np.f
 @_njit
 def _frame_heat(frame, full, x, heat, pool, t_on, t, eps, scale, quarter):
     """``full = frame / scale``; channel 0's ``heat = max(full - t, 0) + eps`` (``full + eps``
-    without a threshold, ``t_on`` False); with ``pool`` 2 the first conv's input ``x`` = the 2x2 sums numpy adds
-    (``(f00 + f01) + (f10 + f11)``) times ``quarter`` as a division (pool 1: ``x`` is ``full``)."""
+    without a threshold, ``t_on`` False); with ``pool`` 2 the first conv's input ``x`` = the
+    2x2 sums numpy adds (``(f00 + f01) + (f10 + f11)``) divided by ``quarter`` (pool 1: ``x``
+    is ``full``, not written)."""
     H, W = frame.shape
     zero = np.float32(0.0)
     for i in range(H):
