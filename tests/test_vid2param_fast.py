@@ -208,3 +208,52 @@ def test_lazy_posterior_draws_when_read_and_is_keyed():
     np.testing.assert_allclose(lo90, np.quantile(s, 0.05, axis=0))
     a.samples = None
     assert a.samples is None
+
+
+def _fused_cases():
+    from methods.vid2param._points import SYSTEM_CHECKPOINTS
+
+    cases = [pytest.param(("ball", n), marks=needs[n]) for n in ("28x28", "camera", "changing")]
+    cases += [pytest.param((s, None), marks=pytest.mark.skipif(not p.is_file(),
+                                                              reason=f"no {s} model"))
+              for s, p in SYSTEM_CHECKPOINTS.items()]
+    return cases
+
+
+@pytest.mark.parametrize("case", _fused_cases(), ids=lambda c: c[1] or c[0])
+def test_fused_passes_are_numpys_bytes(case):
+    """The compiled elementwise passes (pooling, keypoint heats, the LSTM's gate arithmetic)
+    give the bytes of the numpy calls they replace: every output and the state, every frame
+    (uint8 frames, and float frames with fractions)."""
+    system, name = case
+    if system == "ball":
+        net = Vid2Param(checkpoint=name, device="cpu")._ensure_net()
+        frames = _video(name)[:120]
+    else:
+        from methods.vid2param.data import make_system_split
+
+        net = Vid2Param(system=system, device="cpu")._model()._net
+        frames = np.asarray(make_system_split(system, "test", 1, 11, 120,
+                                              net.config.frame_size).frames[0])
+    rng = np.random.default_rng(5)
+    frames_f = np.clip(frames + rng.uniform(-0.5, 0.5, frames.shape), 0, 255)
+    # dtypes the fused pass leaves to numpy: the same numbers either way
+    odd = [frames_f[:3].astype(">f8"), frames_f[:3].astype(np.float16), frames[:3].tolist()]
+    for video in (frames, frames_f, *odd):
+        fused, ref = FrameFilter(net), FrameFilter(net, fused=False)
+        assert fused.fused and not ref.fused
+        for f in video:
+            (m1, s1), (m2, s2) = fused.step(f), ref.step(f)
+            assert m1.tobytes() == m2.tobytes() and s1.tobytes() == s2.tobytes()
+            assert fused.enc_in.tobytes() == ref.enc_in.tobytes()
+            assert fused.lstm_in.tobytes() == ref.lstm_in.tobytes()
+
+
+@needs["28x28"]
+def test_fused_argument_is_checked():
+    net = Vid2Param(device="cpu")._ensure_net()
+    assert not FrameFilter(net, np.float64).fused  # the float64 reference: numpy calls
+    with pytest.raises(ValueError, match="fused"):
+        FrameFilter(net, np.float64, fused=True)
+    with pytest.raises(ValueError, match="fused"):
+        FrameFilter(net, fused="yes")

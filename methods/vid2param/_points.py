@@ -454,6 +454,84 @@ class PointsModel:
         return out
 
 
+class _StreamHead:
+    """What a push does after the NumPy filter, on Python floats: the network's points in
+    metres, the stages' std factors, the clip to the prior and the posterior's checks
+    (:meth:`LazyPosterior.from_floats <methods.vid2param.fast.LazyPosterior.from_floats>`).
+
+    The same IEEE double operations, one element at a time and in the same order, as
+    :meth:`PointsModel._points`, ``Pipeline.step`` and :meth:`PointsModel._params` on arrays
+    of 2K and P elements -- each of those numpy calls costs microseconds of overhead on 4
+    numbers. :meth:`of` gives None (the array path runs) for a pipeline with a stage other
+    than ``std_scale`` or a pass-through one; a system that overrides
+    ``check_posterior_mean`` has its posteriors built by the ordinary constructor. Built at
+    each :meth:`PointsStream.reset` (the stages it read then).
+    """
+
+    def __init__(self, model: PointsModel, factors: list[list[float]]):
+        from sysid_bench.core.systems import System
+
+        sys_ = model._sys
+        self.xidx = list(model._xidx)
+        # per parameter in the system's order: its index in the latent and its stage factors
+        self.latent = [model._pidx[k] for k in model._order]
+        self.factors = [[f[k] for f in factors] for k in model._order]
+        self.lo, self.w = model._lo.tolist(), model._width.tolist()
+        self.bounds = (model._lo, model._hi)  # the samples' clip, the arrays _params passes
+        self.scale, self.shift = model._ext_scale.tolist(), model._ext_shift.tolist()
+        self.system = sys_.name
+        self.mean_bounds = ([tuple(map(float, b)) for b in sys_._mean_bounds()]
+                            if type(sys_).check_posterior_mean is System.check_posterior_mean
+                            else None)
+        self.plan = list(zip(self.latent, self.factors, self.lo, self.w))
+        from methods.vid2param.fast import LazyPosterior
+
+        self.lazy = LazyPosterior
+
+    @classmethod
+    def of(cls, model: PointsModel) -> _StreamHead | None:
+        """The head of ``model``'s pipeline, or None where the array path must run."""
+        from methods.vid2param.stages import Stage, StdScale
+
+        factors = []
+        for st in model._pipeline.stages:
+            if type(st) is StdScale:
+                factors.append([float(f) for f in st.factors])  # the network's order
+            elif type(st).step is not Stage.step:  # a stage that changes the posterior
+                return None
+        return cls(model, factors)
+
+    def points(self, mu: list[float]) -> np.ndarray:
+        """The network's points (K, 2) m from the latent ``mu`` (floats): ``_points``' x0 +
+        (x1 - x0) x, y0 + (y1 - y0) y, as the float64 path computes them."""
+        (sx, sy), (x0, y0), ix = self.scale, self.shift, self.xidx
+        return np.array([[mu[ix[i]] * sx + x0, mu[ix[i + 1]] * sy + y0]
+                         for i in range(0, len(ix), 2)])
+
+    def posterior(self, mu: list[float], sd: list[float], wall_s: float, n: int, est):
+        """``PointsModel._params(..., lazy=True)`` of the latent ``mu``, ``sd`` (floats) after
+        the stages, after ``n`` frames (the samples' key), for an estimator ``est`` that draws
+        samples (``n_samples`` 0: the array path answers with none)."""
+        clip = est.clip
+        mean, std = [], []
+        for i, fs, lo, w in self.plan:
+            m, s = mu[i], sd[i]
+            for f in fs:  # StdScale.step: sd * factors
+                s = s * f
+            if clip:  # np.minimum(np.maximum(m, 0), 1): NaN stays NaN (and is refused)
+                if m < 0.0:
+                    m = 0.0
+                elif m > 1.0:
+                    m = 1.0
+            mean.append(lo + w * m)
+            std.append(w * s)
+        return self.lazy.from_floats(
+            mean, std, {"n_simulations": 0, "wall_s": wall_s, "n_frames": n},
+            seed=(int(est.seed), n), n_samples=int(est.n_samples),
+            bounds=self.bounds if clip else None, system=self.system,
+            mean_bounds=self.mean_bounds)
+
+
 class PointsStream(Stream):
     """One frame at a time through the network and the stages (constant cost per frame).
 
@@ -481,6 +559,8 @@ class PointsStream(Stream):
         self._net = net
         self._state = None if self._fast is not None else net.init_state(1, dev)
         self._carries = self._est._pipeline.start(1)
+        # after the NumPy filter, the posterior head on Python floats where it covers the stages
+        self._head = _StreamHead.of(self._est) if self._fast is not None else None
         self._n = 0
         self._pts = np.full((self._est._sys.n_points, 2), np.nan)
         # a simulator forecast reads the frames seen so far (the track it fits the state to)
@@ -499,6 +579,17 @@ class PointsStream(Stream):
                              f"{fr.shape}")
         t0 = time.perf_counter()
         net = self._net
+        head = self._head
+        if head is not None and self._fast is not None and est._est.n_samples:
+            # the NumPy filter, then the head on Python floats (the array path's numbers)
+            mu, sd = self._fast.step(fr)
+            mu, sd = mu.tolist(), sd.tolist()
+            self._n += 1
+            self._pts, self._mu = None, (head, mu)  # points made when position() reads them
+            if self._seen is not None:
+                self._seen.append(fr.copy())
+            self._post = head.posterior(mu, sd, time.perf_counter() - t0, self._n, est._est)
+            return self._post
         if self._fast is not None:
             mu, sd = self._fast.step(fr)
             mu, sd = mu[None].astype(np.float64), sd[None].astype(np.float64)
@@ -521,6 +612,9 @@ class PointsStream(Stream):
 
     def position(self) -> np.ndarray:
         """The network's first tracked point (2,) m at the latest frame."""
+        if self._pts is None:
+            head, mu = self._mu
+            self._pts = head.points(mu)
         return self._pts[0].copy()
 
     def forecast(self, horizon: int, floor: float | None = None) -> Forecast:

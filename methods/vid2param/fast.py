@@ -10,7 +10,9 @@ profiles in ``docs/vid2param-speed.md``.
     layer, strided im2col for the convolutions, one product and one ``tanh`` for the LSTM
     gates, the state kept in NumPy between frames. Why: a push through the torch modules is
     ~60 small torch calls, each a few microseconds of dispatch and allocation; the arithmetic
-    of one frame is ~0.4 M multiply-adds.
+    of one frame is ~0.4 M multiply-adds. In float32 the frame's elementwise passes (scaling,
+    pooling, the keypoint heats, the LSTM's gate arithmetic) are numba loops doing numpy's
+    operations in numpy's order (``fused``): the same bytes in fewer calls.
 
 ``encode_frames_batch``
     ``encode_frames`` over many frames in cache-sized pieces, used by
@@ -28,6 +30,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import torch
 from torch import nn
@@ -38,6 +41,88 @@ from sysid_bench.core.estimator import Posterior
 
 __all__ = ["FrameFilter", "LazyPosterior", "Unsupported", "fast_support", "frame_filter_for",
            "encode_frames_batch", "ENCODE_CHUNK"]
+
+# -- fused elementwise passes of a float32 frame (FrameFilter, fused=True) -----------------------
+# Each kernel is a few numpy calls of the same frame done in one loop: the same IEEE float32
+# operations in the same order per element (numba rounds every product and sum, no fused
+# multiply-add), so the bytes are numpy's; reductions, matrix products and tanh/log stay numpy
+# calls (their order and implementations are numpy's and BLAS's). Why: a push is ~55 numpy
+# calls on a few thousand numbers each, and the call, not the arithmetic, is the cost.
+_njit = numba.njit(cache=True, nogil=True)
+#: Frame dtypes the fused first pass takes (native byte order); other frames (float16, a
+#: big-endian array, a list) take the numpy calls, whose casts numba does not all have.
+_FUSED_FRAME_DTYPES = frozenset(np.dtype(t) for t in (np.uint8, np.float32, np.float64))
+
+
+@_njit
+def _frame_heat(frame, full, x, heat, pool, t_on, t, eps, scale, quarter):
+    """``full = frame / scale``; channel 0's ``heat = max(full - t, 0) + eps`` (``full + eps``
+    without a threshold, ``t_on`` False); with ``pool`` 2 the first conv's input ``x`` = the
+    2x2 sums numpy adds (``(f00 + f01) + (f10 + f11)``) divided by ``quarter`` (pool 1: ``x``
+    is ``full``, not written)."""
+    H, W = frame.shape
+    zero = np.float32(0.0)
+    for i in range(H):
+        for j in range(W):
+            v = np.float32(frame[i, j]) / scale
+            full[i, j] = v
+            if t_on:
+                h = v - t
+                if h < zero:  # np.maximum(h, 0) (NaN kept)
+                    h = zero
+                heat[i, j] = h + eps
+            else:
+                heat[i, j] = v + eps
+    if pool == 2:
+        for i in range(H // 2):
+            for j in range(W // 2):
+                a = full[2 * i, 2 * j] + full[2 * i, 2 * j + 1]
+                b = full[2 * i + 1, 2 * j] + full[2 * i + 1, 2 * j + 1]
+                x[i, j] = (a + b) / quarter
+
+
+@_njit
+def _second_heat(full, grid, px, py, cx, cy, r2, level, eps, out):
+    """``FrameEncoder._second_channel``'s float32 heat, into ``out`` (H W,) float64: the frame
+    above ``level`` outside the disc ``((g - c) * px)^2 + ((g - c) * py)^2 > r2`` (x term
+    first, as numpy's sum over the pair), times the disc mask as 1/0, plus ``eps``."""
+    H, W = full.shape
+    zero, one = np.float32(0.0), np.float32(1.0)
+    for i in range(H):
+        for j in range(W):
+            p = i * W + j
+            dx = (grid[0, p] - cx) * px
+            dy = (grid[1, p] - cy) * py
+            far = one if dx * dx + dy * dy > r2 else zero
+            h = full[i, j] - level
+            if h < zero:
+                h = zero
+            out[p] = np.float64(h * far + eps)
+
+
+@_njit
+def _relu_eps(a, eps):
+    """``np.maximum(a, 0, out=a); a += eps`` on a 2-D array."""
+    zero = np.float32(0.0)
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            v = a[i, j]
+            if v < zero:
+                v = zero
+            a[i, j] = v + eps
+
+
+@_njit
+def _lstm_cell(g, c, half):
+    """After ``tanh`` of the gates ``g`` (i, f, o, g rows; the sigmoid rows' inputs halved):
+    the sigmoids ``g * half + half`` (o written back into ``g``) and ``c = c * f + i * g``."""
+    n = c.shape[0]
+    for j in range(n):
+        ig = g[j] * half + half
+        fg = g[n + j] * half + half
+        g[2 * n + j] = g[2 * n + j] * half + half
+        c[j] = c[j] * fg + ig * g[3 * n + j]
+
 
 class Unsupported(ValueError):
     """The network has a part the fast path does not implement (the torch path is used)."""
@@ -83,13 +168,19 @@ class _Conv:
         self.w = np.ascontiguousarray(np.concatenate(
             [_np(conv.weight, dtype).reshape(conv.out_channels, -1),
              _np(conv.bias, dtype)[:, None]], 1))
+        self.y = np.empty((self.out_c, self.ho * self.wo), dtype)  # the product, reused
+        self.zero = dtype(0)
 
-    def __call__(self) -> np.ndarray:
-        """The convolution of what is in ``inner`` -> (out_c, ho * wo)."""
+    def __call__(self, out: np.ndarray | None = None) -> np.ndarray:
+        """The convolution of what is in ``inner`` -> (out_c, ho * wo), a buffer reused by the
+        next call; with ``out`` (a ReLU layer), the ReLU is written there instead (any shape of
+        out_c * ho * wo elements: the next layer's ``inner``) and ``out`` returned."""
         np.copyto(self.cols_view, self.patches)
-        y = self.w @ self.cols
+        y = np.matmul(self.w, self.cols, out=self.y)
         if self.relu:
-            np.maximum(y, 0, out=y)
+            if out is None:
+                return np.maximum(y, self.zero, out=y)
+            return np.maximum(y.reshape(out.shape), self.zero, out=out)
         return y
 
 
@@ -158,6 +249,10 @@ class FrameFilter:
         network's second-difference feature multiplies position rounding by 400, so two float32
         evaluations (torch's batched and single-frame ones included) drift apart by ~1e-4 over
         a video.
+    fused : bool, optional
+        Run the frame's elementwise passes (scaling, pooling, the keypoint heats, the LSTM's
+        gate arithmetic) as compiled loops: numpy's bytes in fewer calls. Default: with
+        float32. False: numpy calls only (the reference the fused path is tested against).
 
     Raises
     ------
@@ -166,10 +261,16 @@ class FrameFilter:
         built differently from what ``methods.vid2param.parts`` builds.
     """
 
-    def __init__(self, net: nn.Module, dtype=np.float32):
+    def __init__(self, net: nn.Module, dtype=np.float32, fused: bool | None = None):
         if np.dtype(dtype) not in (np.dtype(np.float32), np.dtype(np.float64)):
             raise ValueError(f"dtype: expected numpy.float32 or numpy.float64, got {dtype!r}")
+        if fused is not None and not isinstance(fused, bool):
+            raise ValueError(f"fused: expected True, False or None, got {fused!r}")
         self.F = np.dtype(dtype).type
+        if fused and self.F is not np.float32:
+            raise ValueError("fused: the fused passes are float32 only (dtype float64 given)")
+        #: the frame's elementwise passes as numba loops (float32: numpy's bytes, fewer calls)
+        self.fused = self.F is np.float32 if fused is None else fused
         self.net = net
         self.reload()
         self.reset()
@@ -197,18 +298,35 @@ class FrameFilter:
                        if enc.kp is not None else None)
             if self.kp is not None and self.kp.relu:
                 raise Unsupported("kp: expected a bare Conv2d")
+            # the frame in [0, 1] (with pool 1: the first conv's input itself) and its pooled
+            # copy, written in place: views and buffers made once
+            self.x_in = self.convs[0].inner[0]
+            self.full = self.x_in if self.pool == 1 else np.empty((H, W), F)
+            if self.pool == 2:
+                self.q = np.empty((H, W // 2), F)
+                self.full_pairs = (self.full[:, 0::2], self.full[:, 1::2])
+                self.q_pairs = (self.q[0::2], self.q[1::2])
+            # the scaling, pooling and channel 0's heat as one compiled pass (even sides only:
+            # numpy refuses the odd ones' pairs, and so the path without it)
+            self.fuse_frame = self.fused and (self.pool == 1 or (
+                self.pool == 2 and H % 2 == 0 and W % 2 == 0))
+            self.heat0 = np.empty(H * W, F)  # channel 0's heat, then its 2-D view
+            self.heat0_2d = self.heat0.reshape(H, W)
+            self.zero = F(0)
             # (H W, 2) and (Hp Wp, 2) pixel centres; channel 0's in float64 (see encode)
             self.grid64 = enc.grid.detach().cpu().double().numpy().T.copy()
             if self.second:
                 # channel 1's disc test in the network's float32 arithmetic
-                self.grid32 = enc.grid.detach().cpu().numpy().astype(np.float32)
+                self.grid32 = np.ascontiguousarray(enc.grid.detach().cpu().numpy(), np.float32)
                 self.px = np.array([[W], [H]], np.float32)
+                self.heat1 = np.empty(H * W)  # its heat, float64 (the fused path's buffer)
             self.grid_pool = _np(enc.grid_pool, F).T.copy()
             wx, bx = _mlp(enc.phi_x, ("F", "L", "R"), F)[0]
             self.phi_x = np.ascontiguousarray(np.concatenate([wx, bx[:, None]], 1))
             n_conv = wx.shape[1]
             self.conv_out = np.zeros(n_conv + 1, F)  # last conv's output, then 1
             self.conv_out[-1] = 1
+            self.conv_feat = self.conv_out[:-1]
             self.kp_pos = _linear(net.keypoints.map, F)
             self.kp_gate = float(net.keypoints.gate.item())
             # the tracked points' x, y in the latent (the keypoint map writes them; the
@@ -228,6 +346,16 @@ class FrameFilter:
             self.i_roll = n_fx + 2 * hid  # roll features at i_roll, i_roll + 1
             self.enc_in = np.zeros(n_fx + 2 * hid + (2 if self.roll else 0) + 1, F)
             self.enc_in[-1] = 1
+            self.fx_feat = self.enc_in[:feat]  # phi_x's output
+            self.kp_view = self.enc_in[self.sl_kp]
+            self.kp_c0 = self.kp_view[:2]  # channel 0's centre
+            if self.kp is not None:
+                n0 = self.n_fixed
+                self.kp_m = np.empty(K - n0, F)  # the learned channels' masses
+                self.kp_m_col = self.kp_m[:, None]
+                # their centres (K - n0, 2) and log masses, written into the head's input
+                self.kp_xy = self.kp_view[2 * n0:2 * K].reshape(K - n0, 2)
+                self.kp_logm = self.kp_view[2 * K + n0:]
             (w1, b1), (w2, b2) = _mlp(net.posterior.mlp, ("L", "R", "L"), F)
             if w1.shape[1] != self.enc_in.size - 1:
                 raise Unsupported(f"enc: expected {self.enc_in.size - 1} inputs, got {w1.shape[1]}")
@@ -235,10 +363,12 @@ class FrameFilter:
             self.enc2 = np.ascontiguousarray(np.concatenate([w2, b2[:, None]], 1))
             self.enc_hid = np.zeros(w1.shape[0] + 1, F)
             self.enc_hid[-1] = 1
+            self.enc_hid_h = self.enc_hid[:-1]
             wz, bz = _mlp(net.recurrence.phi_z, ("L", "R"), F)[0]
             self.phi_z = np.ascontiguousarray(np.concatenate([wz, bz[:, None]], 1))
             self.z_in = np.zeros(Z + 1, F)
             self.z_in[-1] = 1
+            self.z_head = self.z_in[:-1]
             cell = net.recurrence.cell
             if not isinstance(cell, nn.LSTMCell) or cell.bias is False:
                 raise Unsupported(f"cells: expected a biased nn.LSTMCell, got {cell}")
@@ -253,14 +383,26 @@ class FrameFilter:
                                   f"{wl.shape[1] - hid - 1}")
             wl[:2 * hid] *= F(0.5)
             wl[3 * hid:] *= F(0.5)
-            self.lstm = np.ascontiguousarray(wl)
+            # rows reordered (i, f, o, g) from torch's (i, f, g, o): the three sigmoid gates
+            # are one slice (each row's product is the same dot product wherever it sits)
+            self.lstm = np.ascontiguousarray(np.concatenate(
+                [wl[:2 * hid], wl[3 * hid:], wl[2 * hid:3 * hid]]))
             self.lstm_in = np.zeros(wl.shape[1], F)
             self.lstm_in[-1] = 1
             self.sl_feat = slice(0, feat)
             self.sl_lh = slice(feat + 2 * n_xy, feat + 2 * n_xy + hid)
+            self.li_feat = self.lstm_in[:feat]
+            self.li_h = self.lstm_in[self.sl_lh]
             self.gates = np.zeros(4 * hid, F)
+            g = self.gates
+            self.g_sig, self.g_i, self.g_f = g[:3 * hid], g[:hid], g[hid:2 * hid]
+            self.g_o, self.g_g = g[2 * hid:3 * hid], g[3 * hid:]
             self.tmp_h = np.zeros(hid, F)
+            self.tmp_ig = np.zeros(hid, F)
+            self.ei_h, self.ei_c = self.enc_in[self.sl_h], self.enc_in[self.sl_c]
             self.pos_idx = [int(i) for i in net.recurrence.pos_idx]
+            # the clipped velocity then acceleration of the fed-back positions
+            self.li_diff = self.lstm_in[feat:feat + 2 * len(self.pos_idx)]
             if self.roll and len(self.pos_idx) != 2:
                 raise Unsupported("roll_features: the NumPy path rolls one point only")
             self.s_vel, self.s_acc = net.recurrence.diff_scales
@@ -331,46 +473,63 @@ class FrameFilter:
     # -- the network, one frame -----------------------------------------------------------------
     def encode(self, frame: np.ndarray) -> np.ndarray:
         """``encode_frames`` of one (H, W) frame (uint8 or float in [0, 255]), written into the
-        encoder head's input; returns that slice (n_fx,) (a view: copy to keep it)."""
-        F, ei = self.F, self.enc_in
-        full = np.divide(frame, F(255.0), dtype=F)
-        x = full
-        if self.pool == 2:  # the pairs numpy's sum over axes (1, 3) adds, in its order
-            q = full[:, 0::2] + full[:, 1::2]
-            x = (q[0::2] + q[1::2]) / F(4)
-        elif self.pool > 1:
-            p = self.pool
-            x = full.reshape(self.H // p, p, self.W // p, p).sum((1, 3)) / F(p * p)
-        self.convs[0].inner[0] = x
-        for i, conv in enumerate(self.convs):
-            y = conv()  # (out_c, ho wo)
-            if i + 1 == len(self.convs):
-                self.conv_out[:-1] = y.reshape(-1)
+        encoder head's input; returns that slice (n_fx,) (a view: copy to keep it).
+
+        Every step writes into a buffer made at :meth:`reload` (``out=``): a numpy call on
+        these few thousand numbers costs more in overhead than in arithmetic."""
+        F, zero = self.F, self.zero
+        K, t, n0 = self.K, self.c.kp_threshold, self.n_fixed
+        heat0, h2 = self.heat0, self.heat0_2d
+        full = self.full
+        if (self.fuse_frame and type(frame) is np.ndarray
+                and frame.dtype in _FUSED_FRAME_DTYPES):  # scaling, pooling, channel 0's heat
+            _frame_heat(frame, full, self.x_in, h2, self.pool, bool(t), F(t), F(1e-6),
+                        F(255.0), F(4))
+        else:
+            np.divide(frame, F(255.0), dtype=F, out=full)
+            if self.pool == 2:  # the pairs numpy's sum over axes (1, 3) adds, in its order
+                (a, b), (qa, qb), x = self.full_pairs, self.q_pairs, self.x_in
+                np.add(a, b, out=self.q)
+                np.add(qa, qb, out=x)
+                np.divide(x, F(4), out=x)
+            elif self.pool > 1:
+                p = self.pool
+                self.x_in[...] = (full.reshape(self.H // p, p, self.W // p, p).sum((1, 3))
+                                  / F(p * p))
+            if t:
+                np.subtract(full, F(t), out=h2)
+                np.maximum(heat0, zero, out=heat0)
+                heat0 += F(1e-6)
             else:
-                self.convs[i + 1].inner[...] = y.reshape(conv.out_c, conv.ho, conv.wo)
-        np.matmul(self.phi_x, self.conv_out, out=ei[self.sl_feat])
-        np.maximum(ei[self.sl_feat], 0, out=ei[self.sl_feat])
+                np.add(full, F(1e-6), out=h2)
+        convs = self.convs
+        for i in range(len(convs) - 1):  # each ReLU written into the next layer's input
+            convs[i](out=convs[i + 1].inner)
+        convs[-1](out=self.conv_feat)
+        np.matmul(self.phi_x, self.conv_out, out=self.fx_feat)
+        np.maximum(self.fx_feat, zero, out=self.fx_feat)
         # The centres are sums over thousands of pixels: float64 here, as float32 dot products
         # put ~1e-5 into the fed-back position, which the second-difference feature multiplies
         # by 400 (measured on the camera model: 5x torch's own deviation from a float64 run).
-        K, t, n0 = self.K, self.c.kp_threshold, self.n_fixed
-        heat0 = (np.maximum(full - F(t), 0) if t else full).reshape(-1) + F(1e-6)
-        m0 = heat0.sum()
-        kp = ei[self.sl_kp]
-        kp[:2] = heat0 @ self.grid64 / np.float64(m0)
+        m0 = np.add.reduce(heat0)  # heat0.sum() without its Python wrappers
+        kp = self.kp_view
+        np.divide(heat0 @ self.grid64, np.float64(m0), out=self.kp_c0)
         kp[2 * K] = np.log(m0)
         if self.second:
             self._second_channel(full, kp)
         if self.kp is not None:
             heat = self.kp()  # (K - n0, Hp Wp); the frame is already in the first conv's buffer
-            np.maximum(heat, 0, out=heat)
-            heat += F(1e-6)
-            m = heat.sum(1)
+            if self.fused:
+                _relu_eps(heat, F(1e-6))
+            else:
+                np.maximum(heat, zero, out=heat)
+                heat += F(1e-6)
+            m = np.add.reduce(heat, 1, out=self.kp_m)  # heat.sum(1)
             # these centres feed the head's MLP only (kp_pos reads channel 0): float32 will do
-            heat /= m[:, None]
-            kp[2 * n0:2 * K] = (heat @ self.grid_pool).reshape(-1)
-            kp[2 * K + n0:] = np.log(m)
-        return ei[self.sl_fx]
+            heat /= self.kp_m_col
+            np.matmul(heat, self.grid_pool, out=self.kp_xy)
+            np.log(m, out=self.kp_logm)
+        return self.enc_in[self.sl_fx]
 
     def _second_channel(self, full: np.ndarray, kp: np.ndarray) -> None:
         """``FrameEncoder._second_channel`` for one frame: channel 1's centre into ``kp[2:4]``
@@ -379,31 +538,39 @@ class FrameFilter:
         the centroid in float64)."""
         level, radius = self.second
         f32 = np.float32
-        d = (self.grid32 - kp[:2].astype(f32)[:, None]) * self.px
-        far = (d * d).sum(0) > f32(radius * radius)
-        heat = np.maximum(full.reshape(-1).astype(f32) - f32(level), f32(0))
-        heat = (heat * far + f32(1e-6)).astype(np.float64)
-        m1 = heat.sum()
-        kp[2:4] = (heat / m1) @ self.grid64
+        if self.fused:  # full and kp are float32
+            heat = self.heat1
+            _second_heat(full, self.grid32, self.px[0, 0], self.px[1, 0], kp[0], kp[1],
+                         f32(radius * radius), f32(level), f32(1e-6), heat)
+            m1 = np.add.reduce(heat)
+            np.divide(heat, m1, out=heat)
+            kp[2:4] = heat @ self.grid64
+        else:
+            d = (self.grid32 - kp[:2].astype(f32)[:, None]) * self.px
+            far = (d * d).sum(0) > f32(radius * radius)
+            heat = np.maximum(full.reshape(-1).astype(f32) - f32(level), f32(0))
+            heat = (heat * far + f32(1e-6)).astype(np.float64)
+            m1 = heat.sum()
+            kp[2:4] = (heat / m1) @ self.grid64
         kp[2 * self.K + 1] = np.log(f32(m1))
 
     def enc_step(self) -> tuple[np.ndarray, np.ndarray]:
         """Encoder head on the buffer (frame features and state) -> mu, std, each (Z,)."""
         F, Z, ei = self.F, self.Z, self.enc_in
-        hb = self.enc_hid
-        np.matmul(self.enc1, ei, out=hb[:-1])
-        np.maximum(hb[:-1], 0, out=hb[:-1])
+        hb, h = self.enc_hid, self.enc_hid_h
+        np.matmul(self.enc1, ei, out=h)
+        np.maximum(h, self.zero, out=h)
         raw = self.enc2 @ hb
         mu = raw[:Z]
         # torch's softplus (threshold 20) to within an ulp
         std = np.logaddexp(F(0), raw[Z:])
         std += F(_parts._MIN_STD)
         # the scalar blends in Python floats (see reset)
-        K = self.K
-        kxy = (self.kp_pos[0] @ ei[self.sl_kp] + self.kp_pos[1]).tolist()
+        K, kp = self.K, self.kp_view
+        kxy = (self.kp_pos[0] @ kp + self.kp_pos[1]).tolist()
         g = self.kp_gate
         if self.vis:
-            v = 1.0 / (1.0 + math.exp(-4.0 * (float(ei[self.sl_kp][2 * K]) - self.log_mref)))
+            v = 1.0 / (1.0 + math.exp(-4.0 * (float(kp[2 * K]) - self.log_mref)))
             for i, k in zip(self.xy_idx, kxy):
                 m = float(mu[i])
                 mu[i] = v * (k + g * m) + (1.0 - v) * m
@@ -420,33 +587,32 @@ class FrameFilter:
 
     def step_rnn(self, z: np.ndarray) -> None:
         """Advance the state with the fed-back z (Z,)."""
-        F, li, hid, ei = self.F, self.lstm_in, self.hidden, self.enc_in
-        self.z_in[:-1] = z
-        np.matmul(self.phi_z, self.z_in, out=li[self.sl_feat])
-        np.maximum(li[self.sl_feat], 0, out=li[self.sl_feat])
+        F, li = self.F, self.lstm_in
+        self.z_head[...] = z
+        np.matmul(self.phi_z, self.z_in, out=self.li_feat)
+        np.maximum(self.li_feat, self.zero, out=self.li_feat)
         n = self.n
         pos = tuple(float(z[i]) for i in self.pos_idx)
         sv, sa = self.s_vel, self.s_acc
         vel = tuple((p - q) * sv for p, q in zip(pos, self.pos)) if n >= 1 else (0.0,) * len(pos)
         acc = tuple((p - q) * sa for p, q in zip(vel, self.vel)) if n >= 2 else (0.0,) * len(pos)
-        f, m = self.sl_feat.stop, len(pos)
-        li[f:f + m] = [min(max(v, -5.0), 5.0) for v in vel]
-        li[f + m:f + 2 * m] = [min(max(a, -10.0), 10.0) for a in acc]
-        li[self.sl_lh] = ei[self.sl_h]
-        g = self.gates
+        self.li_diff[...] = ([min(max(v, -5.0), 5.0) for v in vel]
+                             + [min(max(a, -10.0), 10.0) for a in acc])
+        self.li_h[...] = self.ei_h
+        g, c = self.gates, self.ei_c
         np.matmul(self.lstm, li, out=g)
         np.tanh(g, out=g)
-        sg = g[:2 * hid]  # tanh(x/2) of the input and forget gates -> sigmoid(x)
-        sg *= F(0.5)
-        sg += F(0.5)
-        so = g[3 * hid:]
-        so *= F(0.5)
-        so += F(0.5)
-        c = ei[self.sl_c]
-        c *= g[hid:2 * hid]
-        c += g[:hid] * g[2 * hid:3 * hid]
+        # tanh(x/2) of the input, forget and output gates -> sigmoid(x); c = f c + i g
+        if self.fused:
+            _lstm_cell(g, c, F(0.5))
+        else:
+            sg = self.g_sig
+            sg *= F(0.5)
+            sg += F(0.5)
+            c *= self.g_f
+            c += np.multiply(self.g_i, self.g_g, out=self.tmp_ig)
         np.tanh(c, out=self.tmp_h)
-        np.multiply(so, self.tmp_h, out=ei[self.sl_h])
+        np.multiply(self.g_o, self.tmp_h, out=self.ei_h)
         if self.roll:
             self.stats = self._roll_update(pos, vel, self.vel, n, self.stats)
             self._set_roll_features()
@@ -619,6 +785,49 @@ class LazyPosterior(Posterior):
         super().__init__(mean=mean, std=std, samples=None, extras=extras, system=system)
         self._draw = (np.asarray(loc, np.float64), tuple(int(s) for s in seed), int(n_samples),
                       bounds)
+
+    @classmethod
+    def from_floats(cls, mean: list, std: list, extras: dict, *, seed, n_samples: int,
+                    bounds=None, system: str, mean_bounds=None) -> LazyPosterior:
+        """``cls(np.array(mean), np.array(std), extras, loc=<the mean array>, ...)``, the same
+        object, from Python floats, with :class:`Posterior`'s checks made on the floats.
+
+        Why: a stream builds one posterior a frame, and ``Posterior.__post_init__`` (a system
+        look-up, the envelope's bounds computed again, array checks) cost about as much as the
+        arithmetic of the posterior head. Where every check passes on the floats the object is
+        assembled without running them again; where one fails (or ``mean_bounds`` is None) the
+        ordinary constructor runs and raises its own error.
+
+        Parameters
+        ----------
+        mean, std : list of float, length P
+            Physical units, the system's order.
+        extras : dict
+        seed, n_samples, bounds, system
+            As the constructor's (``loc`` is the mean).
+        mean_bounds : list of (float, float), optional
+            Per parameter, the range ``system``'s ``check_posterior_mean`` accepts
+            (``System._mean_bounds()``); the caller's promise that the system checks nothing
+            else. None: always the ordinary constructor.
+        """
+        ok = (mean_bounds is not None and len(mean) == len(std) == len(mean_bounds)
+              and type(system) is str and type(extras) is dict)
+        if ok:
+            for m, s, (a, b) in zip(mean, std, mean_bounds):
+                # finite, inside the envelope's margin; std >= 0 (NaN fails both)
+                if not (a <= m <= b and math.isfinite(m) and s >= 0):
+                    ok = False
+                    break
+        m_arr, s_arr = np.array(mean, np.float64), np.array(std, np.float64)
+        if not ok:
+            return cls(m_arr, s_arr, extras, loc=m_arr, seed=seed, n_samples=n_samples,
+                       bounds=bounds, system=system)
+        post = cls.__new__(cls)
+        # what the constructor leaves in __dict__ (dataclass fields, then the samples' draw)
+        post.__dict__.update(mean=m_arr, std=s_arr, _draw=(m_arr, tuple(map(int, seed)),
+                                                            int(n_samples), bounds),
+                             _samples=None, extras=extras, check=None, system=system)
+        return post
 
     @property
     def samples(self):
