@@ -90,14 +90,6 @@ FORECASTS = {
     "physics": "simulate posterior samples of state and parameters with sysid_bench.core.physics",
 }
 
-#: Videos per chunk of ``identify_batch``'s pipeline (the network on one chunk while the
-#: previous chunk's checks run on a second thread); a batch of at most this many (or ``batch``)
-#: videos runs the network, then the checks. Small enough that the last chunk's checks, which
-#: nothing overlaps, are a small part of a batch of hundreds; large enough that the network's
-#: per-frame products and the checks' batched fits amortise their calls (docs/vid2param-speed.md).
-PIPELINE_CHUNK = 50
-
-
 def _check_lengths(lengths, T: int) -> list[int]:
     """Prefix lengths as positive ints, each at most the video's ``T`` frames."""
     lengths = [check_positive_int(int(n), "lengths") for n in np.atleast_1d(lengths)]
@@ -704,53 +696,19 @@ class Vid2Param(Estimator):
             return self._model().identify_batch(frames)
         t0 = time.perf_counter()
         fr = np.asarray(frames)
-        n, T = _check_frames_array(fr, self.frame_size, "frames", 4).shape[:2]
+        T = fr.shape[1] if fr.ndim == 4 else 1
+        mu, sd = self.normalised_prefixes(fr, [T])
+        n = mu.shape[0]
         rng = self._rng()
-        if not check or n <= min(check_positive_int(self.batch, "batch"), PIPELINE_CHUNK):
-            mu, sd = self.normalised_prefixes(fr, [T])
-            posts = [self._posterior(mu[i, 0], sd[i, 0], {"n_frames": T}, rng) for i in range(n)]
-            if check:
-                # the whole batch's checks together (one simulator call per fitting step for all
-                # videos): ~4x fewer simulations and no per-video optimiser (issue 39)
-                posts = check_batch(posts, fr, DEFAULT_SIGMA, self.check_window)
-        else:
-            posts = self._pipelined_batch(fr, rng)
+        posts = [self._posterior(mu[i, 0], sd[i, 0], {"n_frames": T}, rng) for i in range(n)]
+        if check:
+            # the whole batch's checks together (one simulator call per fitting step for all
+            # videos): ~4x fewer simulations and no per-video optimiser (issue 39)
+            posts = check_batch(posts, fr, DEFAULT_SIGMA, self.check_window)
         wall = time.perf_counter() - t0
         for p in posts:
             p.extras["wall_s"] = wall / n
         return posts
-
-    def _pipelined_batch(self, fr: np.ndarray, rng: np.random.Generator) -> list[Posterior]:
-        """``identify_batch``'s checked posteriors of ``fr`` (N, T, H, W), the network and the
-        checks overlapped: the videos in equal chunks of at most ``PIPELINE_CHUNK`` (and
-        ``batch``), the checks of one chunk running on a second thread while the network reads
-        the next.
-
-        The numbers of one network pass and one ``check_batch`` of the whole batch: a video's
-        check does not depend on the other videos checked with it, the posteriors draw their
-        samples from ``rng`` in video order on this thread, and the network's answer for a video
-        depends on the rows beside it only through the float order of its matrix products
-        (bitwise the same for the 200 test videos in chunks of 7 to 100 on an AVX2 machine;
-        ``tests/test_vid2param_batch_pipeline.py``). Both halves spend most
-        of their time outside the GIL (torch's kernels; NumPy's large passes and the simulator's
-        ``nogil`` kernel), so on two free cores the batch costs about its larger half.
-        """
-        from concurrent.futures import ThreadPoolExecutor
-
-        n, T = fr.shape[:2]
-        # chunks of equal size (no small last chunk: the network's products for a handful of
-        # rows take another BLAS path, whose float order differs in the last bits)
-        k = -(-n // min(check_positive_int(self.batch, "batch"), PIPELINE_CHUNK))
-        edges = [n * j // k for j in range(k + 1)]
-        done: list = []
-        with ThreadPoolExecutor(1, thread_name_prefix="v2p-checks") as pool:
-            for lo, hi in zip(edges[:-1], edges[1:]):
-                mu, sd = self.normalised_prefixes(fr[lo:hi], [T])
-                posts = [self._posterior(mu[i, 0], sd[i, 0], {"n_frames": T}, rng)
-                         for i in range(hi - lo)]
-                done.append(pool.submit(check_batch, posts, fr[lo:hi], DEFAULT_SIGMA,
-                                        self.check_window))
-            return [p for f in done for p in f.result()]
 
     def forecast(self, obs: Observation, horizon: int) -> Forecast:
         """Positions of the ``horizon`` frames after ``obs`` (metres), as ``forecast`` says.
