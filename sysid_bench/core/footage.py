@@ -3140,7 +3140,7 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
     known = parse_known(sys_, opts.get("known", ()))
     prior = parse_prior(sys_, opts.get("prior", ()), known)
     if sys_.name in TRACK_OBJECTS:
-        return _observe_track_clip(path, sys_, opts, known, prior, progress)
+        return _observe_track_clip(path, sys_, opts, known, prior, progress, fps, max_frames)
     if "track" in opts:
         raise ValueError(f"--track: means nothing for the {sys_.name} system (collision only)")
     clip = read_video(path, fps, progress=progress, start=opts.get("start"), end=opts.get("end"),
@@ -3168,11 +3168,13 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
 
 
 def _observe_track_clip(path, sys_, opts: dict, known: dict, prior: dict,
-                        progress) -> CameraClip:
+                        progress, fps: float | None = None,
+                        max_frames: int | None = None) -> CameraClip:
     """:func:`observe_clip` for objects on a track told apart by colour (the collision): the
-    clip decoded in colour, the objects followed (:func:`~sysid_bench.core.tracking.
-    track_colours`), the camera and the scene (the track's ends, each object's half-length)
-    from :func:`camera_for_track`."""
+    clip decoded in colour (at the capture's own ``dt``, or resampled to ``fps``; thinned to
+    ``max_frames``, as :func:`observe_clip` reads the others), the objects followed
+    (:func:`~sysid_bench.core.tracking.track_colours`), the camera and the scene (the track's
+    ends, each object's half-length) from :func:`camera_for_track`."""
     from sysid_bench.core.estimator import Observation
     from sysid_bench.core.tracking import track_colours
 
@@ -3181,8 +3183,9 @@ def _observe_track_clip(path, sys_, opts: dict, known: dict, prior: dict,
         if opt in opts:
             raise ValueError(f"--{opt.replace('_', '-')}: means nothing for the {sys_.name} "
                              "system (give --track C1 C2)")
-    clip = read_video(path, progress=progress, start=opts.get("start"), end=opts.get("end"),
+    clip = read_video(path, fps, progress=progress, start=opts.get("start"), end=opts.get("end"),
                       capture_fps=opts.get("capture_fps"), rgb=True)
+    clip = thin_clip(clip, max_frames)
     rotate = int(opts.get("rotate", 0))
     frames = rotate_frames(clip.frames, rotate)
     try:
