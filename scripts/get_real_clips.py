@@ -12,8 +12,9 @@ the window of the clip that matters. None of the clips is in this repository (se
 
 A downloaded file must have the size and git blob hash the JSON records (the bytes at that
 commit), else it is discarded and the script exits 1. ``--trim`` also writes
-``<name>_trim.mp4``: the JSON's ``window_s`` re-encoded as H.264 at the file's frame rate (the
-suite has no ``--start``/``--end`` yet). Files are written atomically. Clips whose licence does
+``<name>_trim.mp4``: the JSON's ``window_s`` re-encoded as H.264 at the file's frame rate (a
+small file of the part that matters; ``sysid-bench identify --start S --end E`` reads the same
+window from the whole file). Files are written atomically. Clips whose licence does
 not allow redistribution (``licence.redistributable`` false) are for your own use: do not commit
 them anywhere.
 """
