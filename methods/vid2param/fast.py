@@ -478,7 +478,7 @@ class FrameFilter:
         Every step writes into a buffer made at :meth:`reload` (``out=``): a numpy call on
         these few thousand numbers costs more in overhead than in arithmetic."""
         F, zero = self.F, self.zero
-        K, t, n0 = self.K, self.c.kp_threshold, self.n_fixed
+        K, t = self.K, self.c.kp_threshold
         heat0, h2 = self.heat0, self.heat0_2d
         full = self.full
         if (self.fuse_frame and type(frame) is np.ndarray
