@@ -32,8 +32,10 @@ On any other registered system (``system=``; the generic points likelihood of
 :mod:`methods._points`): the cross-entropy search (``n_samples`` simulations over
 ``search_rounds`` rounds), then ``least_squares`` from its ``n_starts`` best distinct points
 (``max_opt_evals`` each); mean the optimum, spread its Laplace approximation (widened by the
-residual RMS when that exceeds ``sigma``), samples drawn from it inside the box; a failed model
-check widens the intervals to the prior. (Best-of-a-batch alone cannot resolve periods over 200
+residual RMS when that exceeds ``sigma``), samples drawn from it inside the box; a parameter
+the track does not inform (its Laplace variance at the uniform prior's) answers the prior's
+centre and spread (``extras["uninformed"]``); a failed model check widens the intervals to the
+prior. (Best-of-a-batch alone cannot resolve periods over 200
 frames of an oscillator.)
 """
 
@@ -226,6 +228,12 @@ class LSQ(SimulationOnSystems):
         starts, info = search(prob, rng, int(self.n_samples), int(self.search_rounds),
                               int(self.n_starts))
         u, cov, opt = refine(prob, starts, int(self.max_opt_evals))
+        # a parameter the track does not inform (its Laplace variance, before any widening, at
+        # the uniform prior's cap: the collision's restitutions before the carts meet) sits
+        # wherever the optimiser left it, an end of its range as often as not, and moves with
+        # the frame rate or the start: its answer is the prior's, centre and spread, and its
+        # draws the prior's (the check stays at the fit, which explains the track)
+        flat = (np.diag(cov)[: prob.P] >= (1.0 / 12.0) * (1.0 - 1e-9)) & (prob.pspan > 0)
         rms = prob.rms(u)
         # a fit worse than the noise: the spread grows with it (the model explains less)
         inflate = max(1.0, rms / prob.sigma) ** 2
@@ -234,11 +242,18 @@ class LSQ(SimulationOnSystems):
         draws = draw_inside(u, cov, max(int(self.n_samples) // 4, 50), rng)
         th_d, s0_d = prob.split(draws)
         std = np.minimum(np.sqrt(np.diag(cov)[: prob.P]), np.sqrt(1.0 / 12.0)) * prob.pspan
+        mean = theta.copy()
+        if flat.any():
+            mean[flat] = prob.plo[flat] + 0.5 * prob.pspan[flat]
+            th_d[:, flat] = prob.plo[flat] + prob.pspan[flat] * rng.random(
+                (len(th_d), int(flat.sum())))
+            std[flat] = prob.pspan[flat] / np.sqrt(12.0)
         check = prob.check(theta, s0)
         extras = {
             "n_simulations": prob.sim.n_simulations, "wall_s": clock(), "best_rmse": rms,
             "sigma": prob.sigma, "cov_inflation": inflate, "state0": s0.tolist(),
+            "uninformed": [p for p, f in zip(prob.system.params, flat) if f],
             **info, **opt, **prob.track.describe(),
         }
-        post = part.posterior(prob, theta, std, th_d, extras, check)
+        post = part.posterior(prob, mean, std, th_d, extras, check)
         return PointsFit(post, th_d, np.asarray(s0_d), None, prob, clock)
