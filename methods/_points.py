@@ -49,7 +49,7 @@ from sysid_bench.core.simulator import DEFAULT_SIGMA, SimulationBudgetExceeded, 
 __all__ = [
     "PointsTrack", "PointsSimulator", "Problem", "PointsFit", "Points",
     "SimulationOnSystems", "default_sigma", "prepare_points", "search", "refine", "draw_inside",
-    "forecast_points", "system_of", "check_system_param",
+    "uninformed_params", "answer_prior", "forecast_points", "system_of", "check_system_param",
 ]
 
 #: ``sigma`` default: the system's ``noise_m`` times this (tracking error on top of the noise).
@@ -522,6 +522,26 @@ def inflate(prob: Problem, samples: np.ndarray, std: np.ndarray, k: float):
     mean = samples.mean(axis=0)
     out = np.clip(mean + k * (samples - mean), prob.plo, prob.plo + prob.pspan)
     return out, np.minimum(k * np.asarray(std, dtype=np.float64), prob.pspan / np.sqrt(12.0))
+
+
+def uninformed_params(prob: Problem, cov: np.ndarray) -> np.ndarray:
+    """Which of the problem's P parameters (P,) bool the track does not inform: their Laplace
+    variance ``cov`` (unit coordinates, from :func:`refine`, before any widening) at the
+    uniform prior's, 1/12 (a held parameter, span 0, is the user's value, not uninformed)."""
+    return (np.diag(cov)[:prob.P] >= (1.0 / 12.0) * (1.0 - 1e-9)) & (prob.pspan > 0)
+
+
+def answer_prior(prob: Problem, flat: np.ndarray, mean: np.ndarray, std: np.ndarray,
+                 draws: np.ndarray, rng: np.random.Generator) -> None:
+    """The prior's answer, in place, for the parameters ``flat`` (P,) bool: mean the range's
+    centre, std its uniform spread, the draws (n, P) uniform over it (``rng``). Where the track
+    does not inform a parameter the optimiser leaves it anywhere, an end of its range as often
+    as not, and that point moves with the frame rate or the start."""
+    if flat.any():
+        mean[flat] = prob.plo[flat] + 0.5 * prob.pspan[flat]
+        draws[:, flat] = prob.plo[flat] + prob.pspan[flat] * rng.random(
+            (len(draws), int(flat.sum())))
+        std[flat] = prob.pspan[flat] / np.sqrt(12.0)
 
 
 def draw_inside(mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

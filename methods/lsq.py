@@ -43,7 +43,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from methods._points import Points, PointsFit, SimulationOnSystems, draw_inside, refine, search
+from methods._points import (
+    Points,
+    PointsFit,
+    SimulationOnSystems,
+    answer_prior,
+    draw_inside,
+    refine,
+    search,
+    uninformed_params,
+)
 from methods._simulation import (
     Fit,
     Stopwatch,
@@ -228,12 +237,9 @@ class LSQ(SimulationOnSystems):
         starts, info = search(prob, rng, int(self.n_samples), int(self.search_rounds),
                               int(self.n_starts))
         u, cov, opt = refine(prob, starts, int(self.max_opt_evals))
-        # a parameter the track does not inform (its Laplace variance, before any widening, at
-        # the uniform prior's cap: the collision's restitutions before the carts meet) sits
-        # wherever the optimiser left it, an end of its range as often as not, and moves with
-        # the frame rate or the start: its answer is the prior's, centre and spread, and its
-        # draws the prior's (the check stays at the fit, which explains the track)
-        flat = (np.diag(cov)[: prob.P] >= (1.0 / 12.0) * (1.0 - 1e-9)) & (prob.pspan > 0)
+        # a parameter the track does not inform (the collision's restitutions before the carts
+        # meet) answers the prior (the check stays at the fit, which explains the track)
+        flat = uninformed_params(prob, cov)
         rms = prob.rms(u)
         # a fit worse than the noise: the spread grows with it (the model explains less)
         inflate = max(1.0, rms / prob.sigma) ** 2
@@ -243,11 +249,7 @@ class LSQ(SimulationOnSystems):
         th_d, s0_d = prob.split(draws)
         std = np.minimum(np.sqrt(np.diag(cov)[: prob.P]), np.sqrt(1.0 / 12.0)) * prob.pspan
         mean = theta.copy()
-        if flat.any():
-            mean[flat] = prob.plo[flat] + 0.5 * prob.pspan[flat]
-            th_d[:, flat] = prob.plo[flat] + prob.pspan[flat] * rng.random(
-                (len(th_d), int(flat.sum())))
-            std[flat] = prob.pspan[flat] / np.sqrt(12.0)
+        answer_prior(prob, flat, mean, std, th_d, rng)
         check = prob.check(theta, s0)
         extras = {
             "n_simulations": prob.sim.n_simulations, "wall_s": clock(), "best_rmse": rms,

@@ -370,12 +370,14 @@ class PointsModel:
             Points,
             PointsSimulator,
             Problem,
+            answer_prior,
             default_sigma,
             draw_inside,
             noise_inflation,
             prepare_points,
             refine,
             search,
+            uninformed_params,
         )
 
         est, sys_ = self._est, self._sys
@@ -403,11 +405,9 @@ class PointsModel:
                 u_net = np.r_[u_net, prob.u_state0]
             u, cov, opt = refine(prob, [u_net, *starts], max_evals)
             theta, s0 = prob.split(u)
-            # a parameter the track does not inform (its Laplace variance at the uniform
-            # prior's cap: at 50 frames the collision's carts may not have met a wall yet) is
-            # wherever the optimiser left it, an end of the range as often as not: its answer
-            # is the prior's, centre and spread, not that point
-            flat = np.diag(cov)[:prob.P] >= (1.0 / 12.0) * (1.0 - 1e-9)
+            # a parameter the track does not inform (at 50 frames the collision's carts may not
+            # have met a wall yet) answers the prior's centre and spread, not the optimiser's point
+            flat = uninformed_params(prob, cov)
             res = prob.point_residuals(theta, s0)
             k, spread = noise_inflation(prob, res=res)
             cov = cov * k**2
@@ -423,11 +423,7 @@ class PointsModel:
             std = np.minimum(std * fac, prob.pspan / np.sqrt(12.0))
             th_d = np.clip(theta + fac * (th_d - theta), prob.plo, prob.plo + prob.pspan)
             mean = theta.copy()
-            if flat.any():
-                mean[flat] = prob.plo[flat] + 0.5 * prob.pspan[flat]
-                th_d[:, flat] = prob.plo[flat] + prob.pspan[flat] * rng.random(
-                    (len(th_d), int(flat.sum())))
-                std[flat] = prob.pspan[flat] / np.sqrt(12.0)
+            answer_prior(prob, flat, mean, std, th_d, rng)
             sims = prob.sim.n_simulations
             ok = seen is not None and int(seen.mask[:n].any(axis=1).sum()) >= 3
             if ok:
