@@ -1960,6 +1960,9 @@ FALL_SCALED = ("ball",)
 #: Systems whose object swings about a pivot, so that a known length (the arc's radius) or a
 #: known g (the swing's period, :func:`swing_frequency`) gives the scale.
 PERIOD_SCALED = ("pendulum",)
+#: Systems whose object bounces on a floor seen behind it, so that its size is read clear of
+#: the floor (:data:`FLOOR_CLEAR_DIAMETERS`; a pendulum's bob or a cart has no floor behind it).
+FLOOR_SIZED = ("ball",)
 
 
 def scale_from_fall(pix, g: float, dt: float, radius_px: float) -> tuple[float, float]:
@@ -2087,9 +2090,9 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
     elif object_size_m is not None:
         d = float(object_size_m)
         _check_size(d, "object_size_m", "as given")
-        # a ball's size read clear of the floor it bounces on (a pendulum's bob has none)
+        # an object's size read clear of the floor it bounces on (FLOOR_SIZED)
         per_frame, s, rel = _scale_from_size(track, d,
-                                             centre_row=h / 2 if system == "ball" else None)
+                                             centre_row=h / 2 if system in FLOOR_SIZED else None)
         src = (f"object_size_m={d:g}: the object's median {2 * r_px:.3g} px across, frame by "
                f"frame (its inverse a line in time: a steady drift in depth)")
     elif system in PERIOD_SCALED and ("L" in known or "g" in known):
