@@ -470,16 +470,15 @@ class _StreamHead:
         sys_ = model._sys
         self.xidx = list(model._xidx)
         # per parameter in the system's order: its index in the latent and its stage factors
-        self.latent = [model._pidx[k] for k in model._order]
+        latent = [model._pidx[k] for k in model._order]
         self.factors = [[f[k] for f in factors] for k in model._order]
-        self.lo, self.w = model._lo.tolist(), model._width.tolist()
         self.bounds = (model._lo, model._hi)  # the samples' clip, the arrays _params passes
         self.scale, self.shift = model._ext_scale.tolist(), model._ext_shift.tolist()
         self.system = sys_.name
         self.mean_bounds = ([tuple(map(float, b)) for b in sys_._mean_bounds()]
                             if type(sys_).check_posterior_mean is System.check_posterior_mean
                             else None)
-        self.plan = list(zip(self.latent, self.factors, self.lo, self.w))
+        self.plan = list(zip(latent, self.factors, model._lo.tolist(), model._width.tolist()))
         from methods.vid2param.fast import LazyPosterior
 
         self.lazy = LazyPosterior
