@@ -31,6 +31,7 @@ from sysid_bench.core._io import atomic_write
 __all__ = ["FORMAT", "FORMAT_VERSION", "RENAMED", "save_atomic", "load_checkpoint", "build_net",
            "upgrade_state_dict", "upgrade_optimizer_state", "git_info", "SHIPPED_CHECKPOINTS",
            "SHIPPED_CHECKPOINT", "SENSITIVITY_CONDITIONS", "CONDITION_CHECKPOINTS",
+           "NOISE_LEVELS", "system_conditions",
            "checkpoint_path", "condition_checkpoint", "record_name"]
 
 FORMAT = "vid2param-checkpoint"
@@ -46,23 +47,48 @@ SHIPPED_CHECKPOINTS = {
     # the 28x28 model fine-tuned on videos whose parameters change every 50 frames
     "changing": _CKPT_DIR / "v2p_28x28_changing.pt",
 }
-#: The sensitivity experiment's conditions at the benchmark's default scale
+#: The sensitivity experiment's conditions of the ball at the benchmark's default scale
 #: (``sysid_bench.bench.cases``; a test checks the two agree), one model each, one recipe and
 #: budget for all (``methods/vid2param/README.md``): ``checkpoint="sensitivity/<condition>"``
-#: with ``:`` written ``_``.
+#: with ``:`` written ``_``. Another system's are :func:`system_conditions`.
 SENSITIVITY_CONDITIONS = ("extrapolation:e", "extrapolation:g", "extrapolation:d",
                           "extrapolation:r", "noise:0", "noise:0.1", "noise:0.25", "noise:0.5",
                           "simplified")
+#: The label-noise levels of every system's conditions (the ball's).
+NOISE_LEVELS = ("0", "0.1", "0.25", "0.5")
 
 
-def condition_checkpoint(condition: str) -> str:
-    """Checkpoint name of a sensitivity condition's model, e.g. ``"sensitivity/noise_0.1"``."""
-    return "sensitivity/" + condition.replace(":", "_")
+def system_conditions(system: str) -> tuple[str, ...]:
+    """The sensitivity conditions of ``system`` at the default scale: extrapolation in each of
+    its parameters, the label-noise levels, and ``simplified`` where the system declares
+    ``simplified_params`` (the ball's: :data:`SENSITIVITY_CONDITIONS`)."""
+    from sysid_bench.core import systems
+
+    s = systems.get(system)
+    return (tuple(f"extrapolation:{p}" for p in s.params)
+            + tuple(f"noise:{x}" for x in NOISE_LEVELS)
+            + (("simplified",) if s.simplified_params else ()))
 
 
-#: Where each condition model lives (whether or not this checkout has it).
-CONDITION_CHECKPOINTS = {condition_checkpoint(c): _CKPT_DIR / f"{condition_checkpoint(c)}.pt"
-                         for c in SENSITIVITY_CONDITIONS}
+def condition_checkpoint(condition: str, system: str = "ball") -> str:
+    """Checkpoint name of a sensitivity condition's model of ``system``, e.g.
+    ``"sensitivity/noise_0.1"`` (the ball's) or ``"sensitivity/pendulum/noise_0.1"``."""
+    name = condition.replace(":", "_")
+    return f"sensitivity/{name}" if system == "ball" else f"sensitivity/{system}/{name}"
+
+
+def _condition_files() -> dict[str, Path]:
+    """The ball's declared condition models, and every system's found on disk
+    (``checkpoints/sensitivity/<system>/<condition>.pt``)."""
+    out = {condition_checkpoint(c): _CKPT_DIR / f"{condition_checkpoint(c)}.pt"
+           for c in SENSITIVITY_CONDITIONS}
+    for f in sorted((_CKPT_DIR / "sensitivity").glob("*/*.pt")):
+        out[f"sensitivity/{f.parent.name}/{f.stem}"] = f
+    return out
+
+
+#: Where each condition model lives (the ball's whether or not this checkout has them).
+CONDITION_CHECKPOINTS = _condition_files()
 SHIPPED_CHECKPOINTS.update({k: p for k, p in CONDITION_CHECKPOINTS.items() if p.exists()})
 #: The shipped 28x28 checkpoint (``checkpoint=None``).
 SHIPPED_CHECKPOINT = SHIPPED_CHECKPOINTS["28x28"]

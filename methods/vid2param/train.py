@@ -588,10 +588,13 @@ class _PointFeed:
 
         tc, s = self.tc, self.sys
         rng = np.random.default_rng([tc.data_seed, int(step), 29])
-        theta, state0 = s.sample_cases(tc.batch, rng, "train")
+        # the training condition's draws (System.sample_variant; "interleaved" draws as
+        # sample_cases, so the shipped models' batches are unchanged)
+        theta, labels, state0, _ = s.sample_variant(tc.batch, rng, "train", tc.variant,
+                                                    **(tc.variant_options or {}))
         states = s.simulate(theta, state0, n_frames=tc.n_frames, dt=0.05)
         pts = s.observe(states, theta)
-        tg = system_targets_from_arrays(s, pts, theta, self.names)
+        tg = system_targets_from_arrays(s, pts, labels, self.names)
         h, w = tc.size
         seen = normalise_points(pts, s.extent)  # (B, T, P, 2)
         seen = seen + rng.normal(size=seen.shape) * (tc.points_noise_px / np.array([w, h]))
@@ -996,6 +999,11 @@ def train(
     point_feed = _PointFeed(tc, mc.targets, mc.system) if tc.points_steps > start else None
     # with the positions unsupervised, the keypoint gate (the MLP's share of x, y) is held at
     # its value: the parameters' NLL would otherwise move the fed-back positions off the points
+    if (presets.space_of(mc.system) == presets.VIEW and tc.variant != "interleaved"
+            and tc.points_steps < tc.steps):
+        raise ValueError(f"variant: a {mc.system} network trains on {tc.variant!r} data in its "
+                         f"points curriculum only, expected points_steps = steps = {tc.steps}, "
+                         f"got points_steps = {tc.points_steps}")
     hold_gate = point_feed is not None and not tc.points_positions
     net.keypoints.gate.requires_grad_(not hold_gate)
     view = presets.space_of(mc.system) == presets.VIEW

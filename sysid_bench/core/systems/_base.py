@@ -166,9 +166,15 @@ class System(abc.ABC):
     #: test videos ("": none, the bench simulates them from :meth:`changing_theta`).
     changing_dataset: ClassVar[str] = ""
     #: True where :mod:`sysid_bench.core.datasets` makes this system's training sets for every
-    #: sensitivity condition (extrapolation, label noise, simplified physics): experiment 4
-    #: trains condition models only there.
+    #: sensitivity condition (extrapolation, label noise, simplified physics) as videos of the
+    #: paper's split (the ball), so experiment 4 can train condition models in the run. Every
+    #: system draws the conditions' parameters through :meth:`sample_variant`.
     sensitivity_training: ClassVar[bool] = False
+    #: The parameters held at one value in the sensitivity experiment's "simplified physics"
+    #: training (the ball's drag and rolling; a system's dissipation and nonlinear terms): each
+    #: at 45% of its prior range, the centre of training sub-range 4 (:meth:`sample_variant`).
+    #: Empty: the system has no simplified condition.
+    simplified_params: ClassVar[tuple[str, ...]] = ()
     #: Experiment 5's cases off the system's own physics, beside its test cases: ``"perturbed"``
     #: (test cases re-simulated by physics that is not ours, with its own render) and
     #: ``"meaningless"`` (clips no physics explains). Both are made from the paper's datasets
@@ -183,6 +189,9 @@ class System(abc.ABC):
             raise TypeError(f"{cls.__name__}.calibration_conditions: expected a subset of "
                             "('perturbed', 'meaningless'), declared only with datasets = True, "
                             f"got {conds!r} (datasets = {cls.datasets!r})")
+        if cls.params and set(cls.simplified_params) - set(cls.params):
+            raise TypeError(f"{cls.__name__}.simplified_params: expected names among "
+                            f"{cls.params}, got {cls.simplified_params!r}")
         fn = cls.__dict__.get("sample_state0")
         if fn is not None and not getattr(fn, "_checked", False):
             cls.sample_state0 = _checked_sample_state0(fn)
@@ -285,6 +294,103 @@ class System(abc.ABC):
         seg = self.sample_theta(n * n_seg, rng, "test").reshape(n, n_seg, self.n_params)
         seg[:, 1:, ~moving] = seg[:, :1, ~moving]  # the fixed ones keep the first draw
         return np.repeat(seg, every, axis=1)[:, :n_frames]
+
+    #: The sensitivity conditions' parameter draws (:meth:`sample_variant`) and their options.
+    VARIANTS: ClassVar[dict[str, dict]] = {
+        "interleaved": {}, "extrapolation": {"param": None, "fraction": 0.5},
+        "noisy": {"label_noise": 0.05}, "simplified": {}}
+
+    def sample_variant(self, n: int, rng=None, split: str = "train",
+                       variant: str = "interleaved", **options):
+        """Cases of one sensitivity condition (the paper's variants, as the ball's datasets):
+
+        ``"interleaved"``   :meth:`sample_cases` of ``split``.
+        ``"extrapolation"`` option ``param`` (required) and ``fraction`` (default 0.5): in
+                            ``"train"`` that parameter is uniform on the lowest ``fraction`` of
+                            its range, in ``"test"`` uniform above it; the others interleaved.
+        ``"noisy"``         as interleaved; in ``"train"`` the labels get Gaussian noise of
+                            ``label_noise`` (default 0.05) x each parameter's range, the
+                            simulated ``theta`` stays true.
+        ``"simplified"``    in ``"train"`` the :attr:`simplified_params` held at 45% of their
+                            range; in ``"test"`` the full model, interleaved.
+
+        One Generator, in a fixed order: same seed, same arrays.
+
+        Parameters
+        ----------
+        n : int
+        rng : int, None or numpy.random.Generator
+        split : {"train", "test"}
+        variant : str
+            One of :attr:`VARIANTS`.
+
+        Returns
+        -------
+        theta : ndarray, shape (n, P)
+            The simulated parameters.
+        labels : ndarray, shape (n, P)
+            What training is told (``theta`` except for ``"noisy"`` training).
+        state0 : ndarray, shape (n, S)
+        distance : ndarray, shape (n,)
+            ``"extrapolation"``: the value's signed distance from the training range's upper
+            end in fractions of the prior range (<= 0 in train, in ``[0, 1 - fraction]`` in
+            test); 0 otherwise.
+
+        Raises
+        ------
+        ValueError
+            An unknown ``split``, ``variant`` or option, a ``param`` that is not the system's,
+            a ``fraction`` outside (0, 1), a ``label_noise`` outside [0, 1], or
+            ``"simplified"`` on a system without :attr:`simplified_params`.
+        """
+        n = check_positive_int(n, "n")
+        rng = check_seed(rng)
+        if split not in ("train", "test"):
+            raise ValueError(f"split: expected 'train' or 'test', got {split!r}")
+        if variant not in self.VARIANTS:
+            raise ValueError(f"variant: expected one of {tuple(self.VARIANTS)}, got {variant!r}")
+        bad = sorted(set(options) - set(self.VARIANTS[variant]))
+        if bad:
+            raise ValueError(f"options: variant {variant!r} takes "
+                             f"{sorted(self.VARIANTS[variant]) or 'no options'}, got {bad}")
+        opts = {**self.VARIANTS[variant], **options}
+        train = split == "train"
+        theta = self.sample_theta(n, rng, split)
+        distance = np.zeros(n)
+        labels = theta
+        if variant == "extrapolation":
+            if opts["param"] not in self.params:
+                raise ValueError(f"param: expected one of {self.params} ({self.name}), got "
+                                 f"{opts['param']!r}")
+            f = opts["fraction"]
+            if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 < f < 1:
+                raise ValueError(f"fraction: expected a number in (0, 1), got {f!r}")
+            j = self.params.index(opts["param"])
+            u = rng.random(n)
+            frac = f * u if train else f + (1.0 - f) * u
+            theta[:, j] = self.prior_lo[j] + frac * (self.prior_hi[j] - self.prior_lo[j])
+            distance = frac - f
+        elif variant == "simplified":
+            if not self.simplified_params:
+                raise ValueError(f"variant: the {self.name} system declares no simplified_params, "
+                                 "so it has no 'simplified' condition")
+            if train:
+                for p in self.simplified_params:
+                    j = self.params.index(p)
+                    theta[:, j] = self.prior_lo[j] + 0.45 * (self.prior_hi[j] - self.prior_lo[j])
+        elif variant == "noisy":
+            s = opts["label_noise"]
+            if isinstance(s, bool) or not isinstance(s, (int, float)) or not 0 <= s <= 1:
+                raise ValueError(f"label_noise: expected a fraction of the range in [0, 1], "
+                                 f"got {s!r}")
+            if train and s > 0:
+                labels = theta + rng.normal(0.0, float(s) * (self.prior_hi - self.prior_lo),
+                                            theta.shape)
+        if "theta" in inspect.signature(self.sample_state0).parameters:
+            state0 = self.sample_state0(n, rng, theta=theta)
+        else:
+            state0 = self.sample_state0(n, rng)
+        return theta, labels, state0, distance
 
     # ------------------------------------------------------------------------------------------
     # validation at the public boundary

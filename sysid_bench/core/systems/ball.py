@@ -52,6 +52,8 @@ class Ball(System):
     changing_params = physics.PARAMS
     changing_dataset = "changing"
     sensitivity_training = True
+    #: experiment 4's simplified physics: drag and rolling held in training (the paper's)
+    simplified_params = ("d", "r")
 
     def state_bounds_for(self, scene):
         if scene == self.default_scene:

@@ -275,6 +275,8 @@ class Collision(System):
     name = "collision"
     params = ("lq", "eb", "mu", "ew")
     prior = {"lq": (-2.0, 2.0), "eb": (0.5, 1.0), "mu": (0.0, 0.3), "ew": (0.6, 1.0)}
+    #: experiment 4's simplified physics: track friction and wall restitution held in training
+    simplified_params = ("mu", "ew")
     #: wider than the prior where the physics stays finite: more friction, mass ratios up to
     #: 2^2.5, wall restitution down to 0.5 (lower restitutions or larger ratios reach the
     #: inelastic collapse, see the module docstring)

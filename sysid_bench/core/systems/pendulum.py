@@ -403,6 +403,8 @@ class Pendulum(System):
     n_points = 1
     #: experiment 3: gravity and friction may change during a clip; a rod does not change length
     changing_params = ("g", "b", "mu")
+    #: experiment 4's simplified physics: viscous and Coulomb friction held in training
+    simplified_params = ("b", "mu")
     extent = (-2.5, 2.5, -2.5, 2.5)
     size = (64, 64)
     noise_m = 0.01

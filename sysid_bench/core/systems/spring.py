@@ -225,6 +225,8 @@ class Spring(System):
     name = "spring"
     params = ("w2", "k3", "c", "L0")
     prior = {"w2": (4.0, 25.0), "k3": (0.0, 20.0), "c": (0.0, 0.6), "L0": (1.0, 2.0)}
+    #: experiment 4's simplified physics: the cubic term and damping held in training
+    simplified_params = ("k3", "c")
     #: Beyond the prior, still physical and resolved by the integrator at dt = 0.05 (see
     #: STEP_MAX, checked per trajectory): stiffness to 100 (10 rad/s), cubic stiffness to 100,
     #: damping to 5 /s (overdamped for w2 < 6.25), rest positions across the whole view.
