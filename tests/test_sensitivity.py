@@ -213,6 +213,7 @@ def test_reading_judges_each_group_against_its_own_control(tmp_path):
 
 
 def test_vid2param_declares_only_condition_checkpoints_it_ships():
+    from methods.vid2param.checkpoint import system_conditions
     from methods.vid2param.estimator import (
         SENSITIVITY_CONDITIONS,
         SHIPPED_CHECKPOINTS,
@@ -220,15 +221,35 @@ def test_vid2param_declares_only_condition_checkpoints_it_ships():
     )
 
     declared = methods.spec("vid2param").pretrained.get("default", {})
-    on_disk = {c for c in SENSITIVITY_CONDITIONS
+    on_disk = {f"ball/{c}" for c in SENSITIVITY_CONDITIONS
                if SHIPPED_CHECKPOINTS.get(condition_checkpoint(c)) is not None}
-    assert set(declared) == on_disk and "noise:0" in declared
-    for cond, opts in declared.items():
-        assert opts["checkpoint"] == condition_checkpoint(cond)
+    for s in ("pendulum", "spring", "collision"):
+        on_disk |= {f"{s}/{c}" for c in system_conditions(s)
+                    if SHIPPED_CHECKPOINTS.get(condition_checkpoint(c, s)) is not None}
+    assert set(declared) == on_disk and "ball/noise:0" in declared
+    for key, opts in declared.items():
+        system, cond = key.split("/")
+        assert opts["checkpoint"] == condition_checkpoint(cond, system)
         assert SHIPPED_CHECKPOINTS[opts["checkpoint"]].exists()
+    spec = methods.spec("vid2param")
+    # a bare condition would serve every system: the ball's models are the ball's only
+    assert spec.pretrained_options("default", "noise:0", "ball") == {
+        "checkpoint": "sensitivity/noise_0"}
+    assert spec.pretrained_options("default", "noise:0", "mysystem") is None
 
 
-def test_conditions_driver_refuses_unknown_conditions():
+def test_a_system_qualified_pretrained_key_serves_that_system_only():
+    class _Per(_Trainable):
+        pretrained = {"default": {"pendulum/noise:0": {"level": 0.3}, "noise:0.5": {"level": 0.1}}}
+
+    spec = spec_of(_Per)
+    assert spec.pretrained_options("default", "noise:0", "pendulum") == {"level": 0.3}
+    assert spec.pretrained_options("default", "noise:0", "ball") is None
+    # a bare key serves every system
+    assert spec.pretrained_options("default", "noise:0.5", "spring") == {"level": 0.1}
+
+
+def test_conditions_driver_refuses_unknown_conditions(capsys):
     import torch  # noqa: F401 (a dependency of [test]: missing fails, not skips)
 
     from methods.vid2param.conditions import condition_data, main
@@ -236,8 +257,12 @@ def test_conditions_driver_refuses_unknown_conditions():
     assert condition_data("extrapolation:g") == ("extrapolation", {"param": "g"})
     with pytest.raises(ValueError, match="condition: expected one of"):
         condition_data("noise:0.3")
-    with pytest.raises(ValueError, match="condition"):
+    with pytest.raises(SystemExit) as got:  # one line naming it, before any training
         main(["--out", "unused", "--only", "noise:0", "bogus"])
+    assert got.value.code == 2
+    with pytest.raises(SystemExit):
+        main(["--out", "unused", "--system", "pendulum", "--only", "extrapolation:e"])
+    assert condition_data("extrapolation:L", "pendulum") == ("extrapolation", {"param": "L"})
 
 
 def test_training_config_takes_a_data_variant():
@@ -264,6 +289,54 @@ def test_no_verdict_when_the_control_is_at_guessing_level():
     assert sum("Cannot tell" in ln for ln in lines) == 2
 
 
+class _PendulumModels(_Trainable):
+    """Ready-trained models of two pendulum conditions (answers the prior's middle)."""
+    name = "toy-pendulum"
+    systems = ("ball", "pendulum")
+    pretrained = {"default": {"pendulum/noise:0": {"level": 0.5},
+                              "pendulum/extrapolation:L": {"level": 0.25}}}
+
+    def __init__(self, level: float = 0.5, seed: int = 0, system: str = "ball"):
+        self.level = level
+        self.seed = seed
+        self.system = system
+
+    def identify(self, obs):
+        from sysid_bench.core import systems
+
+        s = systems.get(self.system)
+        return Posterior(mean=s.denormalise(np.full(s.n_params, self.level)),
+                         std=np.ones(s.n_params), system=self.system)
+
+
+def test_a_systems_shipped_condition_models_are_its_cells_and_are_scored(tmp_path):
+    from sysid_bench.bench.experiment import execute
+    from sysid_bench.core import systems
+
+    methods.register("toy-pendulum", f"{__name__}:_PendulumModels")
+    try:
+        scale = get_scale("default")
+        cells = Sensitivity().cells(scale, ["toy-pendulum"], "pendulum")
+        # no in-run training sets on the pendulum: its shipped models only, one group
+        assert sorted(c.condition for c in cells) == ["extrapolation:L", "noise:0"]
+        cell = [c for c in cells if c.condition == "extrapolation:L"][0]
+        res = execute(cell, scale, tmp_path)
+        assert res["status"] == "ok", res.get("error")
+        df = pd.DataFrame(res["rows"])
+        dist = df[df.metric == "distance"].value.to_numpy()
+        # tested above the training range (L's upper half), at the scale's lengths
+        assert len(dist) == scale.n_for("sensitivity", "pendulum") and (dist >= 0).all()
+        assert (dist <= 0.5).all()
+        se_l = df[(df.metric == "se_L") & (df.n_frames == 50)].value.to_numpy()
+        # the toy answers a quarter up the range: its error is the truth's distance from it
+        theta = systems.get("pendulum")
+        assert np.all(se_l >= (0.5 - 0.25) ** 2 - 1e-9)
+        assert set(df.n_frames[df.metric == "se"]) == {10, 25, 50}
+        assert theta.name == "pendulum"
+    finally:
+        methods.unregister("toy-pendulum")
+
+
 def test_systems_without_condition_training_sets_get_one_n_a_cell_per_method(tmp_path):
     from sysid_bench.bench.experiment import execute
     from sysid_bench.bench.sensitivity import UNTRAINED
@@ -276,6 +349,42 @@ def test_systems_without_condition_training_sets_get_one_n_a_cell_per_method(tmp
         ("vid2param", UNTRAINED, "pendulum")]
     res = execute(cells[0], scale, tmp_path)
     assert res["status"] == "n/a" and "pendulum" in res["error"] and not res["rows"]
+    assert "no ready-trained condition models" in res["error"]
     # the ball's conditions stay as they were
     assert sorted(c.condition for c in exp.cells(scale, ["vid2param"], "ball")) == sorted(
         conditions(scale))
+
+
+def test_a_systems_points_feed_trains_on_the_conditions_draws():
+    import torch  # noqa: F401 (a dependency of [test]: missing fails, not skips)
+
+    from methods.vid2param.model import system_targets
+    from methods.vid2param.train import TrainConfig, _PointFeed
+
+    names = system_targets("pendulum")
+    j = names.index("L")
+    base = dict(batch=16, n_frames=12, points_steps=4, steps=4)
+    _, clean = _PointFeed(TrainConfig(**base), names, "pendulum").batch(0)
+    _, low = _PointFeed(TrainConfig(**base, variant="extrapolation",
+                                    variant_options={"param": "L"}), names, "pendulum").batch(0)
+    assert (low[..., j] <= 0.5 + 1e-6).all() and (clean[..., j] > 0.5).any()
+    _, noisy = _PointFeed(TrainConfig(**base, variant="noisy",
+                                      variant_options={"label_noise": 0.25}),
+                          names, "pendulum").batch(0)
+    # label noise on the parameters only: the positions are the same draws' true points
+    assert np.array_equal(noisy[..., :2], clean[..., :2])
+    assert not np.allclose(noisy[..., 2:], clean[..., 2:])
+
+
+def test_a_systems_condition_variant_trains_in_the_points_curriculum_only(tmp_path):
+    import torch  # noqa: F401
+
+    from methods.vid2param.model import V2PConfig
+    from methods.vid2param.train import TrainConfig, train
+
+    tc = TrainConfig(batch=4, n_frames=12, steps=4, points_steps=2, val_n=0, chunk=8,
+                     size=(64, 64), variant="noisy", variant_options={"label_noise": 0.1})
+    with pytest.raises(ValueError, match="variant: a pendulum network trains on 'noisy' data in "
+                                         "its points curriculum only"):
+        train(V2PConfig.preset("pendulum"), tc, out=tmp_path / "run", progress=False)
+    assert not (tmp_path / "run" / "state.pt").exists()

@@ -227,8 +227,14 @@ def test_the_sensitivity_conditions_agree_with_the_benchmarks():
     from sysid_bench.bench.cases import get_scale
     from sysid_bench.bench.sensitivity import _train_spec
 
+    from methods.vid2param.conditions import conditions_of
+
     assert list(SENSITIVITY_CONDITIONS) == get_scale("default").sensitivity_conditions()
     for c in SENSITIVITY_CONDITIONS:
         assert condition_data(c) == _train_spec(c)
+    for system in ("pendulum", "spring", "collision"):
+        assert list(conditions_of(system)) == get_scale("default").sensitivity_conditions(system)
+        for c in conditions_of(system):
+            assert condition_data(c, system) == _train_spec(c)
     with pytest.raises(ValueError, match="condition: expected one of"):
         condition_data("noise:0.3")

@@ -31,7 +31,7 @@ from sysid_bench.core._io import atomic_write
 __all__ = ["FORMAT", "FORMAT_VERSION", "RENAMED", "save_atomic", "load_checkpoint", "build_net",
            "upgrade_state_dict", "upgrade_optimizer_state", "git_info", "SHIPPED_CHECKPOINTS",
            "SHIPPED_CHECKPOINT", "SENSITIVITY_CONDITIONS", "CONDITION_CHECKPOINTS",
-           "NOISE_LEVELS", "system_conditions",
+           "NOISE_LEVELS", "system_conditions", "shipped_conditions",
            "checkpoint_path", "condition_checkpoint", "record_name"]
 
 FORMAT = "vid2param-checkpoint"
@@ -90,6 +90,17 @@ def _condition_files() -> dict[str, Path]:
 #: Where each condition model lives (the ball's whether or not this checkout has them).
 CONDITION_CHECKPOINTS = _condition_files()
 SHIPPED_CHECKPOINTS.update({k: p for k, p in CONDITION_CHECKPOINTS.items() if p.exists()})
+
+
+def shipped_conditions() -> dict[tuple[str, str], str]:
+    """``{(system, condition): checkpoint name}`` of every condition model in this checkout."""
+    out = {}
+    for name in CONDITION_CHECKPOINTS:
+        if name in SHIPPED_CHECKPOINTS:
+            parts = name.split("/")
+            system = parts[1] if len(parts) == 3 else "ball"
+            out[system, parts[-1].replace("_", ":", 1)] = name
+    return out
 #: The shipped 28x28 checkpoint (``checkpoint=None``).
 SHIPPED_CHECKPOINT = SHIPPED_CHECKPOINTS["28x28"]
 

@@ -31,6 +31,7 @@ from methods.vid2param.checkpoint import (
     checkpoint_path,
     condition_checkpoint,
     load_checkpoint,
+    shipped_conditions,
 )
 from methods.vid2param.inference import (
     HI,
@@ -238,9 +239,10 @@ class Vid2Param(Estimator):
     # ``python -m methods.vid2param.conditions``: hours on a CPU) and shipped; each one in this
     # checkout is declared. While some are missing, the experiment also trains all conditions
     # in the run and reads each group on its own (conditions of different budgets don't compare).
-    pretrained = {"default": {c: {"checkpoint": condition_checkpoint(c)}
-                              for c in SENSITIVITY_CONDITIONS
-                              if condition_checkpoint(c) in SHIPPED_CHECKPOINTS}}
+    # Every system's, ``"<system>/<condition>"`` (``python -m methods.vid2param.conditions
+    # --system S``; the ball's recipe is hours on a CPU, another system's ~3 min a condition).
+    pretrained = {"default": {f"{s}/{c}": {"checkpoint": name}
+                              for (s, c), name in shipped_conditions().items()}}
     #: cheap settings for check_estimator (same code path)
     contract_options = {"n_samples": 20}
     #: the ``forecast`` kind when none is given

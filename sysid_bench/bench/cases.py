@@ -30,7 +30,7 @@ from sysid_bench.core.estimator import Observation
 
 __all__ = ["INPUTS", "Scale", "SCALES", "get_scale", "test_set", "train_set", "observation",
            "inputs_for", "unknown_name", "system_cases", "system_case", "N_FRAMES", "bench_case",
-           "extended_case"]
+           "extended_case", "variant_cases", "variant_case"]
 
 INPUTS = ("video", "privileged")
 #: Bump when what a cell computes changes meaning (inputs, metrics): part of the grid config, so
@@ -81,8 +81,8 @@ class Scale:
     expensive_stride : int
     sensitivity : dict
         Experiment 4 (its test videos: ``n_cases["sensitivity"]``): ``n_train`` training
-        videos of ``n_frames`` frames per condition, ``extrapolation`` parameters,
-        ``label_noise`` levels, ``simplified`` (bool), ``lengths``. The training budget is the
+        videos of ``n_frames`` frames per condition, ``extrapolation`` parameters (``"all"``, a
+        count or names: :meth:`sensitivity_conditions`), ``label_noise`` levels, ``simplified`` (bool), ``lengths``. The training budget is the
         method's own declaration (``fit_options`` per scale).
     online : (int, int)
         Experiment 7: frames per video and the stride of the every-prefix methods' timed
@@ -170,13 +170,25 @@ class Scale:
         spec = methods.spec(method)
         return spec.options(self.key_for(spec.scale_options), threads)
 
-    def sensitivity_conditions(self) -> list[str]:
-        """The sensitivity experiment's training conditions at this scale, e.g.
-        ``["extrapolation:e", "noise:0", "noise:0.5", "simplified"]``."""
+    def sensitivity_conditions(self, system: str = "ball") -> list[str]:
+        """The sensitivity experiment's training conditions of ``system`` at this scale, e.g.
+        ``["extrapolation:e", "noise:0", "noise:0.5", "simplified"]``.
+
+        The scale's ``extrapolation`` entry is ``"all"`` (each of the system's parameters), a
+        count (its first ones) or parameter names; ``simplified`` counts only for a system that
+        declares ``simplified_params``."""
+        from sysid_bench.core import systems
+
         sens = self.sensitivity
-        out = [f"extrapolation:{p}" for p in sens.get("extrapolation", ())]
+        s = systems.get(system)
+        ex = sens.get("extrapolation", ())
+        if ex == "all":
+            ex = s.params
+        elif isinstance(ex, int) and not isinstance(ex, bool):
+            ex = s.params[:ex]
+        out = [f"extrapolation:{p}" for p in ex]
         out += [f"noise:{float(x):g}" for x in sens.get("label_noise", ())]
-        if sens.get("simplified"):
+        if sens.get("simplified") and s.simplified_params:
             out.append("simplified")
         return out
 
@@ -216,7 +228,7 @@ def _jsonable(x):
 _SENS_SMALL = {
     "n_train": 400,
     "n_frames": 50,
-    "extrapolation": ("e", "g", "d", "r"),
+    "extrapolation": "all",
     "label_noise": (0.0, 0.1, 0.25, 0.5),
     "simplified": True,
     "lengths": (10, 25, 50),
@@ -242,7 +254,7 @@ SCALES: dict[str, Scale] = {
         sensitivity={
             "n_train": 16,
             "n_frames": 50,
-            "extrapolation": ("e",),
+            "extrapolation": 1,
             "label_noise": (0.0, 0.5),
             "simplified": True,
             "lengths": (25, 50),
@@ -300,7 +312,7 @@ SCALES: dict[str, Scale] = {
         sensitivity={
             "n_train": 10_000,
             "n_frames": 200,
-            "extrapolation": ("e", "g", "d", "r"),
+            "extrapolation": "all",
             "label_noise": (0.0, 0.1, 0.2, 0.3, 0.4, 0.5),
             "simplified": True,
             "lengths": tuple(range(10, 201, 10)),
@@ -549,3 +561,52 @@ def changing_case(system: str, i: int, n: int, seed: int, every: int):
     theta, states = changing_cases(system, n, seed, every)
     frames = sys_.render(states[i : i + 1], theta[i : i + 1], seed=[seed, i])[0]
     return Observation(frames=frames, system=sys_.name, **sys_.known_geometry()), theta[i]
+
+
+@lru_cache(maxsize=16)
+def variant_cases(system: str, variant: str, n: int, seed: int, n_frames: int,
+                  options: tuple = ()):
+    """The first ``n`` test cases of one sensitivity condition of ``system``
+    (:meth:`System.sample_variant` on the ``"test"`` side; cached per process, read-only).
+
+    One random stream per (system, variant, options), fixed by ``seed``.
+
+    Returns
+    -------
+    theta : ndarray, shape (n, P)
+    states : ndarray, shape (n, n_frames, S)
+    distance : ndarray, shape (n,)
+        Extrapolation: the value's distance above the training range (fraction of the range).
+    """
+    from sysid_bench.core import systems
+
+    sys_ = systems.get(system)
+    key = [seed, zlib.crc32(system.encode()), zlib.crc32(f"{variant}{options}".encode())]
+    rng = np.random.default_rng(key)
+    theta, _, state0, distance = sys_.sample_variant(n, rng, "test", variant, **dict(options))
+    states = sys_.simulate(theta, state0, n_frames=int(n_frames))
+    for a in (theta, states, distance):
+        a.setflags(write=False)
+    return theta, states, distance
+
+
+def variant_case(system: str, i: int, n: int, seed: int, n_frames: int, variant: str,
+                 **options) -> tuple[Observation, np.ndarray, float]:
+    """Case ``i`` of :func:`variant_cases` as a video observation (the system's own render,
+    seeded by the case; the scene's geometry known).
+
+    Returns
+    -------
+    obs : Observation
+    theta : ndarray, shape (P,)
+    distance : float
+    """
+    from sysid_bench.core import systems
+
+    sys_ = systems.get(system)
+    opts = tuple(sorted(options.items()))
+    theta, states, distance = variant_cases(system, variant, n, seed, n_frames, opts)
+    frames = sys_.render(states[i : i + 1], theta[i : i + 1],
+                         seed=[seed, i, zlib.crc32(f"{variant}{opts}".encode())])[0]
+    obs = Observation(frames=frames, system=sys_.name, **sys_.known_geometry())
+    return obs, theta[i], float(distance[i])

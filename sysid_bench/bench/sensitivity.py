@@ -7,7 +7,8 @@ For each method whose class implements ``fit`` (Vid2Param), one cell per trainin
                        and the errors, to plot error against distance.
 ``noise:<level>``      training labels get Gaussian noise of ``level`` x the range; test clean.
                        ``noise:0.0`` is also the full-physics control of the next condition.
-``simplified``         drag and rolling fixed in training, the full model in test.
+``simplified``         the system's ``simplified_params`` (the ball's drag and rolling) fixed in
+                       training, the full model in test.
 
 Where the method declares a ready-trained model for **every** condition at this scale
 (``pretrained``: Vid2Param's condition checkpoints at the default scale), the cells load them.
@@ -23,14 +24,14 @@ identifies ``n_cases["sensitivity"]`` test videos. Because every condition gets 
 comparison between conditions is fair even though absolute errors are those of a small model.
 Rows per case and frame count: ``se_<p>``, ``se``; ``train_wall_s`` at case -1.
 
-Systems: the conditions need training sets made for them (a parameter's lower half, noisy
-labels, simplified physics), which :mod:`sysid_bench.core.datasets` makes for the ball alone (its
-``System.sensitivity_training``). On every other system each training method gets one cell,
-condition :data:`UNTRAINED`, that the runner records as ``n/a`` with the reason: training a
-model per condition from scratch there does not fit the default run (the ball's shipped condition models took 4000
-steps of 32 videos each, offline; a training step of 64 x 200 frames is ~4-7 s on 2 cores,
-``scripts/measure_train_step.py``), and a model trained for a few steps would measure its own
-under-training, not the method's sensitivity. The report thus shows a row per system.
+Systems: every system draws the conditions' parameters through ``System.sample_variant``
+(extrapolation in each of its parameters, noisy labels, its ``simplified_params`` held), and is
+tested on its own renders of the condition's test side (:func:`cases.variant_case`). Models
+trained in the run need training sets of videos, which :mod:`sysid_bench.core.datasets` makes
+for the ball alone (``System.sensitivity_training``); on another system the cells are the
+method's ready-trained models of that system (``pretrained`` keys ``"<system>/<condition>"``),
+and a method that declares none there gets one cell, condition :data:`UNTRAINED`, recorded as
+``n/a`` with the reason.
 """
 
 from __future__ import annotations
@@ -53,8 +54,7 @@ from sysid_bench.bench.experiment import (
 )
 from sysid_bench.bench.identification import _save
 from sysid_bench.core._io import atomic_write
-from sysid_bench.core.metrics import GUESS_MSE, normalised_param_se
-from sysid_bench.core.physics import PARAMS
+from sysid_bench.core.metrics import GUESS_MSE
 
 
 def trains(method: str) -> bool:
@@ -64,17 +64,14 @@ def trains(method: str) -> bool:
     return methods.spec(method).trains
 
 
-def conditions(scale) -> list[str]:
-    """The training conditions of ``scale`` (``Scale.sensitivity_conditions``)."""
-    return scale.sensitivity_conditions()
+def conditions(scale, system: str = "ball") -> list[str]:
+    """The training conditions of ``system`` at ``scale`` (``Scale.sensitivity_conditions``)."""
+    return scale.sensitivity_conditions(system)
 
 
 #: Suffix of a cell's condition that evaluates the method's ready-trained model of it while
 #: other conditions of the scale have none (``noise:0.1@shipped``).
 SHIPPED = "@shipped"
-#: The label-noise claim is judged on these: the parameters the control must identify (r is
-#: near guessing at 50 frames for every model).
-NOISE_RULE_PARAMS = ("e", "g", "d")
 
 
 #: The one condition of a system without condition training sets (recorded as ``n/a``).
@@ -86,18 +83,21 @@ def base_condition(condition: str) -> str:
     return condition[: -len(SHIPPED)] if condition.endswith(SHIPPED) else condition
 
 
-def shipped_conditions(method: str, scale) -> list[str]:
-    """The conditions of ``scale`` for which ``method`` declares a ready-trained model."""
+def shipped_conditions(method: str, scale, system: str = "ball") -> list[str]:
+    """The conditions of ``system`` at ``scale`` for which ``method`` declares a ready-trained
+    model."""
     import methods
 
     spec = methods.spec(method)
     key = scale.key_for(spec.pretrained)
-    return [c for c in conditions(scale) if spec.pretrained_options(key, c) is not None]
+    return [c for c in conditions(scale, system)
+            if spec.pretrained_options(key, c, system) is not None]
 
 
-def all_shipped(method: str, scale) -> bool:
-    """True when ``method`` declares a ready-trained model for every condition of ``scale``."""
-    return len(shipped_conditions(method, scale)) == len(conditions(scale))
+def all_shipped(method: str, scale, system: str = "ball") -> bool:
+    """True when ``method`` declares a ready-trained model for every condition of ``system``
+    at ``scale``."""
+    return len(shipped_conditions(method, scale, system)) == len(conditions(scale, system))
 
 
 def _train_spec(condition: str) -> tuple[str, dict]:
@@ -116,7 +116,7 @@ def _atomic_pickle(obj, path: Path) -> None:
     atomic_write(path, pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
 
 
-def trained_model(ctx: Context, method: str, condition: str):
+def trained_model(ctx: Context, method: str, condition: str, system: str = "ball"):
     """The model of ``condition``: the method's ready-trained one where it declares one for
     every condition of this scale (``pretrained``) or ``condition`` ends in :data:`SHIPPED`,
     else loaded from the run directory, else trained and saved.
@@ -131,16 +131,26 @@ def trained_model(ctx: Context, method: str, condition: str):
     sens = ctx.scale.sensitivity
     base = base_condition(condition)
     _spec = methods.spec(method)
-    pre = _spec.pretrained_options(ctx.scale.key_for(_spec.pretrained), base)
+    pre = _spec.pretrained_options(ctx.scale.key_for(_spec.pretrained), base, system)
     if condition != base and pre is None:
-        raise ValueError(f"condition: {method} declares no ready-trained model of {base!r} at "
-                         f"scale {ctx.scale.name!r}, so {condition!r} cannot be evaluated")
-    if pre is not None and (condition != base or all_shipped(method, ctx.scale)):
+        raise ValueError(f"condition: {method} declares no ready-trained model of {base!r} on "
+                         f"the {system} system at scale {ctx.scale.name!r}, so {condition!r} "
+                         "cannot be evaluated")
+    from sysid_bench.core import systems
+
+    in_run = systems.get(system).sensitivity_training
+    if pre is not None and (condition != base or not in_run
+                            or all_shipped(method, ctx.scale, system)):
         # trained once with the method's own recipe and shipped (its card says how)
-        est = ctx.estimator(method, warm=True, **pre)
+        est = ctx.estimator(method, warm=True, system=system, **pre)
         wall = getattr(est, "training_wall_s", None)
         return est, float(wall()) if callable(wall) else float("nan")
-    path = ctx.run_dir / "models" / f"{method}-{condition.replace(':', '_')}.pkl"
+    if not in_run:
+        raise NotImplementedError(
+            f"{method} declares no ready-trained model of {condition!r} on the {system} system "
+            "(`pretrained`), and the system has no training sets to train one in the run "
+            "(`sensitivity_training`)")
+    path = ctx.run_dir / "models" / f"{method}-{system}-{condition.replace(':', '_')}.pkl"
     info = path.with_suffix(".json")
     fp = method_fingerprint(method)
     # reuse only a model trained by this very code: a pickle of an older class may not even load
@@ -152,7 +162,7 @@ def trained_model(ctx: Context, method: str, condition: str):
     train = train_set(variant, sens["n_train"], ctx.scale.seed,
                       n_frames=sens.get("n_frames", 200), **opts)
     fit_options = ctx.scale.fit_options(method)
-    est = ctx.estimator(method, warm=False, **fit_options)
+    est = ctx.estimator(method, warm=False, system=system, **fit_options)
     t0 = time.perf_counter()
     est.fit(train)
     wall = time.perf_counter() - t0
@@ -176,54 +186,75 @@ class Sensitivity(Experiment):
         "shipped ones (`<condition>@shipped`) as a second group. Each group is read on its own, "
         "against its own control: no comparison mixes budgets. Extrapolation: trained on the "
         "lower half of one parameter's range, tested above it; label noise: Gaussian noise of a "
-        "fraction of the range on training labels; simplified: drag and rolling fixed in "
+        "fraction of the range on training labels; simplified: the system's dissipation terms "
+        "(the ball's drag and rolling) fixed in "
         "training, full model in test (compare with `noise:0`, the control). Input: video."
     )
 
     def cells(self, scale, methods, system="ball"):
         from sysid_bench.core import systems
 
+        in_run = systems.get(system).sensitivity_training
         out = []
         for m in methods:
             if not trains(m):
                 continue
-            if not systems.get(system).sensitivity_training:
-                out.append(Cell(self.name, m, "video", UNTRAINED, "all", system))
+            shipped = shipped_conditions(m, scale, system)
+            if not in_run:  # the method's ready-trained models of this system, or n/a
+                out += ([Cell(self.name, m, "video", c, "all", system) for c in shipped]
+                        or [Cell(self.name, m, "video", UNTRAINED, "all", system)])
                 continue
-            out += [Cell(self.name, m, "video", c, "all", system) for c in conditions(scale)]
-            if not all_shipped(m, scale):  # the shipped ones (if any): a group of their own
-                out += [Cell(self.name, m, "video", c + SHIPPED, "all", system)
-                        for c in shipped_conditions(m, scale)]
+            out += [Cell(self.name, m, "video", c, "all", system)
+                    for c in conditions(scale, system)]
+            if not all_shipped(m, scale, system):  # the shipped ones (if any): a group of their own
+                out += [Cell(self.name, m, "video", c + SHIPPED, "all", system) for c in shipped]
         return out
 
     def run(self, cell: Cell, ctx: Context) -> CellOutput:
+        from sysid_bench.bench.cases import variant_case
+        from sysid_bench.core import systems
+
         if cell.condition == UNTRAINED:
             raise NotImplementedError(
-                f"{cell.method} on the {cell.system} system: no training sets for the "
-                "sensitivity conditions there, and training one model per condition from "
-                "scratch does not fit the run's budget (the ball's conditions use its datasets)")
+                f"{cell.method} declares no ready-trained condition models of the {cell.system} "
+                "system (`pretrained`), and the system has no training sets to train them in "
+                "the run (`sensitivity_training`)")
         sens = ctx.scale.sensitivity
-        est, wall = trained_model(ctx, cell.method, cell.condition)
+        sys_ = systems.get(cell.system)
+        est, wall = trained_model(ctx, cell.method, cell.condition, cell.system)
         kind, _, arg = base_condition(cell.condition).partition(":")
-        n_test = ctx.scale.cases(self.name, cell.method)
-        if kind == "extrapolation":
-            ds = ctx.test_set("extrapolation", n_test, param=arg)
+        n_test = ctx.scale.cases(self.name, cell.method, cell.system)
+        n_frames = sens.get("n_frames", 200)
+        if sys_.datasets:  # the paper's test sets (its splits and nuisances)
+            if kind == "extrapolation":
+                ds = ctx.test_set("extrapolation", n_test, param=arg)
+            else:
+                ds = ctx.test_set("interleaved", n_test)
+            obs = [observation(ds, i, "video") for i in range(len(ds))]
+            truths = [np.asarray(ds.theta[i, 0]) for i in range(len(ds))]
+            dist = ds.extras["distance"] if kind == "extrapolation" else None
+            n_frames = min(ds.frames.shape[1], n_frames)
         else:
-            ds = ctx.test_set("interleaved", n_test)
-        lengths = [n for n in sens["lengths"] if n <= min(ds.frames.shape[1], sens.get("n_frames", 200))]
+            length = max(sens["lengths"])
+            variant, opts = ("extrapolation", {"param": arg}) if kind == "extrapolation" \
+                else ("interleaved", {})
+            got = [variant_case(cell.system, i, n_test, ctx.scale.seed, length, variant, **opts)
+                   for i in range(n_test)]
+            obs, truths, dist = (list(a) for a in zip(*got))
+            n_frames = min(length, n_frames)
+        lengths = [n for n in sens["lengths"] if n <= n_frames]
         out = CellOutput()
         out.add(-1, 0, "train_wall_s", wall)
         # the table scores posterior means only: all videos in one batched call, no model
         # checks (they widen intervals, not means; ~40% of the cell when run)
-        every = est.identify_prefixes_batch([observation(ds, i, "video") for i in range(len(ds))],
-                                            lengths, check=False)
+        every = est.identify_prefixes_batch(obs, lengths, check=False)
         for i, posts in enumerate(every):
-            truth = np.asarray(ds.theta[i, 0])
+            truth = truths[i]
             if kind == "extrapolation":
-                out.add(i, 0, "distance", float(ds.extras["distance"][i]))
+                out.add(i, 0, "distance", float(dist[i]))
             for n, post in zip(lengths, posts):
-                se = normalised_param_se(truth, post.mean)
-                for p, v in zip(PARAMS, se):
+                se = (sys_.normalise(post.mean) - sys_.normalise(truth)) ** 2
+                for p, v in zip(sys_.params, se):
                     out.add(i, n, f"se_{p}", v)
                 out.add(i, n, "se", se.mean())
         return out
@@ -289,7 +320,7 @@ class Sensitivity(Experiment):
                                  marker=marker, capsize=3, label=label)
             for cond, style in (("simplified", "-"), ("noise:0", "--")):
                 g = g0[(g0.condition == cond)]
-                for p in ("e", "g"):
+                for p in _free_params(df):
                     s = ci_summary(g[g.metric == f"se_{p}"], ["n_frames"])
                     if len(s):
                         kind = "simplified" if cond == "simplified" else "full"
@@ -329,11 +360,22 @@ class Sensitivity(Experiment):
         return out
 
 
-def _params(df) -> tuple[str, ...]:
-    """The parameter names of the one system whose rows ``df`` holds."""
+def _system(df):
+    """The one system whose rows ``df`` holds."""
     from sysid_bench.core import systems
 
-    return systems.get(df.system.iloc[0] if "system" in df else "ball").params
+    return systems.get(df.system.iloc[0] if "system" in df else "ball")
+
+
+def _params(df) -> tuple[str, ...]:
+    """The parameter names of the one system whose rows ``df`` holds."""
+    return _system(df).params
+
+
+def _free_params(df) -> tuple[str, ...]:
+    """The parameters simplified-physics training still learns (not ``simplified_params``)."""
+    s = _system(df)
+    return tuple(p for p in s.params if p not in s.simplified_params)
 
 
 def _groups(df) -> list[tuple[str, object]]:
@@ -377,19 +419,25 @@ def _reading(df) -> list[str]:
         else:
             c0 = ctl_at[ctl_at.condition == ctl.condition.iloc[0]]
             per = ", ".join(f"{p} {c0[c0.metric == f'se_{p}'].value.mean():.3g}"
-                            for p in PARAMS)
+                            for p in _params(df))
             out.append(f"Control (clean labels, full physics): normalised MSE "
                        f"{fmt_ci(s['mean'], s['lo'], s['hi'])} at {last} frames ({per}; "
                        f"guessing the prior mean scores {GUESS_MSE:.3f}).")
+    # the claims are judged on the parameters the control identifies (its MSE under half of
+    # guessing's): one it does not (the ball's r at 50 frames, for every model) would only
+    # dilute them
+    rule_params = [p for p in _params(df)
+                   if ctl_at[ctl_at.metric == f"se_{p}"].value.mean() <= 0.5 * GUESS_MSE]
     noisy = df[(df.n_frames == last) & df.condition.str.startswith("noise:")]
     noisy = noisy.assign(level=noisy.condition.str.split(":").str[1].astype(float))
     nz = noisy[noisy.metric == "se"]
-    if nz.condition.nunique() > 1 and ctl_mse is not None:
+    if nz.condition.nunique() > 1 and ctl_mse is not None and not rule_params:
+        out.append("Paper: performance stays consistent with large training-label noise. Cannot "
+                   f"tell here: the control identifies no parameter after {last} frames.")
+    elif nz.condition.nunique() > 1 and ctl_mse is not None:
         s = ci_summary(nz, ["level"]).sort_values("level")
-        # judged per parameter: r is barely identified at 50 frames by any model, and its
-        # error would dilute a mean over all four
         ratio = {}
-        for q in NOISE_RULE_PARAMS:
+        for q in rule_params:
             v = noisy[noisy.metric == f"se_{q}"].groupby("level").value.mean()
             if 0.0 in v.index and v.loc[0.0] > 0:
                 ratio[q] = v / v.loc[0.0]
@@ -403,7 +451,7 @@ def _reading(df) -> list[str]:
                    + f"; at {top:g}, " + ", ".join(f"{q} {r.loc[top]:.2f}x" for q, r in
                                                    ratio.items())
                    + f" the control's. {verdict(holds)} (rule: at every level, each of "
-                   + ", ".join(NOISE_RULE_PARAMS) + f" within 2x the control's MSE; worst "
+                   + ", ".join(rule_params) + f" within 2x the control's MSE; worst "
                    f"{worst:.2f}x).")
     ex = df[df.condition.str.startswith("extrapolation:")]
     for cond, g in ex.groupby("condition"):
@@ -431,11 +479,18 @@ def _reading(df) -> list[str]:
                 f"the training range would score {stuck:.3g}. " + judged)
     sim = df[(df.condition == "simplified") & (df.n_frames == last)]
     if len(sim) and len(ctl_at):
+        learnt = _free_params(df)
+        free = [p for p in learnt if p in rule_params]
+        claim = (f"Paper: trained with simpler physics ({' and '.join(_system(df).simplified_params)}"
+                 f" fixed), {' and '.join(learnt)} are still estimated on full-physics video.")
+        if not free:
+            out.append(f"{claim} Cannot tell here: the control identifies none of them after "
+                       f"{last} frames.")
+            return out
         pairs = {p: (sim[sim.metric == f"se_{p}"].value.mean(),
-                     ctl_at[ctl_at.metric == f"se_{p}"].value.mean()) for p in ("e", "g")}
+                     ctl_at[ctl_at.metric == f"se_{p}"].value.mean()) for p in free}
         holds = all(a <= max(2 * b, 0.01) for a, b in pairs.values())
-        out.append(f"Paper: trained with simpler physics (drag and rolling fixed), g and e are "
-                   f"still estimated on full-physics video. Here (MSE @ {last} frames): "
+        out.append(f"{claim} Here (MSE @ {last} frames): "
                    + "; ".join(f"{p} {a:.3g} simplified vs {b:.3g} full"
                                for p, (a, b) in pairs.items())
                    + f". {verdict(holds)} (rule: within 2x the "

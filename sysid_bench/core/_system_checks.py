@@ -204,6 +204,46 @@ def check_system_splits_leak_free(system: System) -> None:
         assert not bad.any(), f"sample_theta({split!r}): values outside its tenths {allowed}"
 
 
+def check_system_sensitivity_variants(system: System) -> None:
+    """Experiment 4's draws (:meth:`System.sample_variant`): seeded, leak-free, and each
+    condition's training data as it says (a parameter's lower half, noisy labels only in
+    training, the simplified parameters held)."""
+    for variant, opts in (("interleaved", {}), ("noisy", {"label_noise": 0.25}),
+                          ("extrapolation", {"param": system.params[-1]})):
+        a = system.sample_variant(20, 4, "train", variant, **opts)
+        b = system.sample_variant(20, 4, "train", variant, **opts)
+        assert all(np.array_equal(x, y) for x, y in zip(a, b)), \
+            f"sample_variant({variant!r}): same seed, different draws"
+    th, lab, s0, _ = system.sample_variant(20, 4, "train", "interleaved")
+    th2, s02 = system.sample_cases(20, 4, "train")
+    assert np.array_equal(th, th2) and np.array_equal(s0, s02) and np.array_equal(lab, th), \
+        "sample_variant('interleaved') differs from sample_cases"
+    th, lab, _, _ = system.sample_variant(200, 5, "train", "noisy", label_noise=0.25)
+    assert not np.array_equal(lab, th), "sample_variant('noisy'): training labels without noise"
+    th, lab, _, _ = system.sample_variant(50, 5, "test", "noisy", label_noise=0.25)
+    assert np.array_equal(lab, th), "sample_variant('noisy'): test labels are not the truth"
+    j = len(system.params) - 1
+    for split in ("train", "test"):
+        th, _, _, dist = system.sample_variant(200, 6, split, "extrapolation",
+                                               param=system.params[j])
+        u = system.normalise(th)[:, j]
+        low = split == "train"
+        assert (u <= 0.5 + 1e-9).all() if low else (u >= 0.5 - 1e-9).all(), \
+            f"sample_variant('extrapolation', {split!r}): {system.params[j]} on the wrong side"
+        assert np.allclose(dist, u - 0.5), f"sample_variant('extrapolation'): distance is not " \
+            "the value's distance above the training range"
+    if system.simplified_params:
+        th, _, _, _ = system.sample_variant(30, 7, "train", "simplified")
+        for p in system.simplified_params:
+            col = th[:, system.params.index(p)]
+            assert np.all(col == col[0]), f"sample_variant('simplified'): {p} not held in training"
+        th, _, _, _ = system.sample_variant(30, 7, "test", "simplified")
+        col = th[:, system.params.index(system.simplified_params[0])]
+        assert np.unique(col).size > 1, "sample_variant('simplified'): held in test too"
+    _raises_value_error(lambda: system.sample_variant(3, 0, "train", "extrapolation",
+                                                      param="nope"), "param", "unknown param")
+
+
 def _raises_value_error(fn, needle: str, what: str) -> None:
     try:
         fn()
@@ -242,6 +282,7 @@ _CHECKS: tuple[Callable[[System], None], ...] = (
     check_system_jax_twin,
     check_system_default_scene,
     check_system_splits_leak_free,
+    check_system_sensitivity_variants,
     check_system_bad_input_raises,
 )
 

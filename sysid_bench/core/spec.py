@@ -48,6 +48,7 @@ attribute              default     meaning
 ``fit_options``        {}          per scale: hyperparameters of the sensitivity experiment's training
 ``pretrained``         {}          per scale: ``{condition: hyperparameters}`` of ready-trained
                                    sensitivity models, loaded instead of training one
+                                   (``"<system>/<condition>"``: one system's)
 ``threads_param``      None        the hyperparameter setting the method's own thread count, if any
 ``inline``             False       cells run in a thread of the runner's process (cheap, heavy import)
 ``online_cost``        False       a row of the online-cost table by default (report section 7)
@@ -203,10 +204,14 @@ class MethodSpec:
         """Hyperparameters of the sensitivity experiment's training at ``scale``."""
         return _plain(self.fit_options.get(scale, {}))
 
-    def pretrained_options(self, scale: str, condition: str) -> dict | None:
-        """Hyperparameters that load the ready-trained model of a sensitivity ``condition`` at
-        ``scale`` (e.g. ``{"checkpoint": ...}``), or None: train one."""
-        got = self.pretrained.get(scale, {}).get(condition)
+    def pretrained_options(self, scale: str, condition: str,
+                           system: str = "ball") -> dict | None:
+        """Hyperparameters that load the ready-trained model of a sensitivity ``condition`` of
+        ``system`` at ``scale`` (e.g. ``{"checkpoint": ...}``), or None: train one. A key
+        ``"<system>/<condition>"`` is that system's model; a bare ``"<condition>"`` serves
+        every system."""
+        per = self.pretrained.get(scale, {})
+        got = per.get(f"{system}/{condition}", per.get(condition))
         return None if got is None else _plain(got)
 
     def as_dict(self) -> dict:

@@ -383,13 +383,14 @@ class System(abc.ABC):
             if isinstance(s, bool) or not isinstance(s, (int, float)) or not 0 <= s <= 1:
                 raise ValueError(f"label_noise: expected a fraction of the range in [0, 1], "
                                  f"got {s!r}")
-            if train and s > 0:
-                labels = theta + rng.normal(0.0, float(s) * (self.prior_hi - self.prior_lo),
-                                            theta.shape)
         if "theta" in inspect.signature(self.sample_state0).parameters:
             state0 = self.sample_state0(n, rng, theta=theta)
         else:
             state0 = self.sample_state0(n, rng)
+        if variant == "noisy" and train and opts["label_noise"] > 0:
+            # drawn last: the trajectories are the clean condition's, only the labels move
+            labels = theta + rng.normal(0.0, opts["label_noise"] * (self.prior_hi - self.prior_lo),
+                                        theta.shape)
         return theta, labels, state0, distance
 
     # ------------------------------------------------------------------------------------------
