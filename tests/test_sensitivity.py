@@ -231,6 +231,11 @@ def test_vid2param_declares_only_condition_checkpoints_it_ships():
         system, cond = key.split("/")
         assert opts["checkpoint"] == condition_checkpoint(cond, system)
         assert SHIPPED_CHECKPOINTS[opts["checkpoint"]].exists()
+    for key, opts in declared.items():  # each loads by its name on its own system
+        system = key.split("/")[0]
+        if system != "ball":
+            est = methods.get("vid2param", system=system, **opts)
+            assert est.identify_prefixes  # built: the checkpoint is the system's
     spec = methods.spec("vid2param")
     # a bare condition would serve every system: the ball's models are the ball's only
     assert spec.pretrained_options("default", "noise:0", "ball") == {

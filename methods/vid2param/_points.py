@@ -89,8 +89,10 @@ class PointsModel:
                     f"system: 'vid2param' is n/a on the {sys_.name} system: no model is shipped "
                     f"for it (no Vid2Param model is shipped for {sys_.name}; train one with "
                     f"`{train_command(sys_.name)}`)")
-        else:
-            path = Path(est.checkpoint)
+        else:  # a shipped checkpoint's name (a condition model's) or a path
+            from methods.vid2param.checkpoint import checkpoint_path
+
+            path = checkpoint_path(est.checkpoint)
         import torch
 
         from methods.vid2param.checkpoint import build_net, load_checkpoint
