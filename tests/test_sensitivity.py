@@ -393,3 +393,22 @@ def test_a_systems_condition_variant_trains_in_the_points_curriculum_only(tmp_pa
                                          "its points curriculum only"):
         train(V2PConfig.preset("pendulum"), tc, out=tmp_path / "run", progress=False)
     assert not (tmp_path / "run" / "state.pt").exists()
+
+
+def test_a_held_parameters_nll_is_left_out_of_the_points_curriculum():
+    import torch  # noqa: F401
+
+    from methods.vid2param.model import system_targets
+    from methods.vid2param.train import TrainConfig, _PointFeed
+
+    names = system_targets("pendulum")
+    base = dict(batch=16, n_frames=12, points_steps=4, steps=4)
+    feed = _PointFeed(TrainConfig(**base, variant="simplified"), names, "pendulum")
+    _, tg = feed.batch(0)
+    keep = feed.supervised()
+    # b and mu held (the pendulum's simplified_params): their NLL would drown g's and L's
+    assert [n for n, k in zip(names, keep) if not k] == ["b", "mu"]
+    assert np.ptp(tg[..., names.index("b")]) == 0
+    clean = _PointFeed(TrainConfig(**base), names, "pendulum")
+    clean.batch(0)
+    assert clean.supervised() is None  # every target varies: all count, as before

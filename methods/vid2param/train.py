@@ -580,6 +580,18 @@ class _PointFeed:
         pos = position_names(self.sys.n_points)
         #: (K,) bool: the parameter targets (``TrainConfig.points_positions`` off)
         self.params_only = np.array([n not in pos for n in targets])
+        #: (K,) bool: the targets that vary in the last batch (a condition's held parameters,
+        #: ``simplified``, do not)
+        self.varying = np.ones(len(targets), dtype=bool)
+
+    def supervised(self) -> np.ndarray | None:
+        """(K,) bool: the targets whose NLL counts in the last batch, None for all. A target
+        held at one value (the simplified condition's) is left out, as the frames feed leaves
+        it out (``_Feed.supervised_targets``): its NLL, with a std free to shrink, grew without
+        bound and its gradient drowned every other target's (the pendulum's first simplified
+        model learnt neither g nor L in 800 steps)."""
+        keep = self.varying if self.tc.points_positions else self.varying & self.params_only
+        return None if keep.all() else keep
 
     def batch(self, step: int) -> tuple[np.ndarray, np.ndarray]:
         """The system's P points (B, T, 2 P) in the view's unit square with keypoint noise
@@ -598,6 +610,7 @@ class _PointFeed:
         h, w = tc.size
         seen = normalise_points(pts, s.extent)  # (B, T, P, 2)
         seen = seen + rng.normal(size=seen.shape) * (tc.points_noise_px / np.array([w, h]))
+        self.varying = np.ptp(tg.reshape(-1, tg.shape[-1]), axis=0) > 0
         return seen.reshape(*seen.shape[:2], -1).astype(np.float32), tg
 
 
@@ -1063,8 +1076,7 @@ def train(
             pts_np, tg_np = point_feed.batch(step)
             lr_now = set_schedule_step(schedule, sched)
             outd = net.points_loss(torch.as_tensor(pts_np, device=dev),
-                                   torch.as_tensor(tg_np, device=dev),
-                                   None if tc.points_positions else point_feed.params_only)
+                                   torch.as_tensor(tg_np, device=dev), point_feed.supervised())
             opt.zero_grad(set_to_none=True)
             outd["loss_nll"].backward()
         else:
