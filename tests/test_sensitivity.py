@@ -412,3 +412,15 @@ def test_a_held_parameters_nll_is_left_out_of_the_points_curriculum():
     clean = _PointFeed(TrainConfig(**base), names, "pendulum")
     clean.batch(0)
     assert clean.supervised() is None  # every target varies: all count, as before
+
+
+def test_a_control_that_identifies_one_parameter_gives_verdicts_on_it():
+    # the collision's case: lq identified, the other three near guessing, so the mean over
+    # all four is near guessing too; the claims are still judged, on lq alone
+    one = {"e": 0.004, "g": 0.09, "d": 0.085, "r": 0.09}
+    lines = Sensitivity().reading(_frame(_rows("noise:0", one),
+                                         _rows("noise:0.5", {**one, "e": 0.02})))
+    assert lines[0].startswith("Control (clean labels") and lines[0].endswith("identifies: e.")
+    noise = [ln for ln in lines if "label noise" in ln][0]
+    assert "Does not hold" in noise and "each of e within 2x" in noise
+    assert not any("CAVEAT" in ln for ln in lines)
