@@ -348,19 +348,13 @@ def uninformed(sim: CountingSimulator, theta, state0, floor: float, track: Track
 
 def widen_uninformed(post: Posterior, flat: np.ndarray, seed: int = 0,
                      box: ThetaBox | None = None) -> Posterior:
-    """``post`` with the parameters ``flat`` (4,) bool answered by the prior: mean the range's
-    centre, std at least the prior's, and their sample columns (if any) redrawn from the
-    uniform prior (seeded), so intervals and quantiles say the data did not inform them.
-
-    The centre, not the fitted value: where the track does not inform a parameter the fit
-    leaves it anywhere (an end of its range as often as not), a point that moves between runs
-    and prefixes and puts the prior-wide interval off the range (issue 37; the systems' rule,
-    ``methods._points.answer_prior``)."""
+    """``post`` with the parameters ``flat`` (4,) bool at least as wide as the prior: std at
+    least the prior's, and their sample columns (if any) redrawn from the uniform prior
+    (seeded), so intervals and quantiles say the data did not inform them."""
     flat = np.asarray(flat, dtype=bool)
     if not flat.any():
         return post
     box = PRIOR_BOX if box is None else box
-    mean = np.where(flat, box.lo + 0.5 * box.span, np.asarray(post.mean))
     std = np.where(flat, np.maximum(post.std, box.std), post.std)
     samples = post.samples
     if samples is not None:
@@ -369,7 +363,7 @@ def widen_uninformed(post: Posterior, flat: np.ndarray, seed: int = 0,
         prior = box.lo + u * box.span
         samples[:, flat] = prior[:, flat]
     extras = {**post.extras, "uninformed": [p for p, f in zip(physics.PARAMS, flat) if f]}
-    return Posterior(mean=mean, std=std, samples=samples, extras=extras,
+    return Posterior(mean=np.asarray(post.mean), std=std, samples=samples, extras=extras,
                      check=post.check, system=post.system)
 
 
