@@ -223,14 +223,19 @@ def test_vid2param_declares_only_condition_checkpoints_it_ships():
     declared = methods.spec("vid2param").pretrained.get("default", {})
     on_disk = {f"ball/{c}" for c in SENSITIVITY_CONDITIONS
                if SHIPPED_CHECKPOINTS.get(condition_checkpoint(c)) is not None}
+    from methods.vid2param.checkpoint import CONDITION_CHECKPOINTS
+
     for s in ("pendulum", "spring", "collision"):
         on_disk |= {f"{s}/{c}" for c in system_conditions(s)
-                    if SHIPPED_CHECKPOINTS.get(condition_checkpoint(c, s)) is not None}
+                    if CONDITION_CHECKPOINTS[condition_checkpoint(c, s)].exists()}
+        assert {f"{s}/{c}" for c in system_conditions(s)} <= on_disk  # all nine shipped
     assert set(declared) == on_disk and "ball/noise:0" in declared
     for key, opts in declared.items():
         system, cond = key.split("/")
         assert opts["checkpoint"] == condition_checkpoint(cond, system)
-        assert SHIPPED_CHECKPOINTS[opts["checkpoint"]].exists()
+        assert CONDITION_CHECKPOINTS[opts["checkpoint"]].exists()
+        # the ball's are among its shipped checkpoints; another system's stay out of them
+        assert (opts["checkpoint"] in SHIPPED_CHECKPOINTS) == (system == "ball")
     for key, opts in declared.items():  # each loads by its name on its own system
         system = key.split("/")[0]
         if system != "ball":

@@ -63,7 +63,11 @@ def test_every_checkpoint_file_is_a_shipped_checkpoint():
     assert FILES, f"no checkpoint files under {CKPT_DIR}"
     from methods.vid2param._points import SYSTEM_CHECKPOINTS
 
+    from methods.vid2param.checkpoint import CONDITION_CHECKPOINTS
+
     systems_ = {p.resolve() for p in SYSTEM_CHECKPOINTS.values() if p.exists()}
+    # the other systems' sensitivity condition models (checkpoints/sensitivity/<system>/)
+    systems_ |= {p.resolve() for p in CONDITION_CHECKPOINTS.values() if p.exists()}
     assert {p.resolve() for p in FILES} == {p.resolve() for p in SHIPPED_CHECKPOINTS.values()} | systems_
     assert {p.with_suffix(".json") for p in FILES} <= set(CARDS)  # each has its card
 

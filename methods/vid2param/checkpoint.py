@@ -89,14 +89,17 @@ def _condition_files() -> dict[str, Path]:
 
 #: Where each condition model lives (the ball's whether or not this checkout has them).
 CONDITION_CHECKPOINTS = _condition_files()
-SHIPPED_CHECKPOINTS.update({k: p for k, p in CONDITION_CHECKPOINTS.items() if p.exists()})
+# the ball's join its shipped checkpoints; another system's stay with that system's models
+# (as ``_points.SYSTEM_CHECKPOINTS``), loaded by name through :func:`checkpoint_path`
+SHIPPED_CHECKPOINTS.update({k: p for k, p in CONDITION_CHECKPOINTS.items()
+                            if p.exists() and k.count("/") == 1})
 
 
 def shipped_conditions() -> dict[tuple[str, str], str]:
     """``{(system, condition): checkpoint name}`` of every condition model in this checkout."""
     out = {}
-    for name in CONDITION_CHECKPOINTS:
-        if name in SHIPPED_CHECKPOINTS:
+    for name, path in CONDITION_CHECKPOINTS.items():
+        if path.exists():
             parts = name.split("/")
             system = parts[1] if len(parts) == 3 else "ball"
             out[system, parts[-1].replace("_", ":", 1)] = name
@@ -106,9 +109,12 @@ SHIPPED_CHECKPOINT = SHIPPED_CHECKPOINTS["28x28"]
 
 
 def checkpoint_path(checkpoint) -> Path:
-    """A shipped checkpoint's name (``SHIPPED_CHECKPOINTS``) as its path; a path as given."""
+    """A shipped checkpoint's name (``SHIPPED_CHECKPOINTS``, or a system's condition model in
+    ``CONDITION_CHECKPOINTS``) as its path; a path as given."""
     if isinstance(checkpoint, str) and checkpoint in SHIPPED_CHECKPOINTS:
         return SHIPPED_CHECKPOINTS[checkpoint]
+    if isinstance(checkpoint, str) and checkpoint in CONDITION_CHECKPOINTS:
+        return CONDITION_CHECKPOINTS[checkpoint]
     return Path(checkpoint)
 
 
