@@ -62,7 +62,6 @@ def test_every_checkpoint_file_is_a_shipped_checkpoint():
     # so that every test over SHIPPED_CHECKPOINTS (the NumPy path's, the stages') sees every file
     assert FILES, f"no checkpoint files under {CKPT_DIR}"
     from methods.vid2param._points import SYSTEM_CHECKPOINTS
-
     from methods.vid2param.checkpoint import CONDITION_CHECKPOINTS
 
     systems_ = {p.resolve() for p in SYSTEM_CHECKPOINTS.values() if p.exists()}

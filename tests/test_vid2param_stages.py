@@ -223,11 +223,9 @@ def test_the_sensitivity_conditions_agree_with_the_benchmarks():
     # methods import no benchmark code, so the condition list and each condition's training
     # data are written in methods/vid2param; the benchmark (a test may import it) must agree
     from methods.vid2param.checkpoint import SENSITIVITY_CONDITIONS
-    from methods.vid2param.conditions import condition_data
+    from methods.vid2param.conditions import condition_data, conditions_of
     from sysid_bench.bench.cases import get_scale
     from sysid_bench.bench.sensitivity import _train_spec
-
-    from methods.vid2param.conditions import conditions_of
 
     assert list(SENSITIVITY_CONDITIONS) == get_scale("default").sensitivity_conditions()
     for c in SENSITIVITY_CONDITIONS:

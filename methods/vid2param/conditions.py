@@ -36,8 +36,8 @@ import sys
 from pathlib import Path
 
 from methods.vid2param.checkpoint import (
-    SENSITIVITY_CONDITIONS,
     _CKPT_DIR,
+    SENSITIVITY_CONDITIONS,
     condition_checkpoint,
     system_conditions,
 )

@@ -230,7 +230,7 @@ def check_system_sensitivity_variants(system: System) -> None:
         low = split == "train"
         assert (u <= 0.5 + 1e-9).all() if low else (u >= 0.5 - 1e-9).all(), \
             f"sample_variant('extrapolation', {split!r}): {system.params[j]} on the wrong side"
-        assert np.allclose(dist, u - 0.5), f"sample_variant('extrapolation'): distance is not " \
+        assert np.allclose(dist, u - 0.5), "sample_variant('extrapolation'): distance is not " \
             "the value's distance above the training range"
     if system.simplified_params:
         th, _, _, _ = system.sample_variant(30, 7, "train", "simplified")
