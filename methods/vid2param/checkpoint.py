@@ -31,7 +31,7 @@ from sysid_bench.core._io import atomic_write
 __all__ = ["FORMAT", "FORMAT_VERSION", "RENAMED", "save_atomic", "load_checkpoint", "build_net",
            "upgrade_state_dict", "upgrade_optimizer_state", "git_info", "SHIPPED_CHECKPOINTS",
            "SHIPPED_CHECKPOINT", "SENSITIVITY_CONDITIONS", "CONDITION_CHECKPOINTS",
-           "NOISE_LEVELS", "system_conditions", "shipped_conditions",
+           "NOISE_LEVELS", "system_conditions", "shipped_conditions", "condition_path",
            "checkpoint_path", "condition_checkpoint", "record_name"]
 
 FORMAT = "vid2param-checkpoint"
@@ -77,11 +77,15 @@ def condition_checkpoint(condition: str, system: str = "ball") -> str:
     return f"sensitivity/{name}" if system == "ball" else f"sensitivity/{system}/{name}"
 
 
+def condition_path(condition: str, system: str = "ball") -> Path:
+    """Where the model of ``condition`` of ``system`` lives (whether or not it exists)."""
+    return _CKPT_DIR / f"{condition_checkpoint(condition, system)}.pt"
+
+
 def _condition_files() -> dict[str, Path]:
     """The ball's declared condition models, and every system's found on disk
     (``checkpoints/sensitivity/<system>/<condition>.pt``)."""
-    out = {condition_checkpoint(c): _CKPT_DIR / f"{condition_checkpoint(c)}.pt"
-           for c in SENSITIVITY_CONDITIONS}
+    out = {condition_checkpoint(c): condition_path(c) for c in SENSITIVITY_CONDITIONS}
     for f in sorted((_CKPT_DIR / "sensitivity").glob("*/*.pt")):
         out[f"sensitivity/{f.parent.name}/{f.stem}"] = f
     return out

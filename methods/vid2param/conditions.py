@@ -36,9 +36,9 @@ import sys
 from pathlib import Path
 
 from methods.vid2param.checkpoint import (
-    _CKPT_DIR,
     SENSITIVITY_CONDITIONS,
     condition_checkpoint,
+    condition_path,
     system_conditions,
 )
 
@@ -58,8 +58,9 @@ SYSTEM_CONDITION_TRAIN = {"steps": 800, "points_steps": 800, "nll_only_steps": 8
 
 
 def conditions_of(system: str = "ball") -> tuple[str, ...]:
-    """The conditions of ``system`` (the ball's :data:`SENSITIVITY_CONDITIONS`)."""
-    return SENSITIVITY_CONDITIONS if system == "ball" else system_conditions(system)
+    """The conditions of ``system`` (``system_conditions``; the ball's are
+    :data:`SENSITIVITY_CONDITIONS`, a test checks the two agree)."""
+    return system_conditions(system)
 
 
 def condition_data(condition: str, system: str = "ball") -> tuple[str, dict]:
@@ -74,10 +75,6 @@ def condition_data(condition: str, system: str = "ball") -> tuple[str, dict]:
     if kind == "noise":
         return "noisy", {"label_noise": float(arg)}
     return "simplified", {}
-
-
-def _dest(condition: str, system: str) -> Path:
-    return _CKPT_DIR / f"{condition_checkpoint(condition, system)}.pt"
 
 
 def train_condition(condition: str, out, threads: int = 1, device: str = "auto",
@@ -114,7 +111,7 @@ def train_condition(condition: str, out, threads: int = 1, device: str = "auto",
     _, info = train(mc, tc, out=run, device=device, progress=progress, max_minutes=max_minutes)
     if not info["done"]:
         return None
-    dest = _dest(condition, system)
+    dest = condition_path(condition, system)
     dest.parent.mkdir(parents=True, exist_ok=True)
     # the recipe's last phase, as the shipped models of the system
     return export(run / "state.pt", dest, stages=stages)
@@ -148,7 +145,7 @@ def main(argv=None) -> int:
     except ValueError as e:
         p.error(str(e))
     for c in todo:
-        dest = _dest(c, a.system)
+        dest = condition_path(c, a.system)
         if dest.exists() and not a.retrain:
             print(f"{c}: {dest} exists, skipped")
             continue

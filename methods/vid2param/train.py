@@ -1012,14 +1012,13 @@ def train(
     point_feed = _PointFeed(tc, mc.targets, mc.system) if tc.points_steps > start else None
     # with the positions unsupervised, the keypoint gate (the MLP's share of x, y) is held at
     # its value: the parameters' NLL would otherwise move the fed-back positions off the points
-    if (presets.space_of(mc.system) == presets.VIEW and tc.variant != "interleaved"
-            and tc.points_steps < tc.steps):
-        raise ValueError(f"variant: a {mc.system} network trains on {tc.variant!r} data in its "
-                         f"points curriculum only, expected points_steps = steps = {tc.steps}, "
-                         f"got points_steps = {tc.points_steps}")
     hold_gate = point_feed is not None and not tc.points_positions
     net.keypoints.gate.requires_grad_(not hold_gate)
     view = presets.space_of(mc.system) == presets.VIEW
+    if view and tc.variant != "interleaved" and tc.points_steps < tc.steps:
+        raise ValueError(f"variant: a {mc.system} network trains on {tc.variant!r} data in its "
+                         f"points curriculum only, expected points_steps = steps = {tc.steps}, "
+                         f"got points_steps = {tc.points_steps}")
     if view and tc.perturb:
         raise ValueError(f"perturb: the ball's physics deviations, expected None for the "
                          f"{mc.system} system, got {tc.perturb!r}")
