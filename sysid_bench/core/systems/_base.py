@@ -383,10 +383,7 @@ class System(abc.ABC):
             if isinstance(s, bool) or not isinstance(s, (int, float)) or not 0 <= s <= 1:
                 raise ValueError(f"label_noise: expected a fraction of the range in [0, 1], "
                                  f"got {s!r}")
-        if "theta" in inspect.signature(self.sample_state0).parameters:
-            state0 = self.sample_state0(n, rng, theta=theta)
-        else:
-            state0 = self.sample_state0(n, rng)
+        state0 = self._state0_for(n, rng, theta)
         if variant == "noisy" and train and opts["label_noise"] > 0:
             # drawn last: the trajectories are the clean condition's, only the labels move
             labels = theta + rng.normal(0.0, opts["label_noise"] * (self.prior_hi - self.prior_lo),
@@ -753,9 +750,14 @@ class System(abc.ABC):
         """
         rng = check_seed(rng)
         theta = self.sample_theta(n, rng, split)
+        return theta, self._state0_for(n, rng, theta)
+
+    def _state0_for(self, n: int, rng, theta: np.ndarray) -> np.ndarray:
+        """:meth:`sample_state0` for ``theta``, passed where its signature takes it (a subclass
+        written before the keyword existed still works)."""
         if "theta" in inspect.signature(self.sample_state0).parameters:
-            return theta, self.sample_state0(n, rng, theta=theta)
-        return theta, self.sample_state0(n, rng)
+            return self.sample_state0(n, rng, theta=theta)
+        return self.sample_state0(n, rng)
 
     @abc.abstractmethod
     def _observe(self, states: np.ndarray, theta: np.ndarray) -> np.ndarray:
