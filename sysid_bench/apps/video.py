@@ -73,6 +73,7 @@ __all__ = [
     "observe",
     "identify_video",
     "default_method",
+    "ball_method",
     "IdentifyResult",
     "write_outputs",
     "add_arguments",
@@ -137,6 +138,10 @@ def _checkpoint_of(est) -> str | None:
     return est.checkpoint or getattr(est, "default_checkpoint", None)
 
 
+#: how far from 1 a clip's width over height may be and still be the renderer's square view
+_SQUARE_TOL = 0.02
+
+
 def default_method() -> str:
     """The method ``identify`` uses when none is named: the first registered one that
     identifies from frames (registry order; a frame model reads the video as it was trained),
@@ -155,6 +160,31 @@ def default_method() -> str:
     raise ValueError("method: no registered method identifies")
 
 
+def _fall_scaled(camera, known, geometry) -> bool:
+    """A known g and neither a camera nor the renderer's box given: a camera's clip may take
+    its scale from the ball's fall (when it is not the renderer's square view)."""
+    return (not camera and "g" in (known or {})
+            and not any(v is not None for v in (geometry or {}).values()))
+
+
+def ball_method(path, *, camera: dict | None = None, known: dict | None = None,
+                geometry: dict | None = None, rotate: int = 0) -> str:
+    """The method ``identify`` uses on the ball when none is named.
+
+    On the renderer's view, :func:`default_method` (a frame model reads the video as it was
+    trained). On a camera's clip (a camera given, or a known g on a clip that is not the
+    renderer's square view, so its scale comes from the fall), the same choice as on every
+    other system (:func:`sysid_bench.apps.video_systems.camera_method`): a frame model would
+    see the track re-drawn in a view it was not trained on, at 20 frames/s.
+    """
+    from sysid_bench.apps.video_systems import _clip_shape, camera_method
+
+    if not camera and _fall_scaled(camera, known, geometry):
+        shape = _clip_shape(path, int(rotate))
+        camera = shape is not None and abs(shape[1] / shape[0] - 1.0) > _SQUARE_TOL
+    return camera_method("ball") if camera else default_method()
+
+
 def identify_video(path, *, method: str | None = None, checkpoint: str | None = None,
                    geometry: dict | None = None, every: int | None = None, horizon: int = 20,
                    seed: int = 0, progress: bool | None = None, camera: dict | None = None,
@@ -168,7 +198,7 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     path : str or Path
     method : str, optional
         A registered identifying method (``methods.available()``); default
-        :func:`default_method`.
+        :func:`ball_method` (a frame model on the renderer's view, emcee on a camera's clip).
     checkpoint : str, optional
         The checkpoint of a method that takes one (Vid2Param: ``"28x28"``, its default, or
         ``"camera"``, a 50x100 view).
@@ -213,7 +243,8 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     from sysid_bench.bench.experiment import streams
 
     if method is None:
-        method = default_method()
+        method = ball_method(path, camera=camera, known=known, geometry=geometry,
+                             rotate=rotate)
     if method not in methods.available(include_reference=True):
         raise ValueError(f"method: expected one of {', '.join(methods.available())}, got "
                          f"{method!r}")
@@ -227,8 +258,7 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     # for a frame rate (Vid2Param) gets the clip resampled to it, and the notes say so
     rate = frame_rate_of(est)
     # a known g and no camera or box given: a camera's clip may take its scale from the fall
-    by_fall = (not camera and "g" in (known or {})
-               and not any(v is not None for v in (geometry or {}).values()))
+    by_fall = _fall_scaled(camera, known, geometry)
     clip = read_video(path, rate, progress=progress, start=start, end=end,
                       capture_fps=capture_fps, colour=bool(camera) or by_fall)
     resampled = len(clip.frames) != clip.source_frames or abs(clip.fps - clip.source_fps) > 1e-9
@@ -247,7 +277,7 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
                      "capture's own dt)")
     cam = None
     k0 = 0  # the window's frames left out before the ball is first seen (camera clips)
-    if by_fall and abs(w / h - 1.0) > 0.02:
+    if by_fall and abs(w / h - 1.0) > _SQUARE_TOL:
         # not the renderer's square view: a camera's clip, its scale from the known g's fall
         camera = {"px_per_m": None, "object_size_m": None, "floor_row": None, "walls": None}
         notes.append(f"the clip is {w}x{h}, not the renderer's square view of the box: read as "
@@ -528,8 +558,9 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--system", default="ball",
                    help="the system seen (sysid_bench.core.systems.available(); default ball)")
     p.add_argument("--method", default=None,
-                   help="identifying method (default: the first registered one that reads "
-                        "frames; with a camera on another system, the first position method)")
+                   help="identifying method (default: on the renderer's view, the first "
+                        "registered one that reads frames; on a camera's clip, emcee, else "
+                        "lsq)")
     p.add_argument("--checkpoint", default=None, choices=("28x28", "camera"),
                    help="ball: the model of a method that takes a checkpoint: 28x28 (its "
                         "default) or camera (100x50 view)")
@@ -760,7 +791,9 @@ def run(args) -> int:
         if name not in _PAPER_PIPELINE:
             return _run_system(args, name, known, prior, camera, out)
         if args.method is None:
-            args.method = default_method()
+            args.method = ball_method(args.video, camera=camera, known=known,
+                                      geometry=None if camera else geometry,
+                                      rotate=int(args.rotate or 0))
         out = out or default_out(args.video, args.method)
         horizon = 20 if args.horizon is None else args.horizon
         res = identify_video(args.video, method=args.method, checkpoint=args.checkpoint,
