@@ -233,6 +233,19 @@ def identify_system_video(path, system: str, *, method: str | None = None,
     if not lengths:
         raise ValueError(f"video: expected at least 3 frames at {model_fps:.4g} frames/s, "
                          f"got {t}")
+    if methods.spec(name).input_kind != "frames":
+        # a position method needs the object seen in 3 frames of a prefix: the first
+        # half-second may hold it in 1 (a fast 20 cm pull lost in its blur), which refused the
+        # whole clip; its estimates start at the first prefix that has them
+        seen = np.cumsum(np.isfinite(points).all(axis=(1, 2)))
+        ready = [n for n in lengths if seen[n - 1] >= 3]
+        if not ready:
+            raise ValueError(f"positions: expected the {sys_.name} system's points seen in at "
+                             f"least 3 frames, got {int(seen[-1])} of {t}")
+        if len(ready) < len(lengths):
+            notes.append(f"{name}'s first estimate is after frame {ready[0]}: the object was "
+                         f"seen in fewer than 3 frames before it")
+        lengths = ready
     posts = est.identify_prefixes(obs, lengths)
     p = sys_.n_params
     mean, std = np.full((t, p), np.nan), np.full((t, p), np.nan)
