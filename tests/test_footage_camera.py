@@ -479,3 +479,18 @@ def test_a_prefix_without_the_object_is_skipped_not_fatal(tmp_path, capsys):
     done = [r["frame"] for r in info["estimates"] if r.get("w2_mean") is not None]
     assert done[0] >= 15  # the first prefix seeing 3 frames (12, 13, 14 at least)
     assert any("first estimate is after frame" in n for n in info["notes"])
+
+
+def test_a_vertical_motion_of_a_horizontal_system_says_rotate():
+    """A spring hung vertically and filmed upright: the note names --rotate; a spring moving
+    across, and a pendulum (it moves in the plane), get none."""
+    from sysid_bench.core import systems
+
+    t = np.arange(60) / 20.0
+    up_down = np.stack([400 + 2 * np.sin(7 * t), 300 + 80 * np.sin(4 * t)], axis=1)
+    across = up_down[:, ::-1].copy()
+    up_down[::7] = np.nan  # unseen frames are left out
+    note = footage.axis_note(systems.get("spring"), up_down)
+    assert note is not None and "--rotate 90" in note and "spring" in note
+    assert footage.axis_note(systems.get("spring"), across) is None
+    assert footage.axis_note(systems.get("pendulum"), up_down) is None
