@@ -192,6 +192,27 @@ def _sample(log_prob, p0: np.ndarray, n_steps: int, n_burn: int, rng: np.random.
     return chain, tau, tau_max, acc, kept, converged
 
 
+def _ball_noise_inflation(prob: _Problem, theta: np.ndarray, state0: np.ndarray,
+                          floor: float) -> tuple[float, dict]:
+    """:func:`methods._points.noise_inflation` on the ball: ``max(1, rms sqrt(tau) / sigma)``
+    of the residuals of ``theta`` (4,) from ``state0`` (4,) on ``floor`` (1 simulation), and
+    its record (``residual_rms_m``, ``residual_tau``, ``noise_inflation``)."""
+    from methods._points import residual_tau
+    from methods._simulation import _residuals
+
+    tr = prob.track
+    s0 = tr.state0 if tr.state0_known else state0
+    fl = tr.floor if tr.floor_known else floor
+    res = _residuals(prob.sim, theta, s0, fl, tr)
+    ok = np.isfinite(res)
+    if not ok.any():
+        return 1.0, {}
+    rms = float(np.sqrt(np.mean(res[ok] ** 2)))
+    tau = residual_tau(res)
+    k = max(1.0, rms * np.sqrt(tau) / prob.sigma)
+    return float(k), {"residual_rms_m": rms, "residual_tau": tau, "noise_inflation": float(k)}
+
+
 class Emcee(SimulationOnSystems):
     """Ensemble MCMC (``emcee``) of the physical parameters, started at the likelihood's peak.
 
@@ -412,6 +433,16 @@ class Emcee(SimulationOnSystems):
         lap_std = np.sqrt(np.diag(cov)[:4]) * prob.box.span
         if not converged:
             std = np.maximum(std, lap_std)
+        mean = theta.mean(axis=0)
+        # white-noise likelihood: widened where the track errs by more than sigma, in runs of
+        # frames, as on every other system (``_fit_points``); a render's track (under sigma,
+        # white) keeps factor 1 and its samples as they are. A camera's ball (tracked centres
+        # biased near the floor) read e 4 stds off with the check passing without it.
+        k, noise = _ball_noise_inflation(prob, mean, np.asarray(s0).mean(axis=0),
+                                         float(np.mean(floors)))
+        if k > 1.0:
+            theta = np.clip(mean + k * (theta - mean), prob.box.lo, prob.box.hi)
+            std = np.minimum(k * std, prob.box.std)
         extras = {
             "n_simulations": sim.n_simulations,
             "wall_s": clock(),
@@ -423,10 +454,11 @@ class Emcee(SimulationOnSystems):
             "laplace_std": lap_std.tolist(),
             "n_dim": prob.ndim,
             "state0_before_contact": track.state0_refit,
+            **noise,
             **info,
             **track.describe(),
         }
-        post = Posterior(mean=theta.mean(axis=0), std=std, samples=theta, extras=extras)
+        post = Posterior(mean=mean, std=std, samples=theta, extras=extras)
         return Fit(post, theta, np.asarray(s0), floors, track, sim, clock)
 
     def _fit_points(self, obs: Observation, part: Points) -> PointsFit:

@@ -61,3 +61,38 @@ def test_a_drifting_track_error_widens_the_spread():
     assert np.all(out >= lo) and np.all(out <= hi)
     assert np.all(std <= prob.pspan / np.sqrt(12) + 1e-12)
     assert std[1] == pytest.approx(k * samples.std(0)[1])
+
+
+def _ball_track(noise, seed):
+    from sysid_bench.core import physics
+
+    theta = np.array([[0.75, -9.81, 0.02, 0.3]])
+    state0 = np.array([[2.0, 6.0, 2.0, 0.0]])
+    pos = physics.simulate(theta, state0, 120, 0.05, 0.0)[0][:, :2]
+    return pos + noise(np.random.default_rng(seed), pos.shape)
+
+
+def _emcee_ball(pos):
+    import methods
+
+    est = methods.get("emcee", n_steps=300, n_burn=150)
+    return est.identify(Observation(positions=pos, dt=0.05, floor=0.0))
+
+
+def test_the_balls_emcee_is_widened_where_its_track_errs_in_runs():
+    """The ball's sampler as every system's: a clean track keeps its spread (factor 1), a
+    track off by 5 cm in runs of 20 frames (a camera's centres biased near the floor) is
+    widened by the factor its residuals measure."""
+    clean = _emcee_ball(_ball_track(lambda r, sh: 0.004 * r.standard_normal(sh), 5))
+    assert clean.extras["noise_inflation"] == 1.0
+
+    def runs(r, sh):
+        steps = np.repeat(r.standard_normal((sh[0] // 20 + 1, sh[1])), 20, axis=0)
+        return 0.05 * steps[: sh[0]] + 0.004 * r.standard_normal(sh)
+
+    drift = _emcee_ball(_ball_track(runs, 6))
+    k = drift.extras["noise_inflation"]
+    assert drift.extras["residual_tau"] > 5 and k > 2
+    # e and g: the spread grew with the factor (capped at the prior's), the samples with it
+    assert np.all(drift.std[:2] > 1.5 * clean.std[:2])
+    assert np.allclose(drift.samples.std(axis=0)[:2], drift.std[:2], rtol=0.2)
