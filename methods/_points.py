@@ -505,13 +505,32 @@ def noise_inflation(prob: Problem, theta: np.ndarray | None = None,
     if res is None:
         res = prob.point_residuals(np.asarray(theta, dtype=np.float64),
                                    np.ascontiguousarray(np.asarray(state0, dtype=np.float64)))
+    return residual_inflation(res, prob.sigma)
+
+
+def residual_inflation(res: np.ndarray, sigma: float) -> tuple[float, dict]:
+    """:func:`noise_inflation`'s factor from residuals ``res`` (T, ...) (NaN where unseen) and
+    the likelihood's noise ``sigma`` (m): ``max(1, rms * sqrt(tau) / sigma)``, and its record
+    (``residual_rms_m``, ``residual_tau``, ``noise_inflation``; empty with factor 1 when no
+    residual is finite). The ball's samplers call it on their own tracks."""
     ok = np.isfinite(res)
     if not ok.any():
         return 1.0, {}
     rms = float(np.sqrt(np.mean(res[ok] ** 2)))
     tau = residual_tau(res)
-    k = max(1.0, rms * np.sqrt(tau) / prob.sigma)
+    k = max(1.0, rms * np.sqrt(tau) / sigma)
     return float(k), {"residual_rms_m": rms, "residual_tau": tau, "noise_inflation": float(k)}
+
+
+def inflate_in_box(samples: np.ndarray, mean: np.ndarray, std: np.ndarray, k: float, lo, hi):
+    """:func:`inflate` for a box given by its bounds ``lo``, ``hi`` (P,) each: samples (N, P)
+    spread ``k`` times wider about ``mean`` and clipped into the box, ``std`` times ``k`` up to
+    the box's uniform std. ``k <= 1``: both returned as they are (the same objects)."""
+    if k <= 1.0:
+        return samples, std
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    out = np.clip(mean + k * (samples - mean), lo, hi)
+    return out, np.minimum(k * np.asarray(std, dtype=np.float64), (hi - lo) / np.sqrt(12.0))
 
 
 def inflate(prob: Problem, samples: np.ndarray, std: np.ndarray, k: float):

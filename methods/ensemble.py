@@ -55,8 +55,10 @@ from methods._points import (
     SimulationOnSystems,
     draw_inside,
     inflate,
+    inflate_in_box,
     noise_inflation,
     refine,
+    residual_inflation,
     search,
 )
 from methods._simulation import Fit, Stopwatch, box_of, make_rng, one_blas_thread
@@ -194,23 +196,14 @@ def _sample(log_prob, p0: np.ndarray, n_steps: int, n_burn: int, rng: np.random.
 
 def _ball_noise_inflation(prob: _Problem, theta: np.ndarray, state0: np.ndarray,
                           floor: float) -> tuple[float, dict]:
-    """:func:`methods._points.noise_inflation` on the ball: ``max(1, rms sqrt(tau) / sigma)``
-    of the residuals of ``theta`` (4,) from ``state0`` (4,) on ``floor`` (1 simulation), and
-    its record (``residual_rms_m``, ``residual_tau``, ``noise_inflation``)."""
-    from methods._points import residual_tau
+    """:func:`methods._points.residual_inflation` of the residuals of ``theta`` (4,) from
+    ``state0`` (4,) on ``floor`` against the ball's track (1 simulation)."""
     from methods._simulation import _residuals
 
     tr = prob.track
     s0 = tr.state0 if tr.state0_known else state0
     fl = tr.floor if tr.floor_known else floor
-    res = _residuals(prob.sim, theta, s0, fl, tr)
-    ok = np.isfinite(res)
-    if not ok.any():
-        return 1.0, {}
-    rms = float(np.sqrt(np.mean(res[ok] ** 2)))
-    tau = residual_tau(res)
-    k = max(1.0, rms * np.sqrt(tau) / prob.sigma)
-    return float(k), {"residual_rms_m": rms, "residual_tau": tau, "noise_inflation": float(k)}
+    return residual_inflation(_residuals(prob.sim, theta, s0, fl, tr), prob.sigma)
 
 
 class Emcee(SimulationOnSystems):
@@ -440,9 +433,7 @@ class Emcee(SimulationOnSystems):
         # biased near the floor) read e 4 stds off with the check passing without it.
         k, noise = _ball_noise_inflation(prob, mean, np.asarray(s0).mean(axis=0),
                                          float(np.mean(floors)))
-        if k > 1.0:
-            theta = np.clip(mean + k * (theta - mean), prob.box.lo, prob.box.hi)
-            std = np.minimum(k * std, prob.box.std)
+        theta, std = inflate_in_box(theta, mean, std, k, prob.box.lo, prob.box.hi)
         extras = {
             "n_simulations": sim.n_simulations,
             "wall_s": clock(),

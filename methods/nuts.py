@@ -157,8 +157,10 @@ from methods._points import (
     SimulationOnSystems,
     _system,
     inflate,
+    inflate_in_box,
     noise_inflation,
     refine,
+    residual_inflation,
     search,
     sq_error,
 )
@@ -853,7 +855,17 @@ class NUTS(SimulationOnSystems):
             extras["floor_box"] = [fl_lo, fl_hi]
             extras["floor_rhat"] = float(split_gelman_rubin(fls[..., None])[0])
             extras["floor_ess"] = float(effective_sample_size(fls[..., None])[0])
-        post = Posterior(mean=flat.mean(0), std=flat.std(0, ddof=1), samples=flat, extras=extras)
+        # white-noise likelihood: widened where the track errs by more than sigma, in runs of
+        # frames, as on every other system (``_fit_on_points``); measured at the mode's
+        # trajectory (simulated above). A render's track keeps factor 1, its draws as they are
+        seen = track.mask[:, None]
+        k, noise = residual_inflation(
+            np.where(seen, fit[0] - np.where(seen, track.positions, 0.0), np.nan), sigma)
+        extras.update(noise)
+        tb = box_of(track)
+        mean = flat.mean(0)
+        flat, std = inflate_in_box(flat, mean, flat.std(0, ddof=1), k, tb.lo, tb.hi)
+        post = Posterior(mean=mean, std=std, samples=flat, extras=extras)
         # per-draw floors when sampled: the model check simulates from their mean, a forecast
         # continues each draw with its own
         floors = fls.reshape(-1) if free_floor else track.floor
