@@ -218,7 +218,7 @@ def test_the_rounding_of_given_options_reaches_the_intervals(ran):
     assert cc.camera.scale_rel_std == pytest.approx(
         opts["px_per_m"].resolution / math.sqrt(12.0) / s)
     # the section's cached track carries the same
-    _, _, rel, param_std, _, _ = cam_exp.case_observation(video, "spring", truth["options"])
+    _, _, rel, param_std, *_ = cam_exp.case_observation(video, "spring", truth["options"])
     assert param_std == pytest.approx(cc.camera.param_std) and rel == cc.camera.scale_rel_std
     std = footage.widen_for_placement(("w2", "k3", "c", "L0"), np.zeros(4), param_std)
     assert std[3] == pytest.approx(param_std["L0"]) and not std[:3].any()

@@ -494,3 +494,41 @@ def test_a_vertical_motion_of_a_horizontal_system_says_rotate():
     assert note is not None and "--rotate 90" in note and "spring" in note
     assert footage.axis_note(systems.get("spring"), across) is None
     assert footage.axis_note(systems.get("pendulum"), up_down) is None
+
+
+def test_a_held_length_read_through_an_uncertain_scale_is_loosened():
+    """g held with the scale from the bob's size (6.7% uncertain): searched within 2 of the
+    scale's stds of the user's value; held where the scale came from it, or is near exact."""
+    k, p, loose = footage.loosen_held("pendulum", {"g": -9.81}, {"b": (0.0, 0.3)}, 0.067,
+                                      "object_size_m=0.07: ...")
+    assert k == {} and p["b"] == (0.0, 0.3)
+    lo, hi = loose["g"]
+    assert p["g"] == (lo, hi) and lo == pytest.approx(-9.81 * 1.134) and hi == pytest.approx(
+        -9.81 * 0.866)
+    # the scale read from the held value itself, a ruler's rounding, a parameter without length
+    assert footage.loosen_held("pendulum", {"L": 0.9}, {}, 0.05, "known L=0.9: the arc")[2] == {}
+    assert footage.loosen_held("pendulum", {"g": -9.81}, {}, 0.0002, "px_per_m=400 given")[2] == {}
+    assert footage.loosen_held("pendulum", {"b": 0.1}, {}, 0.067, "object_size_m=0.07")[2] == {}
+
+
+@pytest.mark.slow  # ~20 s: a 6 s camera clip of the pendulum through lsq
+def test_a_held_g_with_an_uncertain_scale_keeps_the_friction_honest(tmp_path, capsys):
+    """A portrait phone clip of a pendulum, g held, scale from the bob's 7 cm (14.8 px: 6.7%):
+    held exactly, the period's mismatch went into the friction (b 0 +- 0.06, mu 0.29 +- 0.07
+    against 0.165 and 0.071); searched within the scale's spread, both hold the truth."""
+    from sysid_bench.apps.cli import main
+    from sysid_bench.core.camera_footage import Shot, write_clip
+
+    clip, meta = write_clip(Shot("pendulum", seed=7, fps=30, duration_s=6.0, size=(640, 360)),
+                            tmp_path, "pend")
+    truth = json.loads(meta.read_text())["theta"]
+    out = tmp_path / "o"
+    assert main(["identify", str(clip), "--system", "pendulum", "--start", "1.2", "--known",
+                 "g=-9.81", "--object-size-m", "0.0699", "--method", "lsq", "--every", "1000",
+                 "--out", str(out), "--no-progress"]) == 0, capsys.readouterr().err
+    info = json.loads((out / "estimates.json").read_text())
+    last = info["estimates"][-1]
+    assert last["g_mean"] == -9.81 and last["g_std"] == 0.0  # reported as the user's
+    for p in ("b", "mu"):
+        assert abs(last[f"{p}_mean"] - truth[p]) < 3 * last[f"{p}_std"], (p, last)
+    assert any("held within the scale's uncertainty" in n for n in info["notes"])

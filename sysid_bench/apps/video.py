@@ -46,6 +46,7 @@ from sysid_bench.core.footage import (  # the core half (files, geometry, the tr
     find_object,
     geometry_from_options,
     knowledge_record,
+    loosen_held,
     model_frames,
     observe,
     parse_known,
@@ -276,6 +277,7 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
                      "(a method that simulates at any step, e.g. lsq, reads every frame at the "
                      "capture's own dt)")
     cam = None
+    loose: dict = {}  # held values searched within the scale's spread (loosen_held)
     k0 = 0  # the window's frames left out before the ball is first seen (camera clips)
     if by_fall and abs(w / h - 1.0) > _SQUARE_TOL:
         # not the renderer's square view: a camera's clip, its scale from the known g's fall
@@ -300,6 +302,13 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
                          "left out)")
         cam = camera_for("ball", trk, (h, w), **camera, known=known, rotate=int(rotate),
                          dt=1.0 / clip.fps)
+        if held and known:
+            # a held length read through an uncertain scale: searched within the scale's
+            # spread of the user's value (reported as held), not pushed into e, d, r
+            k2, p2, loose = loosen_held("ball", known, prior or {}, cam.scale_rel_std,
+                                        cam.source)
+            if loose:
+                est = _estimator(method, checkpoint, seed, k2, p2)
         pos = cam.to_metres(trk.pixels)
         if is_video:
             obs = Observation(frames=model_frames(pos, size), dt=1.0 / clip.fps, floor=0.0)
@@ -412,6 +421,15 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         if held and known:  # a held value is the user's, not measured through the scale
             cols = [PARAMS.index(k) for k in known]
             std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
+            for k in loose:  # searched within the scale's spread: reported as held
+                j = PARAMS.index(k)
+                mean[:, j] = np.where(np.isnan(mean[:, j]), np.nan, float(known[k]))
+    if loose:
+        notes.append("held within the scale's uncertainty while fitting (reported as held): "
+                     + ", ".join(f"{k} = {known[k]:g} searched in {a:.4g} to {b:.4g}"
+                                 for k, (a, b) in loose.items())
+                     + f" (the scale is {100 * cam.scale_rel_std:.2g}% uncertain; held exactly, "
+                     "its error would be read into the other parameters)")
     notes.extend(bound_notes(mean, known, prior))
     res = IdentifyResult(mean, std, pos, fmean, fstd, info, check)
     res.info["estimated"] = estimated

@@ -172,6 +172,7 @@ def identify_system_video(path, system: str, *, method: str | None = None,
     from sysid_bench.core.footage import (
         PERIOD_SCALED,
         knowledge_record,
+        loosen_held,
         observe_clip,
         read_video,
         rotate_frames,
@@ -222,7 +223,13 @@ def identify_system_video(path, system: str, *, method: str | None = None,
                      "capture's own dt)")
     # a method that takes the user's knowledge holds it (issue 38 §4); the others say they did not
     takes = {"known", "prior"} <= set(methods.get(name, system=sys_.name).get_params())
+    loose: dict = {}
     give = {"known": dict(known or {}), "prior": dict(prior or {})} if takes else {}
+    if takes and cam is not None and known:
+        # a held length read through an uncertain scale: searched within the scale's spread
+        # of the user's value, so its error does not land in the other parameters
+        k2, p2, loose = loosen_held(sys_, known, prior or {}, cam.scale_rel_std, cam.source)
+        give = {"known": k2, "prior": p2}
     est = methods.get(name, system=sys_.name, **give)
     est.fit(None)
     t = obs.n_frames
@@ -266,6 +273,15 @@ def identify_system_video(path, system: str, *, method: str | None = None,
         # a held value is the user's, not measured through the camera
         cols = [sys_.params.index(k) for k in known]
         std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
+        for k in loose:  # searched within the scale's spread while fitting: reported as held
+            j = sys_.params.index(k)
+            mean[:, j] = np.where(np.isnan(mean[:, j]), np.nan, float(known[k]))
+    if loose:
+        notes.append("held within the scale's uncertainty while fitting (reported as held): "
+                     + ", ".join(f"{k} = {known[k]:g} searched in {a:.4g} to {b:.4g}"
+                                 for k, (a, b) in loose.items())
+                     + f" (the scale is {100 * cam.scale_rel_std:.2g}% uncertain; held exactly, "
+                     "its error would be read into the other parameters)")
     notes += bound_notes(mean, known if takes else None, prior if takes else None, 0.01,
                          system=sys_, check=check)
     know = knowledge_record(known or {}, prior or {}, name, held=takes,

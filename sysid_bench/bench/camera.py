@@ -114,6 +114,8 @@ def case_observation(video: Path, system: str, options, fps: float | None = None
     param_std : dict
         The rounding of a given placement, per parameter (:attr:`footage.Camera.param_std`).
     known, prior : dict
+    scale_source : str
+        Where the scale came from (:attr:`footage.Camera.source`).
     """
     from sysid_bench.core import footage, systems
     from sysid_bench.core.estimator import Observation
@@ -131,12 +133,13 @@ def case_observation(video: Path, system: str, options, fps: float | None = None
             pos, lost = z["positions"], z["lost"].astype(bool)
             dt, rel = float(z["dt"]), float(z["scale_rel_std"])
             param_std = json.loads(str(z["param_std"])) if "param_std" in z.files else {}
+            source = str(z["scale_source"]) if "scale_source" in z.files else ""
             # the clip's own scene (the collision's track and carts), when it is not the default
             fields = json.loads(str(z["scene"])) if "scene" in z.files else None
         scene = None if fields is None else sys_.scene(**fields)
         obs = Observation(positions=pos, dt=dt, system=sys_.name, scene=scene,
                           **sys_.known_geometry(scene))
-        return obs, lost, rel, param_std, known, prior
+        return obs, lost, rel, param_std, known, prior, source
     # at the capture's own dt, as identify reads it: resampled to 20 frames/s by the nearest
     # frame, a 30 frames/s clip has every other frame 1/60 s off its time (5 cm at 3 m/s): the
     # ball's clip 0 was fitted 26 mm RMS off and read g 19% and d 80% off, confidently (emcee,
@@ -150,9 +153,10 @@ def case_observation(video: Path, system: str, options, fps: float | None = None
     atomic_write(cache, lambda tmp: np.savez(
         tmp, positions=pos, lost=cc.lost, dt=np.float64(cc.observation.dt),
         scale_rel_std=np.float64(cc.camera.scale_rel_std),
-        param_std=np.array(json.dumps(cc.camera.param_std)), **extra))
+        param_std=np.array(json.dumps(cc.camera.param_std)),
+        scale_source=np.array(str(cc.camera.source)), **extra))
     return (cc.observation, cc.lost, float(cc.camera.scale_rel_std), dict(cc.camera.param_std),
-            cc.known, cc.prior)
+            cc.known, cc.prior, str(cc.camera.source))
 
 
 class Camera(Experiment):
@@ -214,13 +218,16 @@ class Camera(Experiment):
         if cap is not None and int(truth["n_frames"]) <= cap:
             cap = None
         try:
-            obs, lost, rel, param_std, known, prior = case_observation(
+            obs, lost, rel, param_std, known, prior, source = case_observation(
                 video, system, truth["options"], fps=rate, max_frames=cap)
         except ValueError as exc:  # identify refuses the clip with these options: no answer
             raise NotImplementedError(f"identify refuses this clip ({video.name}, "
                                       f"{' '.join(truth['options'])}): {exc}") from exc
         takes = {"known", "prior"} <= set(proto.get_params())
-        est = ctx.estimator(cell.method, system=system, known=known, prior=prior) if takes \
+        # a held length read through an uncertain scale is searched within its spread, as
+        # identify does (footage.loosen_held); it is still scored as held
+        k_fit, p_fit, _ = footage.loosen_held(system, known, prior, rel, source)
+        est = ctx.estimator(cell.method, system=system, known=k_fit, prior=p_fit) if takes \
             else proto
         t0 = time.perf_counter()
         post = est.identify(obs)

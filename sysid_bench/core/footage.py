@@ -76,6 +76,7 @@ __all__ = [
     "Camera",
     "camera_for",
     "widen_for_scale",
+    "loosen_held",
     "track_noise",
     "camera_check",
     "TRACK_CHECK_FACTOR",
@@ -2504,6 +2505,67 @@ def widen_for_scale(system: str, params, mean, std, scale_rel_std: float) -> np.
     q = np.array([LENGTH_POWER.get(system, {}).get(p, 0) for p in params], dtype=np.float64)
     m = np.asarray(mean, dtype=np.float64)
     return np.hypot(np.asarray(std, dtype=np.float64), np.abs(q * m) * float(scale_rel_std))
+
+
+#: a held value with a length in its unit is searched within this many of the scale's
+#: standard deviations of it (:func:`loosen_held`)
+HELD_SCALE_Z = 2.0
+#: ... when the scale's uncertainty moves it by at least this fraction (a ruler's rounding,
+#: 0.02%, leaves it held)
+HELD_SCALE_MIN = 0.005
+
+
+def loosen_held(system, known: dict, prior: dict, scale_rel_std: float,
+                scale_source: str = "") -> tuple[dict, dict, dict]:
+    """What a method holds and searches when a held value is read through an uncertain scale.
+
+    A value with length to the power ``q`` in its unit (:data:`LENGTH_POWER`: the pendulum's g
+    or L, the ball's g) held exactly while the positions in metres are ``1 + s`` times the true
+    ones contradicts them by ``|q| s``: the fit cannot move it, so the contradiction goes into
+    the parameters that can (a pendulum held at g = -9.81 with its scale from the bob's size,
+    6.7% uncertain: the period's mismatch read as pivot friction, b and mu 6 stds off with the
+    check passing). Such a value is searched instead within ``HELD_SCALE_Z |q| s`` of it (its
+    relative range, kept inside the physics' envelope); the caller reports it as held (the
+    user's value, std 0). A value the scale was read from (``scale_source`` starts with
+    ``"known NAME="``: the pendulum's arc for L, its period or the ball's fall for g) stays
+    held, as does one the scale moves by less than :data:`HELD_SCALE_MIN`.
+
+    Parameters
+    ----------
+    system : str or System
+    known : dict of str -> float
+    prior : dict of str -> (float, float)
+    scale_rel_std : float
+    scale_source : str
+        :attr:`Camera.source`.
+
+    Returns
+    -------
+    known : dict
+        What stays held.
+    prior : dict
+        The user's ranges plus the loosened values' ranges.
+    loosened : dict of str -> (float, float)
+        The ranges given to values the user held.
+    """
+    from sysid_bench.core import systems
+
+    sys_ = systems.get(system) if isinstance(system, str) else system
+    keep, rng, loose = dict(known or {}), dict(prior or {}), {}
+    for name, value in (known or {}).items():
+        q = abs(LENGTH_POWER.get(sys_.name, {}).get(name, 0))
+        half = HELD_SCALE_Z * q * float(scale_rel_std)
+        if q == 0 or str(scale_source).startswith(f"known {name}=") or \
+                q * float(scale_rel_std) < HELD_SCALE_MIN or float(value) == 0.0:
+            continue
+        elo, ehi = sys_.envelope[name]
+        a, b = sorted((float(value) * (1.0 - half), float(value) * (1.0 + half)))
+        a, b = max(a, float(elo)), min(b, float(ehi))
+        if not a < b:
+            continue
+        del keep[name]
+        rng[name] = loose[name] = (a, b)
+    return keep, rng, loose
 
 
 def widen_for_placement(params, std, param_std: dict) -> np.ndarray:
