@@ -52,6 +52,7 @@ from sysid_bench.core.footage import (  # the core half (files, geometry, the tr
     parse_known,
     parse_prior,
     read_video,
+    report_held,
     rotate_frames,
     thin_clip,
     turned_chroma,
@@ -421,15 +422,8 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         if held and known:  # a held value is the user's, not measured through the scale
             cols = [PARAMS.index(k) for k in known]
             std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
-            for k in loose:  # searched within the scale's spread: reported as held
-                j = PARAMS.index(k)
-                mean[:, j] = np.where(np.isnan(mean[:, j]), np.nan, float(known[k]))
-    if loose:
-        notes.append("held within the scale's uncertainty while fitting (reported as held): "
-                     + ", ".join(f"{k} = {known[k]:g} searched in {a:.4g} to {b:.4g}"
-                                 for k, (a, b) in loose.items())
-                     + f" (the scale is {100 * cam.scale_rel_std:.2g}% uncertain; held exactly, "
-                     "its error would be read into the other parameters)")
+    if loose:  # searched within the scale's spread while fitting: reported as held
+        notes.append(report_held(PARAMS, mean, known, loose, cam.scale_rel_std))
     notes.extend(bound_notes(mean, known, prior))
     res = IdentifyResult(mean, std, pos, fmean, fstd, info, check)
     res.info["estimated"] = estimated

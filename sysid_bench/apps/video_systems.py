@@ -175,6 +175,7 @@ def identify_system_video(path, system: str, *, method: str | None = None,
         loosen_held,
         observe_clip,
         read_video,
+        report_held,
         rotate_frames,
         thin_clip,
         widen_for_placement,
@@ -273,15 +274,8 @@ def identify_system_video(path, system: str, *, method: str | None = None,
         # a held value is the user's, not measured through the camera
         cols = [sys_.params.index(k) for k in known]
         std[:, cols] = np.where(np.isnan(mean[:, cols]), np.nan, 0.0)
-        for k in loose:  # searched within the scale's spread while fitting: reported as held
-            j = sys_.params.index(k)
-            mean[:, j] = np.where(np.isnan(mean[:, j]), np.nan, float(known[k]))
-    if loose:
-        notes.append("held within the scale's uncertainty while fitting (reported as held): "
-                     + ", ".join(f"{k} = {known[k]:g} searched in {a:.4g} to {b:.4g}"
-                                 for k, (a, b) in loose.items())
-                     + f" (the scale is {100 * cam.scale_rel_std:.2g}% uncertain; held exactly, "
-                     "its error would be read into the other parameters)")
+    if loose:  # searched within the scale's spread while fitting: reported as held
+        notes.append(report_held(sys_.params, mean, known, loose, cam.scale_rel_std))
     notes += bound_notes(mean, known if takes else None, prior if takes else None, 0.01,
                          system=sys_, check=check)
     know = knowledge_record(known or {}, prior or {}, name, held=takes,

@@ -77,6 +77,7 @@ __all__ = [
     "camera_for",
     "widen_for_scale",
     "loosen_held",
+    "report_held",
     "track_noise",
     "camera_check",
     "TRACK_CHECK_FACTOR",
@@ -2566,6 +2567,23 @@ def loosen_held(system, known: dict, prior: dict, scale_rel_std: float,
         del keep[name]
         rng[name] = loose[name] = (a, b)
     return keep, rng, loose
+
+
+def report_held(params, mean: np.ndarray, known: dict, loose: dict,
+                scale_rel_std: float) -> str:
+    """The loosened values (:func:`loosen_held`) reported as held, in place: their column of
+    ``mean`` (T, P) set to the user's value where there is an estimate; returns the note that
+    says so (empty when nothing was loosened)."""
+    for k in loose:
+        j = list(params).index(k)
+        mean[:, j] = np.where(np.isnan(mean[:, j]), np.nan, float(known[k]))
+    if not loose:
+        return ""
+    return ("held within the scale's uncertainty while fitting (reported as held): "
+            + ", ".join(f"{k} = {known[k]:g} searched in {a:.4g} to {b:.4g}"
+                        for k, (a, b) in loose.items())
+            + f" (the scale is {100 * scale_rel_std:.2g}% uncertain; held exactly, its error "
+            "would be read into the other parameters)")
 
 
 def widen_for_placement(params, std, param_std: dict) -> np.ndarray:
