@@ -522,25 +522,22 @@ def residual_inflation(res: np.ndarray, sigma: float) -> tuple[float, dict]:
     return float(k), {"residual_rms_m": rms, "residual_tau": tau, "noise_inflation": float(k)}
 
 
-def inflate_in_box(samples: np.ndarray, mean: np.ndarray, std: np.ndarray, k: float, lo, hi):
-    """:func:`inflate` for a box given by its bounds ``lo``, ``hi`` (P,) each: samples (N, P)
-    spread ``k`` times wider about ``mean`` and clipped into the box, ``std`` times ``k`` up to
-    the box's uniform std. ``k <= 1``: both returned as they are (the same objects)."""
+def inflate_in_box(samples: np.ndarray, mean: np.ndarray, std: np.ndarray, k: float, lo,
+                   span):
+    """Samples (N, P) spread ``k`` times wider about ``mean`` and clipped into the box
+    ``[lo, lo + span]`` ((P,) each), ``std`` (P,) times ``k`` up to the box's uniform std.
+    ``k <= 1``: both returned as they are (the same objects)."""
     if k <= 1.0:
         return samples, std
-    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
-    out = np.clip(mean + k * (samples - mean), lo, hi)
-    return out, np.minimum(k * np.asarray(std, dtype=np.float64), (hi - lo) / np.sqrt(12.0))
+    out = np.clip(mean + k * (samples - mean), lo, lo + span)
+    return out, np.minimum(k * np.asarray(std, dtype=np.float64), span / np.sqrt(12.0))
 
 
 def inflate(prob: Problem, samples: np.ndarray, std: np.ndarray, k: float):
-    """Samples (N, P) spread ``k`` times wider about their mean (inside the prior's box) and
-    ``std`` (P,) times ``k``, at most the prior's uniform std."""
+    """:func:`inflate_in_box` about the samples' mean, in the prior's box."""
     if k <= 1.0:
         return samples, std
-    mean = samples.mean(axis=0)
-    out = np.clip(mean + k * (samples - mean), prob.plo, prob.plo + prob.pspan)
-    return out, np.minimum(k * np.asarray(std, dtype=np.float64), prob.pspan / np.sqrt(12.0))
+    return inflate_in_box(samples, samples.mean(axis=0), std, k, prob.plo, prob.pspan)
 
 
 def uninformed_params(prob: Problem, cov: np.ndarray) -> np.ndarray:

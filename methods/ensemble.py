@@ -433,7 +433,7 @@ class Emcee(SimulationOnSystems):
         # biased near the floor) read e 4 stds off with the check passing without it.
         k, noise = _ball_noise_inflation(prob, mean, np.asarray(s0).mean(axis=0),
                                          float(np.mean(floors)))
-        theta, std = inflate_in_box(theta, mean, std, k, prob.box.lo, prob.box.hi)
+        theta, std = inflate_in_box(theta, mean, std, k, prob.box.lo, prob.box.span)
         extras = {
             "n_simulations": sim.n_simulations,
             "wall_s": clock(),

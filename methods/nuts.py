@@ -864,7 +864,7 @@ class NUTS(SimulationOnSystems):
         extras.update(noise)
         tb = box_of(track)
         mean = flat.mean(0)
-        flat, std = inflate_in_box(flat, mean, flat.std(0, ddof=1), k, tb.lo, tb.hi)
+        flat, std = inflate_in_box(flat, mean, flat.std(0, ddof=1), k, tb.lo, tb.span)
         post = Posterior(mean=mean, std=std, samples=flat, extras=extras)
         # per-draw floors when sampled: the model check simulates from their mean, a forecast
         # continues each draw with its own
