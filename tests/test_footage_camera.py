@@ -505,8 +505,10 @@ def test_a_held_length_read_through_an_uncertain_scale_is_loosened():
     lo, hi = loose["g"]
     assert p["g"] == (lo, hi) and lo == pytest.approx(-9.81 * 1.134) and hi == pytest.approx(
         -9.81 * 0.866)
-    # the scale read from the held value itself, a ruler's rounding, a parameter without length
+    # the length the scale was measured across, a ruler's rounding, a parameter without length
     assert footage.loosen_held("pendulum", {"L": 0.9}, {}, 0.05, "known L=0.9: the arc")[2] == {}
+    # a g the scale was read from (the ball's fall: a parabola, not the methods' model) is not
+    assert "g" in footage.loosen_held("ball", {"g": -9.81}, {}, 0.073, "known g=-9.81: fall")[2]
     assert footage.loosen_held("pendulum", {"g": -9.81}, {}, 0.0002, "px_per_m=400 given")[2] == {}
     assert footage.loosen_held("pendulum", {"b": 0.1}, {}, 0.067, "object_size_m=0.07")[2] == {}
 
