@@ -534,3 +534,25 @@ def test_a_held_g_with_an_uncertain_scale_keeps_the_friction_honest(tmp_path, ca
     for p in ("b", "mu"):
         assert abs(last[f"{p}_mean"] - truth[p]) < 3 * last[f"{p}_std"], (p, last)
     assert any("held within the scale's uncertainty" in n for n in info["notes"])
+
+
+@pytest.mark.slow  # ~15 s: a 4 s camera clip of the ball through emcee
+def test_a_scale_from_the_fall_follows_the_balls_drift_in_depth(tmp_path, capsys):
+    """g known, no size given: the scale from the fall, its drift in depth from the ball's
+    apparent size. Read at one scale, the later bounces of a ball drifting in depth were
+    mis-scaled: e 0.769 +- 0.007 and d 0.047 against 0.746 and 0.018, the check passing."""
+    from sysid_bench.apps.cli import main
+    from sysid_bench.core.camera_footage import Shot, write_clip
+
+    clip, meta = write_clip(Shot("ball", seed=3, fps=30, duration_s=4.0, size=(360, 640)),
+                            tmp_path, "ball")
+    truth = json.loads(meta.read_text())["theta"]
+    out = tmp_path / "o"
+    assert main(["identify", str(clip), "--known", "g=-9.81", "--every", "1000", "--out",
+                 str(out), "--no-progress"]) == 0, capsys.readouterr().err
+    info = json.loads((out / "estimates.json").read_text())
+    assert info["method"] == "emcee"
+    assert "frame by frame from the ball's apparent size" in info["geometry"]["mapping"]
+    last = info["estimates"][-1]
+    for p in ("e", "d"):
+        assert abs(last[f"{p}_mean"] - truth[p]) < 3 * last[f"{p}_std"], (p, last)

@@ -2107,6 +2107,16 @@ def camera_for(system: str, track: BallTrack, size, *, px_per_m=None, object_siz
         src = (f"known g={float(known['g']):g}: the ball's fall, {s * abs(float(known['g'])):.4g} "
                "px/s^2 between bounces")
         _check_size(2 * r_px / s, "known", f"its {2 * r_px:.3g} px at {s:.4g} px/m")
+        if system in FLOOR_SIZED:
+            # the fall gives the scale, the ball's apparent size its drift in depth: the size
+            # line of any diameter (its shape does not depend on it) brought to the fall's scale
+            # (a 640x360 ball drifting in depth, read at one scale, had its later bounces
+            # mis-scaled: e 3 stds off with the check passing)
+            pf1, s1, _ = _scale_from_size(track, 1.0, centre_row=h / 2)
+            if np.all(np.isfinite(pf1)) and s1 > 0:
+                per_frame = pf1 * (s / s1)
+                src += ("; frame by frame from the ball's apparent size (its inverse a line in "
+                        "time: a steady drift in depth)")
     else:
         raise ValueError(f"px_per_m: the {system}'s scale is not known: give px_per_m, "
                          "object_size_m" + {"pendulum": ", known L or known g",
