@@ -300,3 +300,32 @@ def test_vid2param_physics_reads_a_file_and_a_blank_one(video_file, episode, tmp
     blank = identify_video(path, method="vid2param-physics")
     span = np.array([PRIOR[p][1] - PRIOR[p][0] for p in ("e", "g", "d", "r")])
     assert np.all(blank.std[-1, :3] > 0.5 * span[:3] / np.sqrt(12))
+
+
+def test_frame_store_takes_frames_as_the_stacked_list_did():
+    """read_video's store: each frame copied once; a raw luma plane goes through the table once
+    (also when taken twice, as resampling repeats frames); a frame of another size is refused
+    only when taken with the others; a long run of frames is a view, a sparse pick a copy."""
+    from sysid_bench.core.footage import VideoError, _FrameStore
+
+    table = (255 - np.arange(256)).astype(np.uint8)
+    st = _FrameStore(4)
+    frames = [np.full((2, 3), v, np.uint8) for v in (10, 20, 30)]
+    for f in frames:
+        st.put(f, raw=True)
+    st.put(np.full((4, 4), 7, np.uint8))  # another size (frame 3), FFmpeg's grey
+    got = st.take([0, 1, 1, 2], "clip.mp4", table)
+    assert np.array_equal(got[:, 0, 0], [245, 235, 235, 225])
+    assert np.array_equal(st.take([2], "clip.mp4", table)[0], np.full((2, 3), 225))  # once
+    with pytest.raises(VideoError, match="frames change size"):
+        st.take([2, 3], "clip.mp4", table)
+    assert st.take([3], "clip.mp4", table).shape == (1, 4, 4)
+    run = st.take([0, 1, 2], "clip.mp4", table)
+    assert np.shares_memory(run, st.buf)  # 3 of 4 rows: a view
+    win = _FrameStore(2)
+    for f in frames:
+        win.put(f)
+    win.subset(np.array([False, True, True]))
+    assert len(win) == 2 and np.array_equal(win.take([0, 1], "c")[:, 0, 0], [20, 30])
+    empty = _FrameStore(2)  # the colour copy not asked for: a window leaves it empty
+    assert len(empty.subset(np.array([False, True]))) == 0
