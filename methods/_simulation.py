@@ -663,6 +663,12 @@ def _residuals(sim: CountingSimulator, theta, state0, floor: float, track: Track
     traj = sim.positions(np.asarray(theta, dtype=np.float64)[None],
                          clip_state(np.asarray(state0, dtype=np.float64)[None], floor),
                          track.n_frames, track.dt, float(floor))[0]
+    return track_residuals(traj, track)
+
+
+def track_residuals(traj: np.ndarray, track: Track) -> np.ndarray:
+    """Residuals (T, 2) of a simulated trajectory ``traj`` (T, 2) against ``track``'s
+    positions, NaN where unseen."""
     m = track.mask[:, None]
     return np.where(m, traj - np.where(m, track.positions, 0.0), np.nan)
 

@@ -61,7 +61,14 @@ from methods._points import (
     residual_inflation,
     search,
 )
-from methods._simulation import Fit, Stopwatch, box_of, make_rng, one_blas_thread
+from methods._simulation import (
+    Fit,
+    Stopwatch,
+    _residuals,
+    box_of,
+    make_rng,
+    one_blas_thread,
+)
 from methods._tracks import clip_state
 from sysid_bench.core import physics
 from sysid_bench.core._validate import check_number, check_positive_int
@@ -198,8 +205,6 @@ def _ball_noise_inflation(prob: _Problem, theta: np.ndarray, state0: np.ndarray,
                           floor: float) -> tuple[float, dict]:
     """:func:`methods._points.residual_inflation` of the residuals of ``theta`` (4,) from
     ``state0`` (4,) on ``floor`` against the ball's track (1 simulation)."""
-    from methods._simulation import _residuals
-
     tr = prob.track
     s0 = tr.state0 if tr.state0_known else state0
     fl = tr.floor if tr.floor_known else floor

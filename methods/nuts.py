@@ -164,7 +164,7 @@ from methods._points import (
     search,
     sq_error,
 )
-from methods._simulation import Fit, Stopwatch, box_of, make_rng
+from methods._simulation import Fit, Stopwatch, box_of, make_rng, track_residuals
 from methods._tracks import clip_state
 from sysid_bench.core import physics
 from sysid_bench.core import physics_jax as pj
@@ -858,9 +858,7 @@ class NUTS(SimulationOnSystems):
         # white-noise likelihood: widened where the track errs by more than sigma, in runs of
         # frames, as on every other system (``_fit_on_points``); measured at the mode's
         # trajectory (simulated above). A render's track keeps factor 1, its draws as they are
-        seen = track.mask[:, None]
-        k, noise = residual_inflation(
-            np.where(seen, fit[0] - np.where(seen, track.positions, 0.0), np.nan), sigma)
+        k, noise = residual_inflation(track_residuals(fit[0], track), sigma)
         extras.update(noise)
         tb = box_of(track)
         mean = flat.mean(0)
