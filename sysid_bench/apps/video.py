@@ -181,7 +181,7 @@ def ball_method(path, *, camera: dict | None = None, known: dict | None = None,
     """
     from sysid_bench.apps.video_systems import _clip_shape, camera_method
 
-    if not camera and _fall_scaled(camera, known, geometry):
+    if _fall_scaled(camera, known, geometry):
         shape = _clip_shape(path, int(rotate))
         camera = shape is not None and abs(shape[1] / shape[0] - 1.0) > _SQUARE_TOL
     return camera_method("ball") if camera else default_method()
