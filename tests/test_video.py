@@ -73,6 +73,35 @@ def test_read_grey_lossless_and_resample_from_30fps(tmp_path):
     assert np.all(np.diff(kept) > 0)
 
 
+@pytest.mark.parametrize("start, end, fps", [(0.5, 1.2, None), (None, 0.7, 20), (1.0, None, None),
+                                             (0.5, 1.2, 20)])
+def test_a_window_is_read_without_the_frames_outside_it(tmp_path, monkeypatch, start, end, fps):
+    # frame k holds 4 k: the window's frames, times and notes are the whole decode's, while
+    # the frames before it are not kept and decoding stops after it
+    from sysid_bench.core import footage
+
+    frames = (np.arange(60)[:, None, None] * 4 * np.ones((1, 16, 16))).astype(np.uint8)
+    path = write_video(tmp_path / "w.mkv", frames, fps=30, codec="ffv1")
+    seen = []
+    decode = footage._decode
+
+    def spy(*args):
+        out = decode(*args)
+        seen.append(out)
+        return out
+
+    monkeypatch.setattr(footage, "_decode", spy)
+    got = read_video(path, fps, start=start, end=end)
+    (times, n_skip), = [(len(o[2]), o[7]) for o in seen]
+    monkeypatch.setattr(footage, "_decode", lambda *a: decode(*a[:-1], False))
+    want = read_video(path, fps, start=start, end=end)
+    np.testing.assert_array_equal(got.frames, want.frames)
+    np.testing.assert_array_equal(got.times, want.times)
+    assert got.notes == want.notes and got.fps == want.fps
+    assert n_skip == (0 if start is None else round(30 * start))
+    assert times == (60 if end is None else round(30 * end) + 1)  # the last one in the window
+
+
 def test_read_at_model_rate_keeps_every_frame(tmp_path):
     frames = np.zeros((7, 16, 16), np.uint8)
     clip = read_video(write_video(tmp_path / "z.mkv", frames, fps=20, codec="ffv1"))

@@ -253,70 +253,11 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
         raise _fail(path, "cannot be read (permission denied)")
     if p.stat().st_size == 0:
         raise _fail(path, "empty file (0 bytes)")
-    try:
-        container = av.open(str(p), mode="r")
-    except av.error.EOFError:
-        raise _fail(path, "the video has zero frames (the file ends before its first frame)") from None
-    except av.error.FFmpegError as exc:
-        raise _fail(path, f"not a readable video ({_av_reason(exc)})") from None
-    except OSError as exc:
-        raise _fail(path, f"cannot be read ({exc.strerror or exc})") from None
-    try:
-        if not container.streams.video:
-            raise _fail(path, "no video stream in the file")
-        stream = container.streams.video[0]
-        stream.thread_type = "AUTO"
-        rate = stream.average_rate or stream.guessed_rate or stream.base_rate
-        rate = float(rate) if rate else float("nan")
-        # one tick of the container's clock: timestamps are rounded to it (1 ms in mkv/webm)
-        tick = float(stream.time_base) if stream.time_base else 0.0
-        colour_file = not str(stream.codec_context.pix_fmt or "").startswith("gray")
-        chroma = chroma_spacing(stream.codec_context.pix_fmt) if colour_file else (1.0, 1.0)
-        n_hint = int(stream.frames or 0)
-        show = (n_hint > _PROGRESS_FRAMES) if progress is None else bool(progress)
-        # each decoded frame written once into one array (a list stacked afterwards copied a
-        # 1080p clip's frames a second time: 0.5-0.8 s of its 2.3 s)
-        frames, small, times = _FrameStore(n_hint), _FrameStore(n_hint), []
-        want_rgb = bool(colour) and colour_file
-        # one scaler for the clip (a frame's own reformat() sets up swscale for every frame:
-        # 8% of the colour copy's CPU), the same bytes
-        scaler = av.video.reformatter.VideoReformatter() if want_rgb else None
-        lut = None  # the luma -> grey table (False: FFmpeg converts every frame)
-        from tqdm.auto import tqdm
-
-        with tqdm(total=n_hint or None, desc=f"reading {p.name}", unit="frame",
-                  disable=not show or (progress is None and not sys.stderr.isatty()),
-                  leave=False) as bar:
-            try:
-                for fr in container.decode(stream):
-                    if rgb:  # full colour frames (told apart by colour), kept as they are
-                        frames.put(fr.to_ndarray(format="rgb24"))
-                    else:
-                        key = (fr.format.name, fr.color_range, fr.colorspace)
-                        if lut is None:
-                            lut, lut_key = _luma_table(fr), key
-                        y = _luma(fr, copy=False) if lut is not False and key == lut_key \
-                            else None
-                        # the luma plane, made grey by the table after decoding (kept frames
-                        # only, on threads); a frame whose format is not the first's: FFmpeg's
-                        frames.put(y if y is not None else fr.to_ndarray(format="gray"),
-                                   raw=y is not None)
-                    if want_rgb:  # FFmpeg's area filter: the mean colour of each block
-                        k = max(1, math.ceil(max(fr.width, fr.height) / COLOUR_SIDE))
-                        small.put(scaler.reformat(fr, width=max(1, fr.width // k),
-                                                  height=max(1, fr.height // k),
-                                                  format="rgb24",
-                                                  interpolation="AREA").to_ndarray())
-                    times.append(np.nan if fr.time is None else float(fr.time))
-                    bar.update(1)
-            except av.error.EOFError:
-                pass  # a stream declared but holding no frames: "zero frames" below
-            except av.error.FFmpegError as exc:
-                if not frames:
-                    raise _fail(path, f"not a readable video ({_av_reason(exc)})") from None
-                # a truncated file: keep the frames decoded before the damage
-    finally:
-        container.close()
+    for skip in (True, False):  # the plain decode again where a window's shortcut cannot hold
+        dec = _decode(av, p, path, progress, colour, rgb, start, end, capture_fps, skip)
+        if dec is not None:
+            break
+    frames, small, times, rate, tick, colour_file, chroma, n_skip, lut = dec
     if not frames:
         raise _fail(path, "the video has zero frames")
     t = np.asarray(times, dtype=np.float64)
@@ -346,7 +287,8 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
             raise ValueError(f"{name}: the window {lo:g} to {hi:g} s holds no frame of the clip "
                              f"(0 to {t[-1]:.4g} s, {len(t)} frames)")
         first = int(np.flatnonzero(keep)[0])
-        frames, small = frames.subset(keep), small.subset(keep)
+        # the frames decoded before the window were not kept (_decode): none of them is in it
+        frames, small = frames.subset(keep[n_skip:]), small.subset(keep[n_skip:])
         t = t[keep] - t[first]
         notes.append(f"window {lo:g} to {min(hi, float(t[-1]) + lo):.4g} s: {len(frames)} frames")
     gaps = np.diff(t)
@@ -404,6 +346,105 @@ def read_video(path, fps: float | None = MODEL_FPS, *, progress: bool | None = N
                 source_frames=len(frames), colour=colour_file, fps=float(target), notes=notes,
                 path=str(path), colour_frames=small.take(j, path) if len(small) else None,
                 chroma_px=chroma)
+
+
+def _decode(av, p: Path, path, progress, colour, rgb, start, end, capture_fps, skip: bool):
+    """:func:`read_video`'s decoding: the frames (grey, or ``rgb``), their colour copies
+    (``colour``), every decoded frame's time, the container's rate and clock tick, whether the
+    file stores colour, its chroma spacing, how many frames before the window were decoded
+    without being kept (``skip``) and the luma -> grey table (:func:`_luma_table`). None: decode again without ``skip`` (the shortcut met times
+    it cannot trust, or kept nothing)."""
+    try:
+        container = av.open(str(p), mode="r")
+    except av.error.EOFError:
+        raise _fail(path, "the video has zero frames (the file ends before its first frame)") from None
+    except av.error.FFmpegError as exc:
+        raise _fail(path, f"not a readable video ({_av_reason(exc)})") from None
+    except OSError as exc:
+        raise _fail(path, f"cannot be read ({exc.strerror or exc})") from None
+    try:
+        if not container.streams.video:
+            raise _fail(path, "no video stream in the file")
+        stream = container.streams.video[0]
+        stream.thread_type = "AUTO"
+        rate = stream.average_rate or stream.guessed_rate or stream.base_rate
+        rate = float(rate) if rate else float("nan")
+        # one tick of the container's clock: timestamps are rounded to it (1 ms in mkv/webm)
+        tick = float(stream.time_base) if stream.time_base else 0.0
+        colour_file = not str(stream.codec_context.pix_fmt or "").startswith("gray")
+        chroma = chroma_spacing(stream.codec_context.pix_fmt) if colour_file else (1.0, 1.0)
+        n_hint = int(stream.frames or 0)
+        show = (n_hint > _PROGRESS_FRAMES) if progress is None else bool(progress)
+        # each decoded frame written once into one array (a list stacked afterwards copied a
+        # 1080p clip's frames a second time: 0.5-0.8 s of its 2.3 s)
+        frames, small, times = _FrameStore(n_hint), _FrameStore(n_hint), []
+        want_rgb = bool(colour) and colour_file
+        # one scaler for the clip (a frame's own reformat() sets up swscale for every frame:
+        # 8% of the colour copy's CPU), the same bytes
+        scaler = av.video.reformatter.VideoReformatter() if want_rgb else None
+        lut = None  # the luma -> grey table (False: FFmpeg converts every frame)
+        # a window (start, end) read from the frames' own times as they come: the frames
+        # before it are not kept (nor converted), and decoding stops after it; where the
+        # times turn out unusable (missing, out of order), the caller decodes it all again
+        lo = 0.0 if start is None else float(start)
+        hi = math.inf if end is None else float(end)
+        stretch = 1.0 if capture_fps is None else rate / float(capture_fps)
+        window = skip and (lo > 0 or math.isfinite(hi)) and math.isfinite(rate) and rate > 0
+        ordered, inside, stopped, n_skip = True, False, False, 0
+        from tqdm.auto import tqdm
+
+        with tqdm(total=n_hint or None, desc=f"reading {p.name}", unit="frame",
+                  disable=not show or (progress is None and not sys.stderr.isatty()),
+                  leave=False) as bar:
+            try:
+                for fr in container.decode(stream):
+                    tm = np.nan if fr.time is None else float(fr.time)
+                    if window:
+                        ordered = ordered and math.isfinite(tm) and (not times or tm > times[-1])
+                        if ordered:
+                            rel = (tm - times[0] if times else 0.0) * stretch
+                            if rel > hi + 1e-9 and inside:
+                                stopped = True  # every later frame is later still
+                                break
+                            if rel < lo - 1e-9 and not frames:
+                                times.append(tm)  # before the window: its time only
+                                n_skip += 1
+                                bar.update(1)
+                                continue
+                            inside = inside or lo - 1e-9 <= rel <= hi + 1e-9
+                    if rgb:  # full colour frames (told apart by colour), kept as they are
+                        frames.put(fr.to_ndarray(format="rgb24"))
+                    else:
+                        key = (fr.format.name, fr.color_range, fr.colorspace)
+                        if lut is None:
+                            lut, lut_key = _luma_table(fr), key
+                        y = _luma(fr, copy=False) if lut is not False and key == lut_key \
+                            else None
+                        # the luma plane, made grey by the table after decoding (kept frames
+                        # only, on threads); a frame whose format is not the first's: FFmpeg's
+                        frames.put(y if y is not None else fr.to_ndarray(format="gray"),
+                                   raw=y is not None)
+                    if want_rgb:  # FFmpeg's area filter: the mean colour of each block
+                        k = max(1, math.ceil(max(fr.width, fr.height) / COLOUR_SIDE))
+                        small.put(scaler.reformat(fr, width=max(1, fr.width // k),
+                                                  height=max(1, fr.height // k),
+                                                  format="rgb24",
+                                                  interpolation="AREA").to_ndarray())
+                    times.append(tm)
+                    bar.update(1)
+            except av.error.EOFError:
+                pass  # a stream declared but holding no frames: "zero frames" below
+            except av.error.FFmpegError as exc:
+                if not frames:
+                    if n_skip:
+                        return None  # the frames before the window may be all there is
+                    raise _fail(path, f"not a readable video ({_av_reason(exc)})") from None
+                # a truncated file: keep the frames decoded before the damage
+    finally:
+        container.close()
+    if skip and (n_skip or stopped) and (not ordered or not frames):
+        return None
+    return frames, small, times, rate, tick, colour_file, chroma, n_skip, lut
 
 
 def thin_clip(clip: Clip, max_frames: int | None, method: str = "the method") -> Clip:
