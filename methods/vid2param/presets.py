@@ -103,8 +103,16 @@ _POINTS_TRAIN = {"points_steps": 1000, "steps": 1000, "batch": 32, "nll_only_ste
                  "early_aux_grad_steps": 0, "warmup": 20, "lr_min": 1e-4, "val_every": 100,
                  "ckpt_every": 120.0, "threads": 1}
 
-#: A system's stages: the generic one only (the others read the ball's track or physics).
-_VIEW_STAGES = (("std_scale", {"n": 300}),)
+#: A system's stages: the generic one only (the others read the ball's track or physics). 1000
+#: train videos: on the pendulum's 6000-step network, 300 left b's 90% intervals holding 0.72
+#: of 300 test truths after 200 frames, 1000 0.74 (model card, session 30).
+_VIEW_STAGES = (("std_scale", {"n": 1000}),)
+
+#: The three shipped systems' runs (session 30): 6000 points steps, ~28 minutes of one core
+#: with another run beside it. At 2000 steps the pendulum's g was read but unsteadily (0.023
+#: nMSE after 200 test frames; 0.0006 at 6000) and its b and mu were still falling; at 1000 the
+#: spring's w2 was 0.0018 (0.0002 at 6000 on validation).
+_LONG_POINTS = {"points_steps": 6000, "steps": 6000, "nll_only_steps": 6000}
 
 _RECORDS = (
     # V2PConfig()'s network. Stages: std_scale on 500 videos is the shipped 28x28 model's; the
@@ -135,14 +143,15 @@ _RECORDS = (
     # pool 2: the conv path and decoder see 32x32 (64x64 made a 5.4 MB checkpoint)
     Preset("pendulum", "pendulum", VIEW, net={**_VIEW_NET, "kp_threshold": 0.4, "pool": 2,
                                               "diff_scales": _DIFF_SCALES["pendulum"]},
-           # g came only after ~900 probe steps of 64 trajectories: twice the spring's length
-           # (not yet run to its end on this machine: methods/vid2param/README.md)
+           # g came only after ~900 probe steps of 64 trajectories, and held only as the
+           # learning rate fell (_LONG_POINTS)
            train={**_VIEW_TRAIN, "chunk": 1600, "chunk_epochs": 8, **_POINTS_TRAIN,
-                  "points_steps": 2000, "steps": 2000, "nll_only_steps": 2000},
+                  **_LONG_POINTS},
            stages=_VIEW_STAGES),
     Preset("spring", "spring", VIEW, net={**_VIEW_NET, "kp_threshold": 0.4,
                                           "diff_scales": _DIFF_SCALES["spring"]},
-           train={**_VIEW_TRAIN, "chunk": 2000, "chunk_epochs": 4, **_POINTS_TRAIN},
+           train={**_VIEW_TRAIN, "chunk": 2000, "chunk_epochs": 4, **_POINTS_TRAIN,
+                  **_LONG_POINTS},
            stages=_VIEW_STAGES),
     # Two fixed keypoint channels (``kp_second``), so the points curriculum qualifies: channel 0
     # above 0.55 of white (puck 2 is 130/255 = 0.51) is puck 1; channel 1 is the frame above 0.3
