@@ -48,7 +48,7 @@ def test_a_flag_out_of_range_or_unknown_names_itself(capsys, tmp_path, flags, wo
 @pytest.mark.parametrize("flags, words", [
     (["--batch", "64", "--chunk", "8"], ["--batch", "--chunk (8", "64"]),
     (["--steps", "20"], ["--nll-only-steps", "(600 steps)", "--steps 20"]),
-    (["--system", "spring", "--steps", "50"], ["--nll-only-steps", "(1000 steps)"]),
+    (["--system", "spring", "--steps", "50"], ["--nll-only-steps", "(6000 steps)"]),
     (["--min-obs", "30", "--n-frames", "30"], ["--min-obs", "--n-frames (30)"]),
     (["--stop-at", "5000"], ["--stop-at", "--steps (4000)"]),
     (["--time-schedule"], ["--time-schedule", "--max-minutes"]),
