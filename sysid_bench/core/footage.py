@@ -352,8 +352,8 @@ def _decode(av, p: Path, path, progress, colour, rgb, start, end, capture_fps, s
     """:func:`read_video`'s decoding: the frames (grey, or ``rgb``), their colour copies
     (``colour``), every decoded frame's time, the container's rate and clock tick, whether the
     file stores colour, its chroma spacing, how many frames before the window were decoded
-    without being kept (``skip``) and the luma -> grey table (:func:`_luma_table`). None: decode again without ``skip`` (the shortcut met times
-    it cannot trust, or kept nothing)."""
+    without being kept (``skip``) and the luma -> grey table (:func:`_luma_table`). None:
+    decode again without ``skip`` (the shortcut met times it cannot trust, or kept nothing)."""
     try:
         container = av.open(str(p), mode="r")
     except av.error.EOFError:
