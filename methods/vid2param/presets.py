@@ -196,7 +196,53 @@ def get(name: str) -> Preset:
     if name not in systems.available():
         raise ValueError(f"preset: expected a preset ({', '.join(sorted(PRESETS))}) or a "
                          f"registered system ({', '.join(systems.available())}), got {name!r}")
-    return Preset(name, name, VIEW, net=_VIEW_NET, train=_VIEW_TRAIN, stages=_VIEW_STAGES)
+    return Preset(name, name, VIEW, net={**_VIEW_NET, "diff_scales": diff_scales(name)},
+                  train=_VIEW_TRAIN, stages=_VIEW_STAGES)
+
+
+_MEASURED: dict = {}
+
+
+def diff_scales(system: str, n: int = 512, noise_px: float = 0.02,
+                seed: int = 0) -> tuple[float, float]:
+    """The recurrence's difference scales for ``system``, measured from its simulated data.
+
+    ``n`` train-split trajectories of 200 frames at 20 frames/s, their points normalised to the
+    view's unit square with ``noise_px`` of keypoint noise (pixels of the system's default
+    frame): the velocity scale makes the median first difference 1, the acceleration scale the
+    median second difference of the scaled velocity 1, over the coordinates that move (the
+    probe's variant b, which set the shipped systems' :data:`_DIFF_SCALES`;
+    docs/vid2param-systems-probe.md). Measured once per system class.
+
+    Returns
+    -------
+    (float, float)
+        ``V2PConfig.diff_scales``: (velocity, acceleration).
+    """
+    import numpy as np
+
+    from sysid_bench.core import systems
+
+    sys_ = systems.get(system)
+    key = (type(sys_), int(n), float(noise_px), int(seed))
+    if key not in _MEASURED:
+        rng = np.random.default_rng(seed)
+        theta, state0 = sys_.sample_cases(int(n), rng, "train")
+        pts = np.asarray(sys_.observe(sys_.simulate(theta, state0, 200, 0.05), theta),
+                         dtype=np.float64)  # (n, T, K, 2)
+        x0, x1, y0, y1 = (float(v) for v in sys_.extent)
+        unit = (pts - [x0, y0]) / [x1 - x0, y1 - y0]
+        h, w = sys_.size
+        moving = np.nanmax(np.abs(np.diff(unit, axis=1)), axis=(0, 1)) > 1e-9  # (K, 2)
+        unit = unit + rng.normal(size=unit.shape) * (noise_px / np.array([w, h]))
+        d1 = np.abs(np.diff(unit, axis=1))[..., moving]
+        d2 = np.abs(np.diff(unit, n=2, axis=1))[..., moving]
+        if not moving.any() or not np.isfinite(d1).any():
+            raise ValueError(f"system: expected {system}'s points to move in its simulation, "
+                             "got none that does (no difference scales to measure)")
+        s_vel = 1.0 / float(np.nanmedian(d1))
+        _MEASURED[key] = (s_vel, 1.0 / (s_vel * float(np.nanmedian(d2))))
+    return _MEASURED[key]
 
 
 def space_of(system: str) -> str:
