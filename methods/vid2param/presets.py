@@ -212,7 +212,7 @@ def diff_scales(system: str, n: int = 512, noise_px: float = 0.02,
     frame): the velocity scale makes the median first difference 1, the acceleration scale the
     median second difference of the scaled velocity 1, over the coordinates that move (the
     probe's variant b, which set the shipped systems' :data:`_DIFF_SCALES`;
-    docs/vid2param-systems-probe.md). Measured once per system class.
+    docs/vid2param-systems-probe.md). Measured once per registered system.
 
     Returns
     -------
@@ -224,7 +224,9 @@ def diff_scales(system: str, n: int = 512, noise_px: float = 0.02,
     from sysid_bench.core import systems
 
     sys_ = systems.get(system)
-    key = (type(sys_), int(n), float(noise_px), int(seed))
+    # a class registered twice (under two names, with other views) is measured for each
+    key = (system, type(sys_), tuple(sys_.extent), tuple(sys_.size), int(n),
+           float(noise_px), int(seed))
     if key not in _MEASURED:
         rng = np.random.default_rng(seed)
         theta, state0 = sys_.sample_cases(int(n), rng, "train")
