@@ -76,8 +76,9 @@ def check_box(box, size, option: str = "object_box") -> tuple[int, int, int, int
     box : sequence of 4 float
         The top-left corner's column and row, the width and the height, px (OpenCV's
         ``(x, y, w, h)``). Edges are rounded to the nearest whole pixel.
-    size : (int, int)
-        ``(H, W)`` of the frame, after any ``--rotate``.
+    size : (int, int) or None
+        ``(H, W)`` of the frame, after any ``--rotate``; None: the frame's size is not known
+        yet (the numbers alone are checked, the corner not left of or above the frame).
     option : str
         The option's name, for the message.
 
@@ -95,13 +96,19 @@ def check_box(box, size, option: str = "object_box") -> tuple[int, int, int, int
         vals = [float(v) for v in box]
     except (TypeError, ValueError):
         raise ValueError(f"{option}: expected four numbers C R W H, got {box!r}") from None
-    h_f, w_f = int(size[0]), int(size[1])
     if len(vals) != 4 or not all(math.isfinite(v) for v in vals):
         raise ValueError(f"{option}: expected four finite numbers C R W H, got {box!r}")
     c, r, w, h = vals
     if w < 4 or h < 4:
         raise ValueError(f"{option}: expected a width and height of at least 4 px, got "
                          f"{w:g} x {h:g}")
+    if size is None:
+        if c < 0 or r < 0:
+            raise ValueError(f"{option}: expected the box's top-left corner inside the frame "
+                             f"(column and row >= 0), got column {c:g}, row {r:g}")
+        return int(round(c)), int(round(r)), int(round(c + w)) - int(round(c)), \
+            int(round(r + h)) - int(round(r))
+    h_f, w_f = int(size[0]), int(size[1])
     if c < 0 or r < 0 or c + w > w_f or r + h > h_f:
         raise ValueError(f"{option}: expected a box inside the {w_f}x{h_f} frame (columns 0 to "
                          f"{w_f}, rows 0 to {h_f}), got columns {c:g} to {c + w:g}, rows {r:g} "
