@@ -182,6 +182,59 @@ def _search(frame, tz, tnorm, top_left, radius: int):
     return float(m[i, j]), r0 + i + di, c0 + j + dj, bool(edge)
 
 
+#: A box whose smaller side is at least twice this is searched first on k x k block means
+#: (``k = smaller side // COARSE_SIDE``), then at full resolution within k px of the coarse peak:
+#: a 115x67 box at 1080p tracked at 35 frames/s searched whole, this many times faster
+COARSE_SIDE = 24
+
+
+def _block_mean(a: np.ndarray, k: int) -> np.ndarray:
+    """Means of ``k x k`` blocks of a 2-D array (trailing rows/columns dropped), float64."""
+    h, w = a.shape[0] // k, a.shape[1] // k
+    return a[:h * k, :w * k].reshape(h, k, w, k).mean(axis=(1, 3))
+
+
+class _Pyramid:
+    """A frame, and the two-level search of :func:`_search` on it."""
+
+    def __init__(self, frame: np.ndarray, k: int):
+        self.frame, self.k = frame, k
+
+    def search(self, tmpl, top_left, radius: int):
+        """:func:`_search` of ``tmpl`` (a :class:`_Template`): at full resolution when
+        ``k == 1``; else on ``k x k`` block means of the window's part of the frame, then
+        within ``k`` px of the coarse peak at full resolution (the coarse window's edge
+        decides ``on_edge``)."""
+        k = self.k
+        if k == 1:
+            return _search(self.frame, tmpl.z, tmpl.norm, top_left, radius)
+        hf, wf = self.frame.shape
+        h, w = tmpl.z.shape
+        pr, pc = int(round(top_left[0])), int(round(top_left[1]))
+        # the window's part of the frame, k px wider each side, on the blocks' grid: the
+        # coarse window fits inside it except where the frame's own edge cuts it
+        r_lo, c_lo = max(0, (pr - radius - k) // k * k), max(0, (pc - radius - k) // k * k)
+        r_hi, c_hi = min(hf, pr + radius + h + 2 * k), min(wf, pc + radius + w + 2 * k)
+        coarse = _block_mean(self.frame[r_lo:r_hi, c_lo:c_hi], k)
+        hit = _search(coarse, tmpl.zc, tmpl.normc, ((top_left[0] - r_lo) / k,
+                                                    (top_left[1] - c_lo) / k),
+                      int(math.ceil(radius / k)))
+        if hit is None:
+            return None
+        fine = _search(self.frame, tmpl.z, tmpl.norm, (r_lo + hit[1] * k, c_lo + hit[2] * k), k)
+        if fine is None:
+            return None
+        return fine[0], fine[1], fine[2], hit[3]
+
+
+class _Template:
+    """A template zero-meaned, with its norm, at full resolution and on ``k x k`` blocks."""
+
+    def __init__(self, patch: np.ndarray, k: int):
+        self.z, self.norm = _zero_mean(patch)
+        self.zc, self.normc = _zero_mean(_block_mean(patch, k)) if k > 1 else (None, None)
+
+
 def follow_box(frames, box, *, min_score: float = MIN_SCORE, margin: int | None = None,
                adapt: float = 0.1, max_radius: int | None = None,
                progress: bool = False) -> BoxTrack:
@@ -220,6 +273,7 @@ def follow_box(frames, box, *, min_score: float = MIN_SCORE, margin: int | None 
     t_n = fr.shape[0]
     margin = int(margin) if margin is not None else max(6, int(math.ceil(max(w, h) / 4)))
     max_radius = int(max_radius) if max_radius is not None else max(margin, 2 * max(w, h))
+    blocks = max(1, min(w, h) // COARSE_SIDE)  # the coarse level's block side
     anchor = fr[0, r:r + h, c:c + w].astype(np.float64)
     az, anorm = _zero_mean(anchor)
     if anorm < 1e-6 * math.sqrt(w * h):
@@ -230,6 +284,7 @@ def follow_box(frames, box, *, min_score: float = MIN_SCORE, margin: int | None 
     score = np.full(t_n, np.nan)
     tl[0], score[0] = (r, c), 1.0
     last = [0]  # frames the object was last seen in (the latest two)
+    cur = None  # the adapted template, prepared for the search
     from tqdm.auto import tqdm
 
     for t in tqdm(range(1, t_n), desc="box", unit="frame", leave=False, disable=not progress):
@@ -238,12 +293,14 @@ def follow_box(frames, box, *, min_score: float = MIN_SCORE, margin: int | None 
         lost = t - k - 1
         pred = tl[k] + vel * (t - k)
         radius = min(margin * (1 + lost), max_radius)
-        tz, tnorm = _zero_mean(tmpl)
-        hit = _search(fr[t], tz, tnorm, pred, radius)
+        if cur is None:
+            cur = _Template(tmpl, blocks)
+        pyr = _Pyramid(fr[t], blocks)
+        hit = pyr.search(cur, pred, radius)
         if hit is not None and hit[3] and radius < max_radius:
             # the peak at the window's edge: the object may be beyond it (a jolt); look wider
             radius = min(3 * radius, max_radius)
-            hit = _search(fr[t], tz, tnorm, pred, radius)
+            hit = pyr.search(cur, pred, radius)
         if hit is None:
             continue
         s, pr, pc, edge = hit
@@ -261,6 +318,7 @@ def follow_box(frames, box, *, min_score: float = MIN_SCORE, margin: int | None 
         if agree and adapt > 0 and s >= ADAPT_SCORE:
             ir, ic = int(round(pr)), int(round(pc))
             tmpl = (1.0 - adapt) * tmpl + adapt * fr[t, ir:ir + h, ic:ic + w]
+            cur = None  # re-made (zero mean, norm, blocks) when next needed
     # continuous coordinates of the box's centre: its top-left pixel's corner plus half a side
     centres = tl[:, ::-1] + np.array([w / 2.0, h / 2.0])
     return BoxTrack(centres=centres, score=score, box=(c, r, w, h))
