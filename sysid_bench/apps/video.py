@@ -28,8 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
-from sysid_bench.apps.video_systems import bound_notes  # noqa: F401  (one for every system)
+from sysid_bench.apps.video_systems import (
+    bound_notes,  # noqa: F401  (one for every system)
+    show_box,
+)
 from sysid_bench.core._io import atomic_folder
+from sysid_bench.core.box_track import check_box
 from sysid_bench.core.estimator import Observation, frame_cap_of, frame_rate_of
 from sysid_bench.core.footage import (  # the core half (files, geometry, the tracker), re-exported
     _PROGRESS_FRAMES,
@@ -44,6 +48,7 @@ from sysid_bench.core.footage import (  # the core half (files, geometry, the tr
     check_out_folder,
     find_ball,
     find_object,
+    follow_object_box,
     geometry_from_options,
     knowledge_record,
     loosen_held,
@@ -192,7 +197,7 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
                    seed: int = 0, progress: bool | None = None, camera: dict | None = None,
                    rotate: int = 0, start: float | None = None, end: float | None = None,
                    capture_fps: float | None = None, known: dict | None = None,
-                   prior: dict | None = None) -> IdentifyResult:
+                   prior: dict | None = None, object_box=None) -> IdentifyResult:
     """Identify ``(e, g, d, r)`` frame by frame from a video file.
 
     Parameters
@@ -229,6 +234,11 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     known, prior : dict, optional
         What the user knows (:func:`sysid_bench.core.footage.parse_known`, ``parse_prior``):
         recorded under ``knowledge`` with whether the method held them.
+    object_box : (float, float, float, float), optional
+        With a camera: the ball's ``(col, row, width, height)`` px in the first kept frame
+        (upright); it is followed by its appearance
+        (:func:`~sysid_bench.core.footage.follow_object_box`) instead of by the background,
+        and ``track.png`` shows the box over that frame.
 
     Returns
     -------
@@ -261,8 +271,13 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     rate = frame_rate_of(est)
     # a known g and no camera or box given: a camera's clip may take its scale from the fall
     by_fall = _fall_scaled(camera, known, geometry)
+    if object_box is not None and not (camera or by_fall):
+        raise ValueError("object_box: a box is followed on a camera's clip, and this one's scale "
+                         "is not known: give --px-per-m or --object-size-m")
+    # a boxed ball is followed in grey: the colour decode is not needed
     clip = read_video(path, rate, progress=progress, start=start, end=end,
-                      capture_fps=capture_fps, colour=bool(camera) or by_fall)
+                      capture_fps=capture_fps,
+                      colour=(bool(camera) or by_fall) and object_box is None)
     resampled = len(clip.frames) != clip.source_frames or abs(clip.fps - clip.source_fps) > 1e-9
     # a method whose cost grows with the observations takes at most its cap (NUTS: 400)
     clip = thin_clip(clip, frame_cap_of(est), method)
@@ -285,7 +300,15 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         camera = {"px_per_m": None, "object_size_m": None, "floor_row": None, "walls": None}
         notes.append(f"the clip is {w}x{h}, not the renderer's square view of the box: read as "
                      "a camera's, its scale from the ball's fall and the known g")
-    if camera:
+    followed = None
+    if camera and object_box is not None:
+        box = check_box(object_box, (h, w))
+        trk = follow_object_box(frames, box, progress=show)
+        followed = {"box": box, "frame": frames[0]}
+        notes.append(f"the ball followed by its appearance from the box {box[2]}x{box[3]} px at "
+                     f"column {box[0]}, row {box[1]} of the first frame (--object-box): seen in "
+                     f"{trk.n_found} of {t_n} frames, not seen where its best match was weak")
+    elif camera:
         trk = find_object(frames, progress=show, colour=None if clip.colour_frames is None
                           else rotate_frames(clip.colour_frames, int(rotate)),
                           chroma_px=turned_chroma(clip.chroma_px, int(rotate)))
@@ -425,8 +448,13 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
     if loose:  # searched within the scale's spread while fitting: reported as held
         notes.append(report_held(PARAMS, mean, known, loose, cam.scale_rel_std))
     notes.extend(bound_notes(mean, known, prior))
+    if followed is not None:  # recorded only where given: other runs' files stay as they were
+        info["object_box"] = [int(v) for v in followed["box"]]
+        info["tracker"] = "appearance (ZNCC template from --object-box)"
     res = IdentifyResult(mean, std, pos, fmean, fstd, info, check)
     res.info["estimated"] = estimated
+    if followed is not None:
+        res.info["followed"] = followed
     return res
 
 
@@ -456,8 +484,9 @@ def _plot(res: IdentifyResult, path: Path, dt: float) -> None:
 
     t_n = len(res.mean)
     t = np.arange(t_n) * dt
-    fig = plt.figure(figsize=(12, 6.5))
-    gs = fig.add_gridspec(2, 4, height_ratios=[1.1, 1])
+    followed = res.info.get("followed")
+    fig = plt.figure(figsize=(12, 6.5) if followed is None else (15, 6.5))
+    gs = fig.add_gridspec(2, 4 + (followed is not None), height_ratios=[1.1, 1])
     z = 1.6449
     for k, (lab, col) in enumerate((("x (m)", "tab:blue"), ("y (m)", "tab:orange"))):
         ax = fig.add_subplot(gs[0, 2 * k : 2 * k + 2])
@@ -479,6 +508,8 @@ def _plot(res: IdentifyResult, path: Path, dt: float) -> None:
         ax.fill_between(t, m - z * s, m + z * s, color="tab:red", alpha=0.2)
         ax.set(xlabel="t (s)", title=f"{p} (mean, 90% interval)", ylim=PRIOR[p])
         ax.title.set_fontsize(9)
+    if followed is not None:  # what was followed: the box over the first frame
+        show_box(fig.add_subplot(gs[:, 4]), followed)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -504,7 +535,7 @@ def write_outputs(res: IdentifyResult, out) -> Path:
             wr.writeheader()
             wr.writerows(rows)
         info = {"written_by": OUT_MARKER,
-                **{k: v for k, v in res.info.items() if k != "estimated"}}
+                **{k: v for k, v in res.info.items() if k not in ("estimated", "followed")}}
         info["estimates"] = rows
         info["forecast"] = None if res.forecast_mean is None else {
             "after_frame": len(rows) - 1, "mean": res.forecast_mean.tolist(),
@@ -540,6 +571,7 @@ def _finite(x):
 OPTION_SYSTEMS = {
     "px_per_m": ("ball", "pendulum", "spring", "collision"),
     "object_size_m": ("ball", "pendulum", "spring", "collision"),
+    "object_box": ("ball", "pendulum", "spring"),
     "floor_row": ("ball",),
     "walls": ("ball",),
     "wall_col": ("ball",),
@@ -593,6 +625,12 @@ def add_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     c.add_argument("--object-size-m", type=float, default=None,
                    help="the tracked object's true diameter (m): the scale frame by frame "
                         "(collision: the carts' length, both the same)")
+    c.add_argument("--object-box", type=float, nargs=4, default=None,
+                   metavar=("C", "R", "W", "H"),
+                   help="the object's box in the first kept frame (after --start and --rotate): "
+                        "top-left column and row, width and height, px (OpenCV's x y w h); the "
+                        "object is then followed by its appearance, not by the background (one "
+                        "object: ball, pendulum, spring)")
     c.add_argument("--floor-row", type=number, default=None, help="ball: row of the floor")
     c.add_argument("--walls", type=number, nargs=2, default=None, metavar=("C1", "C2"),
                    help="ball: columns of the left and right walls")
@@ -653,6 +691,12 @@ def check_options(args) -> tuple[str, dict, dict]:
     from sysid_bench.core import systems
 
     name = systems.get(args.system).name  # unknown names: ValueError with "did you mean"
+    box = getattr(args, "object_box", None)
+    if box is not None and name not in OPTION_SYSTEMS["object_box"]:
+        raise ValueError(f"--object-box: follows one object; the {name} system's objects are "
+                         "followed by the tracker of their own (give no box)")
+    if box is not None:  # its size now; inside the frame once the clip's size is read
+        check_box(box, None, "--object-box")
     for dest, where in OPTION_SYSTEMS.items():
         v = getattr(args, dest, None)
         if v is None:
@@ -765,7 +809,8 @@ def _run_system(args, name: str, known: dict, prior: dict, camera: dict | None,
     res = identify_system_video(args.video, name, method=args.method, every=args.every,
                                 progress=None if not args.no_progress else False,
                                 camera=camera, rotate=int(args.rotate or 0), start=args.start,
-                                end=args.end, capture_fps=args.fps, known=known, prior=prior)
+                                end=args.end, capture_fps=args.fps, known=known, prior=prior,
+                                object_box=getattr(args, "object_box", None))
     method = res["info"]["method"]
     out = out if args.out else default_out(args.video, f"{name}_{method}")
     write_system_outputs(res, out)
@@ -797,6 +842,16 @@ def run(args) -> int:
             raise ValueError(f"horizon: expected an int >= 1, got {args.horizon}")
         name, known, prior = check_options(args)
         camera = _camera_options(args, name, known)
+        box = getattr(args, "object_box", None)
+        if box is not None:
+            if camera is None and "g" not in known:
+                raise ValueError("object_box: a box is followed on a camera's clip, and this "
+                                 "one's scale is not known: give --px-per-m or --object-size-m")
+            from sysid_bench.apps.video_systems import _clip_shape
+
+            shape = _clip_shape(args.video, int(args.rotate or 0))
+            if shape is not None:  # inside the frame, before the clip is decoded
+                check_box(box, shape)
         out = Path(args.out) if args.out else None
         if out is not None:
             check_out_folder(out)  # before any work: a folder of other files is refused
@@ -813,7 +868,8 @@ def run(args) -> int:
                              horizon=horizon, seed=args.seed,
                              progress=None if not args.no_progress else False, camera=camera,
                              rotate=int(args.rotate or 0), start=args.start, end=args.end,
-                             capture_fps=args.fps, known=known, prior=prior)
+                             capture_fps=args.fps, known=known, prior=prior,
+                             object_box=getattr(args, "object_box", None))
         write_outputs(res, out)
     except VideoError as exc:
         print(f"sysid-bench identify: {exc}", file=sys.stderr)

@@ -133,7 +133,7 @@ def identify_system_video(path, system: str, *, method: str | None = None,
                           progress=None, camera: dict | None = None, rotate: int = 0,
                           start: float | None = None, end: float | None = None,
                           capture_fps: float | None = None, known: dict | None = None,
-                          prior: dict | None = None) -> dict:
+                          prior: dict | None = None, object_box=None) -> dict:
     """Identify the parameters of ``system`` from a video file.
 
     Parameters
@@ -159,6 +159,11 @@ def identify_system_video(path, system: str, *, method: str | None = None,
     known, prior : dict, optional
         What the user knows; the pendulum's ``L`` fixes the scale from the bob's arc.
         Recorded under ``knowledge``.
+    object_box : (float, float, float, float), optional
+        The object's ``(col, row, width, height)`` px in the first kept frame (upright), on a
+        camera's clip: the object is followed by its appearance
+        (:func:`~sysid_bench.core.footage.follow_object_box`) instead of by the background;
+        ``track.png`` shows the box over that frame.
 
     Returns
     -------
@@ -187,6 +192,7 @@ def identify_system_video(path, system: str, *, method: str | None = None,
         raise ValueError(f"method: {method} reads frames drawn as the {sys_.name}'s renderer "
                          "draws them; on a camera's clip give a position method (e.g. lsq)")
     cam = None
+    followed = None
     if camera is None and "g" in (known or {}) and sys_.name in PERIOD_SCALED:
         shape = _clip_shape(path, rotate)
         if shape is not None and not _renderer_framed(sys_, shape):
@@ -197,6 +203,9 @@ def identify_system_video(path, system: str, *, method: str | None = None,
                       else camera_method(sys_.name))
     klass = methods.get_class(name, system=sys_.name)
     rate, cap = frame_rate_of(klass), frame_cap_of(klass)
+    if camera is None and object_box is not None:
+        raise ValueError("object_box: a box is followed on a camera's clip, and this one's scale "
+                         "is not known: give --px-per-m or --object-size-m")
     if camera is None:
         clip = read_video(path, rate, progress=progress, start=start, end=end,
                           capture_fps=capture_fps)
@@ -212,8 +221,8 @@ def identify_system_video(path, system: str, *, method: str | None = None,
     else:  # the core's camera pipeline, as the benchmark's camera section runs it
         cc = observe_clip(path, sys_.name, progress=progress, fps=rate, max_frames=cap,
                           rotate=int(rotate), start=start, end=end, capture_fps=capture_fps,
-                          known=known, prior=prior, **camera)
-        cam, obs = cc.camera, cc.observation
+                          known=known, prior=prior, object_box=object_box, **camera)
+        cam, obs, followed = cc.camera, cc.observation, cc.followed
         points = obs.points
         notes = [*cc.notes[:-1], f"{name} saw {cc.notes[-1]}"]
         model_fps, source_fps = 1.0 / obs.dt, cc.source_fps
@@ -297,7 +306,12 @@ def identify_system_video(path, system: str, *, method: str | None = None,
             "camera": None if cam is None else cam.as_dict(), "rotate": int(rotate),
             "scene": _scene_record(obs.scene),
             "window_s": [start, end], "capture_fps": capture_fps, "knowledge": know}
-    return {"mean": mean, "std": std, "check": check, "points": points, "info": info}
+    out = {"mean": mean, "std": std, "check": check, "points": points, "info": info}
+    if followed is not None:  # recorded only where given: other runs' files stay as they were
+        info["object_box"] = [int(v) for v in followed["box"]]
+        info["tracker"] = "appearance (ZNCC template from --object-box)"
+        out["followed"] = followed
+    return out
 
 
 def bound_notes(mean, known: dict | None = None, prior: dict | None = None,
@@ -397,7 +411,12 @@ def _plot(res: dict, path: Path, dt: float) -> None:
 
     params = res["info"]["params"]
     t = np.arange(len(res["mean"])) * dt
-    fig, axes = plt.subplots(1, len(params) + 1, figsize=(3.2 * (len(params) + 1), 3.2))
+    followed = res.get("followed")
+    n_ax = len(params) + 1 + (followed is not None)
+    fig, axes = plt.subplots(1, n_ax, figsize=(3.2 * n_ax, 3.2))
+    if followed is not None:  # what was followed: the box over the first frame
+        show_box(axes[-1], followed)
+        axes = axes[:-1]
     pts = res["points"]
     for k in range(pts.shape[1]):
         axes[0].plot(pts[:, k, 0], pts[:, k, 1], ".", ms=3, label=f"point {k + 1}")
@@ -412,6 +431,26 @@ def _plot(res: dict, path: Path, dt: float) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def show_box(ax, followed: dict) -> None:
+    """The first kept frame with the ``--object-box`` drawn over it (``track.png``).
+
+    Parameters
+    ----------
+    ax : matplotlib Axes
+    followed : dict
+        ``box`` ``(col, row, width, height)`` px and ``frame`` (H, W) uint8
+        (:attr:`~sysid_bench.core.footage.CameraClip.followed`).
+    """
+    from matplotlib.patches import Rectangle
+
+    c, r, w, h = followed["box"]
+    ax.imshow(followed["frame"], cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+    # continuous pixel coordinates: imshow puts pixel [i, j]'s centre at (j, i)
+    ax.add_patch(Rectangle((c - 0.5, r - 0.5), w, h, fill=False, ec="tab:red", lw=1.2))
+    ax.set(title=f"followed: box {w}x{h} px at ({c}, {r})", xticks=[], yticks=[])
+    ax.title.set_fontsize(9)
 
 
 def write_system_outputs(res: dict, out) -> Path:

@@ -73,6 +73,7 @@ __all__ = [
     "chroma_spacing",
     "fit_circle",
     "find_object",
+    "follow_object_box",
     "Camera",
     "camera_for",
     "widen_for_scale",
@@ -1726,6 +1727,44 @@ def find_object(frames, *, max_side: int = 640, progress: bool = False,
     return _consistent(_minor_radii(fr, trk))
 
 
+def follow_object_box(frames, box, *, progress: bool = False) -> BallTrack:
+    """The object boxed in the first frame, followed by its appearance (``--object-box``).
+
+    For objects :func:`find_object` loses: not round, not contrasting with the background, or
+    resting long enough to leave a ghost in the median background (a cart on a lab track).
+    :func:`sysid_bench.core.box_track.follow_box` matches the box's patch frame by frame
+    (zero-mean normalised cross-correlation around a constant-velocity prediction, refined
+    against the first frame's patch); frames whose best match is weak are "not seen".
+
+    Parameters
+    ----------
+    frames : ndarray, shape (T, H, W), uint8
+        Grey frames, turned upright (:func:`rotate_frames`).
+    box : (float, float, float, float)
+        ``(col, row, width, height)`` px of the object in ``frames[0]``: the top-left corner,
+        as OpenCV's ``selectROI`` gives it (:func:`sysid_bench.core.box_track.check_box`).
+    progress : bool
+
+    Returns
+    -------
+    BallTrack
+        The box's centre, NaN where not seen. ``radius`` and ``radii`` (where seen) are half
+        the box's side along the motion (its width where the track spreads more over the
+        columns than the rows, else its height): ``--object-size-m`` is the object's true
+        length along its motion.
+    """
+    from sysid_bench.core.box_track import follow_box
+
+    bt = follow_box(frames, box, progress=progress)
+    pix, found = bt.centres, bt.found
+    _, _, w, h = bt.box
+    seen = pix[found]
+    spread = seen.max(axis=0) - seen.min(axis=0) if len(seen) else np.zeros(2)
+    half = 0.5 * float(w if spread[0] >= spread[1] else h)
+    return BallTrack(pixels=pix, radius=half, found=found,
+                     radii=np.where(found, half, np.nan))
+
+
 def _block_means(fr: np.ndarray, k: int) -> np.ndarray:
     """Means of ``k x k`` blocks of each frame (T, H, W) -> (T, H // k, W // k) float32.
 
@@ -3161,7 +3200,7 @@ _CLIP_OPTIONS = {
     "--px-per-m": (1, "px_per_m"), "--object-size-m": (1, "object_size_m"),
     "--floor-row": (1, "floor_row"), "--walls": (2, "walls"), "--pivot": (2, "pivot"),
     "--anchor": (1, "anchor"), "--track": (2, "track"), "--known": (1, "known"),
-    "--prior": (1, "prior"),
+    "--prior": (1, "prior"), "--object-box": (4, "object_box"),
 }
 
 
@@ -3187,6 +3226,10 @@ class CameraClip:
         What was done to the file (resampling, the camera), one sentence each.
     source_fps : float
         The file's frame rate (or ``--fps``).
+    followed : dict, optional
+        Where the object was followed from a box (``--object-box``): ``box`` ``(col, row,
+        width, height)`` px and ``frame`` (H, W) uint8, the first kept frame it was drawn on
+        (what ``track.png`` shows); None when the object was found by the background.
     """
 
     observation: object
@@ -3196,6 +3239,7 @@ class CameraClip:
     prior: dict
     notes: list = field(default_factory=list)
     source_fps: float = float("nan")
+    followed: dict | None = None
 
     @property
     def lost_share(self) -> float:
@@ -3218,7 +3262,8 @@ def clip_options(options) -> dict:
     dict
         ``system`` and ``method`` when given, ``rotate``, ``capture_fps``, ``start``, ``end``,
         ``px_per_m``, ``object_size_m``, ``floor_row``, ``walls``, ``pivot``, ``anchor``,
-        ``track`` (numbers; pairs as tuples), ``known`` and ``prior`` (lists of the raw
+        ``track``, ``object_box`` (numbers; pairs and the box as tuples), ``known`` and
+        ``prior`` (lists of the raw
         ``NAME=VALUE`` / ``NAME=LO:HI`` strings); only the options given.
 
     Raises
@@ -3291,8 +3336,10 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
         frame_cap_of`): a longer clip is thinned (:func:`thin_clip`).
     **given
         The same options as keywords (``rotate``, ``capture_fps``, ``start``, ``end``,
-        ``px_per_m``, ``object_size_m``, ``floor_row``, ``walls``, ``pivot``, ``anchor``;
-        ``known`` and ``prior`` as dicts, as :func:`parse_known` and :func:`parse_prior`
+        ``px_per_m``, ``object_size_m``, ``floor_row``, ``walls``, ``pivot``, ``anchor``,
+        ``object_box`` (the object's ``(col, row, width, height)`` in the first kept frame,
+        upright: followed by its appearance, :func:`follow_object_box`, instead of
+        :func:`find_object`); ``known`` and ``prior`` as dicts, as :func:`parse_known` and :func:`parse_prior`
         return them); a keyword that is not None overrides the option.
 
     Returns
@@ -3338,14 +3385,25 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
         return _observe_track_clip(path, sys_, opts, known, prior, progress, fps, max_frames)
     if "track" in opts:
         raise ValueError(f"--track: means nothing for the {sys_.name} system (collision only)")
+    box = opts.get("object_box")
+    # a boxed object is followed in grey: the colour decode is not needed
     clip = read_video(path, fps, progress=progress, start=opts.get("start"), end=opts.get("end"),
-                      capture_fps=opts.get("capture_fps"), colour=True)
+                      capture_fps=opts.get("capture_fps"), colour=box is None)
     clip = thin_clip(clip, max_frames)
     rotate = int(opts.get("rotate", 0))
     frames = rotate_frames(clip.frames, rotate)
-    trk = find_object(frames, progress=bool(progress), colour=None if clip.colour_frames is None
-                      else rotate_frames(clip.colour_frames, rotate),
-                      chroma_px=turned_chroma(clip.chroma_px, rotate))
+    followed = None
+    if box is not None:
+        from sysid_bench.core.box_track import check_box
+
+        box = check_box(box, frames.shape[1:])
+        trk = follow_object_box(frames, box, progress=bool(progress))
+        followed = {"box": box, "frame": frames[0]}
+    else:
+        trk = find_object(frames, progress=bool(progress),
+                          colour=None if clip.colour_frames is None
+                          else rotate_frames(clip.colour_frames, rotate),
+                          chroma_px=turned_chroma(clip.chroma_px, rotate))
     if trk.n_found < 3:
         raise VideoError(f"{path}: the {sys_.name}'s object was found in {trk.n_found} of "
                          f"{len(frames)} frames; the camera and the methods need a track (at "
@@ -3361,8 +3419,15 @@ def observe_clip(path, system: str, options=(), *, progress: bool | None = False
     turn = axis_note(sys_, trk.pixels)
     if turn:
         notes.insert(len(clip.notes), turn)
+    if followed is not None:
+        c, r, w, h = followed["box"]
+        notes.insert(len(clip.notes),
+                     f"the object followed by its appearance from the box {w}x{h} px at column "
+                     f"{c}, row {r} of the first frame (--object-box): seen in {trk.n_found} of "
+                     f"{len(frames)} frames, not seen where its best match was weak")
     return CameraClip(observation=obs, camera=cam, lost=~np.isfinite(trk.pixels).all(axis=1),
-                      known=known, prior=prior, notes=notes, source_fps=float(clip.source_fps))
+                      known=known, prior=prior, notes=notes, source_fps=float(clip.source_fps),
+                      followed=followed)
 
 
 def axis_note(sys_, pixels: np.ndarray) -> str | None:
@@ -3424,6 +3489,9 @@ def _observe_track_clip(path, sys_, opts: dict, known: dict, prior: dict,
     from sysid_bench.core.tracking import track_colours
 
     n_obj, ends_field, sizes_field = TRACK_OBJECTS[sys_.name]
+    if "object_box" in opts:
+        raise ValueError(f"--object-box: follows one object; the {sys_.name}'s {n_obj} objects "
+                         "are told apart by their colours (give no box)")
     for opt in ("floor_row", "walls", "pivot", "anchor"):
         if opt in opts:
             raise ValueError(f"--{opt.replace('_', '-')}: means nothing for the {sys_.name} "
