@@ -460,19 +460,24 @@ class _StreamHead:
     The same IEEE double operations, one element at a time and in the same order, as
     :meth:`PointsModel._points`, ``Pipeline.step`` and :meth:`PointsModel._params` on arrays
     of 2K and P elements -- each of those numpy calls costs microseconds of overhead on 4
-    numbers. :meth:`of` gives None (the array path runs) for a pipeline with a stage other
-    than ``std_scale`` or a pass-through one; a system that overrides
+    numbers. ``weak_evidence`` stages before the ``std_scale`` ones run as ``Pipeline.step``
+    runs them (their compiled statistic, then the blend on arrays). :meth:`of` gives None (the
+    array path runs) for a pipeline with any other stage that changes the posterior; a system that overrides
     ``check_posterior_mean`` has its posteriors built by the ordinary constructor. Built at
     each :meth:`PointsStream.reset` (the stages it read then).
     """
 
-    def __init__(self, model: PointsModel, factors: list[list[float]]):
+    def __init__(self, model: PointsModel, factors: list[list[float]], weak=()):
         from sysid_bench.core.systems import System
 
         sys_ = model._sys
         self.xidx = list(model._xidx)
+        self.pidx = list(model._pidx)
+        # the weak_evidence stages (before every std_scale) and their index in the pipeline:
+        # run on arrays, as Pipeline.step runs them
+        self.weak = list(weak)
         # per parameter in the system's order: its index in the latent and its stage factors
-        latent = [model._pidx[k] for k in model._order]
+        latent = [model._pidx[k] for k in model._order] if not self.weak else list(model._order)
         self.factors = [[f[k] for f in factors] for k in model._order]
         self.bounds = (model._lo, model._hi)  # the samples' clip, the arrays _params passes
         self.scale, self.shift = model._ext_scale.tolist(), model._ext_shift.tolist()
@@ -488,15 +493,17 @@ class _StreamHead:
     @classmethod
     def of(cls, model: PointsModel) -> _StreamHead | None:
         """The head of ``model``'s pipeline, or None where the array path must run."""
-        from methods.vid2param.stages import Stage, StdScale
+        from methods.vid2param.stages import Stage, StdScale, WeakEvidence
 
-        factors = []
-        for st in model._pipeline.stages:
+        factors, weak = [], []
+        for k, st in enumerate(model._pipeline.stages):
             if type(st) is StdScale:
                 factors.append([float(f) for f in st.factors])  # the network's order
+            elif type(st) is WeakEvidence and not factors:
+                weak.append((k, st))
             elif type(st).step is not Stage.step:  # a stage that changes the posterior
                 return None
-        return cls(model, factors)
+        return cls(model, factors, weak)
 
     def points(self, mu: list[float]) -> np.ndarray:
         """The network's points (K, 2) m from the latent ``mu`` (floats): ``_points``' x0 +
@@ -505,11 +512,20 @@ class _StreamHead:
         return np.array([[mu[ix[i]] * sx + x0, mu[ix[i + 1]] * sy + y0]
                          for i in range(0, len(ix), 2)])
 
-    def posterior(self, mu: list[float], sd: list[float], wall_s: float, n: int, est):
+    def posterior(self, mu: list[float], sd: list[float], wall_s: float, n: int, est,
+                  carries=()):
         """``PointsModel._params(..., lazy=True)`` of the latent ``mu``, ``sd`` (floats) after
         the stages, after ``n`` frames (the samples' key), for an estimator ``est`` that draws
-        samples (``n_samples`` 0: the array path answers with none)."""
+        samples (``n_samples`` 0: the array path answers with none); ``carries`` the stream's
+        stage states (``Pipeline.start``), which the weak_evidence stages update."""
         clip = est.clip
+        if self.weak:  # Pipeline.step's arrays, then floats in the network's parameter order
+            m = np.array([[mu[i] for i in self.pidx]])
+            s = np.array([[sd[i] for i in self.pidx]])
+            pts = self.points(mu)[None]
+            for k, stage in self.weak:
+                m, s = stage.step(carries[k], m, s, pts)
+            mu, sd = m[0].tolist(), s[0].tolist()
         mean, std = [], []
         for i, fs, lo, w in self.plan:
             m, s = mu[i], sd[i]
@@ -585,7 +601,8 @@ class PointsStream(Stream):
             self._pts, self._mu = None, (head, mu)  # points made when position() reads them
             if self._seen is not None:
                 self._seen.append(fr.copy())
-            self._post = head.posterior(mu, sd, time.perf_counter() - t0, self._n, est._est)
+            self._post = head.posterior(mu, sd, time.perf_counter() - t0, self._n, est._est,
+                                        self._carries)
             return self._post
         if self._fast is not None:
             mu, sd = self._fast.step(fr)

@@ -151,6 +151,30 @@ class FitContext:
         m, s, pos = self.pipeline.apply(mu, sd, self.net.config.targets)
         return m, s, pos, sd
 
+    def system_parameters(self, frames: np.ndarray, batch: int = 100):
+        """A system's network (``presets.VIEW``): the parameter posteriors after every frame of
+        (N, T, H, W) videos through the network and the stages so far, normalised mean and std
+        (N, T, P) in the network's parameter order, and its points (N, T, K, 2) m (as
+        ``_points.PointsModel.posteriors``), ``batch`` videos at a time."""
+        from sysid_bench.core import systems
+
+        c = self.net.config
+        x0, x1, y0, y1 = systems.get(c.system).extent
+        pidx = [c.targets.index(p) for p in c.params]
+        xidx = [c.targets.index(p) for p in c.positions]
+        ms, ss, ps = [], [], []
+        for i in range(0, len(frames), int(batch)):
+            mu, sd, _ = latent_pass(self.net, np.asarray(frames[i:i + int(batch)]), self.device)
+            p = mu[..., xidx].reshape(*mu.shape[:-1], -1, 2)
+            pts = np.stack([x0 + (x1 - x0) * p[..., 0], y0 + (y1 - y0) * p[..., 1]], -1)
+            m, s = mu[..., pidx], sd[..., pidx]
+            for stage in self.pipeline.stages:
+                m, s = stage.apply(m, s, pts)
+            ms.append(m)
+            ss.append(s)
+            ps.append(pts)
+        return np.concatenate(ms), np.concatenate(ss), np.concatenate(ps)
+
     def track(self, frames: np.ndarray):
         """One video's (T, H, W) track (T, 2) m and parameter posterior after its last frame,
         physical units (as ``Vid2Param.filtered_track``)."""
