@@ -68,6 +68,11 @@ def test_a_stream_gives_the_batchs_bits(name):
         e, v = st.summary()
         np.testing.assert_array_equal(e, est[:, t])
         np.testing.assert_array_equal(v, var[:, t])
+    # the overlapping windows' variance factor widens the intervals, not the estimates
+    est2, var2 = form.track(pts, gain=4.0)
+    np.testing.assert_array_equal(est2, est)
+    have = np.isfinite(var) & (var > 0)
+    assert (var2[have] >= var[have]).all() and (var2[have] > var[have]).any()  # ew: bounces
     # one track alone (a stream's batch of one) gives its row of the batch
     one = form.statistic(1)
     for t in range(90):
@@ -116,6 +121,8 @@ def test_the_blend_fit_finds_the_estimates_own_scale():
       "window": 16, "dt": 0.05}, "kappa > 0"),
     ({"system": "spring", "params": ["c"], "kappa": [1], "tau": [0], "window": 16,
       "dt": 0.05}, "expected params"),
+    ({"system": "pendulum", "params": ["b", "mu"], "kappa": [1, 1], "tau": [0, 0],
+      "window": 16, "dt": 0.05, "gain": -1.0}, "gain >= 0"),
 ])
 def test_the_stage_refuses_a_state_it_cannot_use(state, match):
     from methods.vid2param.stages import WeakEvidence

@@ -254,6 +254,7 @@ class WeakEvidence(Stage):
             self.kappa = np.array([float(v) for v in state["kappa"]])
             self.tau = np.array([float(v) for v in state["tau"]])
             self.window, self.dt = int(state["window"]), float(state["dt"])
+            self.gain = float(state.get("gain", 1.0))
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"checkpoint {source}: stage {self.name!r}: expected a state with "
                              f"a system of {sorted(WEAK_FORMS)}, params, kappa, tau, window and "
@@ -262,17 +263,19 @@ class WeakEvidence(Stage):
                 or len(self.tau) != len(self.params)
                 or not (np.isfinite(self.kappa).all() and (self.kappa > 0).all()
                         and np.isfinite(self.tau).all() and (self.tau >= 0).all())
-                or self.window < 2 or not (self.dt > 0)):
+                or self.window < 2 or not (self.dt > 0)
+                or not (np.isfinite(self.gain) and self.gain >= 0)):
             raise ValueError(f"checkpoint {source}: stage {self.name!r}: expected params "
                              f"{list(self.form.blends)} with kappa > 0 and tau >= 0 each, a "
-                             f"window >= 2 and dt > 0, got {state!r:.200}")
+                             f"window >= 2, dt > 0 and gain >= 0, got {state!r:.200}")
 
     @classmethod
     def fit(cls, ctx, n: int = 500, seed: int = 424243) -> WeakEvidence:
-        """``kappa`` and ``tau`` of each parameter by the blended posterior's NLL on ``n`` clean
-        train videos (``seed``) after 50, 100, 150 and 200 frames."""
+        """``kappa`` and ``tau`` of each parameter and the statistic's ``gain`` by the blended
+        posterior's NLL on ``n`` clean train videos (``seed``) after 50, 100, 150 and 200
+        frames."""
         from methods.vid2param.data import make_system_split
-        from methods.vid2param.weak_evidence import WEAK_FORMS, WINDOW, fit_blend
+        from methods.vid2param.weak_evidence import GAINS, WEAK_FORMS, WINDOW, fit_blend
 
         system = ctx.net.config.system
         if system not in WEAK_FORMS:
@@ -282,23 +285,30 @@ class WeakEvidence(Stage):
         ds = make_system_split(system, "train", int(n), int(seed), ctx.n_frames, ctx.frame_size,
                                ctx.train.get("nuisance"), workers=ctx.train.get("threads", 1))
         m, s, pts = ctx.system_parameters(np.asarray(ds.frames))
-        est, var = form.track(pts, WINDOW, dt)
         sys_ = ds.system
         truth = sys_.normalise(ds.theta)
         params = ctx.net.config.params
-        kappa, tau, nll = [], [], []
-        for j, p in enumerate(form.blends):
-            i, k = params.index(p), sys_.params.index(p)
-            lo, width = sys_.prior_lo[k], sys_.prior_hi[k] - sys_.prior_lo[k]
-            fk, ft, fn = fit_blend(m[..., i], s[..., i], est[..., j], var[..., j], truth[:, k],
-                                   lo, width)
-            kappa.append(fk)
-            tau.append(ft)
-            nll.append(fn)
-            ctx.log(f"  {p}: kappa {fk:.3g}, tau {ft:g}, NLL {fn:.3f}")
-        return cls({"system": system, "params": list(form.blends), "kappa": kappa, "tau": tau,
-                    "window": WINDOW, "dt": dt, "nll": nll, "n": int(n), "seed": int(seed),
-                    "split": "train", "frames": [50, 100, 150, 200]}, ctx.source)
+        best = None
+        for gain in GAINS:
+            est, var = form.track(pts, WINDOW, dt, gain)
+            fits = []
+            for j, p in enumerate(form.blends):
+                i, k = params.index(p), sys_.params.index(p)
+                lo, width = sys_.prior_lo[k], sys_.prior_hi[k] - sys_.prior_lo[k]
+                fits.append(fit_blend(m[..., i], s[..., i], est[..., j], var[..., j],
+                                      truth[:, k], lo, width))
+            total = sum(f[2] for f in fits)
+            ctx.log(f"  gain {gain:g}: " + ", ".join(
+                f"{p} kappa {f[0]:.3g} tau {f[1]:g} NLL {f[2]:.3f}"
+                for p, f in zip(form.blends, fits)))
+            if best is None or total < best[0]:
+                best = (total, gain, fits)
+        _, gain, fits = best
+        return cls({"system": system, "params": list(form.blends),
+                    "kappa": [f[0] for f in fits], "tau": [f[1] for f in fits],
+                    "gain": gain, "window": WINDOW, "dt": dt, "nll": [f[2] for f in fits],
+                    "n": int(n), "seed": int(seed), "split": "train",
+                    "frames": [50, 100, 150, 200]}, ctx.source)
 
     def bind(self, net) -> None:
         from sysid_bench.core import systems
@@ -323,11 +333,11 @@ class WeakEvidence(Stage):
         return mu, sd
 
     def apply(self, mu, sd, track):
-        est, var = self.form.track(track, self.window, self.dt)
+        est, var = self.form.track(track, self.window, self.dt, self.gain)
         return self._blend(mu, sd, est, var)
 
     def start(self, batch: int):
-        return self.form.statistic(batch, self.window, self.dt)
+        return self.form.statistic(batch, self.window, self.dt, self.gain)
 
     def step(self, carry, mu, sd, pos):
         carry.update(pos)
@@ -335,7 +345,7 @@ class WeakEvidence(Stage):
 
     def summary(self) -> str:
         return "(" + ", ".join(f"{p} kappa {k:.2g} tau {t:g}" for p, k, t in
-                               zip(self.params, self.kappa, self.tau)) + ")"
+                               zip(self.params, self.kappa, self.tau)) + f"; gain {self.gain:g})"
 
 
 @register_stage

@@ -91,11 +91,12 @@ class WeakForm:
     STILL_RAD = 0.0
     X_REF = 0.0
 
-    def statistic(self, batch: int, window: int = WINDOW, dt: float = 0.05):
-        """The running statistic of ``batch`` tracks (``update``, ``summary``)."""
-        return WeakStatistic(self, batch, window, dt)
+    def statistic(self, batch: int, window: int = WINDOW, dt: float = 0.05, gain: float = 1.0):
+        """The running statistic of ``batch`` tracks (``update``, ``summary``); ``gain``
+        scales the overlapping windows' variance factor ``1 + gain (W + 1) C / (n - C)``."""
+        return WeakStatistic(self, batch, window, dt, gain)
 
-    def track(self, track, window: int = WINDOW, dt: float = 0.05):
+    def track(self, track, window: int = WINDOW, dt: float = 0.05, gain: float = 1.0):
         """The estimates and variances after every frame of many tracks.
 
         Parameters
@@ -114,7 +115,7 @@ class WeakForm:
         lead, T = tr.shape[:-3], tr.shape[-3]
         tr = tr.reshape(-1, T, *tr.shape[-2:])
         J = len(self.blends)
-        st = self.statistic(tr.shape[0], window, dt)
+        st = self.statistic(tr.shape[0], window, dt, gain)
         est = np.empty((tr.shape[0], T, J))
         var = np.empty((tr.shape[0], T, J))
         for t in range(T):
@@ -249,7 +250,7 @@ def _lu(M, piv):
 
 
 @_njit
-def _window_summary(A, bv, yy, n, idx, fac, min_rows, window, est, var):
+def _window_summary(A, bv, yy, n, idx, fac, min_rows, window, gain, est, var):
     """Least-squares estimates of the coefficients ``idx`` times ``fac`` and their variances
     (``sigma^2 (A^-1)_ii``, ``sigma^2`` from the residuals) into ``est``, ``var`` (B, J); NaN
     and inf with fewer than ``min_rows`` rows. A relative ridge of 1e-10 of the diagonal keeps
@@ -281,8 +282,9 @@ def _window_summary(A, bv, yy, n, idx, fac, min_rows, window, est, var):
         s2 = max(rss, 0.0) / max(n[b] - C, 1.0)
         # overlapping windows: n rows hold about n / W independent ones, so few rows read
         # their residuals' variance small and the coefficients' too (kappa is fitted at the
-        # length pooled; this keeps the first frames' intervals from being far too narrow)
-        s2 *= 1.0 + W1 * C / (n[b] - C)
+        # lengths pooled; ``gain``, fitted with it, keeps the first frames' intervals from
+        # being far too narrow)
+        s2 *= 1.0 + gain * W1 * C / (n[b] - C)
         for j in range(J):
             for i in range(C):
                 e[i] = 0.0
@@ -304,9 +306,10 @@ class WeakStatistic:
         Seconds per frame.
     """
 
-    def __init__(self, form: WeakForm, batch: int, window: int = WINDOW, dt: float = 0.05):
+    def __init__(self, form: WeakForm, batch: int, window: int = WINDOW, dt: float = 0.05,
+                 gain: float = 1.0):
         B, C = int(batch), form.n_coef
-        self.form, self.window = form, int(window)
+        self.form, self.window, self.gain = form, int(window), float(gain)
         self.w = window_weights(self.window, dt)
         self.buf = np.full((B, self.window + 1), np.nan)
         self.prev = np.zeros(B)
@@ -331,7 +334,8 @@ class WeakStatistic:
     def summary(self) -> tuple[np.ndarray, np.ndarray]:
         """The blended parameters' estimates and variances (B, J) so far (new arrays)."""
         _window_summary(self.A, self.bv, self.yy, self.n, self.idx, self.fac,
-                        self.form.n_coef + MIN_EXTRA, self.window, self.est, self.var)
+                        self.form.n_coef + MIN_EXTRA, self.window, self.gain, self.est,
+                        self.var)
         return self.est.copy(), self.var.copy()
 
 
@@ -359,8 +363,8 @@ class CollisionForm(WeakForm):
     U_MIN = 0.01  # m per frame: 0.2 m/s, ~4x a step's noise on the network's track
     K = 4
 
-    def statistic(self, batch: int, window: int = WINDOW, dt: float = 0.05):
-        return CollisionStatistic(self, batch, window, dt)
+    def statistic(self, batch: int, window: int = WINDOW, dt: float = 0.05, gain: float = 1.0):
+        return CollisionStatistic(self, batch, window, dt, gain)
 
 
 @_njit
@@ -496,7 +500,7 @@ def _collision_update(pts, t, buf, f, bsum, cool, phi, ddphi, margin, u_min, K, 
 
 
 @_njit
-def _collision_summary(f, bsum, dt, min_rows, window, est, var):
+def _collision_summary(f, bsum, dt, min_rows, window, gain, est, var):
     """``mu`` (m/s^2) and ``ew`` and their variances into ``est``, ``var`` (B, 2)."""
     B = f.shape[0]
     for b in range(B):
@@ -505,7 +509,7 @@ def _collision_summary(f, bsum, dt, min_rows, window, est, var):
         if fn >= min_rows and fa > 0:
             mu = fb / fa
             s2 = max(fyy - mu * fb, 0.0) / max(fn - 1.0, 1.0)
-            s2 *= 1.0 + (window + 1.0) / (fn - 1.0)  # overlapping windows (_window_summary)
+            s2 *= 1.0 + gain * (window + 1.0) / (fn - 1.0)  # overlapping windows (as above)
             est[b, 0], var[b, 0] = mu, s2 / fa
         else:
             est[b, 0], var[b, 0] = np.nan, np.inf
@@ -525,11 +529,12 @@ def _collision_summary(f, bsum, dt, min_rows, window, est, var):
 class CollisionStatistic:
     """:class:`CollisionForm`'s running statistic of B tracks (``update``, ``summary``)."""
 
-    def __init__(self, form: CollisionForm, batch: int, window: int = WINDOW, dt: float = 0.05):
+    def __init__(self, form: CollisionForm, batch: int, window: int = WINDOW, dt: float = 0.05,
+                 gain: float = 1.0):
         from sysid_bench.core.systems.collision import XL, XR, R
 
         B = int(batch)
-        self.form, self.window, self.dt = form, int(window), float(dt)
+        self.form, self.window, self.dt, self.gain = form, int(window), float(dt), float(gain)
         self.w = window_weights(self.window, dt)
         self.geometry = (float(R), float(XL), float(XR))
         self.buf = np.full((B, max(self.window + 1, 2 * form.K + 3), 2), np.nan)
@@ -552,8 +557,8 @@ class CollisionStatistic:
 
     def summary(self) -> tuple[np.ndarray, np.ndarray]:
         """``mu`` (m/s^2) and ``ew`` and their variances (B, 2); NaN and inf before any row."""
-        _collision_summary(self.f, self.b, self.dt, 1 + MIN_EXTRA, self.window, self.est,
-                           self.var)
+        _collision_summary(self.f, self.b, self.dt, 1 + MIN_EXTRA, self.window, self.gain,
+                           self.est, self.var)
         return self.est.copy(), self.var.copy()
 
 
@@ -577,6 +582,9 @@ def blend(mu, sd, est, var, lo, width, kappa, tau):
     return np.where(have, m, mu), np.where(have, 1.0 / np.sqrt(wn + wl), sd)
 
 
+#: The variance factor's gains tried (``WeakForm.statistic``): 0 leaves the residuals' variance
+#: as it is, 1 counts about one independent row per window length.
+GAINS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 #: The blend's search grid: ``kappa`` (a factor on the least-squares std, whose windows overlap
 #: and whose residuals are not white) and ``tau`` (a floor, normalised: the fit's own bias).
 KAPPAS = np.exp(np.linspace(np.log(0.3), np.log(30.0), 25))
