@@ -96,6 +96,10 @@ def test_the_blend_weighs_by_inverse_variance_and_keeps_the_network_without_evid
     m, s = blend(mu, sd, est, var, lo, width, 1.0, 0.0)
     assert m[0] == pytest.approx(0.35) and s[0] == pytest.approx(0.1 / np.sqrt(2))
     assert m[1] == 0.2 and s[1] == 0.1  # no estimate: the network's posterior
+    # a parameter only its evidence shows (the collision's ew before a wall bounce): the prior
+    m3, s3 = blend(mu, sd, est, var, lo, width, 1.0, 0.0, np.array([False, True]))
+    assert m3[0] == m[0] and (m3[1], s3[1]) == (0.5, pytest.approx(1 / np.sqrt(12)))
+    assert WEAK_FORMS["collision"].unseen_prior == ("ew",)
     # kappa and tau widen the estimate's variance
     m2, s2 = blend(mu, sd, est, var, lo, width, 2.0, 0.1)
     assert 0.2 < m2[0] < m[0] and s2[0] > s[0]

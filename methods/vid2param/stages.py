@@ -296,7 +296,8 @@ class WeakEvidence(Stage):
                 i, k = params.index(p), sys_.params.index(p)
                 lo, width = sys_.prior_lo[k], sys_.prior_hi[k] - sys_.prior_lo[k]
                 fits.append(fit_blend(m[..., i], s[..., i], est[..., j], var[..., j],
-                                      truth[:, k], lo, width))
+                                      truth[:, k], lo, width,
+                                      unseen_prior=p in form.unseen_prior))
             total = sum(f[2] for f in fits)
             ctx.log(f"  gain {gain:g}: " + ", ".join(
                 f"{p} kappa {f[0]:.3g} tau {f[1]:g} NLL {f[2]:.3f}"
@@ -322,6 +323,7 @@ class WeakEvidence(Stage):
         self._idx = [list(c.params).index(p) for p in self.params]
         self._lo = sys_.prior_lo[k]
         self._width = sys_.prior_hi[k] - sys_.prior_lo[k]
+        self._unseen = np.array([p in self.form.unseen_prior for p in self.params])
 
     def _blend(self, mu, sd, est, var):
         from methods.vid2param.weak_evidence import blend
@@ -329,7 +331,7 @@ class WeakEvidence(Stage):
         i = self._idx
         mu, sd = np.array(mu, dtype=np.float64), np.array(sd, dtype=np.float64)
         mu[..., i], sd[..., i] = blend(mu[..., i], sd[..., i], est, var, self._lo, self._width,
-                                       self.kappa, self.tau)
+                                       self.kappa, self.tau, self._unseen)
         return mu, sd
 
     def apply(self, mu, sd, track):
