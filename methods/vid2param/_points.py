@@ -200,15 +200,10 @@ class PointsModel:
     def posteriors(self, frames) -> tuple[np.ndarray, np.ndarray, np.ndarray, object]:
         """Every frame's normalised parameter posterior (N, T, P) (network order) after the
         stages, the network's points (N, T, K, 2) m, and the recurrent state after the last."""
-        from methods.vid2param.inference import latent_pass
+        from methods.vid2param.inference import system_posteriors
 
-        fr = self._frames(frames)
-        mu, sd, state = latent_pass(self._net, fr, self._dev)
-        m, s = mu[..., self._pidx], sd[..., self._pidx]
-        pts = self._points(mu[..., self._xidx])
-        for stage in self._pipeline.stages:
-            m, s = stage.apply(m, s, pts)
-        return m, s, pts, state
+        return system_posteriors(self._net, self._pipeline.stages, self._frames(frames),
+                                 self._dev, self._sys.extent)
 
     # -- the estimator --------------------------------------------------------------------------
     def identify(self, obs: Observation) -> Posterior:

@@ -66,6 +66,30 @@ def latent_pass(net, frames: np.ndarray, device) -> tuple[np.ndarray, np.ndarray
     return mu.cpu().numpy().astype(np.float64), sd.cpu().numpy().astype(np.float64), state
 
 
+def system_posteriors(net, stages, frames: np.ndarray, device, extent):
+    """A system's network (``presets.VIEW``) then ``stages`` over (N, T, H, W) checked videos.
+
+    Returns
+    -------
+    m, s : ndarray, shape (N, T, P)
+        Every frame's normalised parameter posterior after the stages, the network's order.
+    pts : ndarray, shape (N, T, K, 2)
+        The network's points, metres (``extent`` ``(x0, x1, y0, y1)`` of its view).
+    state : RecurrentState
+        After the last frame.
+    """
+    c = net.config
+    mu, sd, state = latent_pass(net, frames, device)
+    pidx = [c.targets.index(p) for p in c.params]
+    m, s = mu[..., pidx], sd[..., pidx]
+    x0, x1, y0, y1 = extent
+    p = mu[..., [c.targets.index(q) for q in c.positions]]
+    pts = p.reshape(*p.shape[:-1], -1, 2) * np.array([x1 - x0, y1 - y0]) + np.array([x0, y0])
+    for stage in stages:
+        m, s = stage.apply(m, s, pts)
+    return m, s, pts, state
+
+
 def floor_prior(train_record: dict | None) -> tuple[float, float]:
     """Prior mean and std (m) of the floor in the network's height frame, from a checkpoint's
     ``train`` record: a network trained with the floor raised by ``U(0, floor_offset)`` reads
@@ -152,28 +176,15 @@ class FitContext:
         return m, s, pos, sd
 
     def system_parameters(self, frames: np.ndarray, batch: int = 100):
-        """A system's network (``presets.VIEW``): the parameter posteriors after every frame of
-        (N, T, H, W) videos through the network and the stages so far, normalised mean and std
-        (N, T, P) in the network's parameter order, and its points (N, T, K, 2) m (as
-        ``_points.PointsModel.posteriors``), ``batch`` videos at a time."""
+        """:func:`system_posteriors` of (N, T, H, W) videos through the network and the stages
+        so far, ``batch`` videos at a time: mean, std (N, T, P), points (N, T, K, 2)."""
         from sysid_bench.core import systems
 
-        c = self.net.config
-        x0, x1, y0, y1 = systems.get(c.system).extent
-        pidx = [c.targets.index(p) for p in c.params]
-        xidx = [c.targets.index(p) for p in c.positions]
-        ms, ss, ps = [], [], []
-        for i in range(0, len(frames), int(batch)):
-            mu, sd, _ = latent_pass(self.net, np.asarray(frames[i:i + int(batch)]), self.device)
-            p = mu[..., xidx].reshape(*mu.shape[:-1], -1, 2)
-            pts = np.stack([x0 + (x1 - x0) * p[..., 0], y0 + (y1 - y0) * p[..., 1]], -1)
-            m, s = mu[..., pidx], sd[..., pidx]
-            for stage in self.pipeline.stages:
-                m, s = stage.apply(m, s, pts)
-            ms.append(m)
-            ss.append(s)
-            ps.append(pts)
-        return np.concatenate(ms), np.concatenate(ss), np.concatenate(ps)
+        extent = systems.get(self.net.config.system).extent
+        parts = [system_posteriors(self.net, self.pipeline.stages,
+                                   np.asarray(frames[i:i + int(batch)]), self.device, extent)[:3]
+                 for i in range(0, len(frames), int(batch))]
+        return tuple(np.concatenate(a) for a in zip(*parts))
 
     def track(self, frames: np.ndarray):
         """One video's (T, H, W) track (T, 2) m and parameter posterior after its last frame,
