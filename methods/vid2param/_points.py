@@ -457,8 +457,9 @@ class _StreamHead:
     of 2K and P elements -- each of those numpy calls costs microseconds of overhead on 4
     numbers. ``weak_evidence`` stages before the ``std_scale`` ones run as ``Pipeline.step``
     runs them (their compiled statistic, then the blend on arrays). :meth:`of` gives None (the
-    array path runs) for a pipeline with any other stage that changes the posterior; a system that overrides
-    ``check_posterior_mean`` has its posteriors built by the ordinary constructor. Built at
+    array path runs) for a pipeline with any other stage that changes the posterior; a system
+    that overrides ``check_posterior_mean`` has its posteriors built by the ordinary
+    constructor. Built at
     each :meth:`PointsStream.reset` (the stages it read then).
     """
 
@@ -471,7 +472,8 @@ class _StreamHead:
         # the weak_evidence stages (before every std_scale) and their index in the pipeline:
         # run on arrays, as Pipeline.step runs them
         self.weak = list(weak)
-        # per parameter in the system's order: its index in the latent and its stage factors
+        # per parameter in the system's order: its index in what posterior() reads (the latent;
+        # with weak stages, the network's parameters after them) and its stage factors
         latent = [model._pidx[k] for k in model._order] if not self.weak else list(model._order)
         self.factors = [[f[k] for f in factors] for k in model._order]
         self.bounds = (model._lo, model._hi)  # the samples' clip, the arrays _params passes

@@ -26,7 +26,8 @@ stage                   needs -> gives             what it is
                         physics_scale              (``calibrate_physics``)
 ``weak_evidence``       theta, track -> theta      a system's damping read off the track by a
                                                    weak-form least-squares fit and blended in
-                                                   (``weak_evidence``; pendulum and spring)
+                                                   (``weak_evidence``; pendulum, spring,
+                                                   collision)
 ======================  =========================  =========================================
 
 Which stages a model gets is its system's configuration (``presets.Preset.stages``): the drag
