@@ -163,3 +163,30 @@ def test_identify_follows_the_box_and_shows_it(clip, clip_file, tmp_path, capsys
     from PIL import Image
 
     assert Image.open(out / "track.png").size[0] > 1000  # the box's panel beside the fits
+
+
+def test_a_boxed_ball_is_identified(tmp_path, capsys):
+    """The ball's camera path follows a boxed ball too (it once stopped with no observation:
+    the box branch built no camera)."""
+    from scipy.ndimage import gaussian_filter
+
+    from sysid_bench.apps.cli import main
+
+    rng = np.random.default_rng(1)
+    h, w, n = 200, 120, 12
+    bg = 110 + gaussian_filter(rng.normal(size=(h, w)), 4) * 120
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    frames = []
+    for t in range(n):  # falling from rest: 9.81 m/s^2 at 100 px/m and 20 frames/s
+        cy = 30 + 0.5 * 981 * (t / 20) ** 2
+        disc = np.clip(11.5 - np.hypot(yy - cy, xx - 60), 0, 1)
+        img = bg * (1 - disc) + (200 - 2.5 * (yy - cy) - 1.5 * (xx - 60)) * disc
+        frames.append(np.clip(img + rng.normal(0, 2, img.shape), 0, 255).astype(np.uint8))
+    path = footage.write_video(tmp_path / "ball.mp4", np.array(frames), fps=20)
+    out = tmp_path / "o"
+    assert main(["identify", str(path), "--object-box", "48", "18", "24", "24", "--px-per-m",
+                 "100", "--method", "lsq", "--every", "1000", "--out", str(out),
+                 "--no-progress"]) == 0, capsys.readouterr().err
+    info = json.loads((out / "estimates.json").read_text())
+    assert info["object_box"] == [48, 18, 24, 24]
+    assert info["frames_with_ball"] >= n - 1  # in view throughout

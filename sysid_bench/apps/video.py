@@ -301,17 +301,19 @@ def identify_video(path, *, method: str | None = None, checkpoint: str | None = 
         notes.append(f"the clip is {w}x{h}, not the renderer's square view of the box: read as "
                      "a camera's, its scale from the ball's fall and the known g")
     followed = None
-    if camera and object_box is not None:
-        box = check_box(object_box, (h, w))
-        trk = follow_object_box(frames, box, progress=show)
-        followed = {"box": box, "frame": frames[0]}
-        notes.append(f"the ball followed by its appearance from the box {box[2]}x{box[3]} px at "
-                     f"column {box[0]}, row {box[1]} of the first frame (--object-box): seen in "
-                     f"{trk.n_found} of {t_n} frames, not seen where its best match was weak")
-    elif camera:
-        trk = find_object(frames, progress=show, colour=None if clip.colour_frames is None
-                          else rotate_frames(clip.colour_frames, int(rotate)),
-                          chroma_px=turned_chroma(clip.chroma_px, int(rotate)))
+    if camera:
+        if object_box is not None:
+            box = check_box(object_box, (h, w))
+            trk = follow_object_box(frames, box, progress=show)
+            followed = {"box": box, "frame": frames[0]}
+            notes.append(f"the ball followed by its appearance from the box {box[2]}x{box[3]} px "
+                         f"at column {box[0]}, row {box[1]} of the first frame (--object-box): "
+                         f"seen in {trk.n_found} of {t_n} frames, not seen where its best match "
+                         "was weak")
+        else:
+            trk = find_object(frames, progress=show, colour=None if clip.colour_frames is None
+                              else rotate_frames(clip.colour_frames, int(rotate)),
+                              chroma_px=turned_chroma(clip.chroma_px, int(rotate)))
         if trk.n_found < 3:
             raise VideoError(f"{path}: the ball was found in {trk.n_found} of {t_n} frames; "
                              "the camera and the methods need a track (at least 3 frames)")
