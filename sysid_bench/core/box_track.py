@@ -293,6 +293,11 @@ def follow_box(frames, box, *, min_score: float = MIN_SCORE, margin: int | None 
         lost = t - k - 1
         pred = tl[k] + vel * (t - k)
         radius = min(margin * (1 + lost), max_radius)
+        if len(last) < 2:
+            # no velocity yet, so no prediction: twice the window (a 38 px ball falling from
+            # the first frame left a quarter side's window at once, and a patch of the
+            # background then matched it at 0.56-0.77)
+            radius = min(2 * radius, max_radius)
         if cur is None:
             cur = _Template(tmpl, blocks)
         pyr = _Pyramid(fr[t], blocks)
