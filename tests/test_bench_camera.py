@@ -56,10 +56,14 @@ def test_one_cells_rows(ran):
 
 
 @pytest.mark.slow
-def test_a_held_value_is_left_out_of_the_scores(ran):
-    # the pendulum's clips give --known L or g: lsq holds it, the rows say so and score the rest
-    d, _ = ran
-    pend = execute(EXPERIMENTS["camera"].cells(SMOKE, ["lsq"], "pendulum")[0], SMOKE, str(d))
+def test_a_held_value_is_left_out_of_the_scores(tmp_path, monkeypatch):
+    # the pendulum's clips give --known L or g: lsq holds it, the rows say so and score the rest;
+    # filmed at the default scale's frame size (at the smoke scale's 320x180 the bob is a few
+    # pixels and the clip is refused: not an arc about one pivot)
+    monkeypatch.setitem(cam_exp.CONFIG, "smoke", {**cam_exp.CONFIG["smoke"], "size": (360, 640)})
+    pend = execute(EXPERIMENTS["camera"].cells(SMOKE, ["lsq"], "pendulum")[0], SMOKE,
+                   str(tmp_path))
+    assert pend["status"] == "ok", pend["error"]
     metrics = {r.metric for r in pend["rows"]}
     assert "held_g" in metrics or "held_L" in metrics
     held = next(m[5:] for m in metrics if m.startswith("held_"))
