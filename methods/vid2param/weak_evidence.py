@@ -2,25 +2,24 @@
 posterior (the ``weak_evidence`` stage, :mod:`methods.vid2param.stages`).
 
 A system's network reads its stiffness-like parameters from the period (the pendulum's g, the
-spring's w2) but its damping only slowly (after 6000 training steps the pendulum's b and mu and
-the spring's c were at 0.03-0.05 normalised MSE, the spring's k3 at guessing level), though its
-track holds them: the keypoints are 0.02-0.03 px RMS off the truth on its own render. The
-equation of motion is linear in those parameters given the state, so a least-squares fit reads
-them; second differences of the track would drown them in noise (the noise's second
-difference is ``sqrt(6) sigma / dt^2``), so each window of ``WINDOW + 1`` frames is multiplied
-by a smooth test function ``phi`` (zero with its slope at both ends) and integrated by parts
-twice, which moves every derivative onto ``phi``::
+spring's w2) but its damping only slowly, though its track holds it (its keypoints are a few
+hundredths of a pixel off the truth on its own render). The equation of motion is linear in
+the damping given the state, so a least-squares fit reads it; second differences of the track
+would drown it in noise (the noise's second difference is ``sqrt(6) sigma / dt^2``), so each
+window of ``WINDOW + 1`` frames is weighed by a smooth test function ``phi`` (zero at both ends)
+and summed by parts twice, which moves every derivative onto ``phi``::
 
     x'' = sum_j a_j f_j(x, x')   ->   sum_t phi''_t x_t = sum_j a_j sum_t phi_t f_j(x_t, x'_t)
 
 (a damping term ``-c x'`` becomes ``+c sum_t phi'_t x_t``: no derivative of the track at all).
 Every window ending at a frame is one row of a running least-squares problem; after each
-frame its solution and covariance (``sigma^2 (Phi^T Phi)^-1``, ``sigma^2`` from the residuals)
-give an estimate of the parameters, blended with the network's posterior by inverse variance
-with the estimate's variance ``(kappa sd)^2 + tau^2`` (``kappa``, ``tau`` per parameter fitted
-by Gaussian NLL on train-split videos, the network frozen). Measured with the true tracks plus
-0.03 px of noise on 300 test-split pendulums and springs (200 frames): b 0.0024, mu 0.0052, c
-1e-5, k3 0.003 normalised MSE with 16-frame windows (second differences: b 0.014, mu 0.039).
+frame its solution and covariance (``sigma^2 (Phi^T Phi)^-1``, ``sigma^2`` from the residuals,
+times ``1 + gain (W + 1) C / (n - C)`` for the overlapping windows) give an estimate, blended
+with the network's posterior by inverse variance with the estimate's variance ``(kappa sd)^2 +
+tau^2`` (``kappa``, ``tau`` per parameter and ``gain`` fitted by Gaussian NLL on train-split
+videos, the network frozen). The collision's friction comes from such windows, its wall
+restitution from the bounces (:class:`CollisionForm`). What each reads: the model card,
+"Session 31".
 
 As the ball's drag evidence (:mod:`methods.vid2param.drag`) the blend is not fed back into the
 recurrence: the network runs as trained.
